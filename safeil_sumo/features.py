@@ -1,0 +1,32 @@
+"""The planner's inputs: one feature function shared by training data and the closed loop.
+
+The paper's 9 features, in this order (all in the ego frame, SI units):
+``c0l, c1l, c2l`` left lane line, ``c0r, c1r, c2r`` right lane line (``y = c0 + c1 x + c2 x^2``,
+y left, [m], [-], [1/m]), ``v_x`` ego speed [m/s], ``v_lead`` leader speed [m/s],
+``d_lead`` bumper-to-bumper distance to the leader [m].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+FEATURE_NAMES = ("c0l", "c1l", "c2l", "c0r", "c1r", "c2r", "v_x", "v_lead", "d_lead")
+N_FEATURES = len(FEATURE_NAMES)
+
+
+def planner_features(
+    left_line: np.ndarray,
+    right_line: np.ndarray,
+    v_x: np.ndarray | float,
+    v_lead: np.ndarray | float,
+    d_lead: np.ndarray | float,
+) -> np.ndarray:
+    """Stack the features ``(..., 9)``.
+
+    ``left_line`` / ``right_line``: polynomial coefficients ``(..., k)`` with k >= 3 in increasing
+    order (c0, c1, c2[, c3]); only c0..c2 are used, as in the paper.
+    """
+    left = np.asarray(left_line, dtype=float)[..., :3]
+    right = np.asarray(right_line, dtype=float)[..., :3]
+    scalars = np.stack(np.broadcast_arrays(v_x, v_lead, d_lead), axis=-1).astype(float)
+    return np.concatenate([left, right, scalars], axis=-1)

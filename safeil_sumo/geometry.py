@@ -1,0 +1,168 @@
+"""Planar geometry: frames, polylines, projections and Frenet offsets — pure numpy.
+
+Conventions used across the package:
+- world frame: SUMO's network coordinates, x east, y north [m]; yaw [rad] counter-clockwise from +x.
+- ego frame: origin at the ego's FRONT-bumper centre (SUMO's vehicle position), x forward, y left.
+- SUMO angles are navigation degrees: 0 = north, clockwise; ``sumo = 90 - deg(yaw)``.
+- signed lateral offsets ``d`` are positive to the LEFT of a polyline's direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
+    """Wrap an angle [rad] into [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def yaw_to_sumo_angle(yaw: float) -> float:
+    """Mathematical yaw [rad] -> SUMO navigation angle [deg] (0 = north, clockwise)."""
+    return float((90.0 - np.degrees(yaw)) % 360.0)
+
+
+def sumo_angle_to_yaw(angle_deg: float) -> float:
+    """SUMO navigation angle [deg] -> mathematical yaw [rad] in [-pi, pi)."""
+    return float(wrap_angle(np.radians(90.0 - angle_deg)))
+
+
+def world_to_ego(points: np.ndarray, origin: np.ndarray, yaw: float) -> np.ndarray:
+    """Express world points ``(..., 2)`` in the frame at ``origin (2,)`` rotated by ``yaw`` [rad]."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    d = np.asarray(points, dtype=float) - np.asarray(origin, dtype=float)
+    return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
+
+
+def ego_to_world(points: np.ndarray, origin: np.ndarray, yaw: float) -> np.ndarray:
+    """Inverse of :func:`world_to_ego`: ego-frame points ``(..., 2)`` to world coordinates."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    p = np.asarray(points, dtype=float)
+    x = c * p[..., 0] - s * p[..., 1] + origin[0]
+    y = s * p[..., 0] + c * p[..., 1] + origin[1]
+    return np.stack([x, y], axis=-1)
+
+
+def rectangle_corners(center: np.ndarray, yaw: float, length: float, width: float) -> np.ndarray:
+    """Corners ``(4, 2)`` of a ``length`` x ``width`` [m] box centred at ``center``, heading ``yaw``.
+
+    Order: front-left, front-right, rear-right, rear-left.
+    """
+    hl, hw = 0.5 * length, 0.5 * width
+    local = np.array([[hl, hw], [hl, -hw], [-hl, -hw], [-hl, hw]])
+    return ego_to_world(local, np.asarray(center, dtype=float), yaw)
+
+
+def rectangles_overlap(a: np.ndarray, b: np.ndarray) -> bool:
+    """Separating-axis test for two convex quadrilaterals given as corners ``(4, 2)``."""
+    for poly in (a, b):
+        edges = np.roll(poly, -1, axis=0) - poly
+        normals = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
+        pa = a @ normals.T  # (4, 4): corner x axis
+        pb = b @ normals.T
+        if np.any((pa.max(axis=0) < pb.min(axis=0)) | (pb.max(axis=0) < pa.min(axis=0))):
+            return False
+    return True
+
+
+def cumulative_length(points: np.ndarray) -> np.ndarray:
+    """Arc length ``(N,)`` [m] at each vertex of a polyline ``(N, 2)``, starting at 0."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(seg)])
+
+
+def offset_polyline(points: np.ndarray, offset: float) -> np.ndarray:
+    """Shift a polyline ``(N, 2)`` sideways by ``offset`` [m] (positive = left).
+
+    Interior vertices move along the angle bisector (miter), so straight pieces stay parallel at
+    exactly ``offset`` and arcs sampled as chords map to the concentric arc's chords.
+    """
+    p = np.asarray(points, dtype=float)
+    t = np.diff(p, axis=0)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    n = np.stack([-t[:, 1], t[:, 0]], axis=1)  # left normals per segment
+    vn = np.empty_like(p)
+    vn[0], vn[-1] = n[0], n[-1]
+    if len(p) > 2:
+        m = n[:-1] + n[1:]
+        m /= np.linalg.norm(m, axis=1, keepdims=True)
+        cos_half = np.sum(m * n[1:], axis=1, keepdims=True)
+        vn[1:-1] = m / np.maximum(cos_half, 1e-6)
+    return p + offset * vn
+
+
+@dataclass(frozen=True)
+class Polyline:
+    """An immutable polyline with precomputed arc length, for projections and sampling.
+
+    ``points`` has shape ``(N, 2)`` [m], N >= 2, no repeated consecutive vertices.
+    """
+
+    points: np.ndarray
+    s: np.ndarray = field(init=False, repr=False)  # (N,) arc length at vertices [m]
+    _tangents: np.ndarray = field(init=False, repr=False)  # (N-1, 2) unit segment directions
+    _seg_len: np.ndarray = field(init=False, repr=False)  # (N-1,) [m]
+
+    def __post_init__(self) -> None:
+        p = np.ascontiguousarray(self.points, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2:
+            raise ValueError(f"a polyline needs shape (N>=2, 2), got {p.shape}")
+        seg = np.diff(p, axis=0)
+        seg_len = np.linalg.norm(seg, axis=1)
+        if np.any(seg_len <= 1e-9):
+            raise ValueError("polyline has repeated consecutive vertices")
+        object.__setattr__(self, "points", p)
+        object.__setattr__(self, "_seg_len", seg_len)
+        object.__setattr__(self, "_tangents", seg / seg_len[:, None])
+        object.__setattr__(self, "s", np.concatenate([[0.0], np.cumsum(seg_len)]))
+
+    @property
+    def length(self) -> float:
+        """Total arc length [m]."""
+        return float(self.s[-1])
+
+    def project(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Frenet coordinates of points ``(..., 2)``: arc length ``s`` and signed offset ``d``.
+
+        Points before the start / after the end are projected on the extended first / last
+        segment, so ``s`` may be negative or exceed :attr:`length` and ``d`` stays meaningful.
+        """
+        q = np.asarray(xy, dtype=float)
+        flat = q.reshape(-1, 2)
+        a = self.points[:-1]  # (M, 2)
+        rel = flat[:, None, :] - a[None, :, :]  # (P, M, 2)
+        along = np.einsum("pmk,mk->pm", rel, self._tangents)
+        along_c = np.clip(along, 0.0, self._seg_len[None, :])
+        # the end segments extend beyond the polyline's ends
+        along_c[:, 0] = np.minimum(along[:, 0], self._seg_len[0])
+        along_c[:, -1] = np.maximum(along[:, -1], 0.0) if len(a) > 1 else along[:, -1]
+        foot = a[None, :, :] + along_c[..., None] * self._tangents[None, :, :]
+        dist2 = np.sum((flat[:, None, :] - foot) ** 2, axis=2)
+        best = np.argmin(dist2, axis=1)
+        idx = np.arange(len(flat))
+        t = self._tangents[best]
+        r = rel[idx, best]
+        s = self.s[best] + along_c[idx, best]
+        d = t[:, 0] * r[:, 1] - t[:, 1] * r[:, 0]
+        shape = q.shape[:-1]
+        return s.reshape(shape), d.reshape(shape)
+
+    def point_at(self, s: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """Position ``(..., 2)`` and heading [rad] at arc length ``s``; extrapolates linearly."""
+        s_arr = np.asarray(s, dtype=float)
+        i = np.clip(np.searchsorted(self.s, s_arr, side="right") - 1, 0, len(self._seg_len) - 1)
+        t = self._tangents[i]
+        xy = self.points[i] + (s_arr - self.s[i])[..., None] * t
+        return xy, np.arctan2(t[..., 1], t[..., 0])
+
+    def resample(self, spacing: float) -> Polyline:
+        """A polyline through points every ``spacing`` [m] along this one (ends kept)."""
+        n = max(int(np.ceil(self.length / spacing)), 1)
+        xy, _ = self.point_at(np.linspace(0.0, self.length, n + 1))
+        return Polyline(xy)
+
+    def offset(self, d: float) -> Polyline:
+        """The parallel polyline at lateral offset ``d`` [m] (positive = left)."""
+        return Polyline(offset_polyline(self.points, d))
