@@ -29,6 +29,7 @@ class Lane:
     lane_id: str
     index: int
     width: float
+    sumo_length: float  # SUMO's lane length [m]; lane positions scale by sumo_length / centre.length
     centre: Polyline
     left_boundary: Polyline
     right_boundary: Polyline
@@ -113,6 +114,7 @@ def load_road(net_path: str | Path, edge_id: str | None = None, ego_lane: int | 
                 lane_id=el.get("id", ""),
                 index=int(el.get("index", len(lanes))),
                 width=width,
+                sumo_length=float(el.get("length", centre.length)),
                 centre=centre,
                 left_boundary=centre.offset(0.5 * width),
                 right_boundary=centre.offset(-0.5 * width),

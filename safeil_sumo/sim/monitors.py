@@ -1,0 +1,98 @@
+"""Safety monitors — pure functions on footprints, lane geometry and speeds (no SUMO).
+
+The paper raises a flag when the ego leaves its lane or when TTC <= 1 s, and reports the
+percentage of the path completed before the first flag. Collisions are flagged too (footprint
+overlap, cross-checked in the runner with SUMO's collision list).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+FLAG_NONE = ""
+FLAG_LANE = "lane_departure"
+FLAG_TTC = "ttc"
+FLAG_COLLISION = "collision"
+
+
+@dataclass(frozen=True)
+class MonitorConfig:
+    """Thresholds of the safety flags."""
+
+    ttc_threshold_s: float = 1.0  # flag when TTC <= this [s] (the paper's value)
+    lane_margin_m: float = 0.0  # tolerance beyond the lane boundary before flagging [m]
+
+    def __post_init__(self) -> None:
+        if self.ttc_threshold_s <= 0:
+            raise ValueError("MonitorConfig.ttc_threshold_s must be > 0")
+
+
+def time_to_collision(gap: float, v_ego: float, v_lead: float) -> float:
+    """TTC [s] = bumper gap [m] / closing speed [m/s]; ``inf`` when not closing.
+
+    A gap <= 0 (overlap) gives 0.
+    """
+    if gap <= 0.0:
+        return 0.0
+    closing = v_ego - v_lead
+    return gap / closing if closing > 0.0 else math.inf
+
+
+def footprint_lane_offsets(corner_offsets: np.ndarray) -> tuple[float, float]:
+    """Smallest and largest signed lateral offset [m] of the footprint corners ``(4,)``."""
+    return float(np.min(corner_offsets)), float(np.max(corner_offsets))
+
+
+def lane_departure(
+    min_offset: float, max_offset: float, lane_width: float, margin: float = 0.0
+) -> bool:
+    """True when any part of the footprint lies outside ``±(lane_width/2 + margin)`` [m]."""
+    half = 0.5 * lane_width + margin
+    return max_offset > half or min_offset < -half
+
+
+def corner_offsets(
+    centre_d: float, heading_error: float, length: float, width: float, rear_to_front: float = 0.0
+) -> np.ndarray:
+    """Lateral offsets ``(4,)`` [m] of the footprint corners from a locally straight lane centre.
+
+    ``centre_d``: signed offset of the FRONT-bumper centre [m]; ``heading_error``: vehicle yaw
+    minus lane heading [rad]. Corners: front-left, front-right, rear-right, rear-left. Exact on a
+    straight lane; on a 500 m arc the error over a 4.5 m body is ~2 cm (sagitta), acceptable.
+    """
+    s, c = math.sin(heading_error), math.cos(heading_error)
+    hw = 0.5 * width
+    # (x, y) of corners in the vehicle frame at the front bumper, rotated into the lane frame
+    xs = (0.0, 0.0, -length, -length)
+    ys = (hw, -hw, -hw, hw)
+    return np.array([centre_d + x * s + y * c for x, y in zip(xs, ys)])
+
+
+def path_completed(s: float, start: float, end: float) -> float:
+    """Fraction [0, 1] of the test path ``[start, end]`` [m] covered at arc length ``s``."""
+    return float(min(max((s - start) / (end - start), 0.0), 1.0))
+
+
+@dataclass(frozen=True)
+class FirstFlag:
+    """The first safety flag of a run: ``reason`` ("" when none), time [s], path fraction."""
+
+    reason: str
+    time_s: float
+    path_fraction: float
+
+
+def first_flag(
+    times: np.ndarray, fractions: np.ndarray, lane: np.ndarray, ttc_flag: np.ndarray,
+    collision: np.ndarray,
+) -> FirstFlag:
+    """The earliest flag in per-step boolean logs ``(N,)``; ties name collision > ttc > lane."""
+    any_flag = lane | ttc_flag | collision
+    if not np.any(any_flag):
+        return FirstFlag(FLAG_NONE, math.nan, float(fractions[-1]) if len(fractions) else 0.0)
+    i = int(np.argmax(any_flag))
+    reason = FLAG_COLLISION if collision[i] else FLAG_TTC if ttc_flag[i] else FLAG_LANE
+    return FirstFlag(reason, float(times[i]), float(fractions[i]))

@@ -1,0 +1,360 @@
+"""The closed loop: SUMO scenario + sensors + policy + tracking controller + vehicle plant + monitors.
+
+Every step (``step_s``, 0.01 s by default): the controller tracks the current plan, our vehicle
+plant advances the ego, the ego is moved in SUMO with ``moveToXY(keepRoute=2)`` + ``setSpeed``,
+the leader gets its profile speed, SUMO steps, and the monitors log TTC, lane departure and
+collisions. At ``plan_rate_hz`` the camera and radar are read and the policy re-plans.
+The runner receives the SUMO API (libsumo, traci or a fake) through :mod:`sumo_api`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from safeil_sumo.features import planner_features
+from safeil_sumo.geometry import rectangle_corners, rectangles_overlap, sumo_angle_to_yaw
+from safeil_sumo.geometry import wrap_angle, yaw_to_sumo_angle
+from safeil_sumo.policy import Policy
+from safeil_sumo.scenarios.road import Road
+from safeil_sumo.sim import controller as ctl
+from safeil_sumo.sim import monitors as mon
+from safeil_sumo.sim import sensors as sen
+from safeil_sumo.sim import sumo_api
+from safeil_sumo.sim import vehicle as veh
+from safeil_sumo.sim.leaders import SpeedProfile
+
+EGO_ID = "ego"
+LEADER_ID = "leader"
+ROUTE_ID = "r_ego"
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One closed-loop test: a road, a leader speed profile and the ego's initial state.
+
+    The paper fixes the leader (constant speed in [25, 32] m/s) but leaves the ego's initial
+    state open; we start the ego at ``ego_speed_mps`` = 30 m/s (~108 km/h, close to the paper's
+    115 km/h data) with a bumper-to-bumper gap of ``initial_gap_m`` = 50 m (~1.7 s), at the
+    start of the test path.
+    """
+
+    name: str
+    road: Road
+    leader: SpeedProfile | None
+    ego_speed_mps: float = 30.0  # ego initial speed [m/s]
+    initial_gap_m: float = 50.0  # initial bumper-to-bumper gap to the leader [m]
+    seed: int = 0  # seeds SUMO and the sensor noise
+    sensors: sen.SensorConfig = field(default_factory=sen.SensorConfig)
+    monitors: mon.MonitorConfig = field(default_factory=mon.MonitorConfig)
+
+    def __post_init__(self) -> None:
+        if not self.ego_speed_mps >= 0:
+            raise ValueError(f"ego initial speed must be >= 0 m/s, got {self.ego_speed_mps}")
+        if not self.initial_gap_m > 0:
+            raise ValueError(f"initial gap must be > 0 m, got {self.initial_gap_m}")
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """How the loop runs."""
+
+    step_s: float = 0.01  # SUMO and plant step [s] (the paper's digital-twin step)
+    plan_rate_hz: float = 10.0  # re-planning rate [Hz]
+    max_time_s: float | None = None  # None: 2x the path at the initial speed + 10 s [s]
+    stop_on_flag: bool = False  # end the run at the first safety flag
+    offroad_stop_m: float = 6.0  # end the run when the ego centre is this far off its lane [m]
+    backend: str = "libsumo"  # "libsumo" | "traci"
+    gui: bool = False  # sumo-gui (traci backend only)
+    ssm_file: Path | None = None  # write SUMO's SSM device output for the ego here
+
+    def __post_init__(self) -> None:
+        if not 0 < self.step_s <= 0.1:
+            raise ValueError(f"step_s must be in (0, 0.1] s, got {self.step_s}")
+        if not 0 < self.plan_rate_hz <= 1.0 / self.step_s:
+            raise ValueError(f"plan_rate_hz must be in (0, {1.0 / self.step_s:g}] Hz")
+
+
+@dataclass(frozen=True)
+class Rollout:
+    """A finished run: per-step ``log`` and a flat ``summary`` of the scenario."""
+
+    log: pd.DataFrame
+    summary: dict
+
+
+ApiFactory = Callable[[Sequence[str]], sumo_api.SumoApi]
+
+
+def sumo_args(scenario: Scenario, loop: LoopConfig) -> list[str]:
+    """SUMO command-line options of a run (see DESIGN.md: collision detection for a remote ego)."""
+    args = [
+        "-n", str(scenario.road.net_path),
+        "--step-length", f"{loop.step_s}",
+        "--seed", str(scenario.seed),
+        "--no-step-log", "true",
+        "--no-warnings", "true",
+        "--collision.action", "warn",
+        "--collision.mingap-factor", "0",
+        "--time-to-teleport", "-1",
+    ]
+    if loop.ssm_file is not None:
+        args += [
+            "--device.ssm.explicit", EGO_ID,
+            "--device.ssm.measures", "TTC DRAC PET",
+            "--device.ssm.file", str(loop.ssm_file),
+        ]
+    return args
+
+
+def _default_factory(loop: LoopConfig) -> ApiFactory:
+    return lambda args: sumo_api.start(args, backend=loop.backend, gui=loop.gui)
+
+
+def run_scenario(
+    scenario: Scenario,
+    policy: Policy,
+    loop: LoopConfig = LoopConfig(),
+    vehicle: veh.VehicleParams = veh.VehicleParams(),
+    controller: ctl.ControllerParams = ctl.ControllerParams(),
+    api_factory: ApiFactory | None = None,
+) -> Rollout:
+    """Run one scenario closed-loop and return its log and summary.
+
+    SUMO is always closed, also on error; an exception inside the loop ends the run with
+    ``end_reason="error"`` and keeps the log up to that step.
+    """
+    road = scenario.road
+    lane = road.lanes[road.ego_lane]
+    centre = lane.centre
+    scale = lane.sumo_length / centre.length  # SUMO lane position per geometric metre
+    rng = np.random.default_rng(scenario.seed)
+    dt = loop.step_s
+    plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
+    max_time = loop.max_time_s or 2.0 * road.path_length / max(scenario.ego_speed_mps, 5.0) + 10.0
+    n_max = int(math.ceil(max_time / dt))
+
+    # initial states: ego front bumper at the path start, leader ahead by the gap
+    s_ego0 = road.path_start_s
+    start_xy, start_yaw = centre.point_at(s_ego0)
+    state = veh.state_from_front_bumper(
+        float(start_xy[0]), float(start_xy[1]), float(start_yaw), scenario.ego_speed_mps, vehicle
+    )
+    s_leader_front0 = s_ego0 + scenario.initial_gap_m + vehicle.length_m
+
+    factory = api_factory or _default_factory(loop)
+    api = factory(sumo_args(scenario, loop))
+    log = _Log(n_max)
+    end_reason = "timeout"
+    error = ""
+    wall0 = time.perf_counter()
+    try:
+        api.route.add(ROUTE_ID, [road.edge_id])
+        api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=str(road.ego_lane),
+                        departPos=f"{min(s_ego0, centre.length) * scale:.3f}",
+                        departSpeed=f"{scenario.ego_speed_mps:.3f}")
+        _configure(api, EGO_ID, vehicle)
+        has_leader = scenario.leader is not None
+        if has_leader:
+            api.vehicle.add(LEADER_ID, ROUTE_ID, depart="now", departLane=str(road.ego_lane),
+                            departPos=f"{s_leader_front0 * scale:.3f}",
+                            departSpeed=f"{scenario.leader.initial_speed * scale:.3f}")
+            _configure(api, LEADER_ID, vehicle)
+        _move_ego(api, state, vehicle)
+        api.simulation.step()
+
+        ctrl_state = ctl.ControllerState()
+        target = None
+        t_plan = 0.0
+        features = np.zeros(9)
+        leader = _read_leader(api, vehicle) if has_leader else None
+        for k in range(n_max):
+            t = k * dt
+            front = veh.front_bumper(state, vehicle)
+            front_xy = np.array(front)
+            if k % plan_every == 0:
+                left, right, _ = sen.camera_lane_lines(road, front_xy, state.yaw,
+                                                       scenario.sensors, rng)
+                target_r = sen.radar_leader(
+                    front_xy, state.yaw, None if leader is None else leader[0],
+                    0.0 if leader is None else leader[1] / scale, left, right,
+                    scenario.sensors, rng)
+                v_lead, d_lead = sen.leader_features(target_r, veh.speed(state), scenario.sensors)
+                features = planner_features(left, right, veh.speed(state), v_lead, d_lead)
+                plan = policy.plan(features)
+                target = ctl.make_target(plan, policy.horizon, (front[0], front[1], state.yaw))
+                t_plan = t
+            steer_cmd, accel_cmd, ctrl_state = ctl.track(
+                target, t - t_plan, state, vehicle, ctrl_state, controller, dt)
+            throttle, brake = veh.pedals_from_accel(accel_cmd, state, vehicle)
+            state = veh.step(state, steer_cmd, throttle, brake, vehicle, dt)
+
+            _move_ego(api, state, vehicle)
+            if has_leader and leader is not None:
+                v_cmd = float(scenario.leader.speed_at(t + dt)) * scale
+                api.vehicle.setSpeed(LEADER_ID, v_cmd)
+            api.simulation.step()
+            colliding = EGO_ID in api.simulation.getCollidingVehiclesIDList()
+            leader = _read_leader(api, vehicle) if has_leader and leader is not None else None
+
+            # monitors on the state at t + dt
+            front = veh.front_bumper(state, vehicle)
+            s_arr, d_arr = centre.project(np.array(front))
+            s, d = float(s_arr), float(d_arr)
+            _, lane_heading = centre.point_at(s)
+            heading_err = float(wrap_angle(state.yaw - float(lane_heading)))
+            offsets = mon.corner_offsets(d, heading_err, vehicle.length_m, vehicle.width_m)
+            d_min, d_max = mon.footprint_lane_offsets(offsets)
+            departed = mon.lane_departure(d_min, d_max, lane.width, scenario.monitors.lane_margin_m)
+            v = veh.speed(state)
+            gap, ttc, v_lead_true = math.inf, math.inf, math.nan
+            if leader is not None:
+                (lead_rear, v_lead_sumo, lead_yaw, lead_front) = leader
+                v_lead_true = v_lead_sumo / scale
+                s_lead_rear = float(centre.project(lead_rear)[0])
+                gap = s_lead_rear - s
+                ttc = mon.time_to_collision(gap, v, v_lead_true)
+                if gap < 2.0 * vehicle.length_m and not colliding:
+                    ego_box = rectangle_corners(
+                        _centre_xy(front, state.yaw, vehicle), state.yaw,
+                        vehicle.length_m, vehicle.width_m)
+                    lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
+                    lead_box = rectangle_corners(lead_centre, lead_yaw,
+                                                 vehicle.length_m, vehicle.width_m)
+                    colliding = rectangles_overlap(ego_box, lead_box)
+            ttc_flag = ttc <= scenario.monitors.ttc_threshold_s
+            fraction = mon.path_completed(s, road.path_start_s, road.path_end_s)
+            log.append(t + dt, state, front, steer_cmd, accel_cmd, s, d, d_min, d_max,
+                       features, leader, gap, ttc, v_lead_true, departed, ttc_flag,
+                       colliding, fraction)
+
+            if s >= road.path_end_s:
+                end_reason = "completed"
+                break
+            if colliding:
+                end_reason = "collision"
+                break
+            if abs(d) > 0.5 * lane.width + loop.offroad_stop_m:
+                end_reason = "off_road"
+                break
+            if loop.stop_on_flag and (departed or ttc_flag):
+                end_reason = "flag"
+                break
+    except Exception as exc:  # keep the log so far; the reason is recorded, not swallowed
+        end_reason = "error"
+        error = f"{type(exc).__name__}: {exc}"
+    finally:
+        try:
+            api.close()
+        except Exception:
+            pass
+    wall = time.perf_counter() - wall0
+    frame = log.frame()
+    summary = summarize(scenario, frame, end_reason, error, wall, policy.name)
+    return Rollout(frame, summary)
+
+
+def summarize(
+    scenario: Scenario, log: pd.DataFrame, end_reason: str, error: str, wall_s: float,
+    policy_name: str,
+) -> dict:
+    """Flat per-scenario summary (what the sweeps and the paper's bar chart need)."""
+    n = len(log)
+    times = log["t"].to_numpy()
+    flag = mon.first_flag(
+        times, log["path_fraction"].to_numpy(), log["lane_departure"].to_numpy(bool),
+        log["ttc_flag"].to_numpy(bool), log["collision"].to_numpy(bool),
+    ) if n else mon.FirstFlag("", math.nan, 0.0)
+    leader = scenario.leader
+    return {
+        "scenario": scenario.name,
+        "policy": policy_name,
+        "net": scenario.road.net_path.stem.removesuffix(".net"),
+        "seed": scenario.seed,
+        "leader_speed_mps": float(np.mean(leader.speeds)) if leader is not None else math.nan,
+        "ego_speed0_mps": scenario.ego_speed_mps,
+        "initial_gap_m": scenario.initial_gap_m,
+        "end_reason": end_reason,
+        "error": error,
+        "completed": bool(end_reason == "completed" and flag.reason == ""),
+        "path_completed": flag.path_fraction if flag.reason else (
+            float(log["path_fraction"].iloc[-1]) if n else 0.0),
+        "flag": flag.reason,
+        "flag_time_s": flag.time_s,
+        "min_ttc_s": float(log["ttc"].min()) if n else math.nan,
+        "min_gap_m": float(log["gap"].min()) if n else math.nan,
+        "max_abs_lateral_offset_m": float(log["d"].abs().max()) if n else math.nan,
+        "sim_time_s": float(times[-1]) if n else 0.0,
+        "steps": n,
+        "wall_time_s": wall_s,
+        "steps_per_s": n / wall_s if wall_s > 0 else math.nan,
+    }
+
+
+def _configure(api: sumo_api.SumoApi, veh_id: str, vehicle: veh.VehicleParams) -> None:
+    # speed mode 0 / lane-change mode 0: SUMO's own car-following must not leak in
+    api.vehicle.setSpeedMode(veh_id, 0)
+    api.vehicle.setLaneChangeMode(veh_id, 0)
+    api.vehicle.setLength(veh_id, vehicle.length_m)
+    api.vehicle.setWidth(veh_id, vehicle.width_m)
+
+
+def _move_ego(api: sumo_api.SumoApi, state: veh.VehicleState, vehicle: veh.VehicleParams) -> None:
+    x, y = veh.front_bumper(state, vehicle)
+    api.vehicle.moveToXY(EGO_ID, "", -1, x, y, yaw_to_sumo_angle(state.yaw), 2)
+    api.vehicle.setSpeed(EGO_ID, veh.speed(state))
+
+
+def _centre_xy(front: tuple[float, float], yaw: float, vehicle: veh.VehicleParams) -> np.ndarray:
+    half = 0.5 * vehicle.length_m
+    return np.array([front[0] - half * math.cos(yaw), front[1] - half * math.sin(yaw)])
+
+
+def _read_leader(api: sumo_api.SumoApi, vehicle: veh.VehicleParams):
+    """``(rear_xy, speed, yaw, front_xy)`` of the leader, or None once it has left the network."""
+    try:
+        fx, fy = api.vehicle.getPosition(LEADER_ID)
+        yaw = sumo_angle_to_yaw(api.vehicle.getAngle(LEADER_ID))
+        v = api.vehicle.getSpeed(LEADER_ID)
+    except Exception:  # libsumo/traci raise TraCIException for a vehicle that has arrived
+        return None
+    rear = (fx - vehicle.length_m * math.cos(yaw), fy - vehicle.length_m * math.sin(yaw))
+    return rear, v, yaw, (fx, fy)
+
+
+class _Log:
+    """Preallocated per-step arrays (no per-step DataFrame work)."""
+
+    COLUMNS = (
+        "t", "x", "y", "yaw", "v", "vy", "yaw_rate", "steer", "front_x", "front_y", "steer_cmd",
+        "accel_cmd", "s", "d", "d_min", "d_max", "c0l", "c1l", "c2l", "c0r", "c1r", "c2r",
+        "v_lead_sensed", "d_lead_sensed", "leader_x", "leader_y", "leader_v", "gap", "ttc",
+        "lane_departure", "ttc_flag", "collision", "path_fraction",
+    )
+
+    def __init__(self, n: int) -> None:
+        self.data = np.full((n, len(self.COLUMNS)), np.nan)
+        self.n = 0
+
+    def append(self, t, state, front, steer_cmd, accel_cmd, s, d, d_min, d_max, features,
+               leader, gap, ttc, v_lead_true, departed, ttc_flag, collision, fraction) -> None:
+        lx, ly = (leader[0] if leader is not None else (math.nan, math.nan))
+        self.data[self.n] = (
+            t, state.x, state.y, state.yaw, veh.speed(state), state.vy, state.yaw_rate,
+            state.steer, front[0], front[1], steer_cmd, accel_cmd, s, d, d_min, d_max,
+            *features[:6], features[7], features[8], lx, ly, v_lead_true, gap, ttc,
+            departed, ttc_flag, collision, fraction,
+        )
+        self.n += 1
+
+    def frame(self) -> pd.DataFrame:
+        df = pd.DataFrame(self.data[: self.n], columns=self.COLUMNS)
+        for col in ("lane_departure", "ttc_flag", "collision"):
+            df[col] = df[col].astype(bool)
+        return df
