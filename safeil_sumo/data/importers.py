@@ -1,0 +1,390 @@
+"""Real recordings into the drive schema (:mod:`safeil_sumo.data.schema`): NGSIM and JRC OpenACC.
+
+Every importer takes a path to the ORIGINAL file layout, checks the columns it needs (a missing
+one raises :class:`~safeil_sumo.data.schema.SchemaError` naming file and column) and returns a
+validated drive frame. Counts of repaired values (clipped gaps, filled leader positions, ...) are
+in ``df.attrs["import_stats"]`` so a report can show them.
+
+NGSIM (US-101 / I-80 layout, a straight road):
+- world frame: ``x = Local_Y`` (along the road), ``y = -Local_X`` (Local_X grows to the RIGHT from
+  the road's left edge; the schema's y is LEFT). Positions are the vehicle's front centre.
+- heading ``yaw`` relative to the road = ``atan2(v_lat, max(v_long, 1 m/s))`` from Savitzky-Golay
+  derivatives (window 1.5 s, order 2) of the lateral and longitudinal position: the raw lateral
+  position is too noisy to differentiate directly; the 1 m/s floor keeps near-standstill heading
+  from blowing up.
+- lane lines: lane ``i`` (1 = leftmost) spans ``Local_X`` in ``[(i-1) W, i W]``, ``W = 12 ft``.
+  A straight line at world ``y = b`` seen from the ego at ``(x0, y0)`` with heading ``psi`` is
+  ``c0 = (b - y0) / cos(psi)``, ``c1 = -tan(psi)``, ``c2 = c3 = 0``.
+- leader: bumper gap ``space_headway - preceding_length`` (front-to-front minus leader length),
+  clipped to :data:`MIN_GAP` (small negatives are reconstruction artefacts; counted as
+  ``gap_clipped``); lateral offset = leader front-centre ``Local_X`` minus ego's, when the leader's
+  own trajectory is in the file at that frame, else the leader is put at its lane's centre
+  (counted as ``lead_lateral_from_lane_centre``). Both are rotated into the ego frame.
+- ``lead_v`` = the leader's recorded speed; ``lane_index`` = ``Lane_ID``; ``v_x`` = ``v_Vel``.
+
+OpenACC (JRC, 5 metadata rows then a header): each HUMAN follower ``k >= 2`` of a platoon gives one
+recording ``<campaign><date>[r<rec>]p<part>_f<k>``, e.g. ``VC280219p2_f3``.
+- world ``x, y = E{k}, N{k}``; heading from the Savitzky-Golay smoothed path (window 2 s).
+- no lane information (GNSS lateral bias 1-3 m): the follower is centred in a straight-ahead lane
+  of width 3.5 m, ``c0l = +1.75``, ``c0r = -1.75``, ``c1 = 0``; the lane bends with the path:
+  ``c2 = kappa / 2`` with the path curvature ``kappa = d(yaw)/ds`` from a 5 s Savitzky-Golay
+  derivative of the unwrapped heading, clipped to ``|kappa| <= 1/250 m`` (motorway radii are
+  larger; the clip stops GNSS glitches becoming sharp bends); ``c3 = 0``.
+- leader: ``lead_x = IVS{k-1}`` (bumper-to-bumper, clipped to :data:`MIN_GAP`), ``lead_y = 0``,
+  ``lead_v = Speed{k-1}``. Followers driven by ACC are skipped unless ``include_acc=True``.
+- ``Alt/U/VE/VN/VU`` are not used and may be absent (other campaigns lack them for some vehicles).
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.signal import savgol_filter
+
+from safeil_sumo.data.schema import SchemaError, validate_drive
+
+FT = 0.3048  # [m] per foot
+NGSIM_LANE_WIDTH = 12 * FT  # [m]
+OPENACC_LANE_WIDTH = 3.5  # [m] assumed (no lane data in OpenACC)
+MIN_GAP = 0.1  # [m] smallest bumper gap kept; smaller (incl. negative) values are clipped to it
+MIN_HEADING_SPEED = 1.0  # [m/s] floor on the longitudinal speed when computing heading
+MAX_PATH_CURVATURE = 1.0 / 250.0  # [1/m]
+
+NGSIM_CSV_COLUMNS = (
+    "Vehicle_ID", "Frame_ID", "Total_Frames", "Global_Time", "Local_X", "Local_Y", "Global_X",
+    "Global_Y", "v_Length", "v_Width", "v_Class", "v_Vel", "v_Acc", "Lane_ID", "Preceding",
+    "Following", "Space_Headway", "Time_Headway",
+)
+NGSIM_CSV_USED = (
+    "Vehicle_ID", "Frame_ID", "Local_X", "Local_Y", "v_Length", "v_Vel", "Lane_ID", "Preceding",
+    "Space_Headway",
+)
+NGSIM_PAIRS_USED = (
+    "pair_id", "time", "vehicle_id", "frame_id", "local_x", "local_y", "v_vel", "lane_id",
+    "preceding", "space_headway", "preceding_length", "preceding_vel",
+)
+NGSIM_DT = 0.1  # [s] one NGSIM frame
+OPENACC_REQUIRED = ("Speed", "E", "N", "Driver")  # per vehicle k; plus IVS{k} for k < n
+
+
+def _require(df: pd.DataFrame, columns: tuple[str, ...] | list[str], source: str) -> None:
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise SchemaError(f"{source}: missing column(s) {', '.join(map(repr, missing))} "
+                          f"(have: {', '.join(map(str, df.columns))})")
+
+
+def _read_table(path: Path, **kwargs) -> pd.DataFrame:
+    if not path.is_file():
+        raise SchemaError(f"{path}: no such file")
+    try:
+        if path.suffix.lower() == ".parquet":
+            return pd.read_parquet(path)
+        return pd.read_csv(path, **kwargs)
+    except pd.errors.EmptyDataError as exc:
+        raise SchemaError(f"{path}: empty file") from exc
+    except Exception as exc:
+        raise SchemaError(f"{path}: not readable ({type(exc).__name__}: {exc})") from exc
+
+
+def _savgol(values: np.ndarray, window_n: int, deriv: int, dt: float) -> np.ndarray:
+    """Savitzky-Golay (order 2) value or derivative; falls back to np.gradient on short series."""
+    n = len(values)
+    w = min(window_n | 1, n if n % 2 else n - 1)
+    if w < 3:
+        if deriv == 0:
+            return values.astype(float)
+        return np.gradient(values, dt) if n > 1 else np.zeros(n)
+    return savgol_filter(values, w, min(2, w - 1), deriv=deriv, delta=dt, mode="interp")
+
+
+def _group_starts(keys: np.ndarray) -> np.ndarray:
+    """Start indices of runs of equal consecutive keys, plus the end index."""
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    return np.r_[starts, len(keys)]
+
+
+# ----------------------------------------------------------------------------------------- NGSIM
+
+
+def _ngsim_drive(p: pd.DataFrame, source: str) -> pd.DataFrame:
+    """Common NGSIM conversion. ``p`` in metres/seconds, sorted by recording then time, with columns
+    recording_id, time, frame, vid, lat (from left edge, rightwards), lon, v, lane, leader,
+    headway (front-to-front), lead_len, lead_v.
+    """
+    n = len(p)
+    rec = p["recording_id"].to_numpy()
+    lat = p["lat"].to_numpy(float)
+    lon = p["lon"].to_numpy(float)
+    v_lat = np.empty(n)
+    v_lon = np.empty(n)
+    bounds = _group_starts(rec)
+    window = round(1.5 / NGSIM_DT)
+    for a, b in itertools.pairwise(bounds):
+        v_lat[a:b] = -_savgol(lat[a:b], window, 1, NGSIM_DT)  # y is left, lat grows right
+        v_lon[a:b] = _savgol(lon[a:b], window, 1, NGSIM_DT)
+    psi = np.arctan2(v_lat, np.maximum(v_lon, MIN_HEADING_SPEED))
+
+    lane = p["lane"].to_numpy(float)
+    left_edge = (lane - 1.0) * NGSIM_LANE_WIDTH  # Local_X of the lane's left line
+    cos = np.cos(psi)
+    c0l = (lat - left_edge) / cos
+    c0r = (lat - left_edge - NGSIM_LANE_WIDTH) / cos
+    c1 = -np.tan(psi)
+
+    # leader's lateral position: its own trajectory when present at that frame, else lane centre
+    own = pd.DataFrame({"leader": p["vid"].to_numpy(), "frame": p["frame"].to_numpy(),
+                        "lead_lat": lat}).drop_duplicates(["leader", "frame"])
+    look = p[["leader", "frame"]].merge(own, how="left", on=["leader", "frame"])
+    lead_lat = look["lead_lat"].to_numpy(float)
+    from_centre = np.isnan(lead_lat)
+    lead_lat = np.where(from_centre, left_edge + 0.5 * NGSIM_LANE_WIDTH, lead_lat)
+
+    raw_gap = p["headway"].to_numpy(float) - p["lead_len"].to_numpy(float)
+    clipped = raw_gap < MIN_GAP
+    gap = np.maximum(raw_gap, MIN_GAP)
+    dy_world = -(lead_lat - lat)
+    # world offset (gap along the road, dy across) rotated into the ego frame
+    s = np.sin(psi)
+    lead_x = cos * gap + s * dy_world
+    lead_y = -s * gap + cos * dy_world
+
+    df = pd.DataFrame({
+        "recording_id": rec,
+        "time": p["time"].to_numpy(float),
+        "x": lon,
+        "y": -lat,
+        "yaw": psi,
+        "v_x": p["v"].to_numpy(float),
+        "left_c0": c0l, "left_c1": c1, "left_c2": 0.0, "left_c3": 0.0,
+        "right_c0": c0r, "right_c1": c1, "right_c2": 0.0, "right_c3": 0.0,
+        "lead_x": lead_x,
+        "lead_y": lead_y,
+        "lead_v": p["lead_v"].to_numpy(float),
+        "lane_index": lane,
+    })
+    out = validate_drive(df, source)
+    out.attrs["import_stats"] = {
+        "source": source,
+        "recordings": int(len(bounds) - 1),
+        "rows": int(n),
+        "gap_clipped": int(clipped.sum()),
+        "gap_min_raw_m": float(raw_gap.min()) if n else float("nan"),
+        "lead_lateral_from_lane_centre": int(from_centre.sum()),
+    }
+    return out
+
+
+def import_ngsim_pairs(path: str | Path) -> pd.DataFrame:
+    """The NGSIM I-80 car-following pairs Parquet (metric; see the shared data README)."""
+    path = Path(path)
+    src = str(path)
+    raw = _read_table(path)
+    _require(raw, NGSIM_PAIRS_USED, src)
+    raw = raw.assign(pair_id=raw["pair_id"].astype(str)).sort_values(
+        ["pair_id", "time"], kind="stable")
+    p = pd.DataFrame({
+        "recording_id": raw["pair_id"].to_numpy(),
+        "time": raw["time"].to_numpy(float),
+        "frame": raw["frame_id"].to_numpy(float).astype(np.int64),
+        "vid": raw["vehicle_id"].astype(str).to_numpy(),
+        "lat": raw["local_x"].to_numpy(float),
+        "lon": raw["local_y"].to_numpy(float),
+        "v": raw["v_vel"].to_numpy(float),
+        "lane": raw["lane_id"].astype(float).to_numpy(),
+        "leader": raw["preceding"].astype(str).to_numpy(),
+        "headway": raw["space_headway"].to_numpy(float),
+        "lead_len": raw["preceding_length"].to_numpy(float),
+        "lead_v": raw["preceding_vel"].to_numpy(float),
+    })
+    return _ngsim_drive(p, src)
+
+
+def import_ngsim_csv(path: str | Path, min_pair_frames: int = 2) -> pd.DataFrame:
+    """An ORIGINAL NGSIM trajectory CSV (feet, ft/s, 0.1 s frames) as follower-leader pairs.
+
+    Each contiguous run of frames in which a vehicle has the same ``Preceding`` (non-zero) becomes
+    one recording ``"<follower>-<leader>"`` (``_2``, ``_3``, ... if the pair recurs). Rows whose
+    leader has no row at that frame are kept with the leader's length/speed unknown -> their
+    bumper gap uses a 0 length and ``lead_v`` is NaN (counted as ``leader_row_missing``).
+    Runs shorter than ``min_pair_frames`` are skipped (counted).
+    """
+    path = Path(path)
+    src = str(path)
+    raw = _read_table(path)
+    raw.columns = [str(c).strip() for c in raw.columns]
+    _require(raw, NGSIM_CSV_USED, src)
+    d = raw[list(NGSIM_CSV_USED)].apply(pd.to_numeric, errors="coerce")
+    bad = d.isna().any(axis=1).to_numpy()
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        col = d.columns[d.iloc[i].isna().to_numpy()][0]
+        raise SchemaError(f"{src}, column {col!r}, row {i}: not a number: {raw[col].iloc[i]!r}")
+    d = d.astype({"Vehicle_ID": np.int64, "Frame_ID": np.int64, "Preceding": np.int64,
+                  "Lane_ID": np.int64})
+    d = d.drop_duplicates(["Vehicle_ID", "Frame_ID"]).sort_values(["Vehicle_ID", "Frame_ID"])
+    lead = d[["Vehicle_ID", "Frame_ID", "v_Length", "v_Vel"]].rename(columns={
+        "Vehicle_ID": "Preceding", "v_Length": "lead_len", "v_Vel": "lead_vel"})
+    f = d[d["Preceding"] > 0].merge(lead, how="left", on=["Preceding", "Frame_ID"])
+    f = f.sort_values(["Vehicle_ID", "Frame_ID"], kind="stable").reset_index(drop=True)
+    veh = f["Vehicle_ID"].to_numpy()
+    pre = f["Preceding"].to_numpy()
+    frame = f["Frame_ID"].to_numpy()
+    new_run = np.r_[True, (veh[1:] != veh[:-1]) | (pre[1:] != pre[:-1])
+                    | (np.diff(frame) != 1)]
+    run = np.cumsum(new_run) - 1
+    run_len = np.bincount(run)
+    keep = run_len[run] >= min_pair_frames
+    base = np.char.add(np.char.add(veh.astype(str), "-"), pre.astype(str))
+    # number repeated pairs: first occurrence keeps the plain id
+    run_base = base[new_run]
+    occurrence = pd.Series(run_base).groupby(run_base).cumcount().to_numpy()
+    run_id = np.where(occurrence == 0, run_base,
+                      np.char.add(np.char.add(run_base, "_"), (occurrence + 1).astype(str)))
+    missing_leader = f["lead_len"].isna().to_numpy()
+    p = pd.DataFrame({
+        "recording_id": run_id[run],
+        "time": frame * NGSIM_DT,
+        "frame": frame,
+        "vid": veh.astype(str),
+        "lat": f["Local_X"].to_numpy(float) * FT,
+        "lon": f["Local_Y"].to_numpy(float) * FT,
+        "v": f["v_Vel"].to_numpy(float) * FT,
+        "lane": f["Lane_ID"].to_numpy(float),
+        "leader": pre.astype(str),
+        "headway": f["Space_Headway"].to_numpy(float) * FT,
+        "lead_len": np.nan_to_num(f["lead_len"].to_numpy(float)) * FT,
+        "lead_v": f["lead_vel"].to_numpy(float) * FT,
+    })[keep].reset_index(drop=True)
+    if p.empty:
+        raise SchemaError(f"{src}: no follower-leader pairs (column 'Preceding' is 0 everywhere)")
+    out = _ngsim_drive(p, src)
+    out.attrs["import_stats"].update({
+        "leader_row_missing": int(missing_leader[keep].sum()),
+        "short_pairs_skipped": int((run_len < min_pair_frames).sum()),
+        "rows_without_leader_skipped": int((d["Preceding"] <= 0).sum()),
+    })
+    return out
+
+
+# --------------------------------------------------------------------------------------- OpenACC
+
+
+def openacc_recording_prefix(path: str | Path) -> str:
+    """``JRC-VC_280219_part2.csv.gz`` -> ``VC280219p2`` (campaign destination, date, rec, part)."""
+    stem = Path(path).name.split(".")[0]
+    m = re.match(r"^[^-_]+-([^_]+)_(\d{6})(?:_rec(\d+))?(?:_part(\d+))?", stem)
+    if not m:
+        return re.sub(r"[^A-Za-z0-9]+", "", stem)
+    dest, date, rec, part = m.groups()
+    return f"{dest}{date}" + (f"r{rec}" if rec else "") + (f"p{part}" if part else "")
+
+
+def read_openacc(path: str | Path) -> tuple[pd.DataFrame, list[str]]:
+    """The raw OpenACC table (header after 5 metadata rows) and the 5 metadata lines."""
+    path = Path(path)
+    if not path.is_file():
+        raise SchemaError(f"{path}: no such file")
+    try:
+        meta = pd.read_csv(path, nrows=5, header=None, usecols=[0, 1], dtype=str)
+    except Exception as exc:
+        raise SchemaError(f"{path}: not an OpenACC csv ({type(exc).__name__}: {exc})") from exc
+    raw = _read_table(path, skiprows=5)
+    raw.columns = [str(c).strip() for c in raw.columns]
+    if "Time" not in raw.columns:
+        raise SchemaError(f"{path}: missing column 'Time' after the 5 metadata rows "
+                          f"(have: {', '.join(raw.columns[:8])}, ...): not the OpenACC layout")
+    return raw, [",".join(map(str, r)) for r in meta.fillna("").to_numpy()]
+
+
+def import_openacc(path: str | Path, include_acc: bool = False) -> pd.DataFrame:
+    """One OpenACC platoon file: one recording per human follower (all followers if include_acc).
+
+    May return an empty frame (no rows) when no follower qualifies, e.g. an ACC day.
+    """
+    path = Path(path)
+    src = str(path)
+    raw, _ = read_openacc(path)
+    n_veh = 0
+    while f"Speed{n_veh + 1}" in raw.columns:
+        n_veh += 1
+    if n_veh < 2:
+        raise SchemaError(f"{src}: missing column(s) 'Speed1', 'Speed2' (need >= 2 vehicles)")
+    need = [f"{c}{k}" for k in range(1, n_veh + 1) for c in OPENACC_REQUIRED]
+    need += [f"IVS{k}" for k in range(1, n_veh)]
+    _require(raw, need, src)
+    time = pd.to_numeric(raw["Time"], errors="coerce").to_numpy(float)
+    prefix = openacc_recording_prefix(path)
+    dt = float(np.median(np.diff(time))) if len(time) > 1 else 0.1
+    frames: list[pd.DataFrame] = []
+    stats = {"source": src, "followers_human": 0, "followers_acc_skipped": 0,
+             "rows_nan_skipped": 0, "gap_clipped": 0, "curvature_clipped": 0}
+    for k in range(2, n_veh + 1):
+        driver = raw[f"Driver{k}"].astype(str).str.strip().str.lower()
+        human = (driver == "human").to_numpy()
+        if not include_acc and not human.any():
+            stats["followers_acc_skipped"] += 1
+            continue
+        stats["followers_human"] += int(human.any())
+        num = {c: pd.to_numeric(raw[f"{c}{j}"], errors="coerce").to_numpy(float)
+               for c, j in (("E", k), ("N", k), ("Speed", k), ("IVS", k - 1))}
+        lead_v = pd.to_numeric(raw[f"Speed{k - 1}"], errors="coerce").to_numpy(float)
+        ok = np.isfinite(time) & np.isfinite(num["E"]) & np.isfinite(num["N"]) \
+            & np.isfinite(num["Speed"])
+        if not include_acc:
+            ok &= human  # a follower switching to ACC mid-file loses those rows
+        stats["rows_nan_skipped"] += int((~ok & (human | include_acc)).sum())
+        idx = np.flatnonzero(ok)
+        if len(idx) < 3:
+            continue
+        e, nn, t = num["E"][idx], num["N"][idx], time[idx]
+        w = round(2.0 / dt)
+        ve, vn = _savgol(e, w, 1, dt), _savgol(nn, w, 1, dt)
+        yaw = np.unwrap(np.arctan2(vn, ve))
+        speed_path = np.hypot(ve, vn)
+        yaw_rate = _savgol(yaw, round(5.0 / dt), 1, dt)
+        kappa = yaw_rate / np.maximum(speed_path, MIN_HEADING_SPEED)
+        stats["curvature_clipped"] += int((np.abs(kappa) > MAX_PATH_CURVATURE).sum())
+        kappa = np.clip(kappa, -MAX_PATH_CURVATURE, MAX_PATH_CURVATURE)
+        gap = num["IVS"][idx]
+        stats["gap_clipped"] += int((gap < MIN_GAP).sum())
+        has_lead = np.isfinite(gap)
+        gap = np.where(has_lead, np.maximum(gap, MIN_GAP), np.nan)
+        half = 0.5 * OPENACC_LANE_WIDTH
+        frames.append(pd.DataFrame({
+            "recording_id": f"{prefix}_f{k}",
+            "time": t,
+            "x": e,
+            "y": nn,
+            "yaw": (yaw + np.pi) % (2 * np.pi) - np.pi,
+            "v_x": num["Speed"][idx],
+            "left_c0": half, "left_c1": 0.0, "left_c2": 0.5 * kappa, "left_c3": 0.0,
+            "right_c0": -half, "right_c1": 0.0, "right_c2": 0.5 * kappa, "right_c3": 0.0,
+            "lead_x": gap,
+            "lead_y": np.where(has_lead, 0.0, np.nan),
+            "lead_v": lead_v[idx],
+        }))
+    if not frames:
+        out = pd.DataFrame({c: pd.Series(dtype=float) for c in (
+            "time", "x", "y", "yaw", "v_x", "left_c0", "left_c1", "left_c2", "left_c3",
+            "right_c0", "right_c1", "right_c2", "right_c3", "lead_x", "lead_y", "lead_v")})
+        out.insert(0, "recording_id", pd.Series(dtype=str))
+    else:
+        out = validate_drive(pd.concat(frames, ignore_index=True), src)
+    stats["recordings"] = len(frames)
+    stats["rows"] = len(out)
+    out.attrs["import_stats"] = stats
+    return out
+
+
+def import_openacc_files(paths: list[str | Path], include_acc: bool = False) -> pd.DataFrame:
+    """Several OpenACC files into one drive frame (recording ids stay unique per file)."""
+    parts = [import_openacc(p, include_acc) for p in paths]
+    nonempty = [p for p in parts if len(p)]
+    out = pd.concat(nonempty, ignore_index=True) if nonempty else parts[0].iloc[:0]
+    out.attrs["import_stats"] = {"files": [p.attrs["import_stats"] for p in parts]}
+    return out
