@@ -97,7 +97,7 @@ def sumo_args(scenario: Scenario, loop: LoopConfig) -> list[str]:
     args = [
         "-n", str(scenario.road.net_path),
         "--step-length", f"{loop.step_s}",
-        "--seed", str(scenario.seed),
+        "--seed", str(scenario.seed % 2**31),  # SUMO takes a signed 32-bit seed
         "--no-step-log", "true",
         "--no-warnings", "true",
         "--collision.action", "warn",

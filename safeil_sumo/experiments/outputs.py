@@ -1,0 +1,116 @@
+"""Results folders: per-step Parquet log, per-scenario CSV/JSON, manifest, plots — written atomically.
+
+A run's files are assembled in a temporary sibling folder and renamed into place at the end,
+so a crash or a bad input never leaves a half-written results folder behind.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable
+
+import pandas as pd
+
+
+def git_commit(repo: Path | None = None) -> str:
+    """The current git commit of the project (``"unknown"`` outside a checkout)."""
+    repo = repo or Path(__file__).resolve().parents[2]
+    try:
+        out = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True,
+                             text=True, timeout=5, check=True)
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain",
+                                "--untracked-files=no"], capture_output=True, text=True,
+                               timeout=5).stdout.strip()
+        return out.stdout.strip() + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def versions() -> dict[str, str]:
+    """Versions of the software that determines the numbers."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    found = {"python": platform.python_version(), "platform": platform.platform()}
+    for pkg in ("eclipse-sumo", "libsumo", "torch", "numpy", "pandas", "safeil-sumo"):
+        try:
+            found[pkg] = version(pkg)
+        except PackageNotFoundError:
+            found[pkg] = "not installed"
+    return found
+
+
+def manifest(config: dict[str, Any], seeds: Iterable[int]) -> dict[str, Any]:
+    """What reproduces a run: config, seeds, git commit, versions, command line."""
+    return {
+        "config": config,
+        "seeds": list(seeds),
+        "git_commit": git_commit(),
+        "versions": versions(),
+        "command": " ".join([Path(sys.executable).name, *sys.argv]),
+    }
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "item"):
+        return obj.item()
+    return str(obj)
+
+
+def _clean(value: Any) -> Any:
+    """JSON has no NaN/inf: write them as null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_clean(v) for v in value]
+    return value
+
+
+def write_json(path: Path, data: Any) -> None:
+    """Write JSON atomically (temporary file in the same folder, then rename)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(_clean(data), indent=2, default=_json_default) + "\n")
+    os.replace(tmp, path)
+
+
+class AtomicDir:
+    """Context manager giving a temporary folder that replaces ``target`` only on success."""
+
+    def __init__(self, target: Path) -> None:
+        self.target = Path(target)
+
+    def __enter__(self) -> Path:
+        self.target.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = Path(tempfile.mkdtemp(prefix=f".{self.target.name}.", dir=self.target.parent))
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            return
+        old = None
+        if self.target.exists():
+            old = self.target.with_name(f".{self.target.name}.old")
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(self.target, old)
+        os.replace(self.tmp, self.target)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+
+def write_tables(folder: Path, logs: pd.DataFrame, summaries: pd.DataFrame) -> None:
+    """``steps.parquet`` (all scenarios, ``scenario`` column), ``summary.csv`` and ``.json``."""
+    logs.to_parquet(folder / "steps.parquet", index=False)
+    summaries.to_csv(folder / "summary.csv", index=False)
+    write_json(folder / "summary.json", summaries.to_dict(orient="records"))

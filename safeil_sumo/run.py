@@ -1,0 +1,145 @@
+"""``python -m safeil_sumo.run --net curved500``: the paper's safety test, closed loop in SUMO.
+
+Runs N scenarios (leader at a constant random speed in [25, 32] m/s ahead of the ego) with one
+policy, prints a summary table and writes a results folder:
+``steps.parquet`` (per-step log), ``summary.csv`` / ``summary.json`` (per scenario),
+``manifest.json`` (config, seeds, git commit, versions), and PNG plots.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+import pandas as pd
+from tqdm import tqdm
+
+from safeil_sumo import policies
+from safeil_sumo.experiments import outputs, plots
+from safeil_sumo.scenarios.catalogue import resolve_net
+from safeil_sumo.scenarios.road import NetworkError, load_road
+from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS, safety_scenario
+from safeil_sumo.sim.leaders import ProfileError
+from safeil_sumo.sim.runner import LoopConfig, run_scenario
+from safeil_sumo.sim.sumo_api import SumoError
+from safeil_sumo.sim.vehicle import VehicleParams
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(
+        prog="python -m safeil_sumo.run",
+        description="Closed-loop safety test of a planner in SUMO (the paper's curved track).",
+    )
+    p.add_argument("--net", default="curved500",
+                   help="curved500, straight, curved<R> (e.g. curved300) or a .net.xml path")
+    p.add_argument("--policy", default=None,
+                   help="analytic, safeil, bc or a checkpoint .safetensors "
+                        f"(default: {policies.default_policy_name()})")
+    p.add_argument("--scenarios", type=int, default=10, help="number of scenarios (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
+    p.add_argument("--leader-speed", type=float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
+                   metavar=("LOW", "HIGH"), help="leader speed range [m/s] (default 25 32)")
+    p.add_argument("--ego-speed", type=float, default=30.0, help="ego initial speed [m/s]")
+    p.add_argument("--gap", type=float, default=50.0, help="initial bumper gap [m]")
+    p.add_argument("--plan-rate", type=float, default=10.0, help="re-planning rate [Hz]")
+    p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
+    p.add_argument("--backend", choices=("libsumo", "traci"), default="libsumo")
+    p.add_argument("--gui", action="store_true", help="watch in sumo-gui (implies traci)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="results folder (default runs/<net>_<policy>_seed<seed>)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    args = p.parse_args(argv)
+    if args.scenarios < 1:
+        p.error("--scenarios must be >= 1")
+    if args.ego_speed < 0 or args.gap <= 0:
+        p.error("--ego-speed must be >= 0 and --gap > 0")
+    lo, hi = args.leader_speed
+    if not 0 <= lo <= hi:
+        p.error("--leader-speed needs 0 <= LOW <= HIGH")
+    if not 0 < args.plan_rate <= 100:
+        p.error("--plan-rate must be in (0, 100] Hz")
+    if args.gui:
+        args.backend = "traci"
+    args.policy = args.policy or policies.default_policy_name()
+    return args
+
+
+def format_table(summaries: pd.DataFrame) -> str:
+    """The short table printed at the end of a run."""
+    cols = {
+        "scenario": "scenario", "leader_speed_mps": "v_lead[m/s]",
+        "path_completed": "path[%]", "flag": "flag", "min_ttc_s": "minTTC[s]",
+        "max_abs_lateral_offset_m": "max|d|[m]", "end_reason": "end",
+    }
+    t = summaries[list(cols)].rename(columns=cols).copy()
+    t["path[%]"] = (100 * t["path[%]"]).round(1)
+    t["flag"] = t["flag"].replace("", "-")
+    return t.to_string(index=False, float_format=lambda v: f"{v:.2f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        net = resolve_net(args.net)
+        road = load_road(net)
+        policy = policies.load(args.policy)
+    except (NetworkError, policies.PolicyError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = args.out or Path("runs") / f"{args.net if not args.net.endswith('.xml') else road.net_path.stem}_{policy.name}_seed{args.seed}"
+    loop = LoopConfig(plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
+                      backend=args.backend, gui=args.gui)
+    vehicle = VehicleParams()
+    try:
+        scenarios = [
+            safety_scenario(road, i, args.seed, tuple(args.leader_speed), args.ego_speed, args.gap)
+            for i in range(args.scenarios)
+        ]
+    except (ValueError, ProfileError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    logs, rows = [], []
+    try:
+        for sc in tqdm(scenarios, desc=f"{policy.name} on {road.net_path.name}", unit="scenario",
+                       disable=None):
+            rollout = run_scenario(sc, policy, loop, vehicle)
+            logs.append(rollout.log.assign(scenario=sc.name))
+            rows.append(rollout.summary)
+    except SumoError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 3
+    summaries = pd.DataFrame(rows)
+    steps = pd.concat(logs, ignore_index=True)
+
+    config = {
+        "net": str(road.net_path), "policy": args.policy, "scenarios": args.scenarios,
+        "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
+        "ego_speed_mps": args.ego_speed, "initial_gap_m": args.gap,
+        "loop": asdict(loop), "vehicle": asdict(vehicle),
+        "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
+    }
+    with outputs.AtomicDir(out) as tmp:
+        outputs.write_tables(tmp, steps, summaries)
+        outputs.write_json(tmp / "manifest.json",
+                           outputs.manifest(config, [s.seed for s in scenarios]))
+        if not args.no_plots:
+            plots.plot_trajectories(road, steps, tmp / "trajectory.png", vehicle.width_m)
+            plots.plot_speed_gap(steps, tmp / "speed_gap.png")
+            plots.plot_ttc(steps, tmp / "ttc.png", scenarios[0].monitors.ttc_threshold_s)
+
+    print(format_table(summaries))
+    done = int(summaries["completed"].sum())
+    print(f"\n{policy.name}: {done}/{len(summaries)} scenarios completed without a flag, "
+          f"mean path completed {100 * summaries['path_completed'].mean():.1f} %")
+    errors = summaries[summaries["end_reason"] == "error"]
+    for _, row in errors.iterrows():
+        print(f"scenario {row['scenario']} failed: {row['error']}", file=sys.stderr)
+    print(f"results: {out}")
+    return 1 if len(errors) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
