@@ -1,0 +1,282 @@
+"""The ego vehicle plant: a dynamic single-track model of a Toyota Prius — pure Python floats.
+
+The paper validated its planners on a 15-DOF Simcenter Amesim model identified from the Prius
+Carlab's driving data. We do not have that model; this is our open substitute, sized from public
+spec sheets and textbook values, with the effects that matter for a trajectory tracker on a
+highway: actuator lags and limits, tyre side slip (understeer), aerodynamic drag, rolling
+resistance and the drive's power limit.
+
+Model (states in :class:`VehicleState`):
+- Steering: first-order lag on the road-wheel angle with angle and rate limits.
+- Longitudinal: one actuator force ``drive_force`` (traction > 0, braking < 0) following its target
+  ``throttle * F_drive(v) - brake * F_brake`` with a first-order lag; ``F_drive(v)`` is limited by
+  a maximum force and a maximum power at the wheels.
+  ``m dvx/dt = F_x - F_yf sin(delta) - F_drag - F_roll + m vy r``. No reversing: ``vx >= 0``, and
+  brakes (or resistances) at standstill hold the car.
+- Lateral (``vx`` above ~4 m/s): linear tyres with cornering stiffness per axle, forces saturated
+  at ``mu * F_z`` through a secant stiffness, integrated with implicit (backward) Euler so the stiff
+  low-speed lateral modes stay stable at any step size.
+- Low speed (below ~2 m/s): the dynamic model is singular at ``vx -> 0``; the lateral states come
+  from the kinematic bicycle (``r = vx tan(delta) / L``, ``vy = lr r``), with a smoothstep blend
+  between 2 and 4 m/s.
+
+The world pose is integrated with the updated velocities (semi-implicit Euler).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+GRAVITY = 9.81  # [m/s^2]
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Toyota Prius (4th gen, XW50, 2016-2022; 3rd gen XW30 where noted) with driver and equipment.
+
+    Fields with SOURCE comments; "spec" = Toyota's published specification sheets.
+    """
+
+    mass_kg: float = 1500.0  # [kg] spec curb mass 1380-1400 kg + driver (75 kg) + logging equipment
+    wheelbase_m: float = 2.70  # [m] spec (XW30 and XW50)
+    length_m: float = 4.54  # [m] spec (XW50; XW30 4.48 m)
+    width_m: float = 1.76  # [m] spec (body, without mirrors)
+    track_width_m: float = 1.53  # [m] spec front tread 1530 mm (rear 1540 mm)
+    front_overhang_m: float = 0.925  # [m] spec front overhang (front axle to front bumper)
+    # CoG: ~58-60 % of the mass on the front axle (front-engine FWD hybrid, spec axle loads)
+    front_axle_load_fraction: float = 0.58  # [-] F_z,front / (m g)
+    yaw_inertia_kgm2: float = 2600.0  # [kg m^2] textbook I_z ~ m lf lr for a C-segment sedan
+    # tyre cornering stiffness per AXLE (two tyres); 195/65 R15 low-rolling-resistance tyres,
+    # textbook range 80-150 kN/rad per axle; rear stiffer than front -> understeer ~1.7 deg/g
+    cornering_stiffness_front_npr: float = 110_000.0  # [N/rad]
+    cornering_stiffness_rear_npr: float = 130_000.0  # [N/rad]
+    friction_coefficient: float = 1.0  # [-] dry asphalt peak mu (textbook)
+    drag_coefficient: float = 0.24  # [-] spec Cd 0.24 (XW50; XW30 0.25)
+    frontal_area_m2: float = 2.2  # [m^2] literature ~2.2 m^2 (width x height x ~0.85)
+    air_density_kgm3: float = 1.225  # [kg/m^3] ISA sea level
+    rolling_resistance: float = 0.010  # [-] textbook c_rr of low-rolling-resistance tyres
+    max_drive_force_n: float = 4500.0  # [N] traction/torque limit; gives 0-100 km/h in ~10 s
+    max_drive_power_w: float = 81_000.0  # [W] spec system power 90 kW x ~0.9 drivetrain eff.
+    max_brake_decel_mps2: float = 9.0  # [m/s^2] full braking on dry asphalt (ABS, mu ~0.9-1)
+    max_steer_rad: float = 0.61  # [rad] ~35 deg road-wheel lock (turning circle 10.2 m, spec)
+    max_steer_rate_radps: float = 0.6  # [rad/s] road wheel; ~480 deg/s at the handwheel / 14
+    steer_time_constant_s: float = 0.1  # [s] EPS actuator lag (literature)
+    drive_time_constant_s: float = 0.3  # [s] powertrain torque response (literature)
+    brake_time_constant_s: float = 0.15  # [s] brake pressure build-up (literature)
+    kinematic_speed_low_mps: float = 2.0  # [m/s] below: purely kinematic lateral states
+    kinematic_speed_high_mps: float = 4.0  # [m/s] above: purely dynamic lateral states
+    # derived, set in __post_init__
+    lf_m: float = field(init=False)  # [m] CoG to front axle
+    lr_m: float = field(init=False)  # [m] CoG to rear axle
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "lf_m", (1.0 - self.front_axle_load_fraction) * self.wheelbase_m)
+        object.__setattr__(self, "lr_m", self.front_axle_load_fraction * self.wheelbase_m)
+
+    @property
+    def track_m(self) -> float:
+        """Wheel track [m] (tread, wheel centre to wheel centre)."""
+        return self.track_width_m
+
+    @property
+    def barrier_width_m(self) -> float:
+        """Width ``T`` [m] for the paper's lane barrier: "the track, i.e. the width" -> body width."""
+        return self.width_m
+
+    @property
+    def cog_to_front_bumper_m(self) -> float:
+        """Distance [m] from the CoG forward to the front bumper."""
+        return self.lf_m + self.front_overhang_m
+
+    @property
+    def understeer_gradient(self) -> float:
+        """``K_us`` [rad/(m/s^2)]: steady state ``delta = L / R + K_us a_y`` of the linear model."""
+        m, L = self.mass_kg, self.wheelbase_m
+        cf, cr = self.cornering_stiffness_front_npr, self.cornering_stiffness_rear_npr
+        return m / L * (self.lr_m / cf - self.lf_m / cr)
+
+    @property
+    def max_brake_force_n(self) -> float:
+        """Brake force [N] at full pedal."""
+        return self.mass_kg * self.max_brake_decel_mps2
+
+
+@dataclass(frozen=True, slots=True)
+class VehicleState:
+    """State of the plant; positions in the world frame, velocities in the body frame."""
+
+    x: float  # [m] CoG, world
+    y: float  # [m] CoG, world
+    yaw: float  # [rad] heading, counter-clockwise from world +x (not wrapped)
+    vx: float  # [m/s] longitudinal velocity of the CoG, body frame (>= 0)
+    vy: float  # [m/s] lateral velocity of the CoG, body frame (left +)
+    yaw_rate: float  # [rad/s] counter-clockwise +
+    steer: float  # [rad] actual road-wheel angle (left +)
+    drive_force: float  # [N] actual longitudinal tyre force: traction > 0, braking < 0
+
+
+def speed(state: VehicleState) -> float:
+    """Speed [m/s] of the CoG."""
+    return math.hypot(state.vx, state.vy)
+
+
+def resistance_force(vx: float, params: VehicleParams) -> float:
+    """Drag + rolling resistance [N] opposing motion at ``vx`` [m/s] (0 at standstill)."""
+    if vx <= 0.0:
+        return 0.0
+    drag = 0.5 * params.air_density_kgm3 * params.drag_coefficient * params.frontal_area_m2
+    return drag * vx * vx + params.rolling_resistance * params.mass_kg * GRAVITY
+
+
+def available_drive_force(vx: float, params: VehicleParams) -> float:
+    """Traction force [N] at full throttle: force-limited at low speed, power-limited above."""
+    return min(params.max_drive_force_n, params.max_drive_power_w / max(vx, 0.1))
+
+
+def pedals_from_accel(
+    accel_cmd: float, state: VehicleState, params: VehicleParams
+) -> tuple[float, float]:
+    """Throttle and brake in [0, 1] that realise ``accel_cmd`` [m/s^2] once the actuator settles.
+
+    Inverse of the longitudinal model with drag and rolling resistance as feed-forward; exactly one
+    of the two is non-zero (or both zero). Saturates at full throttle / full brake.
+    """
+    force = params.mass_kg * accel_cmd + resistance_force(state.vx, params)
+    if force > 0.0:
+        return min(force / available_drive_force(state.vx, params), 1.0), 0.0
+    if force < 0.0:
+        return 0.0, min(-force / params.max_brake_force_n, 1.0)
+    return 0.0, 0.0
+
+
+def _lag(value: float, target: float, time_constant: float, dt: float) -> float:
+    """Exact discretisation of a first-order lag over ``dt``."""
+    if time_constant <= 0.0:
+        return target
+    return target + (value - target) * math.exp(-dt / time_constant)
+
+
+def step(
+    state: VehicleState,
+    steer_cmd: float,
+    throttle: float,
+    brake: float,
+    params: VehicleParams,
+    dt: float,
+) -> VehicleState:
+    """Advance the plant by ``dt`` [s] under road-wheel ``steer_cmd`` [rad] and pedals in [0, 1]."""
+    p = params
+    m, lf, lr, L = p.mass_kg, p.lf_m, p.lr_m, p.wheelbase_m
+    vx, vy, r = state.vx, state.vy, state.yaw_rate
+
+    # --- actuators ---------------------------------------------------------------------------
+    cmd = min(max(steer_cmd, -p.max_steer_rad), p.max_steer_rad)
+    d_steer = (cmd - state.steer) * (1.0 - math.exp(-dt / p.steer_time_constant_s))
+    max_d = p.max_steer_rate_radps * dt
+    delta = state.steer + min(max(d_steer, -max_d), max_d)
+
+    throttle = min(max(throttle, 0.0), 1.0)
+    brake = min(max(brake, 0.0), 1.0)
+    target = throttle * available_drive_force(vx, p) - brake * p.max_brake_force_n
+    # brake circuit dynamics whenever braking is involved (applying or releasing)
+    tau = (
+        p.brake_time_constant_s
+        if (target < 0.0 or state.drive_force < 0.0)
+        else (p.drive_time_constant_s)
+    )
+    fx = _lag(state.drive_force, target, tau, dt)
+
+    # --- lateral: dynamic single track, implicit Euler with secant tyre stiffness ---------------
+    v_lo, v_hi = p.kinematic_speed_low_mps, p.kinematic_speed_high_mps
+    w = min(max((vx - v_lo) / (v_hi - v_lo), 0.0), 1.0)
+    w = w * w * (3.0 - 2.0 * w)  # smoothstep: weight of the dynamic model
+    fyf = 0.0
+    if w > 0.0:
+        u = max(vx, v_lo)
+        fzf = p.front_axle_load_fraction * m * GRAVITY
+        fzr = m * GRAVITY - fzf
+        alpha_f = delta - (vy + lf * r) / u
+        alpha_r = -(vy - lr * r) / u
+        cf = p.cornering_stiffness_front_npr
+        cr = p.cornering_stiffness_rear_npr
+        # saturate |F_y| at mu F_z by lowering the stiffness to the secant through the limit
+        if cf * abs(alpha_f) > p.friction_coefficient * fzf:
+            cf = p.friction_coefficient * fzf / abs(alpha_f)
+        if cr * abs(alpha_r) > p.friction_coefficient * fzr:
+            cr = p.friction_coefficient * fzr / abs(alpha_r)
+        iz = p.yaw_inertia_kgm2
+        a11 = -(cf + cr) / (m * u)
+        a12 = -(lf * cf - lr * cr) / (m * u) - u
+        a21 = -(lf * cf - lr * cr) / (iz * u)
+        a22 = -(lf * lf * cf + lr * lr * cr) / (iz * u)
+        b1 = vy + dt * cf * delta / m
+        b2 = r + dt * lf * cf * delta / iz
+        # (I - dt A) [vy, r]' = [b1, b2]'
+        m11, m12, m21, m22 = 1.0 - dt * a11, -dt * a12, -dt * a21, 1.0 - dt * a22
+        det = m11 * m22 - m12 * m21
+        vy_dyn = (b1 * m22 - m12 * b2) / det
+        r_dyn = (m11 * b2 - m21 * b1) / det
+        fyf = cf * (delta - (vy_dyn + lf * r_dyn) / u)
+
+    # --- longitudinal --------------------------------------------------------------------------
+    ax = (fx - resistance_force(vx, p) - w * fyf * math.sin(delta)) / m + w * vy * r
+    # no reversing: brakes and resistances hold the car at standstill
+    vx_new = max(vx + ax * dt, 0.0)
+
+    # --- blend with the kinematic bicycle at low speed ------------------------------------------
+    r_kin = vx_new * math.tan(delta) / L
+    vy_kin = lr * r_kin
+    if w > 0.0:
+        vy_new = w * vy_dyn + (1.0 - w) * vy_kin
+        r_new = w * r_dyn + (1.0 - w) * r_kin
+    else:
+        vy_new, r_new = vy_kin, r_kin
+
+    # --- pose (semi-implicit Euler: updated velocities) ----------------------------------------
+    yaw = state.yaw + r_new * dt
+    c, s = math.cos(yaw), math.sin(yaw)
+    return VehicleState(
+        x=state.x + (vx_new * c - vy_new * s) * dt,
+        y=state.y + (vx_new * s + vy_new * c) * dt,
+        yaw=yaw,
+        vx=vx_new,
+        vy=vy_new,
+        yaw_rate=r_new,
+        steer=delta,
+        drive_force=fx,
+    )
+
+
+def front_bumper(state: VehicleState, params: VehicleParams) -> tuple[float, float]:
+    """World position [m] of the front-bumper centre (SUMO's vehicle position)."""
+    d = params.cog_to_front_bumper_m
+    return state.x + d * math.cos(state.yaw), state.y + d * math.sin(state.yaw)
+
+
+def rear_axle(state: VehicleState, params: VehicleParams) -> tuple[float, float]:
+    """World position [m] of the rear-axle centre (pure pursuit's reference point)."""
+    d = params.lr_m
+    return state.x - d * math.cos(state.yaw), state.y - d * math.sin(state.yaw)
+
+
+def state_from_front_bumper(
+    x: float, y: float, yaw: float, speed: float, params: VehicleParams
+) -> VehicleState:
+    """Straight-running state with the front bumper at ``(x, y)`` [m], heading ``yaw`` [rad].
+
+    The drive force balances drag and rolling resistance, so the car holds ``speed`` [m/s] at the
+    matching throttle (see :func:`pedals_from_accel` with zero acceleration).
+    """
+    d = params.cog_to_front_bumper_m
+    v = max(speed, 0.0)
+    return VehicleState(
+        x=x - d * math.cos(yaw),
+        y=y - d * math.sin(yaw),
+        yaw=yaw,
+        vx=v,
+        vy=0.0,
+        yaw_rate=0.0,
+        steer=0.0,
+        drive_force=resistance_force(v, params),
+    )
