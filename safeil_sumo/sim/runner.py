@@ -109,6 +109,7 @@ def sumo_args(scenario: Scenario, loop: LoopConfig) -> list[str]:
             "--device.ssm.explicit", EGO_ID,
             "--device.ssm.measures", "TTC DRAC PET",
             "--device.ssm.file", str(loop.ssm_file),
+            "--device.ssm.trajectories", "true",
         ]
     return args
 

@@ -1,0 +1,34 @@
+"""Shared fixtures: roads built in memory (no SUMO) and the committed curved500 road."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from safeil_sumo.geometry import Polyline
+from safeil_sumo.scenarios.road import Lane, Road
+
+
+def make_straight_road(length: float = 500.0, lanes: int = 3, width: float = 3.5) -> Road:
+    """A straight road along +x; lane 0 is the rightmost, centred so lane 1 runs on y = 0."""
+    out = []
+    for i in range(lanes):
+        y = (i - (lanes - 1) / 2) * width
+        centre = Polyline(np.array([[0.0, y], [length, y]]))
+        out.append(Lane(f"road_{i}", i, width, length, centre, centre.offset(width / 2),
+                        centre.offset(-width / 2)))
+    return Road(Path("straight_fixture.net.xml"), "road", tuple(out), lanes // 2, 20.0,
+                length - 200.0, {})
+
+
+@pytest.fixture
+def straight_road() -> Road:
+    return make_straight_road()
+
+
+@pytest.fixture(scope="session")
+def curved500():
+    from safeil_sumo.scenarios.catalogue import resolve_net
+    from safeil_sumo.scenarios.road import load_road
+
+    return load_road(resolve_net("curved500"))

@@ -1,0 +1,80 @@
+"""Frames, polylines and projections: hand-computed cases and hypothesis properties."""
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safeil_sumo.geometry import (
+    Polyline, ego_to_world, rectangle_corners, rectangles_overlap, sumo_angle_to_yaw,
+    world_to_ego, wrap_angle, yaw_to_sumo_angle,
+)
+
+coord = st.floats(-1e4, 1e4, allow_nan=False)
+angle = st.floats(-10, 10, allow_nan=False)
+
+
+def test_world_to_ego_hand_computed():
+    # ego at (10, 5) heading north: a point 3 m north and 2 m west is (3 ahead, 2 left)
+    p = world_to_ego(np.array([8.0, 8.0]), np.array([10.0, 5.0]), math.pi / 2)
+    assert np.allclose(p, [3.0, 2.0])
+
+
+@given(coord, coord, coord, coord, angle)
+def test_frame_round_trip(px, py, ox, oy, yaw):
+    p = np.array([px, py])
+    o = np.array([ox, oy])
+    back = ego_to_world(world_to_ego(p, o, yaw), o, yaw)
+    assert np.allclose(back, p, atol=1e-6)
+
+
+@given(angle)
+def test_sumo_angle_round_trip(yaw):
+    assert math.isclose(
+        float(wrap_angle(sumo_angle_to_yaw(yaw_to_sumo_angle(yaw)) - yaw)), 0.0, abs_tol=1e-9
+    )
+
+
+def test_sumo_angle_conventions():
+    assert yaw_to_sumo_angle(0.0) == 90.0  # east
+    assert yaw_to_sumo_angle(math.pi / 2) == 0.0  # north
+    assert math.isclose(sumo_angle_to_yaw(180.0), -math.pi / 2)  # south
+
+
+def test_projection_on_l_shaped_polyline():
+    line = Polyline(np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]]))
+    s, d = line.project(np.array([[4.0, 1.0], [11.0, 5.0], [-2.0, -1.0], [10.0, 13.0]]))
+    assert np.allclose(s, [4.0, 15.0, -2.0, 23.0])
+    assert np.allclose(d, [1.0, -1.0, -1.0, 0.0])
+    assert line.length == 20.0
+
+
+def test_point_at_and_offset():
+    line = Polyline(np.array([[0.0, 0.0], [10.0, 0.0]]))
+    xy, heading = line.point_at(4.0)
+    assert np.allclose(xy, [4.0, 0.0]) and heading == 0.0
+    left = line.offset(1.75)
+    assert np.allclose(left.points, [[0.0, 1.75], [10.0, 1.75]])
+
+
+@settings(max_examples=50)
+@given(st.floats(50, 2000), st.floats(-3, 3), st.floats(0.05, 0.95))
+def test_offset_of_arc_is_concentric(radius, offset, frac):
+    # chords of an arc offset by the miter rule stay chords of the concentric arc
+    th = np.linspace(0, 1.0, 60)
+    arc = Polyline(np.stack([radius * np.sin(th), radius - radius * np.cos(th)], axis=1))
+    off = arc.offset(offset)
+    r = np.hypot(off.points[:, 0], off.points[:, 1] - radius)
+    assert np.allclose(r, radius - offset, atol=1e-6 * radius)
+    # projecting a point of the offset line returns the offset (up to the chord sagitta)
+    p, _ = off.point_at(frac * off.length)
+    _, d = arc.project(p)
+    assert abs(float(d) - offset) < 0.01 * abs(offset) + 1e-3
+
+
+def test_rectangles_overlap():
+    a = rectangle_corners(np.array([0.0, 0.0]), 0.0, 4.5, 1.8)
+    assert rectangles_overlap(a, rectangle_corners(np.array([4.0, 0.5]), 0.3, 4.5, 1.8))
+    assert not rectangles_overlap(a, rectangle_corners(np.array([4.6, 0.0]), 0.0, 4.5, 1.8))
+    assert not rectangles_overlap(a, rectangle_corners(np.array([0.0, 1.9]), 0.0, 4.5, 1.8))

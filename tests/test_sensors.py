@@ -1,0 +1,73 @@
+"""Camera lane lines and radar: hand-computed cases on a straight road and on curved500."""
+
+import math
+
+import numpy as np
+import pytest
+
+from safeil_sumo.sim import sensors as sen
+
+CFG = sen.SensorConfig()
+
+
+def test_straight_lane_lines(straight_road):
+    ego = np.array([100.0, 0.3])
+    left, right, lane = sen.camera_lane_lines(straight_road, ego, 0.0, CFG)
+    assert lane == 1
+    assert np.allclose(left, [1.75 - 0.3, 0, 0, 0], atol=1e-9)
+    assert np.allclose(right, [-1.75 - 0.3, 0, 0, 0], atol=1e-9)
+    # heading 0.02 rad left of the road: lines appear with slope -tan(0.02)
+    left, _, _ = sen.camera_lane_lines(straight_road, ego, 0.02, CFG)
+    assert left[1] == pytest.approx(-math.tan(0.02), rel=1e-3)
+
+
+def test_camera_follows_the_lane_the_car_is_in(straight_road):
+    _, _, lane = sen.camera_lane_lines(straight_road, np.array([100.0, 3.0]), 0.0, CFG)
+    assert lane == 2
+    _, _, lane = sen.camera_lane_lines(straight_road, np.array([100.0, -20.0]), 0.0, CFG)
+    assert lane == 0  # off the road: the outermost lane's lines
+
+
+def test_curved500_lane_lines_match_the_circle(curved500):
+    lane = curved500.lanes[curved500.ego_lane]
+    s = curved500.path_start_s + 400.0
+    xy, _ = lane.centre.point_at(s)
+    # the tangent of the circle: the secant over +-20 m (a chord's own heading is off by up to
+    # half the chord angle, ~9 mrad, which would show as c1)
+    (a, b), _ = lane.centre.point_at(np.array([s - 20.0, s + 20.0]))
+    heading = math.atan2(b[1] - a[1], b[0] - a[0])
+    left, right, idx = sen.camera_lane_lines(curved500, xy, heading, CFG)
+    assert idx == curved500.ego_lane
+    assert left[0] == pytest.approx(1.75, abs=0.02)
+    assert right[0] == pytest.approx(-1.75, abs=0.02)
+    assert abs(left[1]) < 2e-3 and abs(right[1]) < 2e-3
+    # left turn: y ~ c0 + x^2 / (2 (R - c0)) for a line at offset c0 from a centre of radius R
+    assert left[2] == pytest.approx(1 / (2 * (500 - 1.75)), rel=0.03)
+    assert right[2] == pytest.approx(1 / (2 * (500 + 1.75)), rel=0.03)
+
+
+def test_radar_in_lane_out_of_lane_and_range():
+    left = np.array([1.75, 0, 0, 0])
+    right = np.array([-1.75, 0, 0, 0])
+    ego = np.array([0.0, 0.0])
+    hit = sen.radar_leader(ego, 0.0, np.array([40.0, 0.5]), 27.0, left, right, CFG)
+    assert hit == sen.RadarTarget(40.0, 0.5, 27.0)
+    assert sen.radar_leader(ego, 0.0, np.array([40.0, 3.5]), 27.0, left, right, CFG) is None
+    assert sen.radar_leader(ego, 0.0, np.array([151.0, 0.0]), 27.0, left, right, CFG) is None
+    assert sen.radar_leader(ego, 0.0, np.array([-5.0, 0.0]), 27.0, left, right, CFG) is None
+    assert sen.leader_features(None, 29.0, CFG) == (29.0, 150.0)
+    assert sen.leader_features(hit, 29.0, CFG) == (27.0, 40.0)
+
+
+def test_radar_noise_is_seeded_and_quantized():
+    cfg = sen.SensorConfig(radar_noise_m=0.5, quantization_m=0.25)
+    left, right = np.array([1.75, 0, 0, 0]), np.array([-1.75, 0, 0, 0])
+    args = (np.zeros(2), 0.0, np.array([40.0, 0.0]), 27.0, left, right, cfg)
+    a = sen.radar_leader(*args, rng=np.random.default_rng(3))
+    b = sen.radar_leader(*args, rng=np.random.default_rng(3))
+    assert a == b and a.x != 40.0 and (a.x / 0.25).is_integer()
+
+
+def test_bad_sensor_config():
+    with pytest.raises(ValueError):
+        sen.SensorConfig(radar_noise_m=-1.0)
