@@ -1,0 +1,93 @@
+"""Open-loop evaluation of a planner on held-out tuples: accuracy and constraint margins.
+
+Accuracy: control-point RMSE vs the fitted targets, ADE/FDE of the planned spline vs the
+demonstrated future at its sample times (``tau = t_k / T_h``), and the same ADE/FDE of the target
+control points (the spline's own fitting error: a floor for any planner).
+Safety: margins (>= 0 safe, see :mod:`safeil_sumo.safety_filter`) of every plan at its control
+points (``_cp``) and at points sampled along the spline (``_spline``), per constraint (``left``,
+``right``, ``lead``): the worst margin over all plans, the mean of each plan's worst margin, and
+the fraction of plans violating. ``hull_gap_rate`` is the fraction of plans whose control points
+are safe while some spline point is not — where the convex-hull argument fails (curves).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from safeil_sumo import bspline
+from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.policy import Policy
+from safeil_sumo.safety_filter import DEFAULT_SAFE_SET, SafeSet, plan_margins
+
+CONSTRAINTS = ("left", "right", "lead")
+
+
+def _margin_stats(margins: dict[str, np.ndarray], where: str) -> tuple[dict[str, float], np.ndarray]:
+    """Stats of margins ``(N, M)`` per constraint; also the per-plan "all safe" mask ``(N,)``."""
+    out: dict[str, float] = {}
+    safe = np.ones(next(iter(margins.values())).shape[0], dtype=bool)
+    for c in CONSTRAINTS:
+        worst = margins[c].min(axis=-1)  # (N,)
+        safe &= worst >= 0
+        out[f"min_margin_{c}_{where}"] = float(worst.min())
+        out[f"mean_min_margin_{c}_{where}"] = float(worst.mean())
+        out[f"violation_rate_{c}_{where}"] = float(np.mean(worst < 0))
+    out[f"violation_rate_any_{where}"] = float(np.mean(~safe))
+    return out, safe
+
+
+def plan_metrics(
+    features: np.ndarray,
+    plans: np.ndarray,
+    targets: np.ndarray,
+    future: np.ndarray,
+    future_times: np.ndarray,
+    horizon: float,
+    safe_set: SafeSet = DEFAULT_SAFE_SET,
+    n_samples: int = 50,
+) -> dict[str, float]:
+    """Metrics of plans ``(N, 3, 2)`` vs targets ``(N, 3, 2)`` and futures ``(N, H, 2)`` at
+    ``future_times (H,)`` [s]; features ``(N, 9)``. Future samples beyond the horizon are dropped."""
+    plans = np.asarray(plans, dtype=float)
+    keep = np.asarray(future_times) <= horizon + 1e-9
+    tau_f = np.asarray(future_times)[keep] / horizon
+    future = np.asarray(future, dtype=float)[:, keep]
+    err = plans - targets
+    out: dict[str, float] = {
+        "n": float(len(plans)),
+        "cp_rmse": float(np.sqrt(np.mean(err**2))),
+        "cp_rmse_x": float(np.sqrt(np.mean(err[..., 0] ** 2))),
+        "cp_rmse_y": float(np.sqrt(np.mean(err[..., 1] ** 2))),
+    }
+    for prefix, cps in (("", plans), ("target_fit_", targets)):
+        d = np.linalg.norm(bspline.evaluate(cps, tau_f) - future, axis=-1)  # (N, H)
+        out[f"{prefix}ade"] = float(d.mean())
+        out[f"{prefix}fde"] = float(d[:, -1].mean())
+    out["ade_lateral"] = float(
+        np.abs(bspline.evaluate(plans, tau_f)[..., 1] - future[..., 1]).mean()
+    )
+    tau_s = np.arange(1, n_samples + 1) / n_samples
+    cp_stats, cp_safe = _margin_stats(plan_margins(features, plans, horizon, safe_set), "cp")
+    sp_stats, sp_safe = _margin_stats(
+        plan_margins(features, plans, horizon, safe_set, tau_s), "spline"
+    )
+    out.update(cp_stats)
+    out.update(sp_stats)
+    out["hull_gap_rate"] = float(np.mean(cp_safe & ~sp_safe))
+    target_stats, _ = _margin_stats(plan_margins(features, targets, horizon, safe_set), "cp")
+    out["target_violation_rate_any_cp"] = target_stats["violation_rate_any_cp"]
+    return out
+
+
+def open_loop_metrics(
+    policy: Policy, tuples: Tuples, safe_set: SafeSet = DEFAULT_SAFE_SET, n_samples: int = 50
+) -> dict[str, float]:
+    """:func:`plan_metrics` of ``policy`` on ``tuples`` (a flat dict of floats)."""
+    if len(tuples) == 0:
+        raise ValueError("no tuples to evaluate")
+    if not np.isclose(policy.horizon, tuples.horizon):
+        raise ValueError(f"policy horizon {policy.horizon} != data horizon {tuples.horizon}")
+    return plan_metrics(
+        tuples.features, policy.plan(tuples.features), tuples.control_points, tuples.future,
+        tuples.future_times, tuples.horizon, safe_set, n_samples,
+    )

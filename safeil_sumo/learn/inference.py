@@ -1,0 +1,89 @@
+"""Plain-numpy inference of a trained planner: no torch needed in the closed loop.
+
+The feature normalisation is folded into the first layer and the output de-normalisation into the
+last (``W1' = W1 / std_f``, ``b1' = b1 - W1' mean_f``; ``W3' = std_o W3``, ``b3' = std_o b3 + mean_o``),
+weights are stored transposed, C-contiguous float64, and the hidden activations of the single-
+sample path reuse preallocated buffers. Hence an instance is not thread-safe; use one per thread.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from safeil_sumo.features import N_FEATURES
+from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
+
+
+class MLPPolicy:
+    """The Policy protocol (``name``, ``horizon`` [s], ``plan``) over checkpoint arrays."""
+
+    def __init__(
+        self,
+        arrays: dict[str, np.ndarray],
+        architecture: dict,
+        name: str,
+        horizon: float,
+        metadata: dict | None = None,
+    ) -> None:
+        self.name = name
+        self.horizon = float(horizon)
+        self.metadata = metadata or {}
+        self.activation = architecture["activation"]
+        if self.activation not in ("tanh", "relu"):
+            raise CheckpointError(f"unsupported activation {self.activation!r}")
+        n_layers = len(architecture["hidden"]) + 1
+        w = [np.asarray(arrays[f"net.{2 * j}.weight"], np.float64) for j in range(n_layers)]
+        b = [np.asarray(arrays[f"net.{2 * j}.bias"], np.float64) for j in range(n_layers)]
+        f_mean, f_std = (np.asarray(arrays[k], np.float64) for k in ("feature_mean", "feature_std"))
+        o_mean, o_std = (np.asarray(arrays[k], np.float64) for k in ("output_mean", "output_std"))
+        w[0] = w[0] / f_std
+        b[0] = b[0] - w[0] @ f_mean
+        w[-1] = w[-1] * o_std[:, None]
+        b[-1] = b[-1] * o_std + o_mean
+        self._wt = [np.ascontiguousarray(wi.T) for wi in w]  # (in, out)
+        self._b = [np.ascontiguousarray(bi) for bi in b]
+        self._buffers = [np.empty(wi.shape[0]) for wi in w[:-1]]
+
+    def _act(self, h: np.ndarray) -> None:
+        if self.activation == "tanh":
+            np.tanh(h, out=h)
+        else:
+            np.maximum(h, 0.0, out=h)
+
+    def _plan_one(self, f: np.ndarray) -> np.ndarray:
+        h = f
+        for wt, b, buf in zip(self._wt[:-1], self._b[:-1], self._buffers, strict=True):
+            np.dot(h, wt, out=buf)
+            buf += b
+            self._act(buf)
+            h = buf
+        out = np.dot(h, self._wt[-1])  # fresh array: the caller may keep the plan
+        out += self._b[-1]
+        return out.reshape(3, 2)
+
+    def plan(self, features: np.ndarray) -> np.ndarray:
+        """Control points ``(..., 3, 2)`` [m] for ``features (..., 9)``."""
+        f = np.asarray(features, dtype=np.float64)
+        if f.shape[-1:] != (N_FEATURES,):
+            raise ValueError(f"features must be (..., {N_FEATURES}), got {f.shape}")
+        if f.ndim == 1:
+            return self._plan_one(f)
+        h = f.reshape(-1, N_FEATURES)
+        for wt, b in zip(self._wt[:-1], self._b[:-1], strict=True):
+            h = h @ wt
+            h += b
+            self._act(h)
+        out = h @ self._wt[-1]
+        out += self._b[-1]
+        return out.reshape(f.shape[:-1] + (3, 2))
+
+
+def load_policy(path: str | Path, name: str | None = None) -> MLPPolicy:
+    """An :class:`MLPPolicy` from a checkpoint (prefix, ``.safetensors`` or ``.json`` path)."""
+    arrays, meta = load_checkpoint(path)
+    return MLPPolicy(
+        arrays, meta["architecture"], name or meta.get("name") or Path(path).stem,
+        meta["horizon_s"], meta,
+    )

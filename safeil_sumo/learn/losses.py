@@ -1,0 +1,141 @@
+"""Training losses with named terms: imitation (MSE) + the paper's softplus barrier (Sec. IV-B).
+
+With margins ``m >= 0`` meaning "safe" (ego frame, x forward, y left, [m]):
+
+- left line:  ``m_l = (c0l + c1l x + c2l x^2 - T/2) - y``
+- right line: ``m_r = y - (c0r + c1r x + c2r x^2 + T/2)``
+- leader:     ``m_d = d_lead + v_lead t - x  [- (gap_min + time_gap v_x)]``
+
+the barrier is ``K sum_i softplus(-m)`` over the three control points (times ``t_i = i T_h / 3``),
+exactly the paper's ``K sum sigma(alpha_yi - (...))`` etc. The bracketed leader margin and the
+extra points sampled along the spline are options beyond the paper, OFF by default.
+``d_lead`` is bumper to bumper from the ego's front bumper, which is the plan origin, so
+``x < d_lead(t)`` means "behind the leader's rear".
+
+Imitation: the paper's ``||alpha - alpha*||_2^2`` in metres, i.e. the squared error summed over
+the 6 outputs, averaged over the batch (not divided by 6: that would change its weight vs K).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from safeil_sumo.bspline import GREVILLE
+from safeil_sumo.learn import spline
+
+# Column indices of the features (safeil_sumo.features.FEATURE_NAMES).
+C0L, C1L, C2L, C0R, C1R, C2R, V_X, V_LEAD, D_LEAD = range(9)
+
+
+@dataclass(frozen=True)
+class BarrierConfig:
+    """Barrier settings. Defaults are the paper's (K = 1000, control points only, no margin).
+
+    k: weight K [-]; track: vehicle track / width T [m];
+    gap_min: extra leader gap [m]; time_gap: extra leader gap per ego speed [s];
+    n_samples: also constrain this many points at ``tau = j / n_samples, j = 1..n`` on the spline.
+    """
+
+    k: float = 1000.0
+    track: float = 1.76
+    gap_min: float = 0.0
+    time_gap: float = 0.0
+    n_samples: int = 0
+
+
+@dataclass(frozen=True)
+class LossTerms:
+    """Scalar loss terms (batch means); ``total`` is what is minimised."""
+
+    imitation: torch.Tensor
+    barrier_left: torch.Tensor
+    barrier_right: torch.Tensor
+    barrier_lead: torch.Tensor
+    total: torch.Tensor
+
+    def as_floats(self) -> dict[str, float]:
+        return {name: float(getattr(self, name).detach()) for name in self.__dataclass_fields__}
+
+
+def _poly(features: torch.Tensor, c0: int, x: torch.Tensor) -> torch.Tensor:
+    """Lane line ``c0 + c1 x + c2 x^2`` [m] at ``x (N, M)`` for the line starting at column c0."""
+    c = features[:, c0 : c0 + 3, None]
+    return c[:, 0] + c[:, 1] * x + c[:, 2] * x * x
+
+
+def lane_margins(
+    features: torch.Tensor, points: torch.Tensor, track: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Left and right margins ``(N, M)`` [m] of ``points (N, M, 2)``; >= 0 is inside the lane."""
+    x, y = points[..., 0], points[..., 1]
+    left = _poly(features, C0L, x) - 0.5 * track - y
+    right = y - (_poly(features, C0R, x) + 0.5 * track)
+    return left, right
+
+
+def lead_margins(
+    features: torch.Tensor,
+    points: torch.Tensor,
+    times: torch.Tensor,
+    gap_min: float = 0.0,
+    time_gap: float = 0.0,
+) -> torch.Tensor:
+    """Leader margin ``(N, M)`` [m] of ``points (N, M, 2)`` at ``times (M,)`` [s], constant-speed leader."""
+    d_lead = features[:, D_LEAD, None] + features[:, V_LEAD, None] * times
+    margin = d_lead - points[..., 0]
+    if gap_min or time_gap:
+        margin = margin - (gap_min + time_gap * features[:, V_X, None])
+    return margin
+
+
+def constrained_points(
+    control_points: torch.Tensor, horizon: float, n_samples: int = 0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points ``(N, 3 + n_samples, 2)`` the barrier acts on and their times ``(3 + n_samples,)`` [s]."""
+    times = torch.as_tensor(GREVILLE[1:] * horizon, dtype=control_points.dtype)
+    if n_samples <= 0:
+        return control_points, times
+    tau = torch.arange(1, n_samples + 1, dtype=control_points.dtype) / n_samples
+    sampled = spline.evaluate(control_points, tau)
+    return torch.cat([control_points, sampled], dim=1), torch.cat([times, tau * horizon])
+
+
+def barrier_terms(
+    features: torch.Tensor, control_points: torch.Tensor, horizon: float, cfg: BarrierConfig
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Batch means of the left, right and leader barriers for ``features (N, 9)``, plans ``(N, 3, 2)``."""
+    points, times = constrained_points(control_points, horizon, cfg.n_samples)
+    left, right = lane_margins(features, points, cfg.track)
+    lead = lead_margins(features, points, times, cfg.gap_min, cfg.time_gap)
+    # F.softplus is ln(1 + e^z), switching to z itself for z > 20 (same value in float32).
+    return tuple(cfg.k * F.softplus(-m).sum(dim=1).mean() for m in (left, right, lead))
+
+
+def imitation_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """``||pred - target||^2`` summed over the 6 outputs, mean over the batch ``(N, 3, 2)``."""
+    return (pred - target).square().sum(dim=(-2, -1)).mean()
+
+
+def safe_loss(
+    features: torch.Tensor,
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    horizon: float,
+    barrier: BarrierConfig = BarrierConfig(),
+    apply_barrier: bool = True,
+) -> LossTerms:
+    """SafeIL loss ``imitation + barriers``; ``apply_barrier=False`` is behavioural cloning.
+
+    For BC the barrier terms are still computed and returned for logging (same config, so BC and
+    SafeIL runs are comparable term by term), but detached and not added to ``total``.
+    """
+    imitation = imitation_loss(pred, target)
+    if not apply_barrier:
+        with torch.no_grad():
+            left, right, lead = barrier_terms(features, pred, horizon, barrier)
+        return LossTerms(imitation, left, right, lead, imitation)
+    left, right, lead = barrier_terms(features, pred, horizon, barrier)
+    return LossTerms(imitation, left, right, lead, imitation + left + right + lead)

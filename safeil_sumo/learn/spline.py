@@ -1,0 +1,40 @@
+"""Torch version of the clamped cubic B-spline in :mod:`safeil_sumo.bspline` (the numpy reference).
+
+Same conventions: knots ``[0, 0, 0, 0, 1, 1, 1, 1]``, the first coefficient is the ego-frame origin,
+a plan is the three free control points ``(..., 3, 2)`` [m], ``tau = t / T_h``. Differentiable, so
+the loss can constrain points sampled along the spline, not only the control points.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def basis(tau: torch.Tensor, derivative: int = 0) -> torch.Tensor:
+    """Basis functions (or their ``derivative``-th derivative wrt tau) at ``tau (M,)`` -> ``(M, 4)``."""
+    t = torch.clamp(torch.as_tensor(tau), 0.0, 1.0)
+    u = 1.0 - t
+    if derivative == 0:
+        cols = [u**3, 3 * t * u**2, 3 * t**2 * u, t**3]
+    elif derivative == 1:
+        cols = [-3 * u**2, 3 * u**2 - 6 * t * u, 6 * t * u - 3 * t**2, 3 * t**2]
+    elif derivative == 2:
+        cols = [6 * u, -12 * u + 6 * t, 6 * u - 12 * t, 6 * t]
+    elif derivative == 3:
+        ones = torch.ones_like(t)
+        cols = [-6 * ones, 18 * ones, -18 * ones, 6 * ones]
+    else:
+        return torch.zeros(t.shape + (4,), dtype=t.dtype)
+    return torch.stack(cols, dim=-1)
+
+
+def full_coefficients(control_points: torch.Tensor) -> torch.Tensor:
+    """Prepend the fixed origin: ``(..., 3, 2)`` -> ``(..., 4, 2)``."""
+    zero = control_points.new_zeros(control_points.shape[:-2] + (1, control_points.shape[-1]))
+    return torch.cat([zero, control_points], dim=-2)
+
+
+def evaluate(control_points: torch.Tensor, tau: torch.Tensor, derivative: int = 0) -> torch.Tensor:
+    """Spline points ``(..., M, 2)`` at ``tau (M,)`` for plans ``(..., 3, 2)`` (origin implied)."""
+    tau = torch.as_tensor(tau, dtype=control_points.dtype)
+    return basis(tau, derivative) @ full_coefficients(control_points)

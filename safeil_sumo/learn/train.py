@@ -1,0 +1,232 @@
+"""Training loop for SafeIL and its behavioural-cloning baseline (same network, data and loop).
+
+Deterministic on CPU for a seed: ``torch.manual_seed`` for the initial weights, a private
+``torch.Generator`` for shuffling, ``torch.use_deterministic_algorithms(True)`` and a fixed
+thread count during training (both restored afterwards). Tensors are sliced directly (no
+DataLoader): the data are small and the network is tiny, so Python overhead is what costs.
+Early stopping watches the total loss on held-out maneuvers; the best-validation weights are
+returned.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.learn.losses import BarrierConfig, LossTerms, safe_loss
+from safeil_sumo.learn.model import ACTIVATIONS, PlannerMLP
+
+METHODS = ("safeil", "bc")
+TERMS = ("imitation", "barrier_left", "barrier_right", "barrier_lead", "total")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training settings.
+
+    method: "safeil" (imitation + barrier) or "bc" (imitation only; barrier logged, not trained);
+    hidden: hidden layer widths; activation: "tanh" | "relu";
+    lr: Adam learning rate [-]; weight_decay: Adam L2 [-];
+    batch_size: minibatch size (0 = full batch); max_epochs; patience: epochs without a
+    validation improvement before stopping; seed;
+    barrier_k: K [-]; track: vehicle track T [m]; gap_min [m] / time_gap [s]: extra leader margin
+    (0 = paper); barrier_samples: extra points along the spline (0 = paper, control points only);
+    num_threads: torch CPU threads while training (fixed for determinism).
+    The horizon [s] is taken from the data.
+    """
+
+    method: str = "safeil"
+    hidden: tuple[int, ...] = (64, 64)
+    activation: str = "tanh"
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    batch_size: int = 512
+    max_epochs: int = 400
+    patience: int = 40
+    seed: int = 0
+    barrier_k: float = 1000.0
+    track: float = 1.76
+    gap_min: float = 0.0
+    time_gap: float = 0.0
+    barrier_samples: int = 0
+    num_threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
+        object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+        if self.max_epochs < 1 or self.batch_size < 0 or self.patience < 1:
+            raise ValueError("max_epochs and patience must be >= 1, batch_size >= 0")
+
+    @property
+    def barrier(self) -> BarrierConfig:
+        return BarrierConfig(
+            k=self.barrier_k, track=self.track, gap_min=self.gap_min,
+            time_gap=self.time_gap, n_samples=self.barrier_samples,
+        )
+
+    @staticmethod
+    def from_dict(d: dict) -> TrainConfig:
+        """Inverse of ``dataclasses.asdict`` (e.g. from a checkpoint's JSON)."""
+        return TrainConfig(**{**d, "hidden": tuple(d.get("hidden", (64, 64)))})
+
+
+@dataclass(frozen=True)
+class TrainHistory:
+    """Per-epoch logs and summary of one run.
+
+    epochs: one dict per epoch with ``epoch``, ``train_<term>``, ``val_<term>`` for the terms in
+    :data:`TERMS`, and ``seconds`` (wall time since start); best_epoch: epoch of the returned
+    weights; best_val: its validation total; seconds: total wall time [s];
+    samples_per_s: training samples processed per second; horizon [s];
+    stopped_early: patience ran out before max_epochs.
+    """
+
+    epochs: tuple[dict[str, float], ...]
+    best_epoch: int
+    best_val: float
+    seconds: float
+    samples_per_s: float
+    horizon: float
+    stopped_early: bool = False
+
+
+def split_by_maneuver(
+    tuples: Tuples,
+    val_fraction: float = 0.2,
+    seed: int = 0,
+    val_maneuvers: list[str] | None = None,
+) -> tuple[Tuples, Tuples]:
+    """Leave whole maneuvers out: ``(train, val)``.
+
+    ``val_maneuvers`` names them explicitly; otherwise ``round(val_fraction * n_maneuvers)`` (at
+    least 1 when the fraction is > 0 and there are >= 2 maneuvers) are drawn with ``seed``.
+    """
+    maneuvers = tuples.maneuvers
+    if val_maneuvers is not None:
+        unknown = set(val_maneuvers) - set(maneuvers.tolist())
+        if unknown:
+            raise ValueError(f"unknown maneuver ids: {sorted(unknown)}")
+        chosen = np.asarray(sorted(val_maneuvers))
+    else:
+        n_val = round(val_fraction * len(maneuvers))
+        if val_fraction > 0 and len(maneuvers) >= 2:
+            n_val = min(max(n_val, 1), len(maneuvers) - 1)
+        rng = np.random.default_rng(seed)
+        chosen = np.sort(rng.choice(maneuvers, size=n_val, replace=False))
+    is_val = np.isin(tuples.maneuver_id, chosen)
+    return tuples.subset(~is_val), tuples.subset(is_val)
+
+
+def _tensors(t: Tuples) -> tuple[torch.Tensor, torch.Tensor]:
+    return (
+        torch.as_tensor(np.ascontiguousarray(t.features), dtype=torch.float32),
+        torch.as_tensor(np.ascontiguousarray(t.control_points), dtype=torch.float32),
+    )
+
+
+def build_model(train: Tuples, config: TrainConfig) -> PlannerMLP:
+    """Fresh model for ``config`` (weights from ``config.seed``), scaling from the training data."""
+    torch.manual_seed(config.seed)
+    model = PlannerMLP(config.hidden, config.activation)
+    model.set_scaling(train.features, train.control_points)
+    return model
+
+
+def evaluate_loss(
+    model: PlannerMLP, features: torch.Tensor, targets: torch.Tensor, horizon: float,
+    config: TrainConfig,
+) -> LossTerms:
+    """Full-batch loss terms without gradients."""
+    with torch.no_grad():
+        return safe_loss(
+            features, model(features), targets, horizon, config.barrier,
+            apply_barrier=config.method == "safeil",
+        )
+
+
+def train(
+    train: Tuples, val: Tuples, config: TrainConfig = TrainConfig(), progress: bool = True
+) -> tuple[PlannerMLP, TrainHistory]:
+    """Train a planner on ``train``; early-stop on ``val`` (if ``val`` is empty, on the train loss).
+
+    Returns the model with the best-validation weights (eval mode) and the history.
+    """
+    if len(train) == 0:
+        raise ValueError("no training tuples")
+    if len(val) and not np.isclose(train.horizon, val.horizon):
+        raise ValueError(f"train/val horizons differ: {train.horizon} vs {val.horizon}")
+    horizon = float(train.horizon)
+    prev_det = torch.are_deterministic_algorithms_enabled()
+    prev_threads = torch.get_num_threads()
+    try:
+        torch.use_deterministic_algorithms(True)
+        torch.set_num_threads(config.num_threads)
+        return _train(train, val, config, horizon, progress)
+    finally:
+        torch.use_deterministic_algorithms(prev_det)
+        torch.set_num_threads(prev_threads)
+
+
+def _train(
+    train: Tuples, val: Tuples, config: TrainConfig, horizon: float, progress: bool
+) -> tuple[PlannerMLP, TrainHistory]:
+    model = build_model(train, config)
+    gen = torch.Generator().manual_seed(config.seed)
+    x_tr, y_tr = _tensors(train)
+    x_va, y_va = _tensors(val) if len(val) else (x_tr, y_tr)
+    n = len(x_tr)
+    batch = n if config.batch_size == 0 else min(config.batch_size, n)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    apply_barrier = config.method == "safeil"
+
+    best_val, best_epoch = float("inf"), 0
+    best_state = {k: v.clone() for k, v in model.state_dict().items()}
+    epochs: list[dict[str, float]] = []
+    start = time.perf_counter()
+    bar = tqdm(range(1, config.max_epochs + 1), disable=not progress, desc=config.method)
+    stopped_early = False
+    for epoch in bar:
+        model.train()
+        perm = torch.randperm(n, generator=gen)
+        sums = dict.fromkeys(TERMS, 0.0)
+        for lo in range(0, n, batch):
+            idx = perm[lo : lo + batch]
+            xb = x_tr[idx]
+            terms = safe_loss(xb, model(xb), y_tr[idx], horizon, config.barrier, apply_barrier)
+            opt.zero_grad(set_to_none=True)
+            terms.total.backward()
+            opt.step()
+            for name, value in terms.as_floats().items():
+                sums[name] += value * len(idx)
+        model.eval()
+        val_terms = evaluate_loss(model, x_va, y_va, horizon, config).as_floats()
+        row = {"epoch": float(epoch)}
+        row.update({f"train_{k}": v / n for k, v in sums.items()})
+        row.update({f"val_{k}": v for k, v in val_terms.items()})
+        row["seconds"] = time.perf_counter() - start
+        epochs.append(row)
+        if val_terms["total"] < best_val:
+            best_val, best_epoch = val_terms["total"], epoch
+            best_state = {k: v.clone() for k, v in model.state_dict().items()}
+        elif epoch - best_epoch >= config.patience:
+            stopped_early = True
+            break
+        bar.set_postfix(train=f"{row['train_total']:.3g}", val=f"{val_terms['total']:.3g}",
+                        best=best_epoch, refresh=False)
+    bar.close()
+    seconds = time.perf_counter() - start
+    model.load_state_dict(best_state)
+    model.eval()
+    history = TrainHistory(
+        epochs=tuple(epochs), best_epoch=best_epoch, best_val=best_val, seconds=seconds,
+        samples_per_s=n * len(epochs) / seconds, horizon=horizon, stopped_early=stopped_early,
+    )
+    return model, history

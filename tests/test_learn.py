@@ -1,0 +1,334 @@
+"""Learning: barrier loss (hand-computed), model, training determinism, BC vs SafeIL, evaluation.
+
+Also home of the synthetic-tuples fixture builder used by the checkpoint and filter tests.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from safeil_sumo import bspline
+from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.features import planner_features
+from safeil_sumo.learn.evaluate import open_loop_metrics, plan_metrics
+from safeil_sumo.learn.losses import (
+    BarrierConfig,
+    barrier_terms,
+    imitation_loss,
+    lane_margins,
+    lead_margins,
+    safe_loss,
+)
+from safeil_sumo.learn.model import PlannerMLP
+from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+from safeil_sumo.safety_filter import SafeSet, plan_margins
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def make_tuples(
+    n_maneuvers: int = 10,
+    per_maneuver: int = 30,
+    horizon: float = 5.0,
+    rate_hz: float = 4.0,
+    seed: int = 0,
+    curved: bool = True,
+) -> Tuples:
+    """Synthetic car-following tuples: straight or curved lanes (|R| >= 600 m), a driver that
+    follows at a constant time gap (linear ACC law) and returns to the lane centre; the target
+    control points are least-squares fits of the future, as in the real pipeline."""
+    rng = np.random.default_rng(seed)
+    n_future = round(horizon * rate_hz)
+    times = np.arange(1, n_future + 1) / rate_hz
+    dt = 0.05
+    n_steps = round(horizon / dt)
+    step_of_sample = np.round(times / dt).astype(int)
+    feats, futures, ids, ts = [], [], [], []
+    for m in range(n_maneuvers):
+        width = rng.uniform(3.3, 3.8)
+        c2 = rng.uniform(-1 / 1200, 1 / 1200) if curved else 0.0
+        v_lead_m = rng.uniform(22.0, 32.0)
+        gap_time = rng.uniform(1.2, 2.0)  # [s] the driver's preferred time gap
+        for j in range(per_maneuver):
+            offset = rng.normal(0.0, 0.2)  # [m] ego left of lane centre
+            c1 = rng.normal(0.0, 0.004) if curved else 0.0
+            v = v_lead_m + rng.normal(0.0, 1.5)
+            v_lead = v_lead_m + rng.normal(0.0, 0.5)
+            d = max(gap_time * v + rng.normal(0.0, 4.0), 8.0)
+            left = np.array([width / 2 - offset, c1, c2])
+            right = np.array([-width / 2 - offset, c1, c2])
+            feats.append(planner_features(left, right, v, v_lead, d))
+            # longitudinal: constant-time-gap follower; lateral: exponential return to centre
+            x, vx, gap = 0.0, v, d
+            xs = np.empty(n_steps + 1)
+            xs[0] = 0.0
+            for k in range(n_steps):
+                a = np.clip(0.1 * (gap - gap_time * vx) + 0.4 * (v_lead - vx), -4.0, 2.0)
+                x += vx * dt + 0.5 * a * dt * dt
+                gap += (v_lead - vx) * dt - 0.5 * a * dt * dt
+                vx += a * dt
+                xs[k + 1] = x
+            fx = xs[step_of_sample]
+            fy = -offset + c1 * fx + c2 * fx**2 + offset * np.exp(-times / 2.0)
+            futures.append(np.stack([fx, fy], axis=-1))
+            ids.append(f"m{seed:02d}_{m:03d}")
+            ts.append(j / rate_hz)
+    future = np.asarray(futures)
+    cp = bspline.fit_control_points(future, times / horizon)
+    n = len(feats)
+    return Tuples(
+        np.asarray(feats), cp, future, np.asarray(ids), np.full(n, "synthetic"),
+        np.asarray(ts), horizon, rate_hz,
+    )
+
+
+@pytest.fixture(scope="module")
+def data() -> Tuples:
+    return make_tuples()
+
+
+FAST = TrainConfig(max_epochs=25, patience=25, batch_size=128, lr=3e-3)
+
+
+# ---------------------------------------------------------------- barrier, hand-computed values
+
+def _softplus(z: float) -> float:
+    return math.log1p(math.exp(z))
+
+
+def _one(features: list[float], cps: list[list[float]]) -> tuple[torch.Tensor, torch.Tensor]:
+    return (torch.tensor([features], dtype=torch.float64),
+            torch.tensor([cps], dtype=torch.float64))
+
+
+STRAIGHT = [1.75, 0.0, 0.0, -1.75, 0.0, 0.0, 25.0, 25.0, 40.0]  # 3.5 m lane, leader at 40 m
+
+
+def test_barrier_at_lane_centre_matches_formula() -> None:
+    f, cp = _one(STRAIGHT, [[10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    left, right, lead = barrier_terms(f, cp, 3.0, BarrierConfig())
+    # y - (c0l - T/2) = 0 - (1.75 - 0.88) = -0.87 at each of the 3 points
+    assert left.item() == pytest.approx(1000 * 3 * _softplus(-0.87), rel=1e-12)
+    assert right.item() == pytest.approx(1000 * 3 * _softplus(-0.87), rel=1e-12)
+    # d_lead(i) = 40 + 25 * i (T_h = 3 s -> t_i = 1, 2, 3 s); margins 55, 70, 85 m
+    expected = 1000 * sum(_softplus(x - (40 + 25 * t)) for x, t in ((10, 1), (20, 2), (30, 3)))
+    assert lead.item() == pytest.approx(expected, rel=1e-12)
+    assert lead.item() < 1e-20
+
+
+def test_barrier_vanishes_deep_inside_safe_set() -> None:
+    wide = [50.0, 0.0, 0.0, -50.0, 0.0, 0.0, 25.0, 25.0, 200.0]
+    f, cp = _one(wide, [[10.0, 1.0], [20.0, -1.0], [30.0, 0.5]])
+    terms = barrier_terms(f, cp, 3.0, BarrierConfig())
+    assert all(t.item() < 1000 * 3 * math.exp(-45) for t in terms)
+
+
+def test_barrier_grows_past_boundaries_as_the_formula_says() -> None:
+    # curved lane: c1 = 0.01, c2 = 0.002; points past the left line, the right line, the leader
+    feats = [1.75, 0.01, 0.002, -1.75, 0.01, 0.002, 20.0, 10.0, 15.0]
+    cps = [[10.0, 2.5], [20.0, -1.0], [50.0, 0.0]]
+    f, cp = _one(feats, cps)
+    horizon, track = 4.5, 1.9
+    left, right, lead = barrier_terms(f, cp, horizon, BarrierConfig(k=1000.0, track=track))
+    exp_left = exp_right = exp_lead = 0.0
+    for i, (x, y) in enumerate(cps, start=1):
+        t = i * horizon / 3
+        exp_left += _softplus(y - (1.75 + 0.01 * x + 0.002 * x * x - track / 2))
+        exp_right += _softplus(-y + (-1.75 + 0.01 * x + 0.002 * x * x + track / 2))
+        exp_lead += _softplus(x - (15.0 + 10.0 * t))
+    assert left.item() == pytest.approx(1000 * exp_left, rel=1e-12)
+    assert right.item() == pytest.approx(1000 * exp_right, rel=1e-12)
+    assert lead.item() == pytest.approx(1000 * exp_lead, rel=1e-12)
+    # each barrier is past its boundary on one point: it is above K * (violation) there
+    assert left.item() > 1000 * (2.5 - (1.75 + 0.1 + 0.2 - 0.95))
+    assert lead.item() > 1000 * (50.0 - (15.0 + 10.0 * 4.5))
+
+
+def test_leader_safety_margin_option() -> None:
+    f, cp = _one(STRAIGHT, [[10.0, 0.0], [20.0, 0.0], [60.0, 0.0]])
+    cfg = BarrierConfig(gap_min=2.0, time_gap=1.0)
+    _, _, lead = barrier_terms(f, cp, 3.0, cfg)
+    # d_lead(i) - (gap_min + time_gap * v_ego) = 40 + 25 t - 27
+    expected = 1000 * sum(
+        _softplus(x - (40 + 25 * t - 27.0)) for x, t in ((10, 1), (20, 2), (60, 3))
+    )
+    assert lead.item() == pytest.approx(expected, rel=1e-12)
+
+
+def test_barrier_on_sampled_points_adds_spline_points() -> None:
+    f, cp = _one(STRAIGHT, [[10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    n = 4
+    left, _, _ = barrier_terms(f, cp, 3.0, BarrierConfig(n_samples=n))
+    pts = bspline.evaluate(cp.numpy()[0], np.arange(1, n + 1) / n)
+    expected = 1000 * (3 * _softplus(-0.87) + sum(_softplus(y - 0.87) for y in pts[:, 1]))
+    assert left.item() == pytest.approx(expected, rel=1e-12)
+
+
+def test_torch_margins_equal_numpy_margins(data: Tuples) -> None:
+    f = torch.as_tensor(data.features)
+    cp = torch.as_tensor(data.control_points) + 0.3
+    safe = SafeSet(track=1.8, gap_min=1.0, time_gap=0.5)
+    ref = plan_margins(data.features, cp.numpy(), data.horizon, safe)
+    left, right = lane_margins(f, cp, 1.8)
+    times = torch.as_tensor(bspline.control_point_times(data.horizon))
+    lead = lead_margins(f, cp, times, 1.0, 0.5)
+    np.testing.assert_allclose(left.numpy(), ref["left"], atol=1e-12)
+    np.testing.assert_allclose(right.numpy(), ref["right"], atol=1e-12)
+    np.testing.assert_allclose(lead.numpy(), ref["lead"], atol=1e-12)
+
+
+def test_imitation_is_squared_norm_mean_over_batch() -> None:
+    pred = torch.zeros(2, 3, 2, dtype=torch.float64)
+    target = torch.tensor([[[1.0, 0.0], [0.0, 2.0], [0.0, 0.0]], [[0.0] * 2] * 3])
+    assert imitation_loss(pred, target.double()).item() == pytest.approx((1 + 4) / 2)
+
+
+def test_bc_and_safeil_losses_differ_only_by_the_barrier(data: Tuples) -> None:
+    f = torch.as_tensor(data.features[:50])
+    target = torch.as_tensor(data.control_points[:50])
+    pred = target + torch.linspace(-1, 1, 300, dtype=torch.float64).reshape(50, 3, 2)
+    safe = safe_loss(f, pred, target, data.horizon, BarrierConfig(), apply_barrier=True)
+    bc = safe_loss(f, pred, target, data.horizon, BarrierConfig(), apply_barrier=False)
+    for name in ("imitation", "barrier_left", "barrier_right", "barrier_lead"):
+        assert getattr(safe, name).item() == getattr(bc, name).item()
+    assert bc.total.item() == bc.imitation.item()
+    barrier = safe.barrier_left + safe.barrier_right + safe.barrier_lead
+    assert safe.total.item() == pytest.approx((safe.imitation + barrier).item(), rel=1e-15)
+
+
+# ---------------------------------------------------------------- model
+
+def test_model_shapes_and_initial_mean_plan(data: Tuples) -> None:
+    model = PlannerMLP()
+    model.set_scaling(data.features, data.control_points)
+    out = model(torch.as_tensor(data.features[:7], dtype=torch.float32))
+    assert out.shape == (7, 3, 2)
+    # zero-initialised last layer: every plan starts at the mean control points
+    mean = data.control_points.reshape(-1, 6).mean(axis=0).reshape(3, 2)
+    np.testing.assert_allclose(out.detach().numpy(), np.broadcast_to(mean, (7, 3, 2)), rtol=1e-5)
+    assert PlannerMLP(hidden=(8,), activation="relu").architecture["hidden"] == [8]
+    with pytest.raises(ValueError):
+        PlannerMLP(activation="gelu")
+
+
+# ---------------------------------------------------------------- training
+
+def test_split_leaves_whole_maneuvers_out(data: Tuples) -> None:
+    tr, va = split_by_maneuver(data, 0.3, seed=1)
+    assert len(tr) + len(va) == len(data)
+    assert not set(tr.maneuvers) & set(va.maneuvers)
+    assert len(va.maneuvers) == 3
+    _, va2 = split_by_maneuver(data, val_maneuvers=["m00_001"])
+    assert list(va2.maneuvers) == ["m00_001"]
+    with pytest.raises(ValueError):
+        split_by_maneuver(data, val_maneuvers=["nope"])
+
+
+def test_training_reduces_loss(data: Tuples) -> None:
+    tr, va = split_by_maneuver(data, 0.2, seed=0)
+    for method in ("safeil", "bc"):
+        cfg = TrainConfig(**{**FAST.__dict__, "method": method})
+        model, hist = train(tr, va, cfg, progress=False)
+        first, best = hist.epochs[0], hist.epochs[hist.best_epoch - 1]
+        assert best["val_total"] < 0.5 * first["val_total"], method
+        assert best["val_imitation"] < first["val_imitation"], method
+        assert hist.best_val == best["val_total"]
+        assert hist.samples_per_s > 0 and not model.training
+
+
+def test_same_seed_same_weights_other_seed_differs(data: Tuples) -> None:
+    tr, va = split_by_maneuver(data, 0.2, seed=0)
+    cfg = TrainConfig(**{**FAST.__dict__, "max_epochs": 5})
+    m1, h1 = train(tr, va, cfg, progress=False)
+    m2, h2 = train(tr, va, cfg, progress=False)
+    m3, _ = train(tr, va, TrainConfig(**{**cfg.__dict__, "seed": 1}), progress=False)
+    for k, v in m1.state_dict().items():
+        assert torch.equal(v, m2.state_dict()[k]), k
+    assert [e["val_total"] for e in h1.epochs] == [e["val_total"] for e in h2.epochs]
+    assert not torch.equal(m1.net[0].weight, m3.net[0].weight)
+    assert torch.get_num_threads() >= 1  # restored, not left at the training setting by force
+
+
+def test_bc_is_safeil_without_barrier(data: Tuples) -> None:
+    """Same network, data and loop: SafeIL with K = 0 trains bit-identically to BC."""
+    tr, va = split_by_maneuver(data, 0.2, seed=0)
+    base = {**FAST.__dict__, "max_epochs": 5}
+    bc, hb = train(tr, va, TrainConfig(**{**base, "method": "bc"}), progress=False)
+    k0, hk = train(tr, va, TrainConfig(**{**base, "barrier_k": 0.0}), progress=False)
+    for k, v in bc.state_dict().items():
+        assert torch.equal(v, k0.state_dict()[k]), k
+    assert [e["val_imitation"] for e in hb.epochs] == [e["val_imitation"] for e in hk.epochs]
+    # ... while the paper's K pulls plans inside the lane
+    safe, hs = train(tr, va, TrainConfig(**base), progress=False)
+    assert not torch.equal(safe.net[0].weight, bc.net[0].weight)
+    assert hs.epochs[-1]["train_barrier_left"] > 0
+
+
+def test_train_config_validation() -> None:
+    with pytest.raises(ValueError):
+        TrainConfig(method="dagger")
+    assert TrainConfig(hidden=[32, 16]).hidden == (32, 16)
+    assert TrainConfig.from_dict(TrainConfig(hidden=(8,)).__dict__) == TrainConfig(hidden=(8,))
+
+
+# ---------------------------------------------------------------- evaluation
+
+class _Oracle:
+    """A policy that returns the target control points of known features (by row lookup)."""
+
+    name = "oracle"
+
+    def __init__(self, t: Tuples) -> None:
+        self.horizon = t.horizon
+        self._t = t
+
+    def plan(self, features: np.ndarray) -> np.ndarray:
+        assert features is self._t.features
+        return self._t.control_points
+
+
+def test_open_loop_metrics_of_perfect_plans(data: Tuples) -> None:
+    m = open_loop_metrics(_Oracle(data), data)
+    assert m["cp_rmse"] == 0.0
+    assert m["ade"] == pytest.approx(m["target_fit_ade"])
+    assert m["ade"] < 0.2  # the cubic spline fits 5 s of smooth following well
+    assert m["n"] == len(data)
+    for where in ("cp", "spline"):
+        for c in ("left", "right", "lead"):
+            assert f"min_margin_{c}_{where}" in m
+    assert 0.0 <= m["hull_gap_rate"] <= m["violation_rate_any_spline"]
+
+
+def test_hull_gap_on_a_curve_is_measured() -> None:
+    """Control points on the safe side of a curved left line, chord cutting across it."""
+    feats = np.array([[1.75, 0.0, 0.005, -1.75, 0.0, 0.005, 20.0, 20.0, 100.0]])
+    x = np.array([20.0, 40.0, 60.0])
+    y = 1.75 + 0.005 * x**2 - 0.88 - 0.01  # 1 cm inside the left limit at each control point
+    plans = np.stack([x, y], axis=-1)[None]
+    m = plan_metrics(feats, plans, plans, np.zeros((1, 4, 2)), np.arange(1, 5.0), 4.0)
+    assert m["violation_rate_any_cp"] == 0.0
+    assert m["hull_gap_rate"] == 1.0 and m["min_margin_left_spline"] < 0
+
+
+# ---------------------------------------------------------------- CLI
+
+def test_cli_trains_and_writes_checkpoint(tmp_path: Path, data: Tuples) -> None:
+    data.save(tmp_path / "tuples.parquet")
+    out = tmp_path / "models" / "safeil_test"
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "training" / "train.py"), "--data",
+         str(tmp_path / "tuples.parquet"), "--method", "bc", "--epochs", "3", "--seed", "2",
+         "--out", str(out), "--no-progress"],
+        capture_output=True, text=True, cwd=REPO, check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "cp_rmse" in proc.stdout
+    assert (tmp_path / "models" / "safeil_test.safetensors").is_file()
+    assert (tmp_path / "models" / "safeil_test.json").is_file()

@@ -1,0 +1,102 @@
+"""Train a SafeIL or BC planner on a Tuples Parquet file and write a checkpoint.
+
+    python training/train.py --data tuples.parquet --method safeil --out models/safeil
+
+Whole maneuvers are left out for validation (early stopping and the printed open-loop metrics).
+Writes ``<out>.safetensors`` + ``<out>.json`` (architecture, scaling, config, data fingerprint,
+metrics, per-epoch history).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
+from safeil_sumo.learn.evaluate import open_loop_metrics
+from safeil_sumo.learn.inference import load_policy
+from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+from safeil_sumo.safety_filter import SafeSet
+
+SUMMARY_KEYS = (
+    "n", "cp_rmse", "cp_rmse_x", "cp_rmse_y", "ade", "fde", "ade_lateral", "target_fit_ade",
+    "min_margin_left_cp", "min_margin_right_cp", "min_margin_lead_cp", "violation_rate_any_cp",
+    "min_margin_left_spline", "min_margin_right_spline", "min_margin_lead_spline",
+    "violation_rate_any_spline", "hull_gap_rate", "target_violation_rate_any_cp",
+)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    d = TrainConfig()
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--data", required=True, type=Path, help="Tuples Parquet file")
+    p.add_argument("--method", choices=("safeil", "bc"), default=d.method)
+    p.add_argument("--val-fraction", type=float, default=0.2,
+                   help="fraction of maneuvers left out for validation (default 0.2)")
+    p.add_argument("--val-maneuvers", default=None,
+                   help="comma-separated maneuver ids to leave out (overrides --val-fraction)")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--epochs", type=int, default=d.max_epochs, help="max epochs")
+    p.add_argument("--patience", type=int, default=d.patience)
+    p.add_argument("--batch-size", type=int, default=d.batch_size, help="0 = full batch")
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--hidden", default=",".join(map(str, d.hidden)), help="e.g. 64,64")
+    p.add_argument("--activation", choices=("tanh", "relu"), default=d.activation)
+    p.add_argument("--barrier-k", type=float, default=d.barrier_k)
+    p.add_argument("--track", type=float, default=d.track, help="vehicle track T [m]")
+    p.add_argument("--gap-min", type=float, default=d.gap_min, help="extra leader gap [m]")
+    p.add_argument("--time-gap", type=float, default=d.time_gap, help="extra leader gap [s]")
+    p.add_argument("--barrier-samples", type=int, default=d.barrier_samples,
+                   help="also constrain this many points along the spline (0 = paper)")
+    p.add_argument("--threads", type=int, default=d.num_threads)
+    p.add_argument("--out", required=True, type=Path, help="checkpoint prefix")
+    p.add_argument("--no-progress", action="store_true")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse_args(argv)
+    tuples = Tuples.load(args.data)
+    val_ids = args.val_maneuvers.split(",") if args.val_maneuvers else None
+    tr, va = split_by_maneuver(tuples, args.val_fraction, args.seed, val_ids)
+    config = TrainConfig(
+        method=args.method, hidden=tuple(int(h) for h in args.hidden.split(",") if h),
+        activation=args.activation, lr=args.lr, batch_size=args.batch_size,
+        max_epochs=args.epochs, patience=args.patience, seed=args.seed,
+        barrier_k=args.barrier_k, track=args.track, gap_min=args.gap_min,
+        time_gap=args.time_gap, barrier_samples=args.barrier_samples, num_threads=args.threads,
+    )
+    print(f"{args.data}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
+          f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "
+          f"horizon {tuples.horizon:g} s")
+    model, history = train(tr, va, config, progress=not args.no_progress)
+    safe_set = SafeSet(track=config.track, gap_min=config.gap_min, time_gap=config.time_gap)
+    best = history.epochs[history.best_epoch - 1]
+    metrics = {"best_epoch": history.best_epoch,
+               **{k: v for k, v in best.items() if k.startswith(("train_", "val_"))}}
+    # Save, then evaluate the checkpoint through the numpy policy the closed loop will use.
+    save_checkpoint(
+        args.out, model, name=args.method, horizon=tuples.horizon, train_config=config,
+        data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
+    )
+    policy = load_policy(args.out)
+    for split, part in (("train", tr), ("val", va)):
+        if len(part):
+            om = open_loop_metrics(policy, part, safe_set)
+            metrics.update({f"open_loop_{split}_{k}": om[k] for k in SUMMARY_KEYS})
+    save_checkpoint(
+        args.out, model, name=args.method, horizon=tuples.horizon, train_config=config,
+        data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
+    )
+    print(f"trained {args.method} in {history.seconds:.1f} s ({len(history.epochs)} epochs, "
+          f"{history.samples_per_s:,.0f} samples/s), best epoch {history.best_epoch}")
+    print(json.dumps({"config": dataclasses.asdict(config), "metrics": metrics}, indent=1))
+    print(f"wrote {args.out}.safetensors and {args.out}.json")
+    return metrics
+
+
+if __name__ == "__main__":
+    main()
