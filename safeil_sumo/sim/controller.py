@@ -50,8 +50,12 @@ class ControllerParams:
     understeer_feedforward: bool = True
     # measure alpha from the rear axle's velocity direction (heading + rear side-slip angle)
     use_course_angle: bool = True
-    # longitudinal: reference speed and acceleration read this far ahead in the plan
-    speed_preview_s: float = 0.3  # [s] ~ the drive actuator's lag
+    # longitudinal: reference speed and feed-forward acceleration are read this far ahead in the
+    # plan. The feed-forward is previewed by ~the actuator lag (brake 0.15 s, drive 0.3 s) so the
+    # realised acceleration is on time; previewing the SPEED would make the car lead the plan by
+    # preview * acceleration on every ramp, so it is 0 by default.
+    speed_preview_s: float = 0.0  # [s]
+    accel_preview_s: float = 0.2  # [s]
     kp: float = 1.5  # [1/s] (m/s^2 per m/s of speed error)
     ki: float = 0.1  # [1/s^2] (m/s^2 per m of integrated speed error)
     kd: float = 0.0  # [-] (m/s^2 per m/s^2 of error rate)
@@ -286,7 +290,8 @@ def track(
     steer = min(max(steer, -vehicle.max_steer_rad), vehicle.max_steer_rad)
 
     # --- longitudinal: PID on speed + plan acceleration feed-forward ----------------------------
-    v_ref, a_ref = target.speed_and_accel(t_since_plan + params.speed_preview_s)
+    v_ref, _ = target.speed_and_accel(t_since_plan + params.speed_preview_s)
+    _, a_ref = target.speed_and_accel(t_since_plan + params.accel_preview_s)
     error = v_ref - v
     deriv = 0.0 if ctrl_state.prev_error is None else (error - ctrl_state.prev_error) / dt
     lim = params.integral_limit_m
