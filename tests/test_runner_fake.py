@@ -1,0 +1,133 @@
+"""The runner over a fake SUMO API: the seam is real (no libsumo needed for the loop's logic)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from safeil_sumo.analytic import AnalyticPlanner
+from safeil_sumo.geometry import yaw_to_sumo_angle
+from safeil_sumo.sim.leaders import constant
+from safeil_sumo.sim.runner import EGO_ID, LEADER_ID, LoopConfig, Scenario, run_scenario
+
+
+class FakeSumo:
+    """Vehicles on a straight road along +x: the leader moves at its set speed; the ego is
+    wherever moveToXY puts it. Records the calls the runner makes."""
+
+    def __init__(self, args, fail_at_step=None):
+        self.args = list(args)
+        self.fail_at_step = fail_at_step
+        self.time = 0.0
+        self.steps = 0
+        self.dt = float(self.args[self.args.index("--step-length") + 1])
+        self.cars = {}
+        self.calls = []
+        self.closed = False
+        fake = self
+
+        class Route:
+            def add(self, route_id, edges):
+                fake.calls.append(("route.add", route_id, tuple(edges)))
+
+        class Vehicle:
+            def add(self, veh_id, route_id, depart="now", departLane="0", departPos="0",
+                    departSpeed="0"):
+                fake.cars[veh_id] = {"x": float(departPos), "y": 0.0, "angle": 90.0,
+                                     "speed": float(departSpeed)}
+
+            def moveToXY(self, veh_id, edge, lane, x, y, angle=90.0, keepRoute=1):
+                fake.calls.append(("moveToXY", veh_id, x, y, angle, keepRoute))
+                fake.cars[veh_id].update(x=x, y=y, angle=angle)
+
+            def setSpeed(self, veh_id, v):
+                fake.cars[veh_id]["speed"] = v
+
+            def setSpeedMode(self, veh_id, mode):
+                fake.calls.append(("setSpeedMode", veh_id, mode))
+
+            def setLaneChangeMode(self, veh_id, mode):
+                fake.calls.append(("setLaneChangeMode", veh_id, mode))
+
+            def setLength(self, veh_id, length):
+                pass
+
+            def setWidth(self, veh_id, width):
+                pass
+
+            def getPosition(self, veh_id):
+                return fake.cars[veh_id]["x"], fake.cars[veh_id]["y"]
+
+            def getAngle(self, veh_id):
+                return fake.cars[veh_id]["angle"]
+
+            def getSpeed(self, veh_id):
+                return fake.cars[veh_id]["speed"]
+
+            def getIDList(self):
+                return list(fake.cars)
+
+        class Simulation:
+            def step(self, t=0.0):
+                fake.time += fake.dt
+                fake.steps += 1
+                if fake.fail_at_step is not None and fake.steps > fake.fail_at_step:
+                    raise RuntimeError("simulated SUMO crash")
+                leader = fake.cars.get(LEADER_ID)
+                if leader is not None:
+                    leader["x"] += leader["speed"] * fake.dt
+
+            def getTime(self):
+                return fake.time
+
+            def getCollidingVehiclesIDList(self):
+                return []
+
+        self.route, self.vehicle, self.simulation = Route(), Vehicle(), Simulation()
+
+    def close(self):
+        self.closed = True
+
+
+def run_fake(road, **kw):
+    made = []
+
+    def factory(args):
+        made.append(FakeSumo(args, **kw))
+        return made[0]
+
+    sc = Scenario("fake", road, constant(28.0), 30.0, 50.0, seed=3)
+    rollout = run_scenario(sc, AnalyticPlanner(), LoopConfig(max_time_s=60.0),
+                           api_factory=factory)
+    return rollout, made[0]
+
+
+def test_runner_drives_the_seam(straight_road):
+    rollout, fake = run_fake(straight_road)
+    s = rollout.summary
+    assert s["end_reason"] == "completed" and s["completed"]
+    assert fake.closed
+    # SUMO's own control switched off on both vehicles
+    for vid in (EGO_ID, LEADER_ID):
+        assert ("setSpeedMode", vid, 0) in fake.calls
+        assert ("setLaneChangeMode", vid, 0) in fake.calls
+    moves = [c for c in fake.calls if c[0] == "moveToXY"]
+    # one moveToXY per step (plus the initial placement), keepRoute=2, SUMO navigation angle
+    assert len(moves) == len(rollout.log) + 1
+    last = rollout.log.iloc[-1]
+    _, vid, x, y, angle, keep = moves[-1]
+    assert (vid, keep) == (EGO_ID, 2)
+    assert (x, y) == (pytest.approx(last["front_x"]), pytest.approx(last["front_y"]))
+    assert angle == pytest.approx(yaw_to_sumo_angle(last["yaw"]))
+    # the analytic planner settles on the leader's speed at its time gap
+    assert last["v"] == pytest.approx(28.0, abs=0.3)
+    assert last["gap"] == pytest.approx(5.0 + 1.5 * 28.0, abs=2.0)
+    assert "--collision.action" in fake.args and "--time-to-teleport" in fake.args
+
+
+def test_sumo_failure_mid_run_keeps_the_log(straight_road):
+    rollout, fake = run_fake(straight_road, fail_at_step=200)
+    assert rollout.summary["end_reason"] == "error"
+    assert "simulated SUMO crash" in rollout.summary["error"]
+    assert len(rollout.log) == 199 and fake.closed
+    assert math.isfinite(rollout.log["x"].iloc[-1]) and np.all(np.isfinite(rollout.log["t"]))
