@@ -16,9 +16,9 @@ median step: removing rows splits segments, and derivatives never reach across a
    computed one is kept as ``v_lead_diff`` and compared in the report.
 4. :func:`remove_cut_events` — a cut-in / cut-out / merge shows as a jump of ``lead_x``
    (``|d lead_x / dt| > max_gap_rate``) or a physically impossible leader acceleration
-   (``|a_lead| > max_lead_accel``). Consecutive flagged samples are one event (typed
-   ``gap_jump`` if any sample jumped, else ``lead_accel``); rows within ``cut_window`` [s] of a
-   flagged sample are dropped.
+   (``|a_lead| > max_lead_accel``). Flagged samples less than ``cut_window`` apart are one event
+   (typed ``gap_jump`` if any sample jumped, else ``lead_accel``); rows within ``cut_window`` [s]
+   of a flagged sample are dropped.
 5. :func:`split_maneuvers` — each remaining segment (also split where a source ``maneuver_id``
    changes) is a car-following maneuver; those shorter than ``min_maneuver`` [s] are dropped.
 6. :func:`resample` — each maneuver is linearly interpolated to ``rate_hz`` from its first sample
@@ -263,13 +263,16 @@ def remove_cut_events(df: pd.DataFrame, cfg: PipelineConfig) -> tuple[pd.DataFra
     jump = same & (rate > cfg.max_gap_rate)
     accel = np.abs(df["a_lead"].to_numpy(float)) > cfg.max_lead_accel
     flags = jump | accel
-    starts = np.flatnonzero(_runs(flags, seg))
-    run_no = np.cumsum(_runs(flags, seg)) - 1
-    jumps_per_run = np.bincount(run_no[jump], minlength=len(starts)) if len(starts) else []
-    n_jump = int(np.count_nonzero(jumps_per_run))
+    # flagged samples closer than cut_window (same segment) belong to one event
+    fi = np.flatnonzero(flags)
+    new_event = np.r_[True, (seg[fi][1:] != seg[fi][:-1])
+                      | (np.diff(t[fi]) > cfg.cut_window)] if len(fi) else np.zeros(0, bool)
+    event_no = np.cumsum(new_event) - 1
+    n_events = int(new_event.sum())
+    n_jump = int(np.count_nonzero(np.bincount(event_no[jump[fi]], minlength=n_events)))
     drop = _near_flags(seg, t, flags, cfg.cut_window)
     out = df.loc[~drop].reset_index(drop=True)
-    events = {"gap_jump": n_jump, "lead_accel": len(starts) - n_jump}
+    events = {"gap_jump": n_jump, "lead_accel": n_events - n_jump}
     return out, StepResult("remove_cut_events", len(df), len(out), events)
 
 
@@ -403,7 +406,7 @@ def kfold_by_maneuver(maneuver_id: np.ndarray, k: int, seed: int = 0) -> list[Sp
     out = []
     for fold in np.array_split(order, k):
         test = np.isin(ids, fold)
-        out.append(Split(np.flatnonzero(~test), np.flatnonzero(test), tuple(sorted(fold))))
+        out.append(Split(np.flatnonzero(~test), np.flatnonzero(test), tuple(str(m) for m in sorted(fold))))
     return out
 
 
