@@ -171,6 +171,19 @@ def test_barrier_on_sampled_points_adds_spline_points() -> None:
     assert left.item() == pytest.approx(expected, rel=1e-12)
 
 
+def test_barrier_on_spline_points_only() -> None:
+    f, cp = _one(STRAIGHT, [[10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    n = 5
+    left, _, _ = barrier_terms(f, cp, 3.0, BarrierConfig(n_samples=n, control_points=False))
+    pts = bspline.evaluate(cp.numpy()[0], np.arange(1, n + 1) / n)
+    expected = 1000 * sum(_softplus(y - 0.87) for y in pts[:, 1])
+    assert left.item() == pytest.approx(expected, rel=1e-12)
+    with pytest.raises(ValueError):
+        BarrierConfig(control_points=False)
+    with pytest.raises(ValueError):
+        TrainConfig(barrier_control_points=False)
+
+
 def test_torch_margins_equal_numpy_margins(data: Tuples) -> None:
     f = torch.as_tensor(data.features)
     cp = torch.as_tensor(data.control_points) + 0.3

@@ -51,6 +51,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--time-gap", type=float, default=d.time_gap, help="extra leader gap [s]")
     p.add_argument("--barrier-samples", type=int, default=d.barrier_samples,
                    help="also constrain this many points along the spline (0 = paper)")
+    p.add_argument("--no-barrier-control-points", action="store_true",
+                   help="do not constrain the control points (needs --barrier-samples > 0)")
     p.add_argument("--threads", type=int, default=d.num_threads)
     p.add_argument("--out", required=True, type=Path, help="checkpoint prefix")
     p.add_argument("--no-progress", action="store_true")
@@ -67,7 +69,8 @@ def main(argv: list[str] | None = None) -> dict:
         activation=args.activation, lr=args.lr, batch_size=args.batch_size,
         max_epochs=args.epochs, patience=args.patience, seed=args.seed,
         barrier_k=args.barrier_k, track=args.track, gap_min=args.gap_min,
-        time_gap=args.time_gap, barrier_samples=args.barrier_samples, num_threads=args.threads,
+        time_gap=args.time_gap, barrier_samples=args.barrier_samples,
+        barrier_control_points=not args.no_barrier_control_points, num_threads=args.threads,
     )
     print(f"{args.data}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
           f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "

@@ -36,7 +36,10 @@ class BarrierConfig:
 
     k: weight K [-]; track: vehicle track / width T [m];
     gap_min: extra leader gap [m]; time_gap: extra leader gap per ego speed [s];
-    n_samples: also constrain this many points at ``tau = j / n_samples, j = 1..n`` on the spline.
+    n_samples: also constrain this many points at ``tau = j / n_samples, j = 1..n`` on the spline;
+    control_points: constrain the control points (the paper). On curves the control points of a
+    lane-following plan sit ~``c2 X^2 / 9`` [m] outside the lane centre (X = plan length), so
+    ``control_points=False, n_samples>0`` constrains the trajectory itself instead.
     """
 
     k: float = 1000.0
@@ -44,6 +47,11 @@ class BarrierConfig:
     gap_min: float = 0.0
     time_gap: float = 0.0
     n_samples: int = 0
+    control_points: bool = True
+
+    def __post_init__(self) -> None:
+        if not self.control_points and self.n_samples <= 0:
+            raise ValueError("the barrier needs control points or n_samples > 0")
 
 
 @dataclass(frozen=True)
@@ -92,22 +100,30 @@ def lead_margins(
 
 
 def constrained_points(
-    control_points: torch.Tensor, horizon: float, n_samples: int = 0
+    control_points: torch.Tensor, horizon: float, n_samples: int = 0, include_control: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Points ``(N, 3 + n_samples, 2)`` the barrier acts on and their times ``(3 + n_samples,)`` [s]."""
-    times = torch.as_tensor(GREVILLE[1:] * horizon, dtype=control_points.dtype)
-    if n_samples <= 0:
-        return control_points, times
-    tau = torch.arange(1, n_samples + 1, dtype=control_points.dtype) / n_samples
-    sampled = spline.evaluate(control_points, tau)
-    return torch.cat([control_points, sampled], dim=1), torch.cat([times, tau * horizon])
+    """Points ``(N, M, 2)`` the barrier acts on and their times ``(M,)`` [s]: the 3 control points
+    (if ``include_control``) then ``n_samples`` spline points at ``tau = j / n_samples``."""
+    points, times = [], []
+    if include_control:
+        points.append(control_points)
+        times.append(torch.as_tensor(GREVILLE[1:] * horizon, dtype=control_points.dtype))
+    if n_samples > 0:
+        tau = torch.arange(1, n_samples + 1, dtype=control_points.dtype) / n_samples
+        points.append(spline.evaluate(control_points, tau))
+        times.append(tau * horizon)
+    if len(points) == 1:
+        return points[0], times[0]
+    return torch.cat(points, dim=1), torch.cat(times)
 
 
 def barrier_terms(
     features: torch.Tensor, control_points: torch.Tensor, horizon: float, cfg: BarrierConfig
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Batch means of the left, right and leader barriers for ``features (N, 9)``, plans ``(N, 3, 2)``."""
-    points, times = constrained_points(control_points, horizon, cfg.n_samples)
+    points, times = constrained_points(
+        control_points, horizon, cfg.n_samples, cfg.control_points
+    )
     left, right = lane_margins(features, points, cfg.track)
     lead = lead_margins(features, points, times, cfg.gap_min, cfg.time_gap)
     # F.softplus is ln(1 + e^z), switching to z itself for z > 20 (same value in float32).

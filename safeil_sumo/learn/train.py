@@ -36,6 +36,7 @@ class TrainConfig:
     validation improvement before stopping; seed;
     barrier_k: K [-]; track: vehicle track T [m]; gap_min [m] / time_gap [s]: extra leader margin
     (0 = paper); barrier_samples: extra points along the spline (0 = paper, control points only);
+    barrier_control_points: constrain the control points (True = paper);
     num_threads: torch CPU threads while training (fixed for determinism).
     The horizon [s] is taken from the data.
     """
@@ -54,6 +55,7 @@ class TrainConfig:
     gap_min: float = 0.0
     time_gap: float = 0.0
     barrier_samples: int = 0
+    barrier_control_points: bool = True
     num_threads: int = 1
 
     def __post_init__(self) -> None:
@@ -64,12 +66,14 @@ class TrainConfig:
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
         if self.max_epochs < 1 or self.batch_size < 0 or self.patience < 1:
             raise ValueError("max_epochs and patience must be >= 1, batch_size >= 0")
+        _ = self.barrier  # validates the barrier settings
 
     @property
     def barrier(self) -> BarrierConfig:
         return BarrierConfig(
             k=self.barrier_k, track=self.track, gap_min=self.gap_min,
             time_gap=self.time_gap, n_samples=self.barrier_samples,
+            control_points=self.barrier_control_points,
         )
 
     @staticmethod
