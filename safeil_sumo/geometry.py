@@ -104,6 +104,7 @@ class Polyline:
     s: np.ndarray = field(init=False, repr=False)  # (N,) arc length at vertices [m]
     _tangents: np.ndarray = field(init=False, repr=False)  # (N-1, 2) unit segment directions
     _seg_len: np.ndarray = field(init=False, repr=False)  # (N-1,) [m]
+    _py: tuple = field(init=False, repr=False)  # plain-float copies for the per-step walk
 
     def __post_init__(self) -> None:
         p = np.ascontiguousarray(self.points, dtype=float)
@@ -117,6 +118,11 @@ class Polyline:
         object.__setattr__(self, "_seg_len", seg_len)
         object.__setattr__(self, "_tangents", seg / seg_len[:, None])
         object.__setattr__(self, "s", np.concatenate([[0.0], np.cumsum(seg_len)]))
+        t = self._tangents
+        object.__setattr__(self, "_py", (
+            p[:, 0].tolist(), p[:, 1].tolist(), t[:, 0].tolist(), t[:, 1].tolist(),
+            seg_len.tolist(), self.s.tolist(), np.arctan2(t[:, 1], t[:, 0]).tolist(),
+        ))
 
     @property
     def length(self) -> float:
@@ -148,6 +154,33 @@ class Polyline:
         d = t[:, 0] * r[:, 1] - t[:, 1] * r[:, 0]
         shape = q.shape[:-1]
         return s.reshape(shape), d.reshape(shape)
+
+    def project_near(self, x: float, y: float, hint: int) -> tuple[float, float, float, int]:
+        """Frenet ``(s, d)``, lane heading [rad] and segment index of ONE point, walking from
+        segment ``hint`` — O(1) per call for a point that moves smoothly along the polyline
+        (the closed loop's hot path; :meth:`project` is the vectorised general case).
+
+        Ends extend like :meth:`project`. For a point far from where ``hint`` left it, pass the
+        index from a full :meth:`project` first.
+        """
+        xs, ys, tx, ty, seg_len, s_at, heading = self._py
+        last = len(seg_len) - 1
+        i = min(max(hint, 0), last)
+        for _ in range(last + 1):
+            along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
+            if along >= seg_len[i] and i < last:
+                i += 1
+            elif along < 0.0 and i > 0:
+                i -= 1
+            else:
+                break
+        along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
+        d = tx[i] * (y - ys[i]) - ty[i] * (x - xs[i])
+        return s_at[i] + along, d, heading[i], i
+
+    def segment_index(self, s: float) -> int:
+        """Index of the segment containing arc length ``s`` (clipped to the ends)."""
+        return int(np.clip(np.searchsorted(self.s, s, side="right") - 1, 0, len(self._seg_len) - 1))
 
     def point_at(self, s: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """Position ``(..., 2)`` and heading [rad] at arc length ``s``; extrapolates linearly."""

@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -78,3 +79,24 @@ def test_rectangles_overlap():
     assert rectangles_overlap(a, rectangle_corners(np.array([4.0, 0.5]), 0.3, 4.5, 1.8))
     assert not rectangles_overlap(a, rectangle_corners(np.array([4.6, 0.0]), 0.0, 4.5, 1.8))
     assert not rectangles_overlap(a, rectangle_corners(np.array([0.0, 1.9]), 0.0, 4.5, 1.8))
+
+
+@settings(max_examples=100)
+@given(st.floats(100, 2000), st.floats(-4, 4), st.floats(0.0, 1.0), st.integers(0, 200))
+def test_project_near_matches_full_projection(radius, d, frac, hint):
+    th = np.linspace(0, 1.2, 150)
+    arc = Polyline(np.stack([radius * np.sin(th), radius - radius * np.cos(th)], axis=1))
+    p, _ = arc.offset(d).point_at(frac * arc.length)
+    s_full, d_full = arc.project(p)
+    # walking from a hint 0-3 segments away
+    start = arc.segment_index(float(s_full)) + hint % 4 - 1
+    s_near, d_near, heading, _ = arc.project_near(float(p[0]), float(p[1]), start)
+    assert s_near == pytest.approx(float(s_full), abs=1e-6)
+    assert d_near == pytest.approx(float(d_full), abs=1e-6)
+
+
+def test_project_near_extends_the_ends():
+    line = Polyline(np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]]))
+    assert line.project_near(-2.0, -1.0, 1)[:2] == (-2.0, -1.0)
+    s, d, heading, i = line.project_near(10.0, 13.0, 0)
+    assert (s, d, i) == (23.0, 0.0, 1) and heading == pytest.approx(math.pi / 2)

@@ -15,13 +15,16 @@ def test_ttc_hand_computed():
     assert mon.time_to_collision(-0.1, 30.0, 25.0) == 0.0
 
 
-def test_corner_offsets_straight_and_rotated():
-    off = mon.corner_offsets(0.5, 0.0, 4.5, 1.8)
-    assert np.allclose(off, [1.4, -0.4, -0.4, 1.4])
+def test_footprint_offset_range_straight_and_rotated():
+    assert mon.footprint_offset_range(0.5, 0.0, 4.5, 1.8) == pytest.approx((-0.4, 1.4))
     # heading 0.1 rad to the left: the rear corners swing right by 4.5 sin(0.1)
-    off = mon.corner_offsets(0.0, 0.1, 4.5, 1.8)
     c, s = math.cos(0.1), math.sin(0.1)
-    assert np.allclose(off, [0.9 * c, -0.9 * c, -4.5 * s - 0.9 * c, -4.5 * s + 0.9 * c])
+    corners = [0.9 * c, -0.9 * c, -4.5 * s - 0.9 * c, -4.5 * s + 0.9 * c]
+    assert mon.footprint_offset_range(0.0, 0.1, 4.5, 1.8) == pytest.approx(
+        (min(corners), max(corners)))
+    corners = [0.9 * c, -0.9 * c, 4.5 * s - 0.9 * c, 4.5 * s + 0.9 * c]
+    assert mon.footprint_offset_range(0.0, -0.1, 4.5, 1.8) == pytest.approx(
+        (min(corners), max(corners)))
 
 
 def test_lane_departure_at_the_boundary():

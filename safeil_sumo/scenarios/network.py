@@ -47,9 +47,15 @@ DEFAULT_RUN_IN_M = 30.0
 # average >= 20 m/s (<= 50 s), the leader covers <= 100 + 32 * 50 = 1700 m, i.e. up to 700 m past
 # the arc end. 800 m keeps 100 m margin; a straight costs only 2 shape points.
 DEFAULT_RUN_OUT_M = 800.0
-# Largest chord sagitta [m] when sampling the arc (on the outermost lane boundary): ~9 m chords
-# at R = 500 m. Denser shapes make every moveToXY slower (DESIGN.md).
-MAX_SAGITTA_M = 0.02
+# Largest chord sagitta [m] of the arc in the SUMO net (on the outermost lane boundary): ~20 m
+# chords at R = 500 m (54 shape points for 1 km). moveToXY cost grows steeply with shape points:
+# measured here, moveToXY + simulationStep took 90 us at 116 points (2 cm sagitta), 32 us at 54
+# points, 8 us on a straight. SUMO only needs the net for the leader's motion, collisions and SSM;
+# our sensors and monitors use the exact arc (road.py rebuilds it at GEOMETRY_SAGITTA_M from the
+# track.json), so the 10 cm polygon costs no accuracy where we measure.
+MAX_SAGITTA_M = 0.10
+# Chord sagitta [m] of the exact geometry used by sensors and monitors (~4 m chords at R = 500 m).
+GEOMETRY_SAGITTA_M = 0.002
 # Decimal digits of coordinates in the .net.xml (netconvert's default is 2 = 1 cm).
 NET_PRECISION = 3
 
@@ -154,8 +160,12 @@ class TrackSpec:
         return self.radius_m + self.ego_offset_m
 
 
-def road_centre_line(spec: TrackSpec) -> np.ndarray:
-    """The edge shape ``(N, 2)`` [m]: run-in (2 points), sampled arc, run-out (2 points)."""
+def road_centre_line(spec: TrackSpec, max_sagitta_m: float = MAX_SAGITTA_M) -> np.ndarray:
+    """The edge shape ``(N, 2)`` [m]: run-in (2 points), sampled arc, run-out (2 points).
+
+    ``max_sagitta_m``: chord sagitta bound on the outermost boundary; the SUMO net uses
+    :data:`MAX_SAGITTA_M`, the exact geometry of sensors and monitors a much finer one.
+    """
     x0 = spec.run_in_m
     if not spec.is_curved:
         xs = [0.0, x0, x0 + spec.arc_length_m, x0 + spec.arc_length_m + spec.run_out_m]
@@ -163,7 +173,7 @@ def road_centre_line(spec: TrackSpec) -> np.ndarray:
     else:
         r = spec.road_radius_m
         r_out = r + 0.5 * spec.lanes * spec.lane_width_m  # outermost boundary: largest sagitta
-        max_step = 2.0 * math.acos(1.0 - MAX_SAGITTA_M / r_out)
+        max_step = 2.0 * math.acos(1.0 - max_sagitta_m / r_out)
         n = max(1, math.ceil(spec.arc_angle_rad / max_step))
         theta = np.linspace(0.0, spec.arc_angle_rad, n + 1)
         # centre of the circle at (x0, r): the road turns left (counter-clockwise)

@@ -136,4 +136,31 @@ def load_road(net_path: str | Path, edge_id: str | None = None, ego_lane: int | 
     ego_len = lanes[ego_lane].centre.length
     start = float(meta.get("path_start_s", 0.0))
     end = float(meta.get("path_end_s", ego_len))
+    if "generator_version" in meta and edge_id in (None, meta.get("edge_id")):
+        lanes, start, end = _exact_lanes(meta, lanes, ego_lane)
     return Road(net_path, edge.get("id", ""), tuple(lanes), ego_lane, start, end, meta)
+
+
+def _exact_lanes(meta: dict, lanes: list[Lane], ego_lane: int) -> tuple[list[Lane], float, float]:
+    """Lanes of a generated track rebuilt from its spec at a fine sagitta (see network.py).
+
+    The SUMO net approximates arcs coarsely to keep ``moveToXY`` cheap; sensors and monitors
+    measure against the intended geometry instead. Returns lanes and the test path's ends.
+    """
+    from dataclasses import fields
+
+    from safeil_sumo.scenarios import network
+
+    spec = network.TrackSpec(**{f.name: meta[f.name] for f in fields(network.TrackSpec)})
+    if spec.lanes != len(lanes):
+        raise NetworkError(f"{meta.get('name')}: track.json says {spec.lanes} lanes, the net has "
+                           f"{len(lanes)}")
+    road_centre = Polyline(network.road_centre_line(spec, network.GEOMETRY_SAGITTA_M))
+    exact = []
+    for lane in lanes:
+        offset = (lane.index - (spec.lanes - 1) / 2) * spec.lane_width_m
+        centre = road_centre.offset(offset)
+        exact.append(Lane(lane.lane_id, lane.index, lane.width, lane.sumo_length, centre,
+                          centre.offset(0.5 * lane.width), centre.offset(-0.5 * lane.width)))
+    s, _ = exact[ego_lane].centre.project(network.ego_path_ends(spec))
+    return exact, float(s[0]), float(s[1])

@@ -20,7 +20,7 @@ import pandas as pd
 
 from safeil_sumo.features import planner_features
 from safeil_sumo.geometry import rectangle_corners, rectangles_overlap, sumo_angle_to_yaw
-from safeil_sumo.geometry import wrap_angle, yaw_to_sumo_angle
+from safeil_sumo.geometry import yaw_to_sumo_angle
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import controller as ctl
@@ -175,6 +175,8 @@ def run_scenario(
         t_plan = 0.0
         features = np.zeros(9)
         leader = _read_leader(api, vehicle) if has_leader else None
+        ego_seg = centre.segment_index(s_ego0)
+        lead_seg = centre.segment_index(s_leader_front0)
         for k in range(n_max):
             t = k * dt
             front = veh.front_bumper(state, vehicle)
@@ -204,21 +206,20 @@ def run_scenario(
             colliding = EGO_ID in api.simulation.getCollidingVehiclesIDList()
             leader = _read_leader(api, vehicle) if has_leader and leader is not None else None
 
-            # monitors on the state at t + dt
+            # monitors on the state at t + dt (O(1) walks along the lane from the last segment)
             front = veh.front_bumper(state, vehicle)
-            s_arr, d_arr = centre.project(np.array(front))
-            s, d = float(s_arr), float(d_arr)
-            _, lane_heading = centre.point_at(s)
-            heading_err = float(wrap_angle(state.yaw - float(lane_heading)))
-            offsets = mon.corner_offsets(d, heading_err, vehicle.length_m, vehicle.width_m)
-            d_min, d_max = mon.footprint_lane_offsets(offsets)
+            s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
+            heading_err = (state.yaw - lane_heading + math.pi) % (2.0 * math.pi) - math.pi
+            d_min, d_max = mon.footprint_offset_range(d, heading_err, vehicle.length_m,
+                                                      vehicle.width_m)
             departed = mon.lane_departure(d_min, d_max, lane.width, scenario.monitors.lane_margin_m)
             v = veh.speed(state)
             gap, ttc, v_lead_true = math.inf, math.inf, math.nan
             if leader is not None:
                 (lead_rear, v_lead_sumo, lead_yaw, lead_front) = leader
                 v_lead_true = v_lead_sumo / scale
-                s_lead_rear = float(centre.project(lead_rear)[0])
+                s_lead_rear, _, _, lead_seg = centre.project_near(lead_rear[0], lead_rear[1],
+                                                                  lead_seg)
                 gap = s_lead_rear - s
                 ttc = mon.time_to_collision(gap, v, v_lead_true)
                 if gap < 2.0 * vehicle.length_m and not colliding:

@@ -22,7 +22,7 @@ class SensorConfig:
     """Camera and radar settings."""
 
     view_range_m: float = 60.0  # camera lane-line fit from x = 0 to this distance ahead [m]
-    view_samples: int = 16  # boundary points used for the cubic fit [-]
+    view_samples: int = 16  # boundary points for the cubic fit (every 4 m) [-]
     radar_range_m: float = 150.0  # farthest detectable leader [m]
     # With no leader in range the paper's data has no sample; the closed loop must still feed
     # the planner, so "free road" is shown as a leader at the range limit at the ego's speed.
@@ -67,16 +67,8 @@ def fit_boundary(
 ) -> np.ndarray:
     """Cubic coefficients ``(4,)`` (c0..c3) of one boundary in the ego frame over the view range."""
     s0, _ = boundary.project(ego_xy)
-    s0 = float(s0)
-    s1 = s0 + config.view_range_m
-    # On a curve the polyline's vertices lie on the true lane line but points between them sit
-    # on chords (up to ~2 cm inside), a ripple that a cubic fit turns into a ~3 % error of c2.
-    # So fit the vertices in view when there are enough; a straight (2 vertices) is sampled.
-    inside = (boundary.s > s0) & (boundary.s < s1)
-    if np.count_nonzero(inside) >= 5:
-        pts = boundary.points[inside]
-    else:
-        pts, _ = boundary.point_at(np.linspace(s0, s1, config.view_samples))
+    pts, _ = boundary.point_at(float(s0) + np.linspace(0.0, config.view_range_m,
+                                                       config.view_samples))
     local = world_to_ego(pts, ego_xy, ego_yaw)
     return np.polynomial.polynomial.polyfit(local[:, 0], local[:, 1], 3)
 
