@@ -51,6 +51,9 @@ class Scenario:
     ego_speed_mps: float = 30.0  # ego initial speed [m/s]
     initial_gap_m: float = 50.0  # initial bumper-to-bumper gap to the leader [m]
     seed: int = 0  # seeds SUMO and the sensor noise
+    ego_lateral_offset_m: float = 0.0  # initial front-bumper offset from the lane centre, left + [m]
+    ego_heading_offset_rad: float = 0.0  # initial yaw minus lane heading [rad]
+    max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
     sensors: sen.SensorConfig = field(default_factory=sen.SensorConfig)
     monitors: mon.MonitorConfig = field(default_factory=mon.MonitorConfig)
 
@@ -138,14 +141,19 @@ def run_scenario(
     rng = np.random.default_rng(scenario.seed)
     dt = loop.step_s
     plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
-    max_time = loop.max_time_s or 2.0 * road.path_length / max(scenario.ego_speed_mps, 5.0) + 10.0
+    limits = [t for t in (scenario.max_time_s, loop.max_time_s) if t]
+    max_time = min(limits) if limits else (
+        2.0 * road.path_length / max(scenario.ego_speed_mps, 5.0) + 10.0)
     n_max = int(math.ceil(max_time / dt))
 
     # initial states: ego front bumper at the path start, leader ahead by the gap
     s_ego0 = road.path_start_s
-    start_xy, start_yaw = centre.point_at(s_ego0)
+    start_xy, lane_yaw = centre.point_at(s_ego0)
+    normal = np.array([-math.sin(float(lane_yaw)), math.cos(float(lane_yaw))])
+    start_xy = start_xy + scenario.ego_lateral_offset_m * normal
     state = veh.state_from_front_bumper(
-        float(start_xy[0]), float(start_xy[1]), float(start_yaw), scenario.ego_speed_mps, vehicle
+        float(start_xy[0]), float(start_xy[1]),
+        float(lane_yaw) + scenario.ego_heading_offset_rad, scenario.ego_speed_mps, vehicle,
     )
     s_leader_front0 = s_ego0 + scenario.initial_gap_m + vehicle.length_m
 
