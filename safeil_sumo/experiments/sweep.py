@@ -1,0 +1,540 @@
+"""One sweep engine for every sweep: a list of :class:`ScenarioSpec` -> one result file per task.
+
+- A :class:`ScenarioSpec` is a JSON-able description of one closed-loop task; its random draws
+  (leader speed, initial gap) come from ``scenario_seed(master_seed, index)`` only, so task i is
+  identical alone or in a sweep of any size, sequential or parallel, and across resumes.
+- :func:`run_task` runs one spec and never raises (an exception becomes ``status="failed"``).
+- :func:`run_sweep` runs the tasks in-process (``workers=1``), in local worker processes (one
+  libsumo per process, see DESIGN.md) or on a Dask cluster, and writes every finished result at
+  once and atomically to ``out_dir/tasks/<task_id>.json``. Rerunning a sweep skips tasks that have
+  a result file, so a sweep that stopped (Ctrl-C, crash, killed worker) is resumed by rerunning it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import multiprocessing as mp
+import re
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass, fields
+from functools import partial
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+from tqdm import tqdm
+
+from safeil_sumo.experiments import outputs
+
+LEADER_KINDS = ("constant", "braking")
+TIMING_FIELDS = ("wall_time_s", "steps_per_s", "task_wall_time_s")  # differ run to run
+STATUS_OK = "ok"
+STATUS_FAILED = "failed"
+
+TaskFn = Callable[["ScenarioSpec"], dict]
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """One closed-loop task, JSON-able. Ranges are ``(low, high)``; draws are uniform."""
+
+    net: str = "curved500"  # catalogue name (curved500, straight, curved<R>) or .net.xml path
+    index: int = 0  # scenario index within the master seed [-]
+    master_seed: int = 0  # with ``index`` gives the scenario seed (SUMO, sensors, draws) [-]
+    policy: str = "analytic"  # analytic, safeil, bc or a .safetensors checkpoint path
+    safety_filter: bool = False  # wrap the policy in the inference-time safety filter
+    leader_kind: str = "constant"  # "constant" | "braking"
+    leader_speed_range_mps: tuple[float, float] = (25.0, 32.0)  # leader (initial) speed [m/s]
+    brake_time_s: float = 5.0  # braking leader: braking starts at this time [s]
+    brake_decel_mps2: float = 3.0  # braking leader: deceleration magnitude [m/s^2]
+    brake_to_mps: float = 15.0  # braking leader: final speed [m/s]
+    ego_speed_mps: float = 30.0  # ego initial speed [m/s]
+    initial_gap_m: float | tuple[float, float] = 50.0  # bumper gap, fixed or (low, high) [m]
+    lane_noise_c0_m: float = 0.0  # std of camera lane-offset noise [m]
+    radar_noise_m: float = 0.0  # std of radar range noise [m]
+    plan_rate_hz: float = 10.0  # re-planning rate [Hz]
+    max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
+    stop_on_flag: bool = False  # end the scenario at its first safety flag
+
+    def __post_init__(self) -> None:
+        # normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same
+        set_ = object.__setattr__
+        set_(self, "net", str(self.net))
+        set_(self, "policy", str(self.policy))
+        set_(self, "index", int(self.index))
+        set_(self, "master_seed", int(self.master_seed))
+        set_(self, "safety_filter", bool(self.safety_filter))
+        set_(self, "stop_on_flag", bool(self.stop_on_flag))
+        set_(self, "leader_speed_range_mps", _pair(self.leader_speed_range_mps, "leader speed"))
+        gap = self.initial_gap_m
+        set_(self, "initial_gap_m", float(gap) if isinstance(gap, (int, float))
+             else _pair(gap, "initial gap"))
+        for name in ("brake_time_s", "brake_decel_mps2", "brake_to_mps", "ego_speed_mps",
+                     "lane_noise_c0_m", "radar_noise_m", "plan_rate_hz"):
+            set_(self, name, float(getattr(self, name)))
+        if self.max_time_s is not None:
+            set_(self, "max_time_s", float(self.max_time_s))
+
+        if self.index < 0:
+            raise ValueError(f"scenario index must be >= 0, got {self.index}")
+        if self.leader_kind not in LEADER_KINDS:
+            raise ValueError(f"leader kind must be one of {LEADER_KINDS}, got {self.leader_kind!r}")
+        lo, hi = self.leader_speed_range_mps
+        if not 0 <= lo <= hi:
+            raise ValueError(f"leader speed range needs 0 <= low <= high, got {lo}, {hi}")
+        glo, ghi = self.gap_range_m
+        if not 0 < glo <= ghi:
+            raise ValueError(f"initial gap needs 0 < low <= high, got {glo}, {ghi}")
+        if self.leader_kind == "braking" and (
+                self.brake_time_s < 0 or self.brake_decel_mps2 <= 0 or self.brake_to_mps < 0):
+            raise ValueError("braking leader needs brake time >= 0 s, deceleration > 0 "
+                                 "m/s^2 and final speed >= 0 m/s")
+        if self.ego_speed_mps < 0 or self.lane_noise_c0_m < 0 or self.radar_noise_m < 0:
+            raise ValueError("ego speed and sensor noise must be >= 0")
+        if not self.plan_rate_hz > 0:
+            raise ValueError(f"plan rate must be > 0 Hz, got {self.plan_rate_hz}")
+        if self.max_time_s is not None and not self.max_time_s > 0:
+            raise ValueError(f"max time must be > 0 s, got {self.max_time_s}")
+
+    @property
+    def gap_range_m(self) -> tuple[float, float]:
+        """``initial_gap_m`` as a ``(low, high)`` range [m] (low == high when fixed)."""
+        gap = self.initial_gap_m
+        return (gap, gap) if isinstance(gap, float) else gap
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> ScenarioSpec:
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown ScenarioSpec fields: {sorted(unknown)}")
+        return cls(**data)
+
+
+def _pair(value: Any, what: str) -> tuple[float, float]:
+    try:
+        lo, hi = value
+        return float(lo), float(hi)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be a (low, high) pair, got {value!r}") from None
+
+
+def task_id(spec: ScenarioSpec) -> str:
+    """Short stable id: a readable prefix (only ``[A-Za-z0-9_-]``) + a hash of the spec's JSON.
+
+    The prefix is sanitised, so a task id can never leave the tasks folder.
+    """
+    text = json.dumps(spec.to_json(), sort_keys=True, separators=(",", ":"))
+    digest = hashlib.sha256(text.encode()).hexdigest()[:12]
+    net = Path(spec.net).name.removesuffix(".net.xml")
+    policy = Path(spec.policy).name.removesuffix(".safetensors")
+    prefix = f"{net}_{policy}{'_f' if spec.safety_filter else ''}"
+    prefix = re.sub(r"[^A-Za-z0-9_]+", "_", prefix)[:40]
+    return f"{prefix}-{spec.index:05d}-{digest}"
+
+
+def spec_fields(spec: ScenarioSpec) -> dict[str, Any]:
+    """The spec flattened for a table row (ranges as ``*_low`` / ``*_high`` columns)."""
+    row = spec.to_json()
+    lo, hi = row.pop("leader_speed_range_mps")
+    row["leader_speed_low_mps"], row["leader_speed_high_mps"] = lo, hi
+    row.pop("initial_gap_m")  # the drawn gap is the summary's initial_gap_m
+    row["gap_low_m"], row["gap_high_m"] = spec.gap_range_m
+    return row
+
+
+# -- one task ------------------------------------------------------------------------------------
+
+_ROADS: dict[str, Any] = {}  # per-process cache: net string -> Road (geometry is read once)
+
+
+def _road(net: str):
+    from safeil_sumo.scenarios.catalogue import resolve_net
+    from safeil_sumo.scenarios.road import load_road
+
+    if net not in _ROADS:
+        _ROADS[net] = load_road(resolve_net(net))
+    return _ROADS[net]
+
+
+def leader_profile(spec: ScenarioSpec, speed_mps: float):
+    """The leader's :class:`SpeedProfile` for an initial speed ``speed_mps`` [m/s]."""
+    from safeil_sumo.sim.leaders import constant, piecewise
+
+    if spec.leader_kind == "constant" or spec.brake_to_mps >= speed_mps:
+        return constant(speed_mps)
+    t0 = spec.brake_time_s
+    t1 = t0 + (speed_mps - spec.brake_to_mps) / spec.brake_decel_mps2
+    if t0 <= 0.0:  # brakes from the start
+        return piecewise([0.0, t1], [speed_mps, spec.brake_to_mps])
+    return piecewise([0.0, t0, t1], [speed_mps, speed_mps, spec.brake_to_mps])
+
+
+def build_scenario(spec: ScenarioSpec, road):
+    """The runner's :class:`Scenario` of a spec (every draw from the scenario seed)."""
+    import numpy as np
+
+    from safeil_sumo.scenarios.safety import scenario_seed
+    from safeil_sumo.sim.runner import Scenario
+    from safeil_sumo.sim.sensors import SensorConfig
+
+    seed = scenario_seed(spec.master_seed, spec.index)
+    rng = np.random.default_rng(seed)
+    speed = float(rng.uniform(*spec.leader_speed_range_mps))  # first draw: as safety_scenario
+    glo, ghi = spec.gap_range_m
+    gap = float(rng.uniform(glo, ghi)) if ghi > glo else glo
+    return Scenario(
+        name=f"s{spec.index:04d}", road=road, leader=leader_profile(spec, speed),
+        ego_speed_mps=spec.ego_speed_mps, initial_gap_m=gap, seed=seed,
+        max_time_s=spec.max_time_s,
+        sensors=SensorConfig(lane_noise_c0_m=spec.lane_noise_c0_m,
+                             radar_noise_m=spec.radar_noise_m),
+    )
+
+
+def _load_policy(spec: ScenarioSpec):
+    from safeil_sumo import policies
+
+    # loaded fresh for every task: no state (e.g. filter counters) leaks between tasks
+    policy = policies.load(spec.policy)
+    if spec.safety_filter:
+        from safeil_sumo.safety_filter import SafetyFiltered  # lazily: optional component
+
+        policy = SafetyFiltered(policy)
+    return policy
+
+
+def failed_record(spec: ScenarioSpec, error: str) -> dict[str, Any]:
+    """The record of a task that produced no summary."""
+    return {"task_id": task_id(spec), "status": STATUS_FAILED, "error": error,
+            **spec_fields(spec)}
+
+
+def run_task(spec: ScenarioSpec) -> dict[str, Any]:
+    """Run one task closed-loop; returns a flat record (summary + spec fields). Never raises.
+
+    ``status`` is ``"ok"``, or ``"failed"`` with ``error="Type: message"`` when the task could
+    not be built or the loop ended with an exception.
+    """
+    wall0 = time.perf_counter()
+    try:
+        from safeil_sumo.sim.runner import LoopConfig, run_scenario
+
+        road = _road(spec.net)
+        scenario = build_scenario(spec, road)
+        policy = _load_policy(spec)
+        loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag)
+        summary = dict(run_scenario(scenario, policy, loop).summary)
+    except Exception as exc:  # noqa: BLE001 - a record, never an exception: the sweep goes on
+        return failed_record(spec, f"{type(exc).__name__}: {exc}")
+    failed = summary.get("end_reason") == "error"
+    record = {"task_id": task_id(spec), "status": STATUS_FAILED if failed else STATUS_OK,
+              **spec_fields(spec)}
+    summary["policy_name"] = summary.pop("policy")  # e.g. "safeil+filter"; spec keeps "safeil"
+    summary["net_name"] = summary.pop("net")
+    record.update(summary)
+    record["leader_speed0_mps"] = scenario.leader.initial_speed  # the draw (braking: pre-brake)
+    record["radius_m"] = road.meta.get("radius_m", math.nan)
+    if spec.safety_filter:
+        record["filter_interventions"] = int(getattr(policy, "interventions", 0))
+        record["filter_intervention_rate"] = float(getattr(policy, "intervention_rate", 0.0))
+    record["task_wall_time_s"] = time.perf_counter() - wall0
+    return record
+
+
+def _safe_call(task_fn: TaskFn, spec: ScenarioSpec) -> dict[str, Any]:
+    """``task_fn(spec)``, with any exception turned into a failed record."""
+    try:
+        record = task_fn(spec)
+        if not isinstance(record, dict):
+            raise TypeError(f"task function returned {type(record).__name__}, not dict")
+        return record
+    except Exception as exc:  # noqa: BLE001 - any task error becomes a failed record
+        return failed_record(spec, f"{type(exc).__name__}: {exc}")
+
+
+_PROCESS_LOCK = threading.Lock()
+
+
+def _run_exclusive(task_fn: TaskFn, spec: ScenarioSpec) -> dict[str, Any]:
+    # libsumo holds ONE simulation per process: a Dask worker with several threads must not
+    # run two tasks at once in the same process
+    with _PROCESS_LOCK:
+        return _safe_call(task_fn, spec)
+
+
+# -- result files --------------------------------------------------------------------------------
+
+def tasks_dir(out_dir: Path) -> Path:
+    return Path(out_dir) / "tasks"
+
+
+def read_record(path: Path) -> dict[str, Any] | None:
+    """A task's result, or None if missing or unreadable (then the task is run again)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and "status" in data else None
+
+
+def _is_done(path: Path, retry_failed: bool) -> bool:
+    record = read_record(path)
+    if record is None:
+        return False
+    return not (retry_failed and record.get("status") == STATUS_FAILED)
+
+
+# -- the sweep -----------------------------------------------------------------------------------
+
+def run_sweep(
+    specs: Iterable[ScenarioSpec],
+    out_dir: str | Path,
+    workers: int = 1,
+    scheduler: str | None = None,
+    progress: bool = True,
+    retry_failed: bool = False,
+    task_fn: TaskFn = run_task,
+    task_timeout_s: float | None = None,
+) -> pd.DataFrame:
+    """Run every spec that has no result file yet; return the summary of all specs, in order.
+
+    ``workers=1``: in this process, one after another. ``workers>1``: that many local worker
+    processes ('fork' on Linux), each running one task at a time; a worker that dies (crash,
+    ``kill -9``, or ``task_timeout_s`` [s] exceeded) has its task recorded as failed and is
+    replaced. ``scheduler="tcp://host:port"``: tasks go to that Dask cluster. Failed records count
+    as done unless ``retry_failed``. ``task_fn`` (default :func:`run_task`) is a seam for tests.
+
+    Writes ``tasks/<task_id>.json`` per task as it finishes, then ``summary.csv``,
+    ``summary.json`` and ``manifest.json``.
+    """
+    specs = list(dict.fromkeys(specs))  # a spec listed twice is one task
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    out_dir = Path(out_dir)
+    tdir = tasks_dir(out_dir)
+    tdir.mkdir(parents=True, exist_ok=True)
+    ids = [task_id(s) for s in specs]
+    todo = [s for s, i in zip(specs, ids) if not _is_done(tdir / f"{i}.json", retry_failed)]
+    if todo and scheduler is None and workers > 1:
+        _prepare_nets(todo)
+
+    bar = tqdm(total=len(todo), desc="sweep", unit="task", disable=not progress or None,
+               initial=0, dynamic_ncols=True)
+    failed = 0
+
+    def save(spec: ScenarioSpec, record: dict[str, Any]) -> None:
+        nonlocal failed
+        outputs.write_json(tdir / f"{task_id(spec)}.json", record)
+        failed += record.get("status") != STATUS_OK
+        bar.update(1)
+        if failed:
+            bar.set_postfix(failed=failed)
+
+    try:
+        if not todo:
+            pass
+        elif scheduler is not None:
+            _run_dask(todo, scheduler, task_fn, save)
+        elif workers == 1:
+            for spec in todo:
+                save(spec, _safe_call(task_fn, spec))
+        else:
+            _run_local(todo, min(workers, len(todo)), task_fn, save, task_timeout_s)
+    finally:
+        bar.close()
+
+    summary = collect(specs, out_dir)
+    summary.to_csv(out_dir / "summary.csv", index=False)
+    outputs.write_json(out_dir / "summary.json", summary.to_dict(orient="records"))
+    config = {"tasks": len(specs), "run_now": len(todo), "workers": workers,
+              "scheduler": scheduler, "retry_failed": retry_failed,
+              "specs": [s.to_json() for s in specs]}
+    from safeil_sumo.scenarios.safety import scenario_seed
+
+    seeds = [scenario_seed(s.master_seed, s.index) for s in specs]
+    outputs.write_json(out_dir / "manifest.json", outputs.manifest(config, seeds))
+    return summary
+
+
+def collect(specs: Sequence[ScenarioSpec], out_dir: str | Path) -> pd.DataFrame:
+    """The records of ``specs`` found in ``out_dir/tasks``, in spec order (missing ones skipped)."""
+    tdir = tasks_dir(Path(out_dir))
+    rows = []
+    for order, spec in enumerate(specs):
+        record = read_record(tdir / f"{task_id(spec)}.json")
+        if record is not None:
+            rows.append({"task_order": order, **record})
+    return pd.DataFrame(rows)
+
+
+def _prepare_nets(specs: Sequence[ScenarioSpec]) -> None:
+    # build curved<R> networks once here (netconvert, no libsumo) instead of racing in workers;
+    # a net that fails is left to its tasks, which record the error
+    from safeil_sumo.scenarios.catalogue import resolve_net
+
+    for net in dict.fromkeys(s.net for s in specs):
+        try:
+            resolve_net(net)
+        except Exception:  # noqa: BLE001, S110 - the tasks of this net record the error
+            pass
+
+
+# -- local worker processes ----------------------------------------------------------------------
+
+def _worker_main(conn: Connection, task_fn: TaskFn) -> None:
+    """A worker: receive a spec, run it, send the record back; ``None`` ends the worker."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    while True:
+        try:
+            spec = conn.recv()
+        except EOFError:
+            return
+        if spec is None:
+            return
+        conn.send(_safe_call(task_fn, spec))
+
+
+class _Worker:
+    def __init__(self, ctx, task_fn: TaskFn) -> None:
+        self.conn, child = ctx.Pipe()
+        self.process = ctx.Process(target=_worker_main, args=(child, task_fn), daemon=True)
+        self.process.start()
+        child.close()
+        self.spec: ScenarioSpec | None = None
+        self.started = 0.0
+
+    def give(self, spec: ScenarioSpec) -> None:
+        self.spec, self.started = spec, time.monotonic()
+        self.conn.send(spec)
+
+    def stop(self) -> None:
+        try:
+            self.conn.send(None)
+        except OSError:
+            pass
+
+    def kill(self) -> None:
+        if self.process.is_alive():
+            self.process.kill()
+        self.process.join(timeout=5)
+        self.conn.close()
+
+
+def _mp_context():
+    # 'fork' keeps worker start cheap and works with any task_fn; libsumo is imported (and
+    # started) only inside the workers
+    methods = mp.get_all_start_methods()
+    return mp.get_context("fork" if "fork" in methods else "spawn")
+
+
+def _run_local(
+    todo: list[ScenarioSpec], workers: int, task_fn: TaskFn,
+    save: Callable[[ScenarioSpec, dict], None], task_timeout_s: float | None,
+) -> None:
+    ctx = _mp_context()
+    queue = list(reversed(todo))  # pop() from the end keeps task order
+    pool: list[_Worker] = []
+    try:
+        for _ in range(workers):
+            pool.append(_Worker(ctx, task_fn))
+        for w in pool:
+            if queue:
+                w.give(queue.pop())
+        while any(w.spec is not None for w in pool):
+            busy = [w for w in pool if w.spec is not None]
+            handles = [w.conn for w in busy] + [w.process.sentinel for w in busy]
+            ready = set(wait(handles, timeout=1.0))
+            for w in busy:
+                spec = w.spec
+                record = None
+                if w.conn in ready or w.process.sentinel in ready:
+                    try:
+                        if w.conn.poll():
+                            record = w.conn.recv()
+                    except (EOFError, OSError):
+                        record = None
+                    if record is None and not w.process.is_alive():
+                        code = w.process.exitcode
+                        record = failed_record(spec, f"WorkerDied: worker process died "
+                                                     f"(exit code {code}) while running the task")
+                if record is None and task_timeout_s is not None and \
+                        time.monotonic() - w.started > task_timeout_s:
+                    w.process.kill()
+                    w.process.join(timeout=5)
+                    record = failed_record(spec, f"TaskTimeout: no result after "
+                                                 f"{task_timeout_s:g} s; worker killed")
+                if record is None:
+                    continue
+                save(spec, record)
+                w.spec = None
+                if not w.process.is_alive():
+                    w.kill()
+                    pool.remove(w)
+                    if queue:
+                        w = _Worker(ctx, task_fn)  # replace the dead worker
+                        pool.append(w)
+                if queue:
+                    w.give(queue.pop())
+        for w in pool:
+            w.stop()
+        for w in pool:
+            w.process.join(timeout=5)
+    finally:  # Ctrl-C or an error: unfinished tasks are simply not saved
+        for w in pool:
+            w.kill()
+
+
+# -- Dask ----------------------------------------------------------------------------------------
+
+def _run_dask(
+    todo: list[ScenarioSpec], address: str, task_fn: TaskFn,
+    save: Callable[[ScenarioSpec, dict], None],
+) -> None:
+    from dask.distributed import Client, as_completed
+
+    client = Client(address)  # only the address the user gave
+    try:
+        futures = client.map(partial(_run_exclusive, task_fn), todo, pure=False)
+        spec_of = {f.key: s for f, s in zip(futures, todo)}
+        try:
+            for future in as_completed(futures):
+                spec = spec_of[future.key]
+                try:
+                    record = future.result()
+                except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker after repeated worker deaths
+                    record = failed_record(spec, f"{type(exc).__name__}: {exc}")
+                save(spec, record)
+        finally:
+            client.cancel([f for f in futures if not f.done()])
+    finally:
+        client.close()
+
+
+def comparable(summary: pd.DataFrame) -> pd.DataFrame:
+    """``summary`` without fields that vary between identical runs (timing)."""
+    drop = [c for c in TIMING_FIELDS if c in summary.columns]
+    return summary.drop(columns=drop).reset_index(drop=True)
+
+
+def load_specs(path: str | Path) -> list[ScenarioSpec]:
+    """Specs from a JSON list (e.g. the ``specs`` of a sweep's ``manifest.json``)."""
+    data = json.loads(Path(path).read_text())
+    if isinstance(data, dict):
+        data = data.get("config", data).get("specs", [])
+    return [ScenarioSpec.from_json(d) for d in data]
+
+
+__all__ = [
+    "ScenarioSpec", "build_scenario", "collect", "comparable", "leader_profile", "load_specs",
+    "run_sweep", "run_task", "spec_fields", "task_id",
+]
