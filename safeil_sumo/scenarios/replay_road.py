@@ -1,0 +1,414 @@
+"""The road of a recorded maneuver as a SUMO net: the digital twin's geometry (paper IV-C).
+
+From the drive rows of one maneuver (schema of :mod:`safeil_sumo.data.schema`):
+
+1. the world points of the ego's LANE CENTRE: the ego's front bumper plus the midpoint of the
+   left/right lane lines at ``x = 0`` in the ego frame, ``(c0l + c0r) / 2``, rotated by ``yaw``;
+2. smoothed: resampled every ``spacing_m`` along the path, then a Savitzky-Golay filter (order 3,
+   window ``smooth_window_m``) on x and y — a cubic over 41 m reproduces any motorway radius
+   (R = 800 m: < 1 mm off) while removing the per-sample noise of GNSS and lane-line fits;
+3. extended by a straight run-in behind (room to insert the ego) and a straight run-out ahead,
+   long enough for the leader driven by the recorded speed (and for a policy faster than the
+   human) to stay on the road;
+4. decimated (Ramer-Douglas-Peucker) to a chord tolerance of :data:`REPLAY_SAGITTA_M`: SUMO shapes
+   stay lean (``moveToXY`` cost grows with shape points, see ``network.py``).
+
+The net: ONE edge ``"road"``, 3 lanes of the recorded lane width (median of ``c0l - c0r``,
+clipped to [2.8, 4.5] m), ego in the middle lane, ``spreadType="center"`` so the edge shape IS
+the ego lane centre. Three lanes rather than one: a policy that drifts out of its lane (the paper's
+BC) then sees the neighbouring lane's lines and loses its leader, as a real camera and radar would.
+Coordinates are LOCAL (:class:`LocalFrame`): origin at the recorded ego position at the maneuver
+start, x along the lane's initial heading (sidecar: ``origin_x/origin_y/rotation_rad``), so the
+road runs along +x as in the paper's plots and large GNSS coordinates never reach SUMO.
+
+The sidecar ``<name>.track.json`` holds ``ego_lane``, ``path_start_s`` (the projection of the
+recorded start on the SUMO ego lane) and ``path_end_s`` (the recorded end plus
+``path_end_margin_m``: a policy faster than the human is not stopped by the runner's "completed"
+check; the replay ends on time), read by :func:`safeil_sumo.scenarios.road.load_road`. It has no
+``generator_version`` key on purpose: that key makes ``load_road`` rebuild a TrackSpec arc; a
+replay's SUMO lane (5 cm chords) is its own exact geometry.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.signal import savgol_filter
+
+from safeil_sumo.scenarios.network import find_netconvert
+from safeil_sumo.scenarios.road import NetworkError, Road, load_road
+
+EDGE_ID = "road"
+ROUTE_ID = "r0"
+REPLAY_GENERATOR_VERSION = 1
+# Chord tolerance [m] of the SUMO shape: ~18 m chords at R = 800 m. Finer than network.py's 10 cm
+# because here the SUMO polygon is also what the camera and the monitors measure against.
+REPLAY_SAGITTA_M = 0.05
+LANE_WIDTH_RANGE_M = (2.8, 4.5)  # [m] plausible lane widths; outside = a bad lane-line fit
+NET_PRECISION = 3  # decimals of coordinates in the .net.xml
+
+_NAME_RE = re.compile(r"[^A-Za-z0-9_-]+")
+
+
+@dataclass(frozen=True)
+class ReplayRoadConfig:
+    """How the recorded lane becomes a SUMO road."""
+
+    lanes: int = 3  # number of lanes [-]; the ego lane is the middle one (lanes must be odd)
+    spacing_m: float = 1.0  # resampling step of the lane centre [m]
+    smooth_window_m: float = 41.0  # Savitzky-Golay window (order 3) along the path [m]
+    run_in_m: float = 30.0  # straight behind the recorded start [m] (ego insertion)
+    run_out_extra_m: float = 200.0  # straight past the farthest leader position [m] (radar/camera)
+    path_end_margin_m: float = 100.0  # test path end = recorded end + this [m]
+    max_sagitta_m: float = REPLAY_SAGITTA_M  # chord tolerance of the SUMO shape [m]
+    speed_limit_mps: float = 36.1  # edge speed limit [m/s] (not used by remote-controlled cars)
+
+    def __post_init__(self) -> None:
+        if self.lanes < 1 or self.lanes % 2 == 0:
+            raise ValueError(f"lanes must be odd (ego in the middle), got {self.lanes}")
+        for name in ("spacing_m", "smooth_window_m", "max_sagitta_m", "speed_limit_mps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"ReplayRoadConfig.{name} must be > 0")
+        for name in ("run_in_m", "run_out_extra_m", "path_end_margin_m"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"ReplayRoadConfig.{name} must be >= 0")
+
+    @property
+    def ego_lane(self) -> int:
+        return self.lanes // 2
+
+
+# ----------------------------------------------------------------------------------- pure maths
+
+
+def lane_centre_points(x: np.ndarray, y: np.ndarray, yaw: np.ndarray, c0_left: np.ndarray,
+                       c0_right: np.ndarray) -> np.ndarray:
+    """World points ``(N, 2)`` [m] of the lane centre beside the ego at each sample.
+
+    The lines' midpoint at ``x = 0`` in the ego frame is ``(0, (c0l + c0r) / 2)``; rotated by
+    ``yaw`` and added to the ego position ``(x, y)``.
+    """
+    m = 0.5 * (np.asarray(c0_left, float) + np.asarray(c0_right, float))
+    yaw = np.asarray(yaw, float)
+    return np.stack([np.asarray(x, float) - m * np.sin(yaw),
+                     np.asarray(y, float) + m * np.cos(yaw)], axis=1)
+
+
+def lane_width(c0_left: np.ndarray, c0_right: np.ndarray,
+               limits: tuple[float, float] = LANE_WIDTH_RANGE_M) -> float:
+    """Median of ``c0l - c0r`` [m], clipped to ``limits``."""
+    w = np.asarray(c0_left, float) - np.asarray(c0_right, float)
+    w = w[np.isfinite(w)]
+    if len(w) == 0:
+        raise ValueError("no finite lane-line offsets to measure the lane width")
+    return float(np.clip(np.median(w), *limits))
+
+
+def resample_path(points: np.ndarray, spacing_m: float) -> np.ndarray:
+    """Points ``(M, 2)`` every ``spacing_m`` along the polyline ``points (N, 2)`` (ends kept).
+
+    Repeated points (a standing car) are dropped first.
+    """
+    p = np.asarray(points, float)
+    step = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    keep = np.r_[True, step > 1e-6]
+    p = p[keep]
+    if len(p) < 2:
+        raise ValueError("the recorded path does not move (need >= 2 distinct positions)")
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+    n = max(math.ceil(s[-1] / spacing_m), 1)
+    q = np.linspace(0.0, s[-1], n + 1)
+    return np.stack([np.interp(q, s, p[:, 0]), np.interp(q, s, p[:, 1])], axis=1)
+
+
+def smooth_path(points: np.ndarray, spacing_m: float, window_m: float) -> np.ndarray:
+    """Resampled every ``spacing_m`` and Savitzky-Golay smoothed (order 3, ``window_m``)."""
+    p = resample_path(points, spacing_m)
+    w = round(window_m / spacing_m) | 1
+    w = min(w, len(p) if len(p) % 2 else len(p) - 1)
+    if w < 5:  # too short to smooth with a cubic: keep as is
+        return p
+    return np.stack([savgol_filter(p[:, k], w, 3, mode="interp") for k in (0, 1)], axis=1)
+
+
+def extend_path(points: np.ndarray, run_in_m: float, run_out_m: float) -> np.ndarray:
+    """Straight, tangent extensions: ``run_in_m`` before the first and ``run_out_m`` after the
+    last point (tangents from the end segments)."""
+    p = np.asarray(points, float)
+    t0 = p[1] - p[0]
+    t1 = p[-1] - p[-2]
+    t0, t1 = t0 / np.linalg.norm(t0), t1 / np.linalg.norm(t1)
+    parts = []
+    if run_in_m > 0:
+        parts.append((p[0] - run_in_m * t0)[None])
+    parts.append(p)
+    if run_out_m > 0:
+        parts.append((p[-1] + run_out_m * t1)[None])
+    return np.vstack(parts)
+
+
+def decimate(points: np.ndarray, tolerance_m: float) -> np.ndarray:
+    """Ramer-Douglas-Peucker: the fewest vertices such that every dropped point is within
+    ``tolerance_m`` of its chord (the chord sagitta bound of ``network.py`` for any curve)."""
+    p = np.asarray(points, float)
+    keep = np.zeros(len(p), dtype=bool)
+    keep[[0, -1]] = True
+    stack = [(0, len(p) - 1)]
+    while stack:
+        a, b = stack.pop()
+        if b - a < 2:
+            continue
+        chord = p[b] - p[a]
+        length = np.linalg.norm(chord)
+        rel = p[a + 1:b] - p[a]
+        if length < 1e-12:
+            dist = np.linalg.norm(rel, axis=1)
+        else:
+            dist = np.abs(chord[0] * rel[:, 1] - chord[1] * rel[:, 0]) / length
+        i = int(np.argmax(dist))
+        if dist[i] > tolerance_m:
+            k = a + 1 + i
+            keep[k] = True
+            stack += [(a, k), (k, b)]
+    return p[keep]
+
+
+def circle_radius(points: np.ndarray) -> float:
+    """Least-squares (Kasa) circle radius [m] through ``points (N, 2)`` (for tests and checks)."""
+    p = np.asarray(points, float)
+    c = p.mean(axis=0)
+    q = p - c
+    a = np.column_stack([2 * q, np.ones(len(q))])
+    sol, *_ = np.linalg.lstsq(a, np.sum(q**2, axis=1), rcond=None)
+    return float(math.sqrt(sol[2] + sol[0] ** 2 + sol[1] ** 2))
+
+
+# ----------------------------------------------------------------------------------- the road
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    """World -> replay frame: origin at the recorded start, x along the lane's initial heading."""
+
+    origin_x: float  # world x of the origin [m]
+    origin_y: float  # world y of the origin [m]
+    rotation_rad: float  # world heading of the local +x axis [rad]
+
+    def points(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """World points -> local ``(N, 2)`` [m]."""
+        c, s = math.cos(self.rotation_rad), math.sin(self.rotation_rad)
+        dx, dy = np.asarray(x, float) - self.origin_x, np.asarray(y, float) - self.origin_y
+        return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
+
+    def yaw(self, yaw: np.ndarray) -> np.ndarray:
+        """World heading -> local heading [rad], wrapped to [-pi, pi)."""
+        return (np.asarray(yaw, float) - self.rotation_rad + math.pi) % (2 * math.pi) - math.pi
+
+
+@dataclass(frozen=True)
+class ReplayGeometry:
+    """The lane of a recorded maneuver in the local frame (see :class:`LocalFrame`) [m]."""
+
+    centre: np.ndarray  # (N, 2) smoothed ego-lane centre (every spacing_m) + straight ends [m]
+    shape: np.ndarray  # (K, 2) the decimated SUMO edge shape [m]
+    lane_width_m: float  # [m]
+    frame: LocalFrame
+    start_xy: np.ndarray  # (2,) recorded ego front bumper at the start, local [m]
+    end_xy: np.ndarray  # (2,) recorded ego front bumper at the end, local [m]
+    run_out_m: float  # straight past the recorded end [m]
+
+
+def replay_geometry(rows: pd.DataFrame, config: ReplayRoadConfig = ReplayRoadConfig(),
+                    leader_travel_m: float | None = None) -> ReplayGeometry:
+    """Lane-centre geometry of one maneuver's drive rows (sorted by time).
+
+    ``leader_travel_m``: how far the leader drives during the replay (default: from ``v_lead``
+    or ``lead_v`` and the duration); sets the run-out.
+    """
+    need = ("time", "x", "y", "yaw", "v_x", "left_c0", "right_c0", "lead_x")
+    missing = [c for c in need if c not in rows.columns]
+    if missing:
+        raise ValueError(f"drive rows lack column(s) {', '.join(missing)}")
+    if len(rows) < 2:
+        raise ValueError("a maneuver needs at least 2 samples")
+    x, y = rows["x"].to_numpy(float), rows["y"].to_numpy(float)
+    c0l, c0r = rows["left_c0"].to_numpy(float), rows["right_c0"].to_numpy(float)
+    pts = lane_centre_points(x - x[0], y - y[0], rows["yaw"].to_numpy(float), c0l, c0r)
+    smooth = smooth_path(pts, config.spacing_m, config.smooth_window_m)
+    heading = math.atan2(smooth[1, 1] - smooth[0, 1], smooth[1, 0] - smooth[0, 0])
+    frame = LocalFrame(float(x[0]), float(y[0]), heading)
+    smooth = frame.points(smooth[:, 0] + x[0], smooth[:, 1] + y[0])
+    width = lane_width(c0l, c0r)
+    if leader_travel_m is None:
+        leader_travel_m = recorded_leader_travel(rows)
+    recorded_len = float(np.sum(np.linalg.norm(np.diff(smooth, axis=0), axis=1)))
+    # leader front at the end, from the recorded start: gap + its length (<= 20 m) + travel;
+    # the run-out covers it (and the test-path margin) plus the sensors' reach
+    lead_end = float(rows["lead_x"].iloc[0]) + 20.0 + leader_travel_m
+    run_out = max(lead_end - recorded_len, config.path_end_margin_m, 0.0) \
+        + config.run_out_extra_m
+    dense = extend_path(smooth, config.run_in_m, run_out)
+    return ReplayGeometry(
+        centre=dense, shape=decimate(dense, config.max_sagitta_m), lane_width_m=width,
+        frame=frame, start_xy=frame.points(x[0], y[0]), end_xy=frame.points(x[-1], y[-1]),
+        run_out_m=run_out,
+    )
+
+
+def recorded_leader_travel(rows: pd.DataFrame) -> float:
+    """Distance [m] the recorded leader drives: trapezoid integral of its speed."""
+    t = rows["time"].to_numpy(float)
+    v = leader_speed(rows)
+    return float(np.sum(0.5 * (v[1:] + v[:-1]) * np.diff(t)))
+
+
+def leader_speed(rows: pd.DataFrame) -> np.ndarray:
+    """Recorded leader speed ``(N,)`` [m/s]: ``v_lead`` (the pipeline's), else ``lead_v``, else
+    ``v_x + d(lead_x)/dt``; gaps filled from the differentiated one; clipped at 0."""
+    t = rows["time"].to_numpy(float)
+    diff = rows["v_x"].to_numpy(float) + np.gradient(rows["lead_x"].to_numpy(float), t)
+    v = np.full(len(rows), np.nan)
+    for col in ("v_lead", "lead_v"):
+        if col in rows.columns:
+            v = rows[col].to_numpy(float)
+            break
+    return np.maximum(np.where(np.isfinite(v), v, diff), 0.0)
+
+
+def safe_name(text: str) -> str:
+    """A file-name stem from a maneuver id (``VC280219p3_f2#0`` -> ``VC280219p3_f2_0``)."""
+    return _NAME_RE.sub("_", text).strip("_") or "replay"
+
+
+def _nodes_xml(shape: np.ndarray) -> str:
+    (xs, ys), (xe, ye) = shape[0], shape[-1]
+    return ("<nodes>\n"
+            f'    <node id="start" x="{xs:.4f}" y="{ys:.4f}"/>\n'
+            f'    <node id="end" x="{xe:.4f}" y="{ye:.4f}"/>\n'
+            "</nodes>\n")
+
+
+def _edges_xml(shape: np.ndarray, lanes: int, width: float, speed: float) -> str:
+    shape_txt = " ".join(f"{x:.4f},{y:.4f}" for x, y in shape)
+    return ("<edges>\n"
+            f'    <edge id="{EDGE_ID}" from="start" to="end" numLanes="{lanes}" '
+            f'width="{width:.4f}" speed="{speed}" spreadType="center"\n'
+            f'          shape="{shape_txt}"/>\n'
+            "</edges>\n")
+
+
+def _routes_xml() -> str:
+    vtype = ('    <vType id="{id}" vClass="passenger" length="4.54" width="1.76" minGap="2.50" '
+             'maxSpeed="50.00" speedFactor="1" speedDev="0" color="{color}"/>\n')
+    return ("<routes>\n" + vtype.format(id="ego", color="1,0,0")
+            + vtype.format(id="leader", color="0,0.4,1")
+            + f'    <route id="{ROUTE_ID}" edges="{EDGE_ID}"/>\n'
+            + "    <!-- vehicles are added by the replay -->\n</routes>\n")
+
+
+def _sumocfg_xml(name: str) -> str:
+    return ("<configuration>\n    <input>\n"
+            f'        <net-file value="{name}.net.xml"/>\n'
+            f'        <route-files value="{name}.rou.xml"/>\n'
+            "    </input>\n    <time>\n"
+            '        <step-length value="0.01"/>\n'
+            "    </time>\n</configuration>\n")
+
+
+def _netconvert(name: str, work: Path) -> str:
+    cmd = [find_netconvert(), "--node-files", f"{name}.nod.xml", "--edge-files",
+           f"{name}.edg.xml", "--output-file", f"{name}.net.xml",
+           "--offset.disable-normalization", "true", "--no-turnarounds", "true",
+           "--precision", str(NET_PRECISION)]
+    try:
+        proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=120,
+                              check=False)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise NetworkError(f"netconvert could not run for replay road {name!r}: {exc}") from exc
+    if proc.returncode != 0 or not (work / f"{name}.net.xml").is_file():
+        lines = [ln for ln in (proc.stderr or "").splitlines() if ln.strip()] or ["(no message)"]
+        raise NetworkError(f"netconvert failed for replay road {name!r}: {lines[0]}")
+    m = re.search(r"Eclipse SUMO netconvert (\S+)", (work / f"{name}.net.xml").read_text())
+    return m.group(1) if m else "unknown"
+
+
+def build_replay_net(rows: pd.DataFrame, out_dir: Path, name: str,
+                     config: ReplayRoadConfig = ReplayRoadConfig(),
+                     meta: dict | None = None) -> Path:
+    """Write the maneuver's road into ``out_dir`` (atomically) and return the ``.net.xml`` path.
+
+    Files: ``<name>.nod.xml``, ``.edg.xml``, ``.net.xml``, ``.rou.xml``, ``.sumocfg`` (opens in
+    sumo-gui) and ``.track.json``. ``meta`` (e.g. the maneuver id) is added to the sidecar.
+    Raises ValueError for unusable rows, :class:`NetworkError` when netconvert fails.
+    """
+    name = safe_name(name)
+    geo = replay_geometry(rows, config)
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{name}-build-", dir=out_dir.parent))
+    try:
+        (tmp / f"{name}.nod.xml").write_text(_nodes_xml(geo.shape))
+        (tmp / f"{name}.edg.xml").write_text(
+            _edges_xml(geo.shape, config.lanes, geo.lane_width_m, config.speed_limit_mps))
+        version = _netconvert(name, tmp)
+        (tmp / f"{name}.rou.xml").write_text(_routes_xml())
+        (tmp / f"{name}.sumocfg").write_text(_sumocfg_xml(name))
+        net = tmp / f"{name}.net.xml"
+        road = load_road(net, edge_id=EDGE_ID, ego_lane=config.ego_lane)
+        if len(road.lanes) != config.lanes:
+            raise NetworkError(f"{net}: netconvert built {len(road.lanes)} lanes, not "
+                               f"{config.lanes}")
+        centre = road.lanes[config.ego_lane].centre
+        s, _ = centre.project(np.vstack([geo.start_xy, geo.end_xy]))
+        sidecar = {
+            "name": name, "kind": "replay", "edge_id": EDGE_ID, "route_id": ROUTE_ID,
+            "lanes": config.lanes, "ego_lane": config.ego_lane,
+            "lane_width_m": round(geo.lane_width_m, 4),
+            "path_start_s": round(float(s[0]), 3),
+            "path_end_s": round(min(float(s[1]) + config.path_end_margin_m,
+                                    centre.length - 1.0), 3),
+            "origin_x": geo.frame.origin_x, "origin_y": geo.frame.origin_y,
+            "rotation_rad": geo.frame.rotation_rad,
+            "run_out_m": round(geo.run_out_m, 3), "shape_points": len(geo.shape),
+            "max_sagitta_m": config.max_sagitta_m, "config": asdict(config),
+            "replay_generator_version": REPLAY_GENERATOR_VERSION,
+            "netconvert_version": version, **(meta or {}),
+        }
+        (tmp / f"{name}.track.json").write_text(json.dumps(sidecar, indent=2) + "\n")
+        _publish(tmp, out_dir, [name + sfx for sfx in (".nod.xml", ".edg.xml", ".net.xml",
+                                                        ".rou.xml", ".sumocfg", ".track.json")])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir / f"{name}.net.xml"
+
+
+def _publish(tmp: Path, out_dir: Path, names: list[str]) -> None:
+    """The finished folder replaces ``out_dir`` at once, or file by file (track.json last)."""
+    os.chmod(tmp, 0o755)  # mkdtemp makes it private
+    try:
+        os.rename(tmp, out_dir)
+        return
+    except OSError:
+        if not out_dir.is_dir():
+            raise
+    for name in names:
+        os.replace(tmp / name, out_dir / name)
+
+
+def load_replay_road(net_path: Path) -> tuple[Road, LocalFrame]:
+    """The replay road (ego lane and test path from the sidecar) and its local frame."""
+    road = load_road(net_path, edge_id=EDGE_ID)
+    m = road.meta
+    if m.get("kind") != "replay":
+        raise NetworkError(f"{net_path}: not a replay road (no replay track.json sidecar)")
+    return road, LocalFrame(float(m["origin_x"]), float(m["origin_y"]), float(m["rotation_rad"]))
