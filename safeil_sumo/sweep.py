@@ -1,0 +1,150 @@
+"""``python -m safeil_sumo.sweep``: closed-loop sweeps over nets x policies x filter x scenarios.
+
+Example (the paper's safety test for both learned policies, two local worker processes)::
+
+    python -m safeil_sumo.sweep --net curved500 curved300 --policies safeil bc \\
+        --scenarios 10 --seed 0 --safety-filter both --workers 2 --out runs/sweep
+
+Every finished task is saved at once in ``<out>/tasks/<task_id>.json``; rerunning the same
+command resumes a sweep that stopped (only missing tasks run; ``--retry-failed`` also reruns
+failed ones). At the end: ``<out>/summary.csv`` / ``summary.json`` (one row per task),
+``manifest.json``, and a printed breakdown per (net, policy, filter) with Wilson 95 % intervals.
+Exit codes: 0 all tasks ran, 1 some tasks failed, 2 bad arguments, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+from pathlib import Path
+
+from safeil_sumo.experiments.stats import breakdown, format_breakdown
+from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
+
+FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(
+        prog="python -m safeil_sumo.sweep",
+        description="Closed-loop scenario sweeps in SUMO (local processes or a Dask cluster).",
+    )
+    p.add_argument("--net", nargs="+", default=["curved500"], metavar="NET",
+                   help="curved500, straight, curved<R> (e.g. curved300) or .net.xml paths")
+    p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
+                   help="analytic, safeil, bc or .safetensors checkpoints (default: safeil bc)")
+    p.add_argument("--scenarios", type=int, default=10, help="scenarios per cell (default 10)")
+    p.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
+    p.add_argument("--leader", choices=("constant", "braking"), default="constant",
+                   help="leader: constant speed, or constant then braking (default constant)")
+    p.add_argument("--leader-speed", type=float, nargs=2, default=(25.0, 32.0),
+                   metavar=("LOW", "HIGH"), help="leader (initial) speed range [m/s] (25 32)")
+    p.add_argument("--brake-time", type=float, default=5.0, help="braking starts at [s] (5)")
+    p.add_argument("--brake-decel", type=float, default=3.0, help="braking decel. [m/s^2] (3)")
+    p.add_argument("--brake-to", type=float, default=15.0, help="speed after braking [m/s] (15)")
+    p.add_argument("--ego-speed", type=float, default=30.0, help="ego initial speed [m/s] (30)")
+    gap = p.add_mutually_exclusive_group()
+    gap.add_argument("--gap", type=float, default=None, help="initial bumper gap [m] (50)")
+    gap.add_argument("--gap-range", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
+                     help="initial gap drawn uniformly per scenario [m]")
+    p.add_argument("--lane-noise", type=float, default=0.0, help="camera c0 noise std [m] (0)")
+    p.add_argument("--radar-noise", type=float, default=0.0, help="radar range noise std [m] (0)")
+    p.add_argument("--plan-rate", type=float, default=10.0, help="re-planning rate [Hz] (10)")
+    p.add_argument("--max-time", type=float, default=None,
+                   help="scenario duration [s] (default: 2x the path at the ego speed + 10 s)")
+    p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
+    p.add_argument("--safety-filter", choices=tuple(FILTER_OPTIONS), default="off",
+                   help="run policies without (off), with (on) or both ways (default off)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="local worker processes, one simulation each (default 1: in-process)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="Dask scheduler address (tcp://host:port) to run the tasks on")
+    p.add_argument("--task-timeout", type=float, default=None,
+                   help="local workers: kill a task after this many seconds [s]")
+    p.add_argument("--out", type=Path, default=Path("runs/sweep"),
+                   help="results folder (default runs/sweep); rerun to resume")
+    p.add_argument("--retry-failed", action="store_true", help="rerun tasks that failed before")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+
+    if args.scenarios < 1:
+        p.error("--scenarios must be >= 1")
+    if args.workers < 1:
+        p.error("--workers must be >= 1")
+    if args.scheduler is not None and args.workers != 1:
+        p.error("use either --workers (local processes) or --scheduler (a Dask cluster)")
+    if args.scheduler is not None and "://" not in args.scheduler:
+        p.error(f"--scheduler needs an address like tcp://host:8786, got {args.scheduler!r}")
+    if args.task_timeout is not None and args.task_timeout <= 0:
+        p.error("--task-timeout must be > 0 s")
+    if args.out.exists() and not args.out.is_dir():
+        p.error(f"--out {args.out} exists and is not a folder")
+    return args
+
+
+def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
+    """The grid: nets x policies x filter options x scenario indices (ValueError if invalid)."""
+    gap = tuple(args.gap_range) if args.gap_range else (args.gap if args.gap is not None else 50.0)
+    return [
+        ScenarioSpec(
+            net=net, index=index, master_seed=args.seed, policy=policy, safety_filter=filt,
+            leader_kind=args.leader, leader_speed_range_mps=tuple(args.leader_speed),
+            brake_time_s=args.brake_time, brake_decel_mps2=args.brake_decel,
+            brake_to_mps=args.brake_to, ego_speed_mps=args.ego_speed, initial_gap_m=gap,
+            lane_noise_c0_m=args.lane_noise, radar_noise_m=args.radar_noise,
+            plan_rate_hz=args.plan_rate, max_time_s=args.max_time,
+            stop_on_flag=args.stop_on_flag,
+        )
+        for net, policy, filt, index in itertools.product(
+            args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
+    ]
+
+
+def check_inputs(nets: list[str], policies_: list[str]) -> None:
+    """Resolve every net (building curved<R> once) and load every policy before any task runs.
+
+    Raises ``ValueError`` (NetworkError, PolicyError) with a one-line reason. No SUMO is started.
+    """
+    from safeil_sumo import policies
+    from safeil_sumo.scenarios.catalogue import resolve_net
+    from safeil_sumo.scenarios.road import load_road
+
+    for net in dict.fromkeys(nets):
+        load_road(resolve_net(net))
+    for name in dict.fromkeys(policies_):
+        policies.load(name)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        specs = build_specs(args)
+        check_inputs(args.net, args.policies)
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        summary = run_sweep(specs, args.out, workers=args.workers, scheduler=args.scheduler,
+                            progress=not args.no_progress, retry_failed=args.retry_failed,
+                            task_timeout_s=args.task_timeout)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished tasks are saved in {args.out / 'tasks'}; "
+              "rerun the same command to resume", file=sys.stderr)
+        return 130
+    except OSError as exc:  # e.g. the Dask scheduler cannot be reached
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+    print(format_breakdown(breakdown(summary, by=["net", "policy", "safety_filter"])))
+    failed = summary[summary["status"] != "ok"]
+    for _, row in failed.head(20).iterrows():
+        print(f"task {row['task_id']} failed: {row['error']}", file=sys.stderr)
+    if len(failed) > 20:
+        print(f"... and {len(failed) - 20} more failed tasks (see summary.csv)", file=sys.stderr)
+    print(f"{len(summary)} tasks, {len(failed)} failed; results: {args.out}")
+    return 1 if len(failed) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
