@@ -1,0 +1,391 @@
+"""Human-likeness replay (paper IV-C/D): a recorded maneuver rebuilt in SUMO and driven closed-loop.
+
+The digital twin of a maneuver left out of training:
+- the road: the recorded ego lane (:mod:`safeil_sumo.scenarios.replay_road`);
+- the leader: driven by the RECORDED leader speed (``v_lead`` of the pipeline, else ``lead_v``,
+  else ``v_x + d(lead_x)/dt``), placed at the recorded initial bumper gap on the ego lane;
+- the ego: starts exactly at the recorded front-bumper position, heading and speed (the lateral
+  offset is the recorded position's offset from the rebuilt lane centre, i.e.
+  ``-(c0l + c0r) / 2`` up to the smoothing of the lane centre);
+- the duration: the maneuver's.
+
+Each policy runs closed-loop; its state is compared with the human's at the recorded timestamps
+(:mod:`safeil_sumo.experiments.metrics`): x, y in the local frame (origin at the recorded start,
+x along the initial lane heading, as the paper plots them), along-lane ``s`` and lateral offset
+``d`` on the ego lane, ``v_x`` and ``d_lead`` (bumper gap along the lane): RMSE and max error;
+time headway, speed and lateral offset distributions: Wasserstein-1 and KS statistic.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+from safeil_sumo.experiments import metrics as hm
+from safeil_sumo.policy import Policy
+from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios.road import Road
+from safeil_sumo.sim.leaders import SpeedProfile
+from safeil_sumo.sim.runner import LoopConfig, Rollout, Scenario, run_scenario
+from safeil_sumo.sim.vehicle import VehicleParams
+
+PAPER_SPEED_MPS = 115.0 / 3.6  # the paper's left-out maneuver: 10 s at 115 km/h
+PAPER_DURATION_S = 11.0  # [s] the span of the paper's replay figure
+PAPER_GAP_M = 58.6  # [m] mean human gap in the paper's replay (paper/figures/dlead_human_*.csv)
+# the compared time series: (column, unit) — same names in the human and the policy tables
+SERIES = (("x", "m"), ("y", "m"), ("s", "m"), ("d", "m"), ("v", "m/s"), ("gap", "m"))
+DISTRIBUTIONS = (("headway", "s"), ("v", "m/s"), ("d", "m"))
+REQUIRED = ("time", "x", "y", "yaw", "v_x", "left_c0", "right_c0", "lead_x")
+
+
+class ReplayError(ValueError):
+    """A maneuver that cannot be replayed (unknown id, no leader, too short, ...)."""
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """How a maneuver is replayed."""
+
+    road: rr.ReplayRoadConfig = field(default_factory=rr.ReplayRoadConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    seed: int = 0  # SUMO and sensor-noise seed (sensors are noise-free by default)
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """A replayed maneuver: the human trace, each policy's rollout and their comparison.
+
+    ``human``: one row per recorded sample: ``t`` [s from the start], ``x, y`` [m, local frame],
+    ``s, d`` [m, ego lane], ``v`` [m/s], ``gap`` [m], ``headway`` [s], ``leader_drift`` [m].
+    ``compared[name]``: the policy's values of the same columns at the same ``t`` (NaN after an
+    early end). ``metrics``: one row per policy.
+    """
+
+    maneuver_id: str
+    road: Road
+    frame: rr.LocalFrame
+    scenario: Scenario
+    human: pd.DataFrame
+    rollouts: dict[str, Rollout]
+    compared: dict[str, pd.DataFrame]
+    metrics: pd.DataFrame
+    info: dict
+
+
+# ------------------------------------------------------------------------ maneuver selection
+
+
+def maneuver_table(maneuvers: pd.DataFrame) -> pd.DataFrame:
+    """Per ``maneuver_id``: start/end time [s], duration [s], mean speed [m/s], mean gap [m]."""
+    g = maneuvers.groupby("maneuver_id", sort=True)
+    out = pd.DataFrame({
+        "t_start": g["time"].min(), "t_end": g["time"].max(),
+        "speed_mps": g["v_x"].mean(), "gap_m": g["lead_x"].mean(), "samples": g.size(),
+    })
+    out["duration_s"] = out["t_end"] - out["t_start"]
+    return out
+
+
+def window(rows: pd.DataFrame, start_s: float, duration_s: float | None) -> pd.DataFrame:
+    """Rows of one maneuver from ``start_s`` [s after its first sample] for ``duration_s`` [s]
+    (None or 0: to its end)."""
+    t = rows["time"].to_numpy(float)
+    t0 = t[0] + start_s
+    t1 = t0 + duration_s if duration_s else t[-1]
+    sel = (t >= t0 - 1e-9) & (t <= t1 + 1e-9)
+    return rows.loc[sel].reset_index(drop=True)
+
+
+def auto_window(maneuvers: pd.DataFrame, duration_s: float = PAPER_DURATION_S,
+                target_speed_mps: float = PAPER_SPEED_MPS, target_gap_m: float = PAPER_GAP_M,
+                speed_scale_mps: float = 1.0, gap_scale_m: float = 5.0, step_s: float = 1.0
+                ) -> tuple[str, float]:
+    """The maneuver and start [s] of the ``duration_s`` window most like the paper's replay:
+    smallest ``(dv / speed_scale)^2 + (dgap / gap_scale)^2`` of the window's mean speed and mean
+    gap against 115 km/h and the paper's human gap (58.6 m). Windows start every ``step_s``;
+    ties go to the first maneuver id and the earliest start. On congested NGSIM this picks a
+    fast, open window.
+    """
+    best: tuple[float, str, float] | None = None
+    for mid, rows in maneuvers.groupby("maneuver_id", sort=True):
+        t = rows["time"].to_numpy(float)
+        if t[-1] - t[0] < duration_s - 1e-9:
+            continue
+        # window means from cumulative trapezoid integrals
+        cum = {}
+        for col in ("v_x", "lead_x"):
+            v = rows[col].to_numpy(float)
+            cum[col] = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))])
+        starts = np.arange(0.0, t[-1] - t[0] - duration_s + 1e-9, step_s)
+        a, b = t[0] + starts, t[0] + starts + duration_s
+        mean = {c: (np.interp(b, t, cum[c]) - np.interp(a, t, cum[c])) / duration_s for c in cum}
+        score = ((mean["v_x"] - target_speed_mps) / speed_scale_mps) ** 2 \
+            + ((mean["lead_x"] - target_gap_m) / gap_scale_m) ** 2
+        k = int(np.argmin(score))
+        if best is None or score[k] < best[0] - 1e-12:
+            best = (float(score[k]), str(mid), float(starts[k]))
+    if best is None:
+        raise ReplayError(f"no maneuver lasts {duration_s:g} s or more")
+    return best[1], best[2]
+
+
+def select_maneuver(maneuvers: pd.DataFrame, which: str = "auto", start_s: float = 0.0,
+                    duration_s: float | None = PAPER_DURATION_S) -> tuple[str, float, pd.DataFrame]:
+    """``(maneuver_id, start_s, rows)`` for ``which`` = a maneuver id, ``"longest"`` or ``"auto"``
+    (:func:`auto_window`; ``start_s`` is then chosen). Raises :class:`ReplayError` naming the
+    available maneuvers for an unknown id."""
+    if "maneuver_id" not in maneuvers.columns or len(maneuvers) == 0:
+        raise ReplayError("no maneuvers (the drive has no car-following maneuver)")
+    table = maneuver_table(maneuvers)
+    if which == "auto":
+        mid, start_s = auto_window(maneuvers, duration_s or PAPER_DURATION_S)
+    elif which == "longest":
+        mid = str(table["duration_s"].idxmax())
+    elif which in table.index:
+        mid = which
+    else:
+        ids = list(table.index)
+        shown = ", ".join(ids[:30]) + (f", ... ({len(ids)} in all)" if len(ids) > 30 else "")
+        raise ReplayError(f"unknown maneuver {which!r}; available: {shown}")
+    rows = maneuvers[maneuvers["maneuver_id"] == mid]
+    dur = float(table.loc[mid, "duration_s"])
+    if not 0 <= start_s < dur:
+        raise ReplayError(f"start {start_s:g} s is outside maneuver {mid!r} ({dur:.2f} s long)")
+    out = window(rows.reset_index(drop=True), start_s, duration_s)
+    if len(out) < 3:
+        raise ReplayError(f"maneuver {mid!r} has fewer than 3 samples from {start_s:g} s")
+    return str(mid), float(start_s), out
+
+
+# ----------------------------------------------------------------------------------- replay
+
+
+def _check_rows(rows: pd.DataFrame) -> pd.DataFrame:
+    missing = [c for c in REQUIRED if c not in rows.columns]
+    if missing:
+        raise ReplayError(f"drive rows lack column(s) {', '.join(missing)}")
+    rows = rows.sort_values("time", kind="stable").reset_index(drop=True)
+    if len(rows) < 3:
+        raise ReplayError("a replay needs at least 3 samples")
+    if not np.all(np.isfinite(rows["lead_x"].to_numpy(float))):
+        raise ReplayError("the maneuver has samples without a leader (lead_x NaN): not a "
+                          "car-following maneuver; run the processing pipeline first")
+    if float(rows["lead_x"].iloc[0]) <= 0:
+        raise ReplayError(f"initial gap {rows['lead_x'].iloc[0]:.2f} m must be > 0")
+    return rows
+
+
+def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame) -> pd.DataFrame:
+    """The recorded human in the replay's terms (see :class:`ReplayResult`)."""
+    t = rows["time"].to_numpy(float)
+    xy = frame.points(rows["x"].to_numpy(float), rows["y"].to_numpy(float))
+    s, d = road.lanes[road.ego_lane].centre.project(xy)
+    v = rows["v_x"].to_numpy(float)
+    gap = rows["lead_x"].to_numpy(float)
+    return pd.DataFrame({
+        "t": t - t[0], "x": xy[:, 0], "y": xy[:, 1], "s": s, "d": d, "v": v, "gap": gap,
+        "headway": hm.time_headway(gap, v),
+        "leader_drift": hm.leader_drift(t, gap, s, rr.leader_speed(rows)),
+    })
+
+
+def replay_scenario(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame, name: str,
+                    seed: int = 0) -> Scenario:
+    """The closed-loop scenario of the recorded maneuver on its rebuilt road."""
+    t = rows["time"].to_numpy(float)
+    leader = SpeedProfile(t - t[0], rr.leader_speed(rows), f"recorded leader of {name}")
+    centre = road.lanes[road.ego_lane].centre
+    start = frame.points(rows["x"].iloc[0], rows["y"].iloc[0])
+    s0, d0 = centre.project(start)
+    _, lane_yaw = centre.point_at(float(s0))
+    yaw0 = float(frame.yaw(float(rows["yaw"].iloc[0])))  # local heading
+    heading = (yaw0 - float(lane_yaw) + math.pi) % (2.0 * math.pi) - math.pi
+    return Scenario(
+        name=name, road=road, leader=leader,
+        ego_speed_mps=float(rows["v_x"].iloc[0]), initial_gap_m=float(rows["lead_x"].iloc[0]),
+        seed=seed, ego_lateral_offset_m=float(d0), ego_heading_offset_rad=heading,
+        max_time_s=float(t[-1] - t[0]),
+    )
+
+
+def policy_trace(log: pd.DataFrame, human: pd.DataFrame) -> pd.DataFrame:
+    """A rollout's values at the human's timestamps; ``t = 0`` is the shared initial state."""
+    first = human.iloc[0]
+    t = np.r_[0.0, log["t"].to_numpy(float)]
+    gap = log["gap"].to_numpy(float)
+    cols = {
+        "x": log["front_x"], "y": log["front_y"], "s": log["s"], "d": log["d"],
+        "v": log["v"], "gap": np.where(np.isfinite(gap), gap, np.nan),
+    }
+    out = {"t": human["t"].to_numpy(float)}
+    for name, values in cols.items():
+        series = np.r_[float(first[name]), np.asarray(values, float)]
+        out[name] = hm.sample_at(out["t"], t, series)
+    out["headway"] = hm.time_headway(out["gap"], out["v"])
+    return pd.DataFrame(out)
+
+
+def compare(human: pd.DataFrame, policy: pd.DataFrame) -> dict:
+    """Flat metrics of one policy against the human (keys ``rmse_<col>``, ``max_<col>``,
+    ``w1_<col>``, ``ks_<col>``, ``coverage``)."""
+    row: dict = {}
+    for col, _unit in SERIES:
+        e = hm.series_error(human[col].to_numpy(), policy[col].to_numpy())
+        row[f"rmse_{col}"] = e.rmse
+        row[f"max_{col}"] = e.max_abs
+    for col, _unit in DISTRIBUTIONS:
+        dd = hm.distribution_distance(human[col].to_numpy(), policy[col].to_numpy())
+        row[f"w1_{col}"] = dd.wasserstein
+        row[f"ks_{col}"] = dd.ks
+    n_ok = np.isfinite(policy["s"].to_numpy(float)).sum()
+    row["coverage"] = float(n_ok / len(policy)) if len(policy) else 0.0
+    return row
+
+
+def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_dir: Path,
+                    config: ReplayConfig = ReplayConfig(), maneuver_id: str | None = None
+                    ) -> ReplayResult:
+    """Rebuild the maneuver in SUMO (net written to ``out_dir/net``), run every policy
+    closed-loop and compare with the human. ``drive_rows``: one maneuver's rows (schema columns,
+    sorted by time, all with a leader), e.g. from :func:`select_maneuver`.
+
+    Raises :class:`ReplayError` for unusable rows; SUMO/netconvert errors propagate.
+    """
+    rows = _check_rows(drive_rows)
+    if maneuver_id is None:
+        maneuver_id = str(rows["maneuver_id"].iloc[0]) if "maneuver_id" in rows else "maneuver"
+    name = rr.safe_name(maneuver_id)
+    net = rr.build_replay_net(rows, Path(out_dir) / "net", name, config.road,
+                              meta={"maneuver_id": maneuver_id})
+    road, frame = rr.load_replay_road(net)
+    scenario = replay_scenario(rows, road, frame, name, config.seed)
+    human = human_trace(rows, road, frame)
+    rollouts: dict[str, Rollout] = {}
+    compared: dict[str, pd.DataFrame] = {}
+    table = []
+    for label, policy in policies.items():
+        rollout = run_scenario(scenario, policy, config.loop, config.vehicle)
+        rollouts[label] = rollout
+        trace = policy_trace(rollout.log, human)
+        compared[label] = trace
+        sm = rollout.summary
+        table.append({"policy": label, **compare(human, trace),
+                      "end_reason": sm["end_reason"], "flag": sm["flag"],
+                      "flag_time_s": sm["flag_time_s"], "error": sm["error"]})
+    t = rows["time"].to_numpy(float)
+    info = {
+        "maneuver_id": maneuver_id,
+        "duration_s": float(t[-1] - t[0]),
+        "samples": len(rows),
+        "rate_hz": float((len(t) - 1) / (t[-1] - t[0])),
+        "mean_speed_mps": float(rows["v_x"].mean()),
+        "mean_gap_m": float(rows["lead_x"].mean()),
+        "mean_leader_speed_mps": float(np.mean(rr.leader_speed(rows))),
+        "lane_width_m": road.lanes[road.ego_lane].width,
+        "initial_lateral_offset_m": scenario.ego_lateral_offset_m,
+        "initial_lateral_offset_from_lines_m": float(
+            -0.5 * (rows["left_c0"].iloc[0] + rows["right_c0"].iloc[0])),
+        "initial_heading_offset_rad": scenario.ego_heading_offset_rad,
+        "max_abs_leader_drift_m": float(np.nanmax(np.abs(human["leader_drift"]))),
+        "road_shape_points": int(road.meta.get("shape_points", 0)),
+        "net": str(net),
+        "config": asdict(config),
+    }
+    return ReplayResult(maneuver_id, road, frame, scenario, human, rollouts, compared,
+                        pd.DataFrame(table), info)
+
+
+# ------------------------------------------------------------------------------------ outputs
+
+
+def plot_replay(result: ReplayResult, path: Path) -> None:
+    """The paper's figure: x, y, v_x and d_lead over time; human dashed, policies solid, the
+    first safety flag of a policy marked by a vertical dotted line."""
+    panels = (("x", "x [m]"), ("y", "y [m]"), ("v", "v_x [m/s]"), ("gap", "d_lead [m]"))
+    fig, axes = plt.subplots(4, 1, figsize=(8, 10), sharex=True)
+    h = result.human
+    for ax, (col, label) in zip(axes, panels, strict=True):
+        ax.plot(h["t"], h[col], "k--", lw=1.4, label="human")
+        for i, (name, rollout) in enumerate(result.rollouts.items()):
+            color = f"C{i % 10}"
+            log = rollout.log
+            series = {"x": log["front_x"], "y": log["front_y"], "v": log["v"],
+                      "gap": log["gap"].where(np.isfinite(log["gap"]))}[col]
+            ax.plot(log["t"], series, color=color, lw=1.2, label=name)
+            ft = rollout.summary["flag_time_s"]
+            if rollout.summary["flag"] and math.isfinite(ft):
+                ax.axvline(ft, color=color, ls=":", lw=1.0)
+                if col == "x":
+                    ax.annotate(f"{name}: {rollout.summary['flag']}", (ft, 0.05),
+                                xycoords=("data", "axes fraction"), color=color, fontsize=7,
+                                rotation=90, va="bottom", ha="right")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    half = 0.5 * result.road.lanes[result.road.ego_lane].width
+    axes[1].set_title("y: lateral in the local frame (lane centre at the start: y = 0 +- "
+                      f"{half:.2f} m)", fontsize=8)
+    axes[0].legend(fontsize=8, loc="upper left")
+    axes[-1].set_xlabel("time [s]")
+    info = result.info
+    fig.suptitle(f"Human-like performance: replay of {result.maneuver_id} "
+                 f"({info['duration_s']:.1f} s, {3.6 * info['mean_speed_mps']:.0f} km/h)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_replay(result: ReplayResult, folder: Path, manifest_extra: dict | None = None) -> None:
+    """``metrics.csv/json``, ``steps.parquet`` (per-step logs, ``policy`` column),
+    ``human.parquet``, ``compared.parquet`` (policies at the human timestamps), ``replay.png``,
+    ``manifest.json`` into ``folder`` (the net is already in ``folder/net`` when the replay ran
+    there)."""
+    from safeil_sumo.experiments import outputs
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    result.metrics.to_csv(folder / "metrics.csv", index=False)
+    outputs.write_json(folder / "metrics.json", {
+        "maneuver": {k: v for k, v in result.info.items() if k != "config"},
+        "policies": result.metrics.to_dict(orient="records"),
+    })
+    logs = [r.log.assign(policy=name) for name, r in result.rollouts.items()]
+    if logs:
+        pd.concat(logs, ignore_index=True).to_parquet(folder / "steps.parquet", index=False)
+        pd.concat([c.assign(policy=name) for name, c in result.compared.items()],
+                  ignore_index=True).to_parquet(folder / "compared.parquet", index=False)
+    result.human.to_parquet(folder / "human.parquet", index=False)
+    plot_replay(result, folder / "replay.png")
+    config = {"maneuver_id": result.maneuver_id, **result.info["config"],
+              "summaries": [r.summary for r in result.rollouts.values()],
+              **(manifest_extra or {})}
+    outputs.write_json(folder / "manifest.json", outputs.manifest(config, [result.scenario.seed]))
+
+
+def format_metrics(metrics: pd.DataFrame) -> str:
+    """The table printed by the CLI: RMSE / max per series, W1 / KS per distribution."""
+    cols = ["policy"]
+    out = pd.DataFrame({"policy": metrics["policy"]})
+    for col, unit in SERIES:
+        name = {"v": "v_x", "gap": "d_lead"}.get(col, col)
+        out[f"{name} rmse/max [{unit}]"] = [
+            f"{a:.2f}/{b:.2f}" for a, b in zip(metrics[f"rmse_{col}"], metrics[f"max_{col}"],
+                                               strict=True)]
+        cols.append(f"{name} rmse/max [{unit}]")
+    for col, unit in DISTRIBUTIONS:
+        name = {"v": "speed", "d": "lateral"}.get(col, col)
+        out[f"{name} W1[{unit}]/KS"] = [
+            f"{a:.2f}/{b:.2f}" for a, b in zip(metrics[f"w1_{col}"], metrics[f"ks_{col}"],
+                                               strict=True)]
+    out["flag"] = [f"{f}@{t:.1f}s" if f else "-" for f, t in
+                   zip(metrics["flag"], metrics["flag_time_s"], strict=True)]
+    out["end"] = metrics["end_reason"]
+    return out.to_string(index=False)
