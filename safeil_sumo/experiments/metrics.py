@@ -89,7 +89,9 @@ def sample_at(t_query: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndar
     # NaN propagates through np.interp only for the exact neighbours; mark them explicitly
     i = np.clip(np.searchsorted(t, tq, side="right") - 1, 0, len(t) - 1)
     j = np.clip(i + 1, 0, len(t) - 1)
-    bad = ~np.isfinite(v[i]) | ~np.isfinite(v[j]) | (tq < t[0] - 1e-9) | (tq > t[-1] + 1e-9)
+    between = tq > t[i] + 1e-12  # an exact hit of a sample needs only that sample
+    bad = ~np.isfinite(v[i]) | (between & ~np.isfinite(v[j])) | (tq < t[0] - 1e-9) \
+        | (tq > t[-1] + 1e-9)
     return np.where(bad, np.nan, out)
 
 

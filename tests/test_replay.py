@@ -1,0 +1,256 @@
+"""Replay of recorded maneuvers: road geometry, scenario, selection, real libsumo runs, CLI."""
+
+from __future__ import annotations
+
+import glob
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from safeil_sumo.analytic import AnalyticPlanner
+from safeil_sumo.data.schema import save_drive, validate_drive
+from safeil_sumo.experiments import replay as rp
+from safeil_sumo.scenarios import replay_road as rr
+from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
+
+R = 800.0  # [m] lane-centre radius of the synthetic recording
+V = 30.0  # [m/s]
+HALF = 1.75  # [m] half lane width
+OFFSET = 0.2  # [m] the human drives this far LEFT of the lane centre (inside of the left turn)
+
+
+def arc_drive(duration: float = 15.0, hz: float = 10.0, heading0: float = 0.6,
+              origin: tuple[float, float] = (5.0e5, 4.9e6)) -> pd.DataFrame:
+    """A schema drive on a left arc of radius R (lane centre), human OFFSET left of it, leader at
+    constant speed 50 m ahead (the analytic planner's 1.5 s + 5 m); world frame rotated by ``heading0`` and far from the origin."""
+    t = np.arange(0.0, duration + 1e-9, 1.0 / hz)
+    r = R - OFFSET
+    th = V * t / r
+    cx, cy = r * np.sin(th), R - r * np.cos(th)  # circle centre at (0, R)
+    c, s = math.cos(heading0), math.sin(heading0)
+    x = origin[0] + c * cx - s * cy
+    y = origin[1] + s * cx + c * cy
+    k = 1.0 / R
+    return validate_drive(pd.DataFrame({
+        "recording_id": "arc", "time": t, "x": x, "y": y,
+        "yaw": (th + heading0 + math.pi) % (2 * math.pi) - math.pi, "v_x": V,
+        "left_c0": HALF - OFFSET, "left_c1": 0.0, "left_c2": 0.5 * k, "left_c3": 0.0,
+        "right_c0": -HALF - OFFSET, "right_c1": 0.0, "right_c2": 0.5 * k, "right_c3": 0.0,
+        "lead_x": 50.0, "lead_y": 0.0, "lead_v": V, "maneuver_id": "arc#0",
+    }))
+
+
+# ------------------------------------------------------------------------------ pure geometry
+
+
+def test_lane_centre_points_rotate_the_line_midpoint():
+    pts = rr.lane_centre_points(np.array([10.0]), np.array([5.0]), np.array([math.pi / 2]),
+                                np.array([2.0]), np.array([-1.0]))
+    # midpoint 0.5 m to the ego's left; heading north -> left is west (-x)
+    assert np.allclose(pts, [[9.5, 5.0]])
+
+
+def test_lane_width_median_and_clip():
+    assert rr.lane_width(np.array([1.8, 1.7, 1.9]), np.array([-1.7, -1.8, -9.0])) == \
+        pytest.approx(3.5)
+    assert rr.lane_width(np.array([1.0]), np.array([-1.0])) == rr.LANE_WIDTH_RANGE_M[0]
+    assert rr.lane_width(np.array([4.0]), np.array([-4.0])) == rr.LANE_WIDTH_RANGE_M[1]
+
+
+def test_decimate_keeps_points_within_tolerance():
+    th = np.linspace(0.0, 0.5, 400)
+    pts = np.stack([R * np.sin(th), R - R * np.cos(th)], axis=1)
+    lean = rr.decimate(pts, 0.05)
+    assert len(lean) < 40
+    assert np.allclose(lean[[0, -1]], pts[[0, -1]])
+    # chord sagitta for R and tolerance: every original point within 5 cm of the lean polyline
+    from safeil_sumo.geometry import Polyline
+    _, d = Polyline(lean).project(pts)
+    assert np.max(np.abs(d)) <= 0.05 + 1e-9
+    straight = rr.decimate(np.stack([np.linspace(0, 100, 50), np.zeros(50)], axis=1), 0.05)
+    assert len(straight) == 2
+
+
+def test_smoothing_removes_noise_and_keeps_the_radius():
+    th = np.linspace(0.0, 0.4, 300)
+    pts = np.stack([R * np.sin(th), R - R * np.cos(th)], axis=1)
+    noisy = pts + np.random.default_rng(1).normal(scale=0.1, size=pts.shape)
+    smooth = rr.smooth_path(noisy, 1.0, 41.0)
+    assert rr.circle_radius(smooth) == pytest.approx(R, rel=0.01)
+    r = np.hypot(smooth[:, 0], smooth[:, 1] - R)
+    assert np.std(r - R) < 0.05  # 10 cm noise -> < 5 cm
+
+
+# --------------------------------------------------------------------------- the SUMO road
+
+
+def test_replay_road_from_recorded_arc_has_radius_width_and_path(tmp_path):
+    rows = arc_drive()
+    net = rr.build_replay_net(rows, tmp_path / "net", "arc#0", meta={"maneuver_id": "arc#0"})
+    road, frame = rr.load_replay_road(net)
+    assert net.name == "arc_0.net.xml"
+    assert len(road.lanes) == 3 and road.ego_lane == 1
+    assert all(lane.width == pytest.approx(2 * HALF) for lane in road.lanes)
+    centre = road.lanes[1].centre
+    # the recorded part of the lane (not the straight ends) is the R = 800 m arc
+    sel = (centre.s > road.path_start_s + 1) & (centre.s < road.path_start_s + V * 15 - 1)
+    assert sel.sum() >= 5
+    assert rr.circle_radius(centre.points[sel]) == pytest.approx(R, rel=0.005)
+    # lean shape: 5 cm chords
+    assert len(centre.points) < 60
+    # local frame: the road starts along +x at the recorded start
+    start = frame.points(rows["x"].iloc[0], rows["y"].iloc[0])
+    assert np.allclose(start, 0.0)
+    s0, d0 = centre.project(start)
+    assert s0 == pytest.approx(road.path_start_s, abs=1e-3)
+    assert d0 == pytest.approx(OFFSET, abs=0.06)  # human 0.2 m left, up to the chord sagitta
+    assert road.path_start_s == pytest.approx(30.0, abs=0.05)  # the run-in
+    assert road.path_end_s > road.path_start_s + V * 15
+    assert road.meta["kind"] == "replay" and road.meta["maneuver_id"] == "arc#0"
+    for suffix in (".nod.xml", ".edg.xml", ".rou.xml", ".sumocfg", ".track.json"):
+        assert (tmp_path / "net" / f"arc_0{suffix}").is_file()
+    assert not list(tmp_path.glob(".arc_0-build-*"))  # the temporary folder is gone
+
+
+def test_replay_scenario_starts_at_the_recorded_state(tmp_path):
+    rows = arc_drive()
+    net = rr.build_replay_net(rows, tmp_path / "net", "arc")
+    road, frame = rr.load_replay_road(net)
+    sc = rp.replay_scenario(rows, road, frame, "arc")
+    assert sc.ego_speed_mps == V and sc.initial_gap_m == 50.0
+    assert sc.max_time_s == pytest.approx(15.0)
+    assert sc.ego_lateral_offset_m == pytest.approx(OFFSET, abs=0.06)
+    assert abs(sc.ego_heading_offset_rad) < 0.01
+    assert sc.leader.speed_at(7.0) == pytest.approx(V)
+
+
+# ---------------------------------------------------------------------------- selection
+
+
+def test_select_maneuver_by_id_longest_auto_and_unknown():
+    a = arc_drive(duration=20.0)
+    b = arc_drive(duration=12.0).assign(maneuver_id="slow#0", v_x=20.0, lead_x=30.0)
+    m = pd.concat([a, b], ignore_index=True)
+    mid, start, rows = rp.select_maneuver(m, "longest", duration_s=None)
+    assert mid == "arc#0" and len(rows) == len(a)
+    mid, start, rows = rp.select_maneuver(m, "slow#0", start_s=1.0, duration_s=5.0)
+    assert start == 1.0
+    assert mid == "slow#0" and rows["time"].iloc[0] == pytest.approx(1.0)
+    assert rows["time"].iloc[-1] - rows["time"].iloc[0] == pytest.approx(5.0)
+    mid, _, rows = rp.select_maneuver(m, "auto")  # 30 m/s is closer to 115 km/h
+    assert mid == "arc#0" and len(rows) == 111
+    with pytest.raises(rp.ReplayError, match=r"unknown maneuver 'x'; available: arc#0, slow#0"):
+        rp.select_maneuver(m, "x")
+    with pytest.raises(rp.ReplayError, match="no maneuver lasts"):
+        rp.select_maneuver(m, "auto", duration_s=100.0)
+
+
+def test_replay_rejects_rows_without_leader(tmp_path):
+    rows = arc_drive().assign(lead_x=np.nan, lead_y=np.nan)
+    with pytest.raises(rp.ReplayError, match="without a leader"):
+        rp.replay_maneuver(rows, {"analytic": AnalyticPlanner()}, tmp_path)
+
+
+# ---------------------------------------------------------------- closed loop in libsumo
+
+
+def _check_result(res: rp.ReplayResult, folder) -> pd.Series:
+    rp.write_replay(res, folder)
+    for name in ("metrics.csv", "metrics.json", "steps.parquet", "human.parquet",
+                 "compared.parquet", "replay.png", "manifest.json"):
+        assert (folder / name).is_file(), name
+    row = res.metrics.set_index("policy").loc["analytic"]
+    assert row["end_reason"] == "timeout" and row["coverage"] == 1.0
+    numeric = [c for c in res.metrics.columns if c.startswith(("rmse_", "max_", "w1_", "ks_"))]
+    assert np.all(np.isfinite(row[numeric].to_numpy(float)))
+    return row
+
+
+def test_replay_synthetic_arc_end_to_end(tmp_path):
+    res = rp.replay_maneuver(arc_drive(), {"analytic": AnalyticPlanner()}, tmp_path)
+    row = _check_result(res, tmp_path)
+    # the human holds speed and the analytic planner's own gap; the planner steers to the lane
+    # centre 0.2 m right of the human
+    assert row["rmse_d"] < 0.25 and row["max_d"] < 0.3
+    assert row["rmse_gap"] < 1.0 and row["rmse_v"] < 0.5
+    # the recorded leader is consistent; the "drift" is the human's arc 0.2 m inside the lane
+    # centre: 450 m x 0.2 / 800 = 0.11 m less along-lane distance than the leader's
+    assert res.info["max_abs_leader_drift_m"] == pytest.approx(450 * OFFSET / R, abs=0.03)
+    assert res.human["d"].iloc[0] == pytest.approx(OFFSET, abs=0.06)
+
+
+def test_replay_openacc_maneuver_with_analytic(tmp_path):
+    from safeil_sumo.data.importers import import_openacc
+    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+
+    files = sorted(glob.glob(str(OPENACC_DIR / "JRC-VC_280219_*.csv.gz")))
+    require_file(OPENACC_DIR / "JRC-VC_280219_part3.csv.gz")
+    drive = pd.concat([import_openacc(f) for f in files], ignore_index=True)
+    maneuvers, _ = process_drive(drive, PipelineConfig(rate_hz=10.0))
+    mid, start, rows = rp.select_maneuver(maneuvers, "auto")
+    assert mid == "VC280219p3_f4#1" and start == 72.0  # 32.0 m/s, 58.2 m: like the paper
+    res = rp.replay_maneuver(rows, {"analytic": AnalyticPlanner()}, tmp_path, maneuver_id=mid)
+    assert res.info["duration_s"] == pytest.approx(11.0)
+    assert res.info["mean_speed_mps"] > 25.0
+    row = _check_result(res, tmp_path)
+    # measured: d_lead RMSE 0.84 m (max 1.27 m), v_x RMSE 0.39 m/s, lateral RMSE 0.03 m
+    assert row["rmse_gap"] < 2.0
+    assert row["rmse_v"] < 1.0
+    assert row["rmse_d"] < 0.2
+
+
+def test_replay_ngsim_maneuver_with_analytic(tmp_path):
+    from safeil_sumo.data.importers import import_ngsim_pairs
+    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+
+    drive = import_ngsim_pairs(require_file(NGSIM_PAIRS))
+    maneuvers, _ = process_drive(drive, PipelineConfig(rate_hz=10.0))
+    mid, start, rows = rp.select_maneuver(maneuvers, "auto")
+    assert (mid, start) == ("47-39#0", 21.0)  # congested: the fastest open window, 18.5 m/s
+    res = rp.replay_maneuver(rows, {"analytic": AnalyticPlanner()}, tmp_path, maneuver_id=mid)
+    assert res.info["duration_s"] == pytest.approx(11.0)
+    assert res.info["lane_width_m"] == pytest.approx(3.658, abs=1e-3)
+    assert res.road.meta["shape_points"] == 2  # NGSIM I-80 is straight
+    row = _check_result(res, tmp_path)
+    # measured on 47-39#0 @ 21 s (18.5 m/s): d_lead RMSE 8.8 m — the human keeps a 2.8 s gap,
+    # the analytic planner closes to its 1.5 s; a loose bound
+    assert row["rmse_gap"] < 15.0
+    assert row["rmse_d"] < 0.6
+
+
+# ------------------------------------------------------------------------------------- CLI
+
+
+def test_cli_on_a_drive_file(tmp_path, capsys):
+    from safeil_sumo import replay as cli
+
+    path = tmp_path / "arc.parquet"
+    save_drive(arc_drive(), path)
+    out = tmp_path / "out"
+    code = cli.main(["--source", str(path), "--maneuver", "longest", "--duration", "10",
+                     "--policies", "analytic", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert code == 0
+    assert "analytic" in text and "d_lead rmse/max" in text
+    assert (out / "replay.png").is_file() and (out / "net" / "arc_0.net.xml").is_file()
+    m = pd.read_csv(out / "metrics.csv")
+    assert list(m["policy"]) == ["analytic"]
+
+
+def test_cli_one_line_errors(tmp_path, capsys):
+    from safeil_sumo import replay as cli
+
+    path = tmp_path / "arc.parquet"
+    save_drive(arc_drive(), path)
+    assert cli.main(["--source", str(path), "--maneuver", "nope", "--out",
+                     str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown maneuver 'nope'; available:" in err
+    assert "arc#0" in err
+    assert cli.main(["--source", str(tmp_path / "missing.parquet")]) == 2
+    assert cli.main(["--source", str(path), "--policies", str(tmp_path / "no.safetensors"),
+                     "--out", str(tmp_path / "o")]) == 2
+    assert "unknown policy" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
