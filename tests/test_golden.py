@@ -1,0 +1,118 @@
+"""Golden closed-loop logs: every speed-up of the loop must leave the results bit-identical.
+
+Each scenario runs a short real libsumo closed loop on curved500 and hashes its per-step log:
+SHA-256 over the column names and the float64 bytes of every column, in log order. The expected
+hashes were computed from the loop BEFORE the performance work (issue 6); a change of a hash
+means a change of the numbers, which is allowed only in its own commit that says why and shows
+the largest difference of the logs (round-off level). ``python tests/test_golden.py`` prints the
+current hashes (the values for EXPECTED).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from safeil_sumo.analytic import AnalyticPlanner
+from safeil_sumo.scenarios.safety import safety_scenario
+from safeil_sumo.sim.leaders import constant, piecewise
+from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+
+
+class DriftLeft:
+    """A deliberately bad policy: keeps its speed but plans 1 m further left every 5 s."""
+
+    name = "drift_left"
+    horizon = 5.0
+
+    def plan(self, features):
+        v = features[6]
+        t = np.array([5 / 3, 10 / 3, 5.0])
+        return np.stack([v * t, 1.0 * t / 5.0], axis=1)
+
+
+def _noisy_analytic(road):
+    """Analytic planner, all sensor noises on, a braking and re-accelerating leader."""
+    sc = safety_scenario(road, 3, master_seed=7)
+    sensors = replace(sc.sensors, radar_noise_m=0.3, radar_speed_noise_mps=0.2,
+                      lane_noise_c0_m=0.02, lane_noise_c1=0.002, quantization_m=0.05)
+    leader = piecewise([0.0, 2.0, 4.0, 6.0], [28.0, 28.0, 22.0, 30.0])
+    sc = replace(sc, sensors=sensors, leader=leader, ego_lateral_offset_m=0.3,
+                 ego_heading_offset_rad=0.01)
+    return sc, AnalyticPlanner(), LoopConfig(max_time_s=8.0)
+
+
+def _drift_left(road):
+    """Lane departure, then off-road: the leader is lost from the radar corridor on the way."""
+    sc = Scenario("drift", road, constant(30.0), 30.0, 50.0, seed=1)
+    return sc, DriftLeft(), LoopConfig(max_time_s=12.0)
+
+
+def _blind_collision(road):
+    """Lane keeping at 30 m/s that ignores a 25 m/s leader: TTC flag, then a collision."""
+    sc = Scenario("blind", road, constant(25.0), 30.0, 50.0, seed=2)
+    planner = AnalyticPlanner(name="blind", k_gap=0.0, k_speed=0.0, v_desired_mps=30.0)
+    return sc, planner, LoopConfig(max_time_s=12.0)
+
+
+def _free_road(road):
+    """No leader at all: the radar's free-road substitute feeds the planner."""
+    sc = Scenario("free", road, None, 25.0, 50.0, seed=4)
+    return sc, AnalyticPlanner(), LoopConfig(max_time_s=4.0)
+
+
+SCENARIOS = {
+    "noisy_analytic": _noisy_analytic,
+    "drift_left": _drift_left,
+    "blind_collision": _blind_collision,
+    "free_road": _free_road,
+}
+
+# (sha256 of the log, rows, end_reason), computed from the loop before the speed-ups
+EXPECTED = {
+    "noisy_analytic": (
+        "ea4c7cae9a24d5c56c212e2cadd558c5dcd89691a0491dda7832dbff5ed6dc56", 800, "timeout"),
+    "drift_left": (
+        "d01407293848f9229a5e07bc665c40b31293b2decdae480077c0ec51da6bb8c4", 343, "off_road"),
+    "blind_collision": (
+        "dbc3b4d35ea70ca90a2b40c3af5f23a60f9d511275e029041dfc489bf7640f1f", 999, "collision"),
+    "free_road": (
+        "4c0c831e4904dbf48afff0f5273c59949730b5ff56bfb5d22c0a0ae550cc32db", 400, "timeout"),
+}
+
+
+def log_hash(log: pd.DataFrame) -> str:
+    """SHA-256 over each column's name and float64 bytes, in column order."""
+    h = hashlib.sha256()
+    for col in log.columns:
+        h.update(col.encode())
+        h.update(np.ascontiguousarray(log[col].to_numpy(dtype=np.float64)).tobytes())
+    return h.hexdigest()
+
+
+def run_golden(name: str, road):
+    sc, policy, loop = SCENARIOS[name](road)
+    return run_scenario(sc, policy, loop)
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_closed_loop_log_is_bit_identical(name, curved500):
+    r = run_golden(name, curved500)
+    assert r.summary["end_reason"] != "error", r.summary["error"]
+    digest, rows, end_reason = EXPECTED[name]
+    assert (r.summary["end_reason"], len(r.log)) == (end_reason, rows)
+    assert log_hash(r.log) == digest
+
+
+if __name__ == "__main__":  # print the current values of EXPECTED
+    from safeil_sumo.scenarios.catalogue import resolve_net
+    from safeil_sumo.scenarios.road import load_road
+
+    road = load_road(resolve_net("curved500"))
+    for name in SCENARIOS:
+        r = run_golden(name, road)
+        print(f'    "{name}": ("{log_hash(r.log)}", {len(r.log)}, "{r.summary["end_reason"]}"),')
