@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import xml.etree.ElementTree as ET
 
@@ -52,7 +53,7 @@ def test_length_is_29_2_km_along_the_reference_and_lanes():
 def test_two_lanes_per_direction_and_acceleration_lanes():
     lanes = _lanes()
     for lid, (count, _) in lanes.items():
-        if lid.startswith("main") or lid.startswith("opp_"):
+        if lid.startswith(("main", "opp_")):
             assert count == 2, lid
         elif lid.startswith("merge"):
             assert count == 3, lid
@@ -87,7 +88,7 @@ def test_clothoid_transitions_curvature_is_continuous_and_piecewise_linear():
     # curvature changes by at most (1/800 m) / 150 m per metre: no jumps
     assert np.max(np.abs(np.diff(geo.kappa))) <= (1.0 / 800.0) / 150.0 * n74.DENSE_STEP_M + 1e-12
     pieces = geo.pieces
-    for a, b in zip(pieces, pieces[1:]):
+    for a, b in itertools.pairwise(pieces):
         assert a.kappa_end == pytest.approx(b.kappa_start)
 
 
