@@ -16,6 +16,7 @@ import hashlib
 import json
 import math
 import multiprocessing as mp
+import numbers
 import re
 import signal
 import threading
@@ -73,7 +74,7 @@ class ScenarioSpec:
         set_(self, "stop_on_flag", bool(self.stop_on_flag))
         set_(self, "leader_speed_range_mps", _pair(self.leader_speed_range_mps, "leader speed"))
         gap = self.initial_gap_m
-        set_(self, "initial_gap_m", float(gap) if isinstance(gap, (int, float))
+        set_(self, "initial_gap_m", float(gap) if isinstance(gap, numbers.Real)
              else _pair(gap, "initial gap"))
         for name in ("brake_time_s", "brake_decel_mps2", "brake_to_mps", "ego_speed_mps",
                      "lane_noise_c0_m", "radar_noise_m", "plan_rate_hz"):
@@ -441,50 +442,50 @@ def _run_local(
     todo: list[ScenarioSpec], workers: int, task_fn: TaskFn,
     save: Callable[[ScenarioSpec, dict], None], task_timeout_s: float | None,
 ) -> None:
+    """Own worker processes, one task each at a time: the parent always knows which task a
+    worker runs, so a dead worker costs exactly that task (recorded failed) and is replaced."""
     ctx = _mp_context()
     queue = list(reversed(todo))  # pop() from the end keeps task order
     pool: list[_Worker] = []
+
+    def assign(w: _Worker) -> None:
+        while queue:
+            spec = queue.pop()
+            try:
+                w.give(spec)
+                return
+            except OSError:  # died while idle: replace it and give it the same task
+                queue.append(spec)
+                pool.remove(w)
+                w.kill()
+                w = _Worker(ctx, task_fn)
+                pool.append(w)
+
     try:
+        first: list[_Worker] = []
         for _ in range(workers):
-            pool.append(_Worker(ctx, task_fn))
-        for w in pool:
-            if queue:
-                w.give(queue.pop())
+            first.append(_Worker(ctx, task_fn))
+            pool.append(first[-1])
+        for w in first:  # assign() may replace a worker in pool, so iterate a separate list
+            assign(w)
         while any(w.spec is not None for w in pool):
             busy = [w for w in pool if w.spec is not None]
-            handles = [w.conn for w in busy] + [w.process.sentinel for w in busy]
-            ready = set(wait(handles, timeout=1.0))
+            ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
+                             timeout=1.0))
             for w in busy:
-                spec = w.spec
-                record = None
-                if w.conn in ready or w.process.sentinel in ready:
-                    try:
-                        if w.conn.poll():
-                            record = w.conn.recv()
-                    except (EOFError, OSError):
-                        record = None
-                    if record is None and not w.process.is_alive():
-                        code = w.process.exitcode
-                        record = failed_record(spec, f"WorkerDied: worker process died "
-                                                     f"(exit code {code}) while running the task")
-                if record is None and task_timeout_s is not None and \
-                        time.monotonic() - w.started > task_timeout_s:
-                    w.process.kill()
-                    w.process.join(timeout=5)
-                    record = failed_record(spec, f"TaskTimeout: no result after "
-                                                 f"{task_timeout_s:g} s; worker killed")
+                record = _poll(w, ready, task_timeout_s)
                 if record is None:
                     continue
-                save(spec, record)
+                save(w.spec, record)
                 w.spec = None
                 if not w.process.is_alive():
-                    w.kill()
                     pool.remove(w)
-                    if queue:
-                        w = _Worker(ctx, task_fn)  # replace the dead worker
-                        pool.append(w)
-                if queue:
-                    w.give(queue.pop())
+                    w.kill()
+                    if not queue:
+                        continue
+                    w = _Worker(ctx, task_fn)  # replace the dead worker
+                    pool.append(w)
+                assign(w)
         for w in pool:
             w.stop()
         for w in pool:
@@ -492,6 +493,25 @@ def _run_local(
     finally:  # Ctrl-C or an error: unfinished tasks are simply not saved
         for w in pool:
             w.kill()
+
+
+def _poll(w: _Worker, ready: set, task_timeout_s: float | None) -> dict[str, Any] | None:
+    """The record of a busy worker's task if it is over (result, death or timeout), else None."""
+    if w.conn in ready or w.process.sentinel in ready:
+        try:
+            if w.conn.poll():
+                return w.conn.recv()
+        except (EOFError, OSError):
+            pass
+        if not w.process.is_alive():
+            return failed_record(w.spec, f"WorkerDied: worker process died (exit code "
+                                         f"{w.process.exitcode}) while running the task")
+    if task_timeout_s is not None and time.monotonic() - w.started > task_timeout_s:
+        w.process.kill()
+        w.process.join(timeout=5)
+        return failed_record(w.spec, f"TaskTimeout: no result after {task_timeout_s:g} s; "
+                                     "worker killed")
+    return None
 
 
 # -- Dask ----------------------------------------------------------------------------------------
