@@ -40,27 +40,31 @@ class AnalyticPlanner:
             return np.stack([self.plan(row) for row in f.reshape(-1, 9)]).reshape(
                 f.shape[:-1] + (3, 2)
             )
-        c0l, c1l, c2l, c0r, c1r, c2r, v, v_lead, d_lead = f
-        dt = self.horizon / self.samples
-        t = np.arange(1, self.samples + 1) * dt
-        x = np.empty(self.samples)
+        # plain floats: the same IEEE arithmetic as numpy scalars, ~5x cheaper per operation
+        c0l, c1l, c2l, c0r, c1r, c2r, v, v_lead, d_lead = f.tolist()
+        n = self.samples
+        dt = self.horizon / n
+        x = [0.0] * n
         pos, speed, gap = 0.0, v, d_lead
         lo, hi = self.accel_limits
-        for k in range(self.samples):
-            desired = self.gap_min_m + self.time_gap_s * speed
-            a_follow = self.k_gap * (gap - desired) + self.k_speed * (v_lead - speed)
-            a_free = self.k_free * (self.v_desired_mps - speed)
+        gap_min, time_gap, k_gap, k_speed = self.gap_min_m, self.time_gap_s, self.k_gap, self.k_speed
+        k_free, v_desired = self.k_free, self.v_desired_mps
+        for k in range(n):
+            desired = gap_min + time_gap * speed
+            a_follow = k_gap * (gap - desired) + k_speed * (v_lead - speed)
+            a_free = k_free * (v_desired - speed)
             a = min(max(min(a_follow, a_free), lo), hi)
             new_speed = max(speed + a * dt, 0.0)
             pos += 0.5 * (speed + new_speed) * dt
             gap += (v_lead - 0.5 * (speed + new_speed)) * dt
             speed = new_speed
             x[k] = pos
-        centre = 0.5 * np.array([c0l + c0r, c1l + c1r, c2l + c2r])
+        x = np.array(x)
+        centre = (0.5 * (c0l + c0r), 0.5 * (c1l + c1r), 0.5 * (c2l + c2r))
         y_centre = centre[0] + centre[1] * x + centre[2] * x * x
         # start from where the car is (y = 0 at x = 0) and converge on the lane centre
-        y = y_centre - centre[0] * np.exp(-t / self.lateral_tau_s)
-        return _fit_matrix(self.samples) @ np.stack([x, y], axis=1)
+        y = y_centre - centre[0] * _decay(n, dt, self.lateral_tau_s)
+        return _fit_matrix(n) @ np.stack([x, y], axis=1)
 
 
 _FIT_CACHE: dict[int, np.ndarray] = {}
@@ -72,3 +76,16 @@ def _fit_matrix(samples: int) -> np.ndarray:
         tau = np.arange(1, samples + 1) / samples
         _FIT_CACHE[samples] = np.linalg.pinv(bspline.basis(tau)[:, 1:])
     return _FIT_CACHE[samples]
+
+
+_DECAY_CACHE: dict[tuple[int, float, float], np.ndarray] = {}
+
+
+def _decay(samples: int, dt: float, tau: float) -> np.ndarray:
+    """``exp(-t / tau)`` at the sample times ``t = k dt``, k = 1..samples (read-only, cached)."""
+    key = (samples, dt, tau)
+    if key not in _DECAY_CACHE:
+        out = np.exp(-(np.arange(1, samples + 1) * dt) / tau)
+        out.flags.writeable = False
+        _DECAY_CACHE[key] = out
+    return _DECAY_CACHE[key]

@@ -9,6 +9,7 @@ Conventions used across the package:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,12 +22,13 @@ def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
 
 def yaw_to_sumo_angle(yaw: float) -> float:
     """Mathematical yaw [rad] -> SUMO navigation angle [deg] (0 = north, clockwise)."""
-    return float((90.0 - np.degrees(yaw)) % 360.0)
+    # math.degrees and float % are numpy's degrees and remainder on one float (same rounding)
+    return (90.0 - math.degrees(yaw)) % 360.0
 
 
 def sumo_angle_to_yaw(angle_deg: float) -> float:
     """SUMO navigation angle [deg] -> mathematical yaw [rad] in [-pi, pi)."""
-    return float(wrap_angle(np.radians(90.0 - angle_deg)))
+    return (math.radians(90.0 - angle_deg) + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def world_to_ego(points: np.ndarray, origin: np.ndarray, yaw: float) -> np.ndarray:
@@ -220,6 +222,15 @@ class Polyline:
         t = self._tangents[i]
         xy = self.points[i] + (s_arr - self.s[i])[..., None] * t
         return xy, np.arctan2(t[..., 1], t[..., 0])
+
+    def xy_at(self, s: np.ndarray) -> np.ndarray:
+        """Position ``(..., 2)`` of :meth:`point_at` without the heading (the camera's hot path)."""
+        i = np.searchsorted(self.s, s, side="right")
+        i -= 1
+        np.maximum(i, 0, out=i)  # np.clip costs 4 us on small arrays; this is the same
+        np.minimum(i, len(self._seg_len) - 1, out=i)
+        along = s - self.s.take(i)
+        return self.points.take(i, axis=0) + along[..., None] * self._tangents.take(i, axis=0)
 
     def resample(self, spacing: float) -> Polyline:
         """A polyline through points every ``spacing`` [m] along this one (ends kept)."""

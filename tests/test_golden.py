@@ -116,3 +116,34 @@ if __name__ == "__main__":  # print the current values of EXPECTED
     for name in SCENARIOS:
         r = run_golden(name, road)
         print(f'    "{name}": ("{log_hash(r.log)}", {len(r.log)}, "{r.summary["end_reason"]}"),')
+
+
+def test_lane_camera_equals_the_reference_camera(curved500):
+    """The loop's O(1) camera gives camera_lane_lines' lines bit for bit, also off the lane."""
+    from safeil_sumo.sim import sensors as sen
+
+    cfg = sen.SensorConfig()
+    camera = sen.LaneCamera(curved500, cfg)
+    centre = curved500.lanes[curved500.ego_lane].centre
+    rng = np.random.default_rng(1)
+    s = 5.0
+    while s < centre.length - 5.0:
+        s += rng.uniform(0.0, 6.0)
+        p, h = centre.point_at(s)
+        xy = p + rng.uniform(-6.0, 6.0) * np.array([-np.sin(h), np.cos(h)])
+        yaw = float(h) + rng.uniform(-0.1, 0.1)
+        a = sen.camera_lane_lines(curved500, xy, yaw, cfg)
+        b = camera.lane_lines(xy, yaw)
+        assert a[2] == b[2]
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+
+
+def test_polyfit3_equals_numpy_polyfit():
+    from safeil_sumo.sim.sensors import polyfit3
+
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        x = np.sort(rng.uniform(-5.0, 80.0, 16))
+        y = rng.normal(size=4) @ np.vstack([x**0, x, x**2 * 1e-3, x**3 * 1e-5]) + rng.normal(
+            scale=0.01, size=16)
+        assert np.array_equal(polyfit3(x, y), np.polynomial.polynomial.polyfit(x, y, 3))

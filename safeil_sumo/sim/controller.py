@@ -80,8 +80,8 @@ class ControllerState:
 class PathSegments:
     """A polyline ``(N, 2)`` prepared for the per-step lookahead search.
 
-    Vertex coordinates as 1-D arrays (vector distance to all vertices), segment data as tuples of
-    Python floats (scalar work on the two segments next to the closest vertex).
+    Vertex coordinates as 1-D arrays (vector distance to all vertices) and as tuples of Python
+    floats, segment data as tuples of Python floats (scalar work near the closest vertex).
     """
 
     vertex_x: np.ndarray  # (N,) [m]
@@ -89,6 +89,8 @@ class PathSegments:
     seg_dx: tuple[float, ...]  # (N-1,) [m] segment vectors
     seg_dy: tuple[float, ...]  # (N-1,) [m]
     seg_len2: tuple[float, ...]  # (N-1,) [m^2] squared lengths, floored to avoid division by 0
+    xs: tuple[float, ...] = ()  # (N,) [m] vertex_x as floats
+    ys: tuple[float, ...] = ()  # (N,) [m] vertex_y as floats
 
     @staticmethod
     def from_path(path: np.ndarray) -> PathSegments:
@@ -100,6 +102,8 @@ class PathSegments:
             seg_dx=tuple(e[:, 0].tolist()),
             seg_dy=tuple(e[:, 1].tolist()),
             seg_len2=tuple(np.maximum(e[:, 0] ** 2 + e[:, 1] ** 2, 1e-12).tolist()),
+            xs=tuple(p[:, 0].tolist()),
+            ys=tuple(p[:, 1].tolist()),
         )
 
 
@@ -118,9 +122,13 @@ class TrackingTarget:
     coeff_y: tuple[float, float, float, float]
     # per-segment arrays for :func:`lookahead_point`, derived from ``path`` (contiguous, 1-D)
     segments: PathSegments = field(init=False, repr=False)
+    cos_yaw: float = field(init=False, repr=False)  # cos(yaw), sin(yaw): once per plan, not step
+    sin_yaw: float = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "segments", PathSegments.from_path(self.path))
+        object.__setattr__(self, "cos_yaw", math.cos(self.yaw))
+        object.__setattr__(self, "sin_yaw", math.sin(self.yaw))
 
     def velocity(self, t: float) -> tuple[float, float]:
         """Plan velocity [m/s] at time ``t`` [s], clipped to [0, T_h]."""
@@ -207,15 +215,17 @@ def lookahead_point(
     closest point is the target; if the circle encloses the rest of the path, its last vertex.
     """
     seg = path if isinstance(path, PathSegments) else PathSegments.from_path(path)
-    dx = seg.vertex_x - px  # vertices relative to (px, py)
+    dx = seg.vertex_x - px  # vertices relative to (px, py): the one vector step
     dy = seg.vertex_y - py
     d2 = dx * dx + dy * dy
-    i0 = int(np.argmin(d2))
+    i0 = int(d2.argmin())
+    d2 = d2.tolist()
+    xs, ys = seg.xs, seg.ys  # xs[k] - px == dx[k] exactly: the scalar work stays in floats
     n_seg = len(seg.seg_len2)
     best = (math.inf, 0, 0.0)  # (squared distance, segment, parameter)
     for k in (i0 - 1, i0):
         if 0 <= k < n_seg:
-            ax, ay = float(dx[k]), float(dy[k])
+            ax, ay = xs[k] - px, ys[k] - py
             dot = ax * seg.seg_dx[k] + ay * seg.seg_dy[k]
             u = min(max(-dot / seg.seg_len2[k], 0.0), 1.0)
             f2 = ax * ax + ay * ay + u * (2.0 * dot + u * seg.seg_len2[k])  # |d + u e|^2
@@ -225,15 +235,18 @@ def lookahead_point(
     ld2 = ld * ld
     if f2 >= ld2:
         return (
-            px + float(dx[k]) + u * seg.seg_dx[k],
-            py + float(dy[k]) + u * seg.seg_dy[k],
+            px + (xs[k] - px) + u * seg.seg_dx[k],
+            py + (ys[k] - py) + u * seg.seg_dy[k],
         )
-    outside = d2[k + 1 :] >= ld2  # end vertices of segments k, k+1, ...
-    if not outside.any():
-        return float(seg.vertex_x[-1]), float(seg.vertex_y[-1])
-    j = k + int(np.argmax(outside))
+    # first end vertex of segments k, k+1, ... outside the circle
+    j = k + 1
+    while j < len(d2) and d2[j] < ld2:
+        j += 1
+    if j == len(d2):
+        return xs[-1], ys[-1]
+    j -= 1  # the segment that crosses the circle
     # larger root of |d + s e|^2 = ld^2 on segment j: the crossing ahead
-    ax, ay = float(dx[j]), float(dy[j])
+    ax, ay = xs[j] - px, ys[j] - py
     sx, sy, qa = seg.seg_dx[j], seg.seg_dy[j], seg.seg_len2[j]
     qb = ax * sx + ay * sy
     qc = ax * ax + ay * ay - ld2
@@ -268,18 +281,45 @@ def track(
 
     ``t_since_plan`` [s] is the time elapsed since the plan was made; ``dt`` [s] the control period.
     """
+    st = state
+    steer, accel, integral, error = track_values(
+        target, t_since_plan, st.x, st.y, st.yaw, st.vx, st.vy, st.yaw_rate, vehicle,
+        ctrl_state.integral, ctrl_state.prev_error, params, dt)
+    return steer, accel, ControllerState(integral=integral, prev_error=error)
+
+
+def track_values(
+    target: TrackingTarget,
+    t_since_plan: float,
+    x: float,
+    y: float,
+    yaw: float,
+    vx: float,
+    vy: float,
+    yaw_rate: float,
+    vehicle: VehicleParams,
+    integral: float,
+    prev_error: float | None,
+    params: ControllerParams,
+    dt: float,
+) -> tuple[float, float, float, float]:
+    """:func:`track` on plain floats (the closed loop's path: no per-step dataclasses).
+
+    Takes the state's fields and the PID memory, returns ``(steer_cmd, accel_cmd, integral,
+    error)``; the last two are the next call's ``integral`` and ``prev_error``.
+    """
     # --- rear axle in the plan frame ----------------------------------------------------------
-    yaw = state.yaw
-    rx = state.x - vehicle.lr_m * math.cos(yaw) - target.origin_x
-    ry = state.y - vehicle.lr_m * math.sin(yaw) - target.origin_y
-    c0, s0 = math.cos(target.yaw), math.sin(target.yaw)
+    lr = vehicle.lr_m
+    rx = x - lr * math.cos(yaw) - target.origin_x
+    ry = y - lr * math.sin(yaw) - target.origin_y
+    c0, s0 = target.cos_yaw, target.sin_yaw
     px, py = c0 * rx + s0 * ry, -s0 * rx + c0 * ry
     heading = yaw - target.yaw
-    if params.use_course_angle and state.vx > 1.0:
-        heading += math.atan2(state.vy - vehicle.lr_m * state.yaw_rate, state.vx)
+    if params.use_course_angle and vx > 1.0:
+        heading += math.atan2(vy - lr * yaw_rate, vx)
 
     # --- lateral: pure pursuit ----------------------------------------------------------------
-    v = state.vx
+    v = vx
     ld = lookahead_distance(v, params)
     gx, gy = lookahead_point(target.segments, px, py, ld)
     ch, sh = math.cos(heading), math.sin(heading)
@@ -293,9 +333,9 @@ def track(
     v_ref, _ = target.speed_and_accel(t_since_plan + params.speed_preview_s)
     _, a_ref = target.speed_and_accel(t_since_plan + params.accel_preview_s)
     error = v_ref - v
-    deriv = 0.0 if ctrl_state.prev_error is None else (error - ctrl_state.prev_error) / dt
+    deriv = 0.0 if prev_error is None else (error - prev_error) / dt
     lim = params.integral_limit_m
-    integral = ctrl_state.integral
+    integral0 = integral
     if abs(error) < params.integral_band_mps:  # integrate near the reference only
         integral = min(max(integral + error * dt, -lim), lim)
     base = params.accel_feedforward_gain * a_ref + params.kp * error + params.kd * deriv
@@ -304,7 +344,7 @@ def track(
     # the integrator also stops where the powertrain saturates (power limit at high speed)
     hi_plant = (available_drive_force(v, vehicle) - resistance_force(v, vehicle)) / vehicle.mass_kg
     if (accel > min(hi, hi_plant) and error > 0.0) or (accel < lo and error < 0.0):
-        integral = ctrl_state.integral  # anti-windup: stop integrating into the saturation
+        integral = integral0  # anti-windup: stop integrating into the saturation
         accel = base + params.ki * integral
     accel = min(max(accel, lo), hi)
-    return steer, accel, ControllerState(integral=integral, prev_error=error)
+    return steer, accel, integral, error

@@ -178,71 +178,95 @@ def run_scenario(
         _move_ego(api, state, vehicle)
         api.simulation.step()
 
-        ctrl_state = ctl.ControllerState()
+        # The loop works on plain floats (state tuple, PID memory) and the internal fast paths
+        # of the plant, tracker and camera: bit-identical to the public functions, which build
+        # frozen dataclasses and scan whole polylines (tests/test_golden.py pins the results).
+        plant = veh.Plant.of(vehicle, dt)
+        st = (state.x, state.y, state.yaw, state.vx, state.vy, state.yaw_rate, state.steer,
+              state.drive_force)
+        d_front = vehicle.cog_to_front_bumper_m
+        camera = sen.LaneCamera(road, scenario.sensors)
+        move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
+        sim_step, colliding_ids = api.simulation.step, api.simulation.getCollidingVehiclesIDList
+        integral, prev_error = 0.0, None  # PID memory (ControllerState's fields)
         target = None
         t_plan = 0.0
         features = np.zeros(9)
+        feature_log = (math.nan,) * 8  # c0l..c2r, v_lead, d_lead as logged
         leader = _read_leader(api, vehicle) if has_leader else None
+        # the leader's commanded speed of every step, in one vectorised call (same values)
+        lead_speeds = (scenario.leader.speed_at(np.arange(n_max) * dt + dt).tolist()
+                       if has_leader else None)
         ego_seg = centre.segment_index(s_ego0)
         lead_seg = centre.segment_index(s_leader_front0)
+        half_width = 0.5 * lane.width
+        lane_margin, ttc_threshold = scenario.monitors.lane_margin_m, scenario.monitors.ttc_threshold_s
+        length, width = vehicle.length_m, vehicle.width_m
         for k in range(n_max):
             t = k * dt
-            front = veh.front_bumper(state, vehicle)
-            front_xy = np.array(front)
+            x, y, yaw, vx, vy, yaw_rate = st[:6]
+            v = math.hypot(vx, vy)
             if k % plan_every == 0:
-                left, right, _ = sen.camera_lane_lines(road, front_xy, state.yaw,
-                                                       scenario.sensors, rng)
+                front = (x + d_front * math.cos(yaw), y + d_front * math.sin(yaw))
+                front_xy = np.array(front)
+                left, right, _ = camera.lane_lines(front_xy, yaw, rng)
                 target_r = sen.radar_leader(
-                    front_xy, state.yaw, None if leader is None else leader[0],
+                    front_xy, yaw, None if leader is None else leader[0],
                     0.0 if leader is None else leader[1] / scale, left, right,
                     scenario.sensors, rng)
-                v_lead, d_lead = sen.leader_features(target_r, veh.speed(state), scenario.sensors)
-                features = planner_features(left, right, veh.speed(state), v_lead, d_lead)
+                v_lead, d_lead = sen.leader_features(target_r, v, scenario.sensors)
+                features = planner_features(left, right, v, v_lead, d_lead)
+                f = features.tolist()
+                feature_log = (*f[:6], f[7], f[8])
                 plan = policy.plan(features)
-                target = ctl.make_target(plan, policy.horizon, (front[0], front[1], state.yaw))
+                target = ctl.make_target(plan, policy.horizon, (front[0], front[1], yaw))
                 t_plan = t
-            steer_cmd, accel_cmd, ctrl_state = ctl.track(
-                target, t - t_plan, state, vehicle, ctrl_state, controller, dt)
-            throttle, brake = veh.pedals_from_accel(accel_cmd, state, vehicle)
-            state = veh.step(state, steer_cmd, throttle, brake, vehicle, dt)
+            steer_cmd, accel_cmd, integral, prev_error = ctl.track_values(
+                target, t - t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, integral, prev_error,
+                controller, dt)
+            throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle)
+            st = plant.step(st, steer_cmd, throttle, brake)
 
-            _move_ego(api, state, vehicle)
+            # move the ego in SUMO (front bumper, navigation angle), command the leader, step
+            x, y, yaw, vx, vy = st[:5]
+            v = math.hypot(vx, vy)
+            c_yaw, s_yaw = math.cos(yaw), math.sin(yaw)
+            front = (x + d_front * c_yaw, y + d_front * s_yaw)
+            move_to_xy(EGO_ID, "", -1, front[0], front[1], yaw_to_sumo_angle(yaw), 2)
+            set_speed(EGO_ID, v)
             if has_leader and leader is not None:
-                v_cmd = float(scenario.leader.speed_at(t + dt)) * scale
-                api.vehicle.setSpeed(LEADER_ID, v_cmd)
-            api.simulation.step()
-            colliding = EGO_ID in api.simulation.getCollidingVehiclesIDList()
+                set_speed(LEADER_ID, lead_speeds[k] * scale)
+            sim_step()
+            colliding = EGO_ID in colliding_ids()
             leader = _read_leader(api, vehicle) if has_leader and leader is not None else None
 
             # monitors on the state at t + dt (O(1) walks along the lane from the last segment)
-            front = veh.front_bumper(state, vehicle)
             s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
-            heading_err = (state.yaw - lane_heading + math.pi) % (2.0 * math.pi) - math.pi
-            d_min, d_max = mon.footprint_offset_range(d, heading_err, vehicle.length_m,
-                                                      vehicle.width_m)
-            departed = mon.lane_departure(d_min, d_max, lane.width, scenario.monitors.lane_margin_m)
-            v = veh.speed(state)
+            heading_err = (yaw - lane_heading + math.pi) % (2.0 * math.pi) - math.pi
+            d_min, d_max = mon.footprint_offset_range(d, heading_err, length, width)
+            departed = mon.lane_departure(d_min, d_max, lane.width, lane_margin)
             gap, ttc, v_lead_true = math.inf, math.inf, math.nan
+            lx = ly = math.nan
             if leader is not None:
                 (lead_rear, v_lead_sumo, lead_yaw, lead_front) = leader
+                lx, ly = lead_rear
                 v_lead_true = v_lead_sumo / scale
-                s_lead_rear, _, _, lead_seg = centre.project_near(lead_rear[0], lead_rear[1],
-                                                                  lead_seg)
+                s_lead_rear, _, _, lead_seg = centre.project_near(lx, ly, lead_seg)
                 gap = s_lead_rear - s
                 ttc = mon.time_to_collision(gap, v, v_lead_true)
-                if gap < 2.0 * vehicle.length_m and not colliding:
+                if gap < 2.0 * length and not colliding:
                     ego_box = rectangle_corners(
-                        _centre_xy(front, state.yaw, vehicle), state.yaw,
-                        vehicle.length_m, vehicle.width_m)
+                        _centre_xy(front, yaw, vehicle), yaw, length, width)
                     lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
-                    lead_box = rectangle_corners(lead_centre, lead_yaw,
-                                                 vehicle.length_m, vehicle.width_m)
+                    lead_box = rectangle_corners(lead_centre, lead_yaw, length, width)
                     colliding = rectangles_overlap(ego_box, lead_box)
-            ttc_flag = ttc <= scenario.monitors.ttc_threshold_s
+            ttc_flag = ttc <= ttc_threshold
             fraction = mon.path_completed(s, road.path_start_s, road.path_end_s)
-            log.append(t + dt, state, front, steer_cmd, accel_cmd, s, d, d_min, d_max,
-                       features, leader, gap, ttc, v_lead_true, departed, ttc_flag,
-                       colliding, fraction)
+            log.rows.append((
+                t + dt, x, y, yaw, v, vy, st[5], st[6], front[0], front[1], steer_cmd,
+                accel_cmd, s, d, d_min, d_max, *feature_log, lx, ly, v_lead_true, gap, ttc,
+                departed, ttc_flag, colliding, fraction,
+            ))
 
             if s >= road.path_end_s:
                 end_reason = "completed"
@@ -250,7 +274,7 @@ def run_scenario(
             if colliding:
                 end_reason = "collision"
                 break
-            if abs(d) > 0.5 * lane.width + loop.offroad_stop_m:
+            if abs(d) > half_width + loop.offroad_stop_m:
                 end_reason = "off_road"
                 break
             if loop.stop_on_flag and (departed or ttc_flag):
@@ -339,7 +363,7 @@ def _read_leader(api: sumo_api.SumoApi, vehicle: veh.VehicleParams):
 
 
 class _Log:
-    """Preallocated per-step arrays (no per-step DataFrame work)."""
+    """Per-step rows as tuples of floats (a list append per step), one array at the end."""
 
     COLUMNS = (
         "t", "x", "y", "yaw", "v", "vy", "yaw_rate", "steer", "front_x", "front_y", "steer_cmd",
@@ -349,22 +373,11 @@ class _Log:
     )
 
     def __init__(self, n: int) -> None:
-        self.data = np.full((n, len(self.COLUMNS)), np.nan)
-        self.n = 0
-
-    def append(self, t, state, front, steer_cmd, accel_cmd, s, d, d_min, d_max, features,
-               leader, gap, ttc, v_lead_true, departed, ttc_flag, collision, fraction) -> None:
-        lx, ly = (leader[0] if leader is not None else (math.nan, math.nan))
-        self.data[self.n] = (
-            t, state.x, state.y, state.yaw, veh.speed(state), state.vy, state.yaw_rate,
-            state.steer, front[0], front[1], steer_cmd, accel_cmd, s, d, d_min, d_max,
-            *features[:6], features[7], features[8], lx, ly, v_lead_true, gap, ttc,
-            departed, ttc_flag, collision, fraction,
-        )
-        self.n += 1
+        self.rows: list[tuple] = []  # ``n`` (the most steps) is not needed by a list
 
     def frame(self) -> pd.DataFrame:
-        df = pd.DataFrame(self.data[: self.n], columns=self.COLUMNS)
+        data = np.array(self.rows, dtype=float).reshape(-1, len(self.COLUMNS))
+        df = pd.DataFrame(data, columns=self.COLUMNS)
         for col in ("lane_departure", "ttc_flag", "collision"):
             df[col] = df[col].astype(bool)
         return df

@@ -5,15 +5,21 @@
   fitted to the lane geometry within the camera's view range (like a MobilEye output);
 - radar: the in-path leading vehicle's bumper-to-bumper distance, relative position and speed.
 Optional Gaussian noise and quantisation draw from an explicit ``np.random.Generator``.
+
+:func:`camera_lane_lines` is the reference; the closed loop uses :class:`LaneCamera`, which gives
+bit-identical lines but replaces the full projections on the lane polylines (O(N) each) with O(1)
+walks from where it looked last (:meth:`Polyline.project_near`, same result as ``project``).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
-from safeil_sumo.geometry import Polyline, world_to_ego
+from safeil_sumo.geometry import Polyline
 from safeil_sumo.scenarios.road import Road
 
 
@@ -67,10 +73,45 @@ def fit_boundary(
 ) -> np.ndarray:
     """Cubic coefficients ``(4,)`` (c0..c3) of one boundary in the ego frame over the view range."""
     s0, _ = boundary.project(ego_xy)
-    pts, _ = boundary.point_at(float(s0) + np.linspace(0.0, config.view_range_m,
-                                                       config.view_samples))
-    local = world_to_ego(pts, ego_xy, ego_yaw)
-    return np.polynomial.polynomial.polyfit(local[:, 0], local[:, 1], 3)
+    return _fit_from(boundary, float(s0), ego_xy, ego_yaw, config)
+
+
+def _fit_from(
+    boundary: Polyline, s0: float, ego_xy: np.ndarray, ego_yaw: float, config: SensorConfig
+) -> np.ndarray:
+    """The fit of :func:`fit_boundary` from the ego's arc length ``s0`` [m] on the boundary."""
+    pts = boundary.xy_at(s0 + _view_offsets(config.view_range_m, config.view_samples))
+    # world_to_ego, unrolled (the same element-wise operations, no stacking)
+    c, s = math.cos(ego_yaw), math.sin(ego_yaw)
+    d = pts - ego_xy
+    dx, dy = d[:, 0], d[:, 1]
+    return polyfit3(c * dx + s * dy, -s * dx + c * dy)
+
+
+@lru_cache(maxsize=8)
+def _view_offsets(view_range_m: float, samples: int) -> np.ndarray:
+    """Arc-length offsets ``(samples,)`` [m] of the fitted boundary points (read-only, shared)."""
+    out = np.linspace(0.0, view_range_m, samples)
+    out.flags.writeable = False
+    return out
+
+
+def polyfit3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``np.polynomial.polynomial.polyfit(x, y, 3)`` without its argument checks: the same
+    operations in the same order (Vandermonde, column scaling, LAPACK least squares), so the
+    coefficients ``(4,)`` are bit-identical; about twice as fast on 16 points."""
+    van = np.empty((4, len(x)))  # rows 1, x, x^2, x^3: polyvander's products, transposed
+    van[0] = 1.0
+    van[1] = x
+    np.multiply(van[1], x, out=van[2])
+    np.multiply(van[2], x, out=van[3])
+    scl = np.sqrt(np.square(van).sum(1))
+    scl[scl == 0] = 1
+    c = np.linalg.lstsq(van.T / scl, y, len(x) * _EPS)[0]
+    return c / scl
+
+
+_EPS = float(np.finfo(np.float64).eps)
 
 
 def camera_lane_lines(
@@ -108,11 +149,15 @@ def radar_leader(
     """
     if leader_rear_xy is None:
         return None
-    x, y = world_to_ego(np.asarray(leader_rear_xy, dtype=float), ego_xy, ego_yaw)
+    # world_to_ego and polyval of one point, in plain floats (the same operations)
+    c, s = math.cos(ego_yaw), math.sin(ego_yaw)
+    dx = float(leader_rear_xy[0]) - float(ego_xy[0])
+    dy = float(leader_rear_xy[1]) - float(ego_xy[1])
+    x, y = c * dx + s * dy, -s * dx + c * dy
     if not 0.0 < x <= config.radar_range_m:
         return None
-    y_left = np.polynomial.polynomial.polyval(x, left_line)
-    y_right = np.polynomial.polynomial.polyval(x, right_line)
+    y_left = _polyval(x, left_line)
+    y_right = _polyval(x, right_line)
     if not y_right <= y <= y_left:
         return None
     v = float(leader_speed)
@@ -126,6 +171,15 @@ def radar_leader(
     return RadarTarget(float(x), float(y), v)
 
 
+def _polyval(x: float, coefficients: np.ndarray) -> float:
+    """``np.polynomial.polynomial.polyval`` at one point: Horner from the highest coefficient."""
+    c = coefficients.tolist()
+    value = c[-1] + x * 0.0
+    for ci in reversed(c[:-1]):
+        value = ci + value * x
+    return value
+
+
 def leader_features(
     target: RadarTarget | None, ego_speed: float, config: SensorConfig
 ) -> tuple[float, float]:
@@ -133,3 +187,45 @@ def leader_features(
     if target is None:
         return float(ego_speed), config.no_leader_distance_m
     return target.v, target.x
+
+
+class LaneCamera:
+    """:func:`camera_lane_lines` for a car that moves smoothly along a road (the closed loop).
+
+    Same lines, bit for bit, but each projection on a lane polyline walks from the segment of the
+    previous call instead of scanning all N segments. Keeps that memory, so use one camera per run.
+    """
+
+    def __init__(self, road: Road, config: SensorConfig) -> None:
+        self.road = road
+        self.config = config
+        self._segment: dict[int, int] = {}  # id(polyline) -> segment of the last projection
+
+    def _project(self, line: Polyline, x: float, y: float) -> tuple[float, float]:
+        hint = self._segment.get(id(line))
+        if hint is None:  # first look at this line: one full projection finds the segment
+            s_full, _ = line.project(np.array([x, y]))
+            hint = line.segment_index(float(s_full))
+        s, d, _, self._segment[id(line)] = line.project_near(x, y, hint)
+        return s, d
+
+    def lane_lines(
+        self, ego_xy: np.ndarray, ego_yaw: float, rng: np.random.Generator | None = None
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Like :func:`camera_lane_lines` (same arguments, same result)."""
+        road, config = self.road, self.config
+        x, y = float(ego_xy[0]), float(ego_xy[1])
+        # current_lane_index
+        ref = road.lanes[road.ego_lane]
+        _, d = self._project(ref.centre, x, y)
+        k = int(np.rint(d / ref.width))
+        lane = road.lanes[min(max(road.ego_lane + k, 0), len(road.lanes) - 1)]
+        left = _fit_from(lane.left_boundary, self._project(lane.left_boundary, x, y)[0],
+                         ego_xy, ego_yaw, config)
+        right = _fit_from(lane.right_boundary, self._project(lane.right_boundary, x, y)[0],
+                          ego_xy, ego_yaw, config)
+        if rng is not None and (config.lane_noise_c0_m > 0 or config.lane_noise_c1 > 0):
+            noise = rng.normal(size=2) * [config.lane_noise_c0_m, config.lane_noise_c1]
+            left[:2] += noise  # a camera's error moves both lines together
+            right[:2] += noise
+        return left, right, lane.index

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 GRAVITY = 9.81  # [m/s^2]
 
@@ -142,9 +143,14 @@ def pedals_from_accel(
     Inverse of the longitudinal model with drag and rolling resistance as feed-forward; exactly one
     of the two is non-zero (or both zero). Saturates at full throttle / full brake.
     """
-    force = params.mass_kg * accel_cmd + resistance_force(state.vx, params)
+    return pedals_from_accel_vx(accel_cmd, state.vx, params)
+
+
+def pedals_from_accel_vx(accel_cmd: float, vx: float, params: VehicleParams) -> tuple[float, float]:
+    """:func:`pedals_from_accel` from the longitudinal speed ``vx`` [m/s] alone."""
+    force = params.mass_kg * accel_cmd + resistance_force(vx, params)
     if force > 0.0:
-        return min(force / available_drive_force(state.vx, params), 1.0), 0.0
+        return min(force / available_drive_force(vx, params), 1.0), 0.0
     if force < 0.0:
         return 0.0, min(-force / params.max_brake_force_n, 1.0)
     return 0.0, 0.0
@@ -166,86 +172,140 @@ def step(
     dt: float,
 ) -> VehicleState:
     """Advance the plant by ``dt`` [s] under road-wheel ``steer_cmd`` [rad] and pedals in [0, 1]."""
-    p = params
-    m, lf, lr, L = p.mass_kg, p.lf_m, p.lr_m, p.wheelbase_m
-    vx, vy, r = state.vx, state.vy, state.yaw_rate
+    s = state
+    return VehicleState(*Plant.of(params, dt).step(
+        (s.x, s.y, s.yaw, s.vx, s.vy, s.yaw_rate, s.steer, s.drive_force),
+        steer_cmd, throttle, brake))
 
-    # --- actuators ---------------------------------------------------------------------------
-    cmd = min(max(steer_cmd, -p.max_steer_rad), p.max_steer_rad)
-    d_steer = (cmd - state.steer) * (1.0 - math.exp(-dt / p.steer_time_constant_s))
-    max_d = p.max_steer_rate_radps * dt
-    delta = state.steer + min(max(d_steer, -max_d), max_d)
 
-    throttle = min(max(throttle, 0.0), 1.0)
-    brake = min(max(brake, 0.0), 1.0)
-    target = throttle * available_drive_force(vx, p) - brake * p.max_brake_force_n
-    # brake circuit dynamics whenever braking is involved (applying or releasing)
-    tau = (
-        p.brake_time_constant_s
-        if (target < 0.0 or state.drive_force < 0.0)
-        else (p.drive_time_constant_s)
-    )
-    fx = _lag(state.drive_force, target, tau, dt)
+class Plant:
+    """:func:`step` on a plain tuple of the :class:`VehicleState` fields, in field order.
 
-    # --- lateral: dynamic single track, implicit Euler with secant tyre stiffness ---------------
-    v_lo, v_hi = p.kinematic_speed_low_mps, p.kinematic_speed_high_mps
-    w = min(max((vx - v_lo) / (v_hi - v_lo), 0.0), 1.0)
-    w = w * w * (3.0 - 2.0 * w)  # smoothstep: weight of the dynamic model
-    fyf = 0.0
-    if w > 0.0:
-        u = max(vx, v_lo)
-        fzf = p.front_axle_load_fraction * m * GRAVITY
-        fzr = m * GRAVITY - fzf
-        alpha_f = delta - (vy + lf * r) / u
-        alpha_r = -(vy - lr * r) / u
-        cf = p.cornering_stiffness_front_npr
-        cr = p.cornering_stiffness_rear_npr
-        # saturate |F_y| at mu F_z by lowering the stiffness to the secant through the limit
-        if cf * abs(alpha_f) > p.friction_coefficient * fzf:
-            cf = p.friction_coefficient * fzf / abs(alpha_f)
-        if cr * abs(alpha_r) > p.friction_coefficient * fzr:
-            cr = p.friction_coefficient * fzr / abs(alpha_r)
-        iz = p.yaw_inertia_kgm2
-        a11 = -(cf + cr) / (m * u)
-        a12 = -(lf * cf - lr * cr) / (m * u) - u
-        a21 = -(lf * cf - lr * cr) / (iz * u)
-        a22 = -(lf * lf * cf + lr * lr * cr) / (iz * u)
-        b1 = vy + dt * cf * delta / m
-        b2 = r + dt * lf * cf * delta / iz
-        # (I - dt A) [vy, r]' = [b1, b2]'
-        m11, m12, m21, m22 = 1.0 - dt * a11, -dt * a12, -dt * a21, 1.0 - dt * a22
-        det = m11 * m22 - m12 * m21
-        vy_dyn = (b1 * m22 - m12 * b2) / det
-        r_dyn = (m11 * b2 - m21 * b1) / det
-        fyf = cf * (delta - (vy_dyn + lf * r_dyn) / u)
+    The parameter-only terms (lag factors, drag and rolling-resistance constants, axle loads) are
+    computed once per ``(params, dt)`` with the same expressions, so the result is bit-identical
+    to evaluating them every step; the closed loop keeps its state as a tuple (no per-step
+    dataclass) and calls :meth:`step` directly.
+    """
 
-    # --- longitudinal --------------------------------------------------------------------------
-    ax = (fx - resistance_force(vx, p) - w * fyf * math.sin(delta)) / m + w * vy * r
-    # no reversing: brakes and resistances hold the car at standstill
-    vx_new = max(vx + ax * dt, 0.0)
+    _cache: ClassVar[dict[tuple[int, float], Plant]] = {}
 
-    # --- blend with the kinematic bicycle at low speed ------------------------------------------
-    r_kin = vx_new * math.tan(delta) / L
-    vy_kin = lr * r_kin
-    if w > 0.0:
-        vy_new = w * vy_dyn + (1.0 - w) * vy_kin
-        r_new = w * r_dyn + (1.0 - w) * r_kin
-    else:
-        vy_new, r_new = vy_kin, r_kin
+    def __init__(self, params: VehicleParams, dt: float) -> None:
+        p = params
+        self.params = p
+        self.dt = dt
+        self.steer_gain = 1.0 - math.exp(-dt / p.steer_time_constant_s)
+        self.max_d_steer = p.max_steer_rate_radps * dt
+        # _lag's factors exp(-dt / tau); None: no lag (tau <= 0)
+        self.brake_decay = math.exp(-dt / p.brake_time_constant_s) if (
+            p.brake_time_constant_s > 0.0) else None
+        self.drive_decay = math.exp(-dt / p.drive_time_constant_s) if (
+            p.drive_time_constant_s > 0.0) else None
+        self.drag = 0.5 * p.air_density_kgm3 * p.drag_coefficient * p.frontal_area_m2
+        self.rolling = p.rolling_resistance * p.mass_kg * GRAVITY
+        self.max_brake_force = p.max_brake_force_n
+        self.fzf = p.front_axle_load_fraction * p.mass_kg * GRAVITY
+        self.fzr = p.mass_kg * GRAVITY - self.fzf
+        self.v_band = p.kinematic_speed_high_mps - p.kinematic_speed_low_mps
 
-    # --- pose (semi-implicit Euler: updated velocities) ----------------------------------------
-    yaw = state.yaw + r_new * dt
-    c, s = math.cos(yaw), math.sin(yaw)
-    return VehicleState(
-        x=state.x + (vx_new * c - vy_new * s) * dt,
-        y=state.y + (vx_new * s + vy_new * c) * dt,
-        yaw=yaw,
-        vx=vx_new,
-        vy=vy_new,
-        yaw_rate=r_new,
-        steer=delta,
-        drive_force=fx,
-    )
+    @classmethod
+    def of(cls, params: VehicleParams, dt: float) -> Plant:
+        """The plant of ``params`` and ``dt``, cached (``params`` is immutable)."""
+        key = (id(params), dt)
+        plant = cls._cache.get(key)
+        if plant is None or plant.params is not params:
+            if len(cls._cache) > 64:
+                cls._cache.clear()
+            plant = cls._cache[key] = cls(params, dt)
+        return plant
+
+    def resistance(self, vx: float) -> float:
+        """:func:`resistance_force` at ``vx`` [m/s]."""
+        if vx <= 0.0:
+            return 0.0
+        return self.drag * vx * vx + self.rolling
+
+    def step(
+        self, state: tuple[float, ...], steer_cmd: float, throttle: float, brake: float
+    ) -> tuple[float, float, float, float, float, float, float, float]:
+        """Next ``(x, y, yaw, vx, vy, yaw_rate, steer, drive_force)`` (see :func:`step`)."""
+        p = self.params
+        dt = self.dt
+        m, lf, lr, L = p.mass_kg, p.lf_m, p.lr_m, p.wheelbase_m
+        x0, y0, yaw0, vx, vy, r, steer0, force0 = state
+
+        # --- actuators -----------------------------------------------------------------------
+        max_steer = p.max_steer_rad
+        cmd = min(max(steer_cmd, -max_steer), max_steer)
+        d_steer = (cmd - steer0) * self.steer_gain
+        max_d = self.max_d_steer
+        delta = steer0 + min(max(d_steer, -max_d), max_d)
+
+        throttle = min(max(throttle, 0.0), 1.0)
+        brake = min(max(brake, 0.0), 1.0)
+        drive = min(p.max_drive_force_n, p.max_drive_power_w / max(vx, 0.1))
+        target = throttle * drive - brake * self.max_brake_force
+        # brake circuit dynamics whenever braking is involved (applying or releasing)
+        decay = self.brake_decay if (target < 0.0 or force0 < 0.0) else self.drive_decay
+        fx = target if decay is None else target + (force0 - target) * decay  # first-order lag
+
+        # --- lateral: dynamic single track, implicit Euler with secant tyre stiffness -----------
+        v_lo = p.kinematic_speed_low_mps
+        w = min(max((vx - v_lo) / self.v_band, 0.0), 1.0)
+        w = w * w * (3.0 - 2.0 * w)  # smoothstep: weight of the dynamic model
+        fyf = 0.0
+        if w > 0.0:
+            u = max(vx, v_lo)
+            alpha_f = delta - (vy + lf * r) / u
+            alpha_r = -(vy - lr * r) / u
+            cf = p.cornering_stiffness_front_npr
+            cr = p.cornering_stiffness_rear_npr
+            mu = p.friction_coefficient
+            # saturate |F_y| at mu F_z by lowering the stiffness to the secant through the limit
+            if cf * abs(alpha_f) > mu * self.fzf:
+                cf = mu * self.fzf / abs(alpha_f)
+            if cr * abs(alpha_r) > mu * self.fzr:
+                cr = mu * self.fzr / abs(alpha_r)
+            iz = p.yaw_inertia_kgm2
+            a11 = -(cf + cr) / (m * u)
+            a12 = -(lf * cf - lr * cr) / (m * u) - u
+            a21 = -(lf * cf - lr * cr) / (iz * u)
+            a22 = -(lf * lf * cf + lr * lr * cr) / (iz * u)
+            b1 = vy + dt * cf * delta / m
+            b2 = r + dt * lf * cf * delta / iz
+            # (I - dt A) [vy, r]' = [b1, b2]'
+            m11, m12, m21, m22 = 1.0 - dt * a11, -dt * a12, -dt * a21, 1.0 - dt * a22
+            det = m11 * m22 - m12 * m21
+            vy_dyn = (b1 * m22 - m12 * b2) / det
+            r_dyn = (m11 * b2 - m21 * b1) / det
+            fyf = cf * (delta - (vy_dyn + lf * r_dyn) / u)
+
+        # --- longitudinal ----------------------------------------------------------------------
+        ax = (fx - self.resistance(vx) - w * fyf * math.sin(delta)) / m + w * vy * r
+        # no reversing: brakes and resistances hold the car at standstill
+        vx_new = max(vx + ax * dt, 0.0)
+
+        # --- blend with the kinematic bicycle at low speed --------------------------------------
+        r_kin = vx_new * math.tan(delta) / L
+        vy_kin = lr * r_kin
+        if w > 0.0:
+            vy_new = w * vy_dyn + (1.0 - w) * vy_kin
+            r_new = w * r_dyn + (1.0 - w) * r_kin
+        else:
+            vy_new, r_new = vy_kin, r_kin
+
+        # --- pose (semi-implicit Euler: updated velocities) ------------------------------------
+        yaw = yaw0 + r_new * dt
+        c, s = math.cos(yaw), math.sin(yaw)
+        return (
+            x0 + (vx_new * c - vy_new * s) * dt,
+            y0 + (vx_new * s + vy_new * c) * dt,
+            yaw,
+            vx_new,
+            vy_new,
+            r_new,
+            delta,
+            fx,
+        )
 
 
 def front_bumper(state: VehicleState, params: VehicleParams) -> tuple[float, float]:
