@@ -8,7 +8,8 @@ Driver ``i`` draws its parameters from the calibrated population
 the whole 29.2 km with SUMO seed ``seed * 1000 + i``. libsumo runs one simulation per process,
 so each drive runs in its own worker process (a ``spawn`` pool: no libsumo state is inherited).
 Writes the drives (schema-validated Parquet), ``drivers.json`` (each driver's parameters and
-recording stats) beside it, and prints wall time and driving hours.
+recording stats) beside it, then runs the paper's processing pipeline on them: ``tuples.parquet``
+(the default training set), ``synthetic_report.{json,md}`` and ``synthetic_maneuver.png``.
 """
 
 from __future__ import annotations
@@ -24,7 +25,9 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from safeil_sumo.data.pipeline import PipelineConfig, run_pipeline
 from safeil_sumo.data.recorder import RecordingConfig, record_drive
+from safeil_sumo.data.report import plot_maneuver, write_report
 from safeil_sumo.data.schema import save_drive
 from safeil_sumo.data.synthetic import sample_driver
 
@@ -84,6 +87,13 @@ def main(argv: list[str] | None = None) -> None:
           f"({hours * 3600 / wall:.0f}x real time); leader in "
           f"{summary['leader_fraction']:.0%} of samples, {summary['lane_changes']} lane changes, "
           f"{summary['collision_steps']} collision steps")
+
+    tuples, report = run_pipeline(drives, PipelineConfig(), source="synthetic")
+    tuples.save(args.out.with_name("tuples.parquet"))
+    write_report(report, args.out.parent, "synthetic")
+    plot_maneuver(tuples, args.out.parent / "synthetic_maneuver.png")
+    print(f"{args.out.with_name('tuples.parquet')}: {len(tuples)} tuples from "
+          f"{len(tuples.maneuvers)} maneuvers; events {report.events}")
 
 
 if __name__ == "__main__":
