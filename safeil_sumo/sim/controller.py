@@ -173,18 +173,23 @@ def make_target(
     ``plan_pose`` is the world pose of the front bumper at plan time: x, y [m], yaw [rad].
     """
     cp = np.asarray(control_points, dtype=float).reshape(3, 2)
-    times = np.linspace(0.0, horizon, n_samples)
-    pts = bspline.evaluate_time(cp, times, horizon)
+    times, basis = _sample_basis(float(horizon), n_samples)
+    # bspline.evaluate_time(cp, times, horizon) with the basis of the fixed sample times cached
+    pts = basis @ bspline.full_coefficients(cp)
     # end tangents: derivative of the clamped cubic at its ends (fallbacks for degenerate plans)
     forward = np.array([1.0, 0.0])
     t0 = _unit(cp[0], forward)
     t1 = _unit(cp[2] - cp[1], _unit(cp[2] - cp[0], t0))
-    path = np.vstack([-_BACK_EXTENSION_M * t0, pts, pts[-1] + _FRONT_EXTENSION_M * t1])
-    # Bernstein -> power basis in tau, then tau = t / T_h
-    p1, p2, p3 = cp
-    c_tau = (np.zeros(2), 3.0 * p1, -6.0 * p1 + 3.0 * p2, 3.0 * p1 - 3.0 * p2 + p3)
-    c_t = [c / horizon**k for k, c in enumerate(c_tau)]
+    path = np.empty((n_samples + 2, 2))
+    path[0] = -_BACK_EXTENSION_M * t0
+    path[1:-1] = pts
+    path[-1] = pts[-1] + _FRONT_EXTENSION_M * t1
+    # Bernstein -> power basis in tau, then tau = t / T_h (per coordinate, in floats)
     x0, y0, yaw = plan_pose
+    coeff = []
+    for p1, p2, p3 in (cp[:, 0].tolist(), cp[:, 1].tolist()):
+        c_tau = (0.0, 3.0 * p1, -6.0 * p1 + 3.0 * p2, 3.0 * p1 - 3.0 * p2 + p3)
+        coeff.append(tuple(c / horizon**k for k, c in enumerate(c_tau)))
     return TrackingTarget(
         horizon_s=float(horizon),
         origin_x=float(x0),
@@ -192,9 +197,26 @@ def make_target(
         yaw=float(yaw),
         path=path,
         times=times,
-        coeff_x=tuple(float(c[0]) for c in c_t),
-        coeff_y=tuple(float(c[1]) for c in c_t),
+        coeff_x=coeff[0],
+        coeff_y=coeff[1],
     )
+
+
+_BASIS_CACHE: dict[tuple[float, int], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _sample_basis(horizon: float, n_samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sample times ``(n,)`` [s] over the horizon and the B-spline basis ``(n, 4)`` there
+    (read-only, cached: every plan of a run has the same horizon)."""
+    key = (horizon, n_samples)
+    if key not in _BASIS_CACHE:
+        if len(_BASIS_CACHE) > 16:
+            _BASIS_CACHE.clear()
+        times = np.linspace(0.0, horizon, n_samples)
+        basis = bspline.basis(np.asarray(times) / horizon)
+        times.flags.writeable = basis.flags.writeable = False
+        _BASIS_CACHE[key] = times, basis
+    return _BASIS_CACHE[key]
 
 
 def lookahead_distance(v: float, params: ControllerParams) -> float:
