@@ -74,3 +74,69 @@ def fit_control_points(points: np.ndarray, tau: np.ndarray) -> np.ndarray:
     a = basis(tau)[:, 1:]  # (M, 3): origin column drops out since its coefficient is 0
     pinv = np.linalg.pinv(a)  # (3, M)
     return pinv @ np.asarray(points, dtype=float)
+
+
+# ------------------------------------------------ exact lateral margins in the degree-6 Bernstein basis
+#
+# Along a plan x(tau), y(tau) are cubic Bernstein polynomials (the B-spline above), so a lane-line
+# margin ``c0 + c1 x + c2 x^2 + offset - y`` is a polynomial of degree 6 in tau. Written exactly in
+# the degree-6 Bernstein basis, its 7 coefficients bound it from below on [0, 1] (convex hull of a
+# Bernstein polynomial): all >= 0 => the WHOLE trajectory satisfies the constraint, curves included.
+
+
+def _binom(n: int, k: int) -> float:
+    from math import comb
+
+    return float(comb(n, k)) if 0 <= k <= n else 0.0
+
+
+# (7, 4): degree elevation 3 -> 6, ``B3_i = sum_k ELEVATE_3_TO_6[k, i] B6_k``,
+# ``ELEVATE_3_TO_6[k, i] = C(3, i) C(3, k - i) / C(6, k)``; each row sums to 1.
+ELEVATE_3_TO_6 = np.array(
+    [[_binom(3, i) * _binom(3, k - i) / _binom(6, k) for i in range(4)] for k in range(7)]
+)
+# (7, 4, 4): Bernstein product rule, ``B3_i B3_j = PRODUCT_WEIGHTS[i + j, i, j] B6_{i+j}``, so the
+# degree-6 coefficients of ``x(tau)^2`` are ``einsum("kij,i,j->k", PRODUCT_WEIGHTS, X, X)``.
+PRODUCT_WEIGHTS = np.array(
+    [
+        [[_binom(3, i) * _binom(3, j) / _binom(6, k) if i + j == k else 0.0 for j in range(4)]
+         for i in range(4)]
+        for k in range(7)
+    ]
+)
+
+
+def bernstein_basis(tau: np.ndarray, degree: int) -> np.ndarray:
+    """Bernstein basis of ``degree`` at ``tau (M,)`` -> ``(M, degree + 1)`` (no clipping)."""
+    t = np.asarray(tau, dtype=float)[..., None]
+    k = np.arange(degree + 1)
+    coef = np.array([_binom(degree, int(i)) for i in k])
+    return coef * t**k * (1.0 - t) ** (degree - k)
+
+
+def square_bernstein(coefficients: np.ndarray) -> np.ndarray:
+    """Degree-6 Bernstein coefficients ``(..., 7)`` of the square of a cubic with ``(..., 4)``."""
+    c = np.asarray(coefficients, dtype=float)
+    return np.einsum("kij,...i,...j->...k", PRODUCT_WEIGHTS, c, c)
+
+
+def lateral_margin_bernstein(
+    control_points: np.ndarray, line: np.ndarray, offset: float | np.ndarray = 0.0
+) -> np.ndarray:
+    """Exact degree-6 Bernstein coefficients ``(..., 7)`` [m] of ``line(x(tau)) + offset - y(tau)``.
+
+    control_points ``(..., 3, 2)`` [m] (origin implied); line ``(..., 3)`` = ``[c0, c1, c2]`` of
+    ``c0 + c1 x + c2 x^2`` [m, -, 1/m]; offset [m], broadcast against ``(...)``.
+    Left lane line: ``offset = -(T/2 + clearance)`` gives the left margin (>= 0 inside).
+    Right lane line: the right margin ``y - (line_r(x) + T/2 + clearance)`` is the NEGATION of
+    ``lateral_margin_bernstein(cp, line_r, +(T/2 + clearance))``.
+    Coefficient 0 is the margin at tau = 0 (the plan's origin), coefficient 6 at tau = 1, and
+    ``min_k coefficient_k <= min_{tau in [0, 1]} margin(tau)``.
+    """
+    full = full_coefficients(control_points)  # (..., 4, 2)
+    line = np.asarray(line, dtype=float)
+    x6 = full[..., 0] @ ELEVATE_3_TO_6.T  # (..., 7)
+    y6 = full[..., 1] @ ELEVATE_3_TO_6.T
+    xx6 = square_bernstein(full[..., 0])
+    c0 = line[..., 0, None] + np.asarray(offset, dtype=float)[..., None]
+    return c0 + line[..., 1, None] * x6 + line[..., 2, None] * xx6 - y6

@@ -106,3 +106,72 @@ def test_torch_evaluate_is_differentiable() -> None:
     # d(sum of points)/d(cp_j) = sum over tau of basis j
     expected = bspline.basis(TAU)[:, 1:].sum(axis=0)
     np.testing.assert_allclose(cp.grad.numpy(), np.stack([expected, expected], axis=-1))
+
+
+# ---------------------------------------------------------------- exact Bernstein lateral margins
+
+lines = st.tuples(st.floats(-5.0, 5.0), st.floats(-0.1, 0.1), st.floats(-0.005, 0.005))
+
+
+def _direct_margin(cp: np.ndarray, line: tuple, offset: float, tau: np.ndarray) -> np.ndarray:
+    p = bspline.evaluate(cp, tau)
+    x, y = p[:, 0], p[:, 1]
+    return line[0] + line[1] * x + line[2] * x * x + offset - y
+
+
+def test_elevation_and_product_constants() -> None:
+    e = bspline.ELEVATE_3_TO_6
+    assert e.shape == (7, 4) and np.allclose(e.sum(axis=1), 1.0)
+    # B3 evaluated directly == the elevated combination of B6
+    np.testing.assert_allclose(bspline.bernstein_basis(TAU, 6) @ e, bspline.basis(TAU), atol=1e-14)
+    w = bspline.PRODUCT_WEIGHTS
+    b3, b6 = bspline.basis(TAU), bspline.bernstein_basis(TAU, 6)
+    for i in range(4):
+        for j in range(4):
+            np.testing.assert_allclose(b3[:, i] * b3[:, j], w[i + j, i, j] * b6[:, i + j],
+                                       atol=1e-14)
+
+
+@settings(max_examples=300, deadline=None)
+@given(cp=arrays(np.float64, (3, 2), elements=st.floats(-300.0, 300.0)), line=lines,
+       offset=st.floats(-3.0, 3.0), tau=arrays(np.float64, (5,), elements=st.floats(0.0, 1.0)))
+def test_bernstein_margin_is_exact_and_a_lower_bound(cp, line, offset, tau) -> None:
+    coeffs = bspline.lateral_margin_bernstein(cp, np.array(line), offset)
+    assert coeffs.shape == (7,)
+    direct = _direct_margin(cp, line, offset, tau)
+    scale = 1.0 + abs(line[2]) * np.abs(cp[:, 0]).max() ** 2 + np.abs(cp).max()
+    np.testing.assert_allclose(bspline.bernstein_basis(tau, 6) @ coeffs, direct,
+                               atol=1e-9 * scale)
+    # end points are coefficients 0 and 6; the minimum coefficient bounds every sample from below
+    ends = _direct_margin(cp, line, offset, np.array([0.0, 1.0]))
+    np.testing.assert_allclose(coeffs[[0, 6]], ends, atol=1e-9 * scale)
+    sampled = _direct_margin(cp, line, offset, np.linspace(0.0, 1.0, 201))
+    assert coeffs.min() <= sampled.min() + 1e-9 * scale
+
+
+def test_bernstein_margin_batched_and_torch_equal_numpy() -> None:
+    rng = np.random.default_rng(3)
+    cp = rng.uniform(-50, 200, size=(6, 3, 2))
+    line = rng.uniform([-3, -0.05, -0.003], [3, 0.05, 0.003], size=(6, 3))
+    offset = rng.uniform(-1, 1, size=6)
+    ref = bspline.lateral_margin_bernstein(cp, line, offset)
+    assert ref.shape == (6, 7)
+    for n in range(6):
+        np.testing.assert_allclose(
+            ref[n], bspline.lateral_margin_bernstein(cp[n], line[n], offset[n]), rtol=1e-13)
+    got = tspline.lateral_margin_bernstein(torch.as_tensor(cp), torch.as_tensor(line),
+                                           torch.as_tensor(offset))
+    np.testing.assert_allclose(got.numpy(), ref, rtol=1e-12, atol=1e-10)
+
+
+def test_bernstein_condition_on_a_straight_lane_is_implied_by_the_control_points() -> None:
+    """c2 = 0: the margin is a cubic, its elevated coefficients are convex combinations of the
+    control-point margins, so the Bernstein condition is never stricter than the paper's."""
+    rng = np.random.default_rng(4)
+    cp = rng.uniform([0, -3], [150, 3], size=(2000, 3, 2))
+    line = np.array([1.0, 0.01, 0.0])
+    coeffs = bspline.lateral_margin_bernstein(cp, line, -0.5)
+    at_cp = line[0] + line[1] * cp[..., 0] - 0.5 - cp[..., 1]
+    cp_ok = at_cp.min(axis=-1) >= 0
+    assert np.all(coeffs[cp_ok, 1:].min(axis=-1) >= -1e-12)
+    assert np.sum(coeffs[:, 1:].min(axis=-1) >= 0) > np.sum(cp_ok)  # strictly less conservative

@@ -21,6 +21,7 @@ from safeil_sumo.learn.evaluate import open_loop_metrics, plan_metrics
 from safeil_sumo.learn.losses import (
     BarrierConfig,
     barrier_terms,
+    bernstein_lane_margins,
     imitation_loss,
     lane_margins,
     lead_margins,
@@ -184,6 +185,70 @@ def test_barrier_on_spline_points_only() -> None:
         TrainConfig(barrier_control_points=False)
 
 
+def test_bernstein_lateral_barrier_matches_formula() -> None:
+    feats = [1.75, 0.01, 0.002, -1.75, 0.01, 0.002, 20.0, 10.0, 15.0]
+    cps = [[10.0, 2.5], [20.0, -1.0], [50.0, 0.0]]
+    f, cp = _one(feats, cps)
+    cfg = BarrierConfig(lateral="bernstein", track=1.9)
+    left, right, lead = barrier_terms(f, cp, 4.5, cfg)
+    b_left = bspline.lateral_margin_bernstein(np.array(cps), np.array(feats[0:3]), -0.95)
+    b_right = -bspline.lateral_margin_bernstein(np.array(cps), np.array(feats[3:6]), 0.95)
+    # k = 0 (the origin, independent of the plan) is skipped: 6 terms per line
+    assert left.item() == pytest.approx(1000 * sum(_softplus(-b) for b in b_left[1:]), rel=1e-12)
+    assert right.item() == pytest.approx(1000 * sum(_softplus(-b) for b in b_right[1:]), rel=1e-12)
+    # the leader term is the paper's, unchanged
+    _, _, lead_cp = barrier_terms(f, cp, 4.5, BarrierConfig(track=1.9))
+    assert lead.item() == lead_cp.item()
+    # torch margins equal numpy margins
+    tl, tr = bernstein_lane_margins(f, cp, 1.9)
+    np.testing.assert_allclose(tl.numpy()[0], b_left, rtol=1e-12)
+    np.testing.assert_allclose(tr.numpy()[0], b_right, rtol=1e-12)
+
+
+def test_bernstein_barrier_with_samples_and_validation() -> None:
+    f, cp = _one(STRAIGHT, [[10.0, 0.0], [20.0, 0.0], [30.0, 0.0]])
+    n = 4
+    left, _, _ = barrier_terms(f, cp, 3.0, BarrierConfig(n_samples=n, lateral="bernstein"))
+    pts = bspline.evaluate(cp.numpy()[0], np.arange(1, n + 1) / n)
+    # straight lane, y = 0: every Bernstein coefficient k >= 1 of the left margin is 0.87
+    expected = 1000 * (6 * _softplus(-0.87) + sum(_softplus(y - 0.87) for y in pts[:, 1]))
+    assert left.item() == pytest.approx(expected, rel=1e-12)
+    assert BarrierConfig().lateral == "control_points"  # the paper stays the default
+    assert TrainConfig().barrier.lateral == "control_points"
+    assert TrainConfig(barrier_lateral="bernstein").barrier.lateral == "bernstein"
+    with pytest.raises(ValueError):
+        BarrierConfig(lateral="spline")
+    with pytest.raises(ValueError):
+        TrainConfig(barrier_lateral="spline")
+
+
+def test_bernstein_barrier_accepts_lane_following_on_a_curve() -> None:
+    """R = 500 m, 30 m/s over 5 s: a plan on the lane centre has its control points ~2.5 m off the
+    centre (the paper's barrier fires), its Bernstein coefficients stay inside (no penalty)."""
+    c2 = 1 / 1000  # y = x^2 / (2 R)
+    feats = [1.75, 0.0, c2, -1.75, 0.0, c2, 30.0, 30.0, 200.0]
+    x = 30.0 * bspline.control_point_times(5.0)
+    # y = c2 x(tau)^2 = c2 (150 tau)^2: control points of tau^2 are 0, 0, 1/3, 1
+    cps = np.stack([x, c2 * 150.0**2 * np.array([0.0, 1 / 3, 1.0])], -1)
+    f, t = _one(feats, cps.tolist())
+    paper = barrier_terms(f, t, 5.0, BarrierConfig())
+    exact = barrier_terms(f, t, 5.0, BarrierConfig(lateral="bernstein"))
+    # paper: the middle control points sit c2 X^2 / 9 = 2.5 m right of the centre, 1.63 m past
+    # the right limit
+    assert paper[1].item() > 1000 * 2 * 1.62
+    # exact: the plan IS the centre line, every coefficient is at the 0.87 m margin of the centre
+    for term in exact[:2]:
+        assert term.item() == pytest.approx(1000 * 6 * _softplus(-0.87), rel=1e-9)
+
+
+def test_training_with_the_bernstein_barrier(data: Tuples) -> None:
+    tr, va = split_by_maneuver(data, 0.2, seed=0)
+    cfg = TrainConfig(**{**FAST.__dict__, "max_epochs": 10, "barrier_lateral": "bernstein"})
+    _, hist = train(tr, va, cfg, progress=False)
+    assert hist.best_val < hist.epochs[0]["val_total"]
+    assert hist.epochs[0]["train_barrier_left"] > 0 and hist.epochs[0]["train_barrier_right"] > 0
+
+
 def test_torch_margins_equal_numpy_margins(data: Tuples) -> None:
     f = torch.as_tensor(data.features)
     cp = torch.as_tensor(data.control_points) + 0.3
@@ -317,6 +382,22 @@ def test_open_loop_metrics_of_perfect_plans(data: Tuples) -> None:
         for c in ("left", "right", "lead"):
             assert f"min_margin_{c}_{where}" in m
     assert 0.0 <= m["hull_gap_rate"] <= m["violation_rate_any_spline"]
+    assert m["violation_rate_lateral_bern"] == m["target_violation_rate_lateral_bern"]
+
+
+def test_demonstrations_on_curves_violate_the_paper_formulation_not_the_exact_one(
+    data: Tuples,
+) -> None:
+    """Curved fixture (|R| >= 600 m): the paper's control-point condition rejects many human plans
+    whose splines stay inside the lane; the Bernstein condition, exact on curves, rejects none."""
+    m = open_loop_metrics(_Oracle(data), data)
+    assert m["target_violation_rate_lateral_spline"] == 0.0  # the demonstrations are inside
+    assert m["target_violation_rate_lateral_bern"] == 0.0
+    assert m["target_violation_rate_lateral_cp"] > 0.2
+    assert m["min_margin_left_bern"] > 0 and m["min_margin_right_bern"] > 0
+    straight = make_tuples(n_maneuvers=4, curved=False)
+    ms = open_loop_metrics(_Oracle(straight), straight)
+    assert ms["target_violation_rate_lateral_cp"] == ms["target_violation_rate_lateral_bern"] == 0.0
 
 
 def test_hull_gap_on_a_curve_is_measured() -> None:
@@ -337,11 +418,12 @@ def test_cli_trains_and_writes_checkpoint(tmp_path: Path, data: Tuples) -> None:
     out = tmp_path / "models" / "safeil_test"
     proc = subprocess.run(
         [sys.executable, str(REPO / "training" / "train.py"), "--data",
-         str(tmp_path / "tuples.parquet"), "--method", "bc", "--epochs", "3", "--seed", "2",
+         str(tmp_path / "tuples.parquet"), "--method", "bc", "--epochs", "3", "--seed", "2", "--barrier-lateral", "bernstein",
          "--out", str(out), "--no-progress"],
         capture_output=True, text=True, cwd=REPO, check=False,
     )
     assert proc.returncode == 0, proc.stderr
-    assert "cp_rmse" in proc.stdout
+    assert "cp_rmse" in proc.stdout and "target_violation_rate_lateral_bern" in proc.stdout
+    assert '"barrier_lateral": "bernstein"' in proc.stdout
     assert (tmp_path / "models" / "safeil_test.safetensors").is_file()
     assert (tmp_path / "models" / "safeil_test.json").is_file()

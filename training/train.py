@@ -18,6 +18,7 @@ from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
 from safeil_sumo.learn.evaluate import open_loop_metrics
 from safeil_sumo.learn.inference import load_policy
+from safeil_sumo.learn.losses import LATERAL_MODES
 from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
 from safeil_sumo.safety_filter import SafeSet
 
@@ -25,7 +26,10 @@ SUMMARY_KEYS = (
     "n", "cp_rmse", "cp_rmse_x", "cp_rmse_y", "ade", "fde", "ade_lateral", "target_fit_ade",
     "min_margin_left_cp", "min_margin_right_cp", "min_margin_lead_cp", "violation_rate_any_cp",
     "min_margin_left_spline", "min_margin_right_spline", "min_margin_lead_spline",
-    "violation_rate_any_spline", "hull_gap_rate", "target_violation_rate_any_cp",
+    "violation_rate_any_spline", "hull_gap_rate", "min_margin_left_bern", "min_margin_right_bern",
+    "violation_rate_lateral_bern", "target_violation_rate_any_cp",
+    "target_violation_rate_lateral_cp", "target_violation_rate_lateral_bern",
+    "target_violation_rate_lateral_spline",
 )
 
 
@@ -53,6 +57,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="also constrain this many points along the spline (0 = paper)")
     p.add_argument("--no-barrier-control-points", action="store_true",
                    help="do not constrain the control points (needs --barrier-samples > 0)")
+    p.add_argument("--barrier-lateral", choices=LATERAL_MODES, default=d.barrier_lateral,
+                   help="lane barrier on the control points (paper) or on the exact Bernstein "
+                        "coefficients of the margin along the spline")
     p.add_argument("--threads", type=int, default=d.num_threads)
     p.add_argument("--out", required=True, type=Path, help="checkpoint prefix")
     p.add_argument("--no-progress", action="store_true")
@@ -71,6 +78,7 @@ def main(argv: list[str] | None = None) -> dict:
         barrier_k=args.barrier_k, track=args.track, gap_min=args.gap_min,
         time_gap=args.time_gap, barrier_samples=args.barrier_samples,
         barrier_control_points=not args.no_barrier_control_points, num_threads=args.threads,
+        barrier_lateral=args.barrier_lateral,
     )
     print(f"{args.data}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
           f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "

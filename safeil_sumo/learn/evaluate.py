@@ -8,6 +8,13 @@ points (``_cp``) and at points sampled along the spline (``_spline``), per const
 ``right``, ``lead``): the worst margin over all plans, the mean of each plan's worst margin, and
 the fraction of plans violating. ``hull_gap_rate`` is the fraction of plans whose control points
 are safe while some spline point is not — where the convex-hull argument fails (curves).
+``_bern``: the same stats of the lane margins' exact degree-6 Bernstein coefficients k = 1..6
+(:func:`safeil_sumo.safety_filter.bernstein_margins`; k = 0 is the car itself, skipped as the
+origin is skipped everywhere else): a lower bound of the margin along the whole spline, exact on
+curves. ``target_violation_rate_{lateral,any}_{cp,bern,spline}``: the fraction of DEMONSTRATED
+targets that each formulation rejects (``lateral`` = left or right line; ``any`` adds the leader at
+the control points, which is already exact); on curves the paper's control-point formulation
+rejects human plans whose spline stays inside the lane, the Bernstein one does not.
 """
 
 from __future__ import annotations
@@ -17,16 +24,19 @@ import numpy as np
 from safeil_sumo import bspline
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.policy import Policy
-from safeil_sumo.safety_filter import DEFAULT_SAFE_SET, SafeSet, plan_margins
+from safeil_sumo.safety_filter import DEFAULT_SAFE_SET, SafeSet, bernstein_margins, plan_margins
 
 CONSTRAINTS = ("left", "right", "lead")
+LATERAL = ("left", "right")
 
 
-def _margin_stats(margins: dict[str, np.ndarray], where: str) -> tuple[dict[str, float], np.ndarray]:
+def _margin_stats(
+    margins: dict[str, np.ndarray], where: str, constraints: tuple[str, ...] = CONSTRAINTS
+) -> tuple[dict[str, float], np.ndarray]:
     """Stats of margins ``(N, M)`` per constraint; also the per-plan "all safe" mask ``(N,)``."""
     out: dict[str, float] = {}
     safe = np.ones(next(iter(margins.values())).shape[0], dtype=bool)
-    for c in CONSTRAINTS:
+    for c in constraints:
         worst = margins[c].min(axis=-1)  # (N,)
         safe &= worst >= 0
         out[f"min_margin_{c}_{where}"] = float(worst.min())
@@ -74,8 +84,27 @@ def plan_metrics(
     out.update(cp_stats)
     out.update(sp_stats)
     out["hull_gap_rate"] = float(np.mean(cp_safe & ~sp_safe))
-    target_stats, _ = _margin_stats(plan_margins(features, targets, horizon, safe_set), "cp")
-    out["target_violation_rate_any_cp"] = target_stats["violation_rate_any_cp"]
+    bern = {k: v[..., 1:] for k, v in bernstein_margins(features, plans, safe_set).items()}
+    bern_stats, _ = _margin_stats(bern, "bern", LATERAL)
+    out.update({k: v for k, v in bern_stats.items() if k != "violation_rate_any_bern"})
+    out["violation_rate_lateral_bern"] = bern_stats["violation_rate_any_bern"]
+    out.update(_target_violation_rates(features, targets, horizon, safe_set, tau_s))
+    return out
+
+
+def _target_violation_rates(
+    features: np.ndarray, targets: np.ndarray, horizon: float, safe_set: SafeSet, tau: np.ndarray
+) -> dict[str, float]:
+    """Fraction of target plans ``(N, 3, 2)`` rejected by each formulation (see module doc)."""
+    cp = plan_margins(features, targets, horizon, safe_set)
+    spline = plan_margins(features, targets, horizon, safe_set, tau)
+    bern = {k: v[..., 1:] for k, v in bernstein_margins(features, targets, safe_set).items()}
+    lead_ok = cp["lead"].min(axis=-1) >= 0  # exact already (linear in tau)
+    out = {}
+    for where, m in (("cp", cp), ("bern", bern), ("spline", spline)):
+        lateral_ok = (m["left"].min(axis=-1) >= 0) & (m["right"].min(axis=-1) >= 0)
+        out[f"target_violation_rate_lateral_{where}"] = float(np.mean(~lateral_ok))
+        out[f"target_violation_rate_any_{where}"] = float(np.mean(~(lateral_ok & lead_ok)))
     return out
 
 

@@ -9,6 +9,15 @@ With margins ``m >= 0`` meaning "safe" (ego frame, x forward, y left, [m]):
 the barrier is ``K sum_i softplus(-m)`` over the three control points (times ``t_i = i T_h / 3``),
 exactly the paper's ``K sum sigma(alpha_yi - (...))`` etc. The bracketed leader margin and the
 extra points sampled along the spline are options beyond the paper, OFF by default.
+
+``BarrierConfig(lateral="bernstein")`` (beyond the paper) replaces the lane terms at the control
+points by ``K sum_k softplus(-b_k)`` over the exact degree-6 Bernstein coefficients ``b_k`` of the
+margin along the spline (:func:`safeil_sumo.bspline.lateral_margin_bernstein`), k = 1..6: all
+``b_k >= 0`` keeps the whole trajectory inside, on curves too, where the control points of a
+lane-following plan sit outside the lane centre. k = 0 is the margin at the plan's origin (the car
+itself): it does not depend on the plan, so it is skipped, as the paper skips the origin. The leader
+term needs no such change: ``d_lead + v_lead t`` is linear in tau, so its control-point margins
+already are its exact Bernstein coefficients.
 ``d_lead`` is bumper to bumper from the ego's front bumper, which is the plan origin, so
 ``x < d_lead(t)`` means "behind the leader's rear".
 
@@ -28,6 +37,7 @@ from safeil_sumo.learn import spline
 
 # Column indices of the features (safeil_sumo.features.FEATURE_NAMES).
 C0L, C1L, C2L, C0R, C1R, C2R, V_X, V_LEAD, D_LEAD = range(9)
+LATERAL_MODES = ("control_points", "bernstein")
 
 
 @dataclass(frozen=True)
@@ -39,7 +49,10 @@ class BarrierConfig:
     n_samples: also constrain this many points at ``tau = j / n_samples, j = 1..n`` on the spline;
     control_points: constrain the control points (the paper). On curves the control points of a
     lane-following plan sit ~``c2 X^2 / 9`` [m] outside the lane centre (X = plan length), so
-    ``control_points=False, n_samples>0`` constrains the trajectory itself instead.
+    ``control_points=False, n_samples>0`` constrains the trajectory itself instead;
+    lateral: "control_points" (the paper: lane terms at the control points, if ``control_points``)
+    or "bernstein" (lane terms on the 6 exact Bernstein coefficients of the margin along the
+    spline, whatever ``control_points`` says, which then applies to the leader term only).
     """
 
     k: float = 1000.0
@@ -48,8 +61,11 @@ class BarrierConfig:
     time_gap: float = 0.0
     n_samples: int = 0
     control_points: bool = True
+    lateral: str = "control_points"
 
     def __post_init__(self) -> None:
+        if self.lateral not in LATERAL_MODES:
+            raise ValueError(f"lateral must be one of {LATERAL_MODES}, got {self.lateral!r}")
         if not self.control_points and self.n_samples <= 0:
             raise ValueError("the barrier needs control points or n_samples > 0")
 
@@ -81,6 +97,16 @@ def lane_margins(
     x, y = points[..., 0], points[..., 1]
     left = _poly(features, C0L, x) - 0.5 * track - y
     right = y - (_poly(features, C0R, x) + 0.5 * track)
+    return left, right
+
+
+def bernstein_lane_margins(
+    features: torch.Tensor, control_points: torch.Tensor, track: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Left and right margins' exact degree-6 Bernstein coefficients ``(N, 7)`` [m] along plans
+    ``(N, 3, 2)``; all >= 0 means the whole spline is inside (k = 0 is the plan's origin)."""
+    left = spline.lateral_margin_bernstein(control_points, features[:, C0L : C0L + 3], -0.5 * track)
+    right = -spline.lateral_margin_bernstein(control_points, features[:, C0R : C0R + 3], 0.5 * track)
     return left, right
 
 
@@ -126,6 +152,12 @@ def barrier_terms(
     )
     left, right = lane_margins(features, points, cfg.track)
     lead = lead_margins(features, points, times, cfg.gap_min, cfg.time_gap)
+    if cfg.lateral == "bernstein":
+        left_b, right_b = bernstein_lane_margins(features, control_points, cfg.track)
+        # the sampled spline points (if any) follow the 3 control points in ``points``
+        first = 3 if cfg.control_points else 0
+        left = torch.cat([left_b[:, 1:], left[:, first:]], dim=1)
+        right = torch.cat([right_b[:, 1:], right[:, first:]], dim=1)
     # F.softplus is ln(1 + e^z), switching to z itself for z > 20 (same value in float32).
     return tuple(cfg.k * F.softplus(-m).sum(dim=1).mean() for m in (left, right, lead))
 

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from safeil_sumo.bspline import ELEVATE_3_TO_6, PRODUCT_WEIGHTS
+
 
 def basis(tau: torch.Tensor, derivative: int = 0) -> torch.Tensor:
     """Basis functions (or their ``derivative``-th derivative wrt tau) at ``tau (M,)`` -> ``(M, 4)``."""
@@ -38,3 +40,20 @@ def evaluate(control_points: torch.Tensor, tau: torch.Tensor, derivative: int = 
     """Spline points ``(..., M, 2)`` at ``tau (M,)`` for plans ``(..., 3, 2)`` (origin implied)."""
     tau = torch.as_tensor(tau, dtype=control_points.dtype)
     return basis(tau, derivative) @ full_coefficients(control_points)
+
+
+def lateral_margin_bernstein(
+    control_points: torch.Tensor, line: torch.Tensor, offset: float | torch.Tensor = 0.0
+) -> torch.Tensor:
+    """Torch twin of :func:`safeil_sumo.bspline.lateral_margin_bernstein`: exact degree-6 Bernstein
+    coefficients ``(..., 7)`` [m] of ``line(x(tau)) + offset - y(tau)`` for plans ``(..., 3, 2)``
+    and lines ``(..., 3)`` = ``[c0, c1, c2]``. Left margin: ``offset = -T/2``; right margin: the
+    negation with ``offset = +T/2``."""
+    full = full_coefficients(control_points)  # (..., 4, 2)
+    elevate = torch.as_tensor(ELEVATE_3_TO_6, dtype=full.dtype)
+    weights = torch.as_tensor(PRODUCT_WEIGHTS, dtype=full.dtype)
+    x, y = full[..., 0], full[..., 1]
+    x6, y6 = x @ elevate.T, y @ elevate.T
+    xx6 = torch.einsum("kij,...i,...j->...k", weights, x, x)
+    c0 = line[..., 0, None] + torch.as_tensor(offset, dtype=full.dtype)[..., None]
+    return c0 + line[..., 1, None] * x6 + line[..., 2, None] * xx6 - y6

@@ -37,6 +37,8 @@ class TrainConfig:
     barrier_k: K [-]; track: vehicle track T [m]; gap_min [m] / time_gap [s]: extra leader margin
     (0 = paper); barrier_samples: extra points along the spline (0 = paper, control points only);
     barrier_control_points: constrain the control points (True = paper);
+    barrier_lateral: "control_points" (paper) | "bernstein" (lane terms on the exact Bernstein
+    coefficients of the margin along the spline, see :mod:`safeil_sumo.learn.losses`);
     num_threads: torch CPU threads while training (fixed for determinism).
     The horizon [s] is taken from the data.
     """
@@ -57,6 +59,7 @@ class TrainConfig:
     barrier_samples: int = 0
     barrier_control_points: bool = True
     num_threads: int = 1
+    barrier_lateral: str = "control_points"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -73,7 +76,7 @@ class TrainConfig:
         return BarrierConfig(
             k=self.barrier_k, track=self.track, gap_min=self.gap_min,
             time_gap=self.time_gap, n_samples=self.barrier_samples,
-            control_points=self.barrier_control_points,
+            control_points=self.barrier_control_points, lateral=self.barrier_lateral,
         )
 
     @staticmethod
