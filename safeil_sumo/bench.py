@@ -3,10 +3,18 @@
 Measures on ``curved500`` (ego + leader, 0.01 s step, monitors on, planner at 10 Hz):
 - bare SUMO stepping of the same scenario (both cars on SUMO's own car-following, no Python
   control) — the floor the closed loop cannot go below;
+- SUMO's share of a closed-loop step: the loop's own libsumo calls (moveToXY, setSpeed, step,
+  leader reads) replayed along a recorded run, no Python maths;
 - our closed loop over libsumo, and the same runner over traci (socket);
-- planner inference per call.
+- planner inference per call: the analytic planner, and a small MLP trained here, numpy vs torch;
+- data processing: NGSIM I-80 pairs import + processing pipeline, rows per second;
+- SafeIL training wall time and samples per second on the pipeline's tuples;
+- peak memory (RSS high-water mark) of a closed-loop run in a fresh process;
+- a curved500 sweep with 1 and 2 workers (wall time, parallel efficiency, worker peak memory),
+  when :mod:`safeil_sumo.experiments.sweep` is present.
 Prints a table and writes it as JSON (``--out``). ``--quick`` shortens every measurement (CI).
-It asserts nothing about time: numbers are reported, never tested.
+It asserts nothing about time: numbers are reported, never tested. A part whose input is
+missing (the NGSIM file) is skipped with a note.
 """
 
 from __future__ import annotations
@@ -14,11 +22,11 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
-
-import numpy as np
 
 from safeil_sumo import policies
 from safeil_sumo.features import planner_features
@@ -26,7 +34,19 @@ from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim import sumo_api
-from safeil_sumo.sim.runner import EGO_ID, LEADER_ID, ROUTE_ID, LoopConfig, run_scenario, sumo_args
+from safeil_sumo.sim.runner import (
+    EGO_ID,
+    LEADER_ID,
+    ROUTE_ID,
+    LoopConfig,
+    _configure,
+    run_scenario,
+    sumo_args,
+)
+from safeil_sumo.sim.vehicle import VehicleParams
+
+REPO = Path(__file__).resolve().parent.parent
+NGSIM_PAIRS = REPO.parent / "shared" / "data" / "ngsim_i80" / "i80_pairs.parquet"
 
 
 def bare_sumo_steps_per_s(net: str, steps: int, backend: str = "libsumo") -> float:
@@ -61,8 +81,52 @@ def closed_loop_steps_per_s(net: str, policy_name: str, max_time_s: float,
     return r.summary["steps_per_s"], r.summary["steps"]
 
 
-def planner_us_per_call(policy_name: str, calls: int) -> float:
-    policy = policies.load(policy_name)
+def sumo_share_us_per_step(net: str, sim_s: float) -> tuple[float, float]:
+    """The closed loop's libsumo calls alone, replayed along a recorded run: ``(us per step,
+    of which moveToXY us)``. The rest of a closed-loop step is our Python."""
+    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.geometry import yaw_to_sumo_angle
+
+    road = load_road(net)
+    sc = safety_scenario(road, 0)
+    log = run_scenario(sc, AnalyticPlanner(), LoopConfig(max_time_s=sim_s)).log
+    traj = list(zip(log["front_x"].tolist(), log["front_y"].tolist(),
+                    [yaw_to_sumo_angle(y) for y in log["yaw"].tolist()], log["v"].tolist()))
+    api = sumo_api.start(sumo_args(sc, LoopConfig()))
+    try:
+        api.route.add(ROUTE_ID, [road.edge_id])
+        lane = str(road.ego_lane)
+        api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=lane,
+                        departPos=f"{road.path_start_s:.1f}", departSpeed="30")
+        api.vehicle.add(LEADER_ID, ROUTE_ID, depart="now", departLane=lane,
+                        departPos=f"{road.path_start_s + 55:.1f}", departSpeed="28")
+        for veh_id in (EGO_ID, LEADER_ID):
+            _configure(api, veh_id, VehicleParams())
+        api.simulation.step()
+        vm, sim = api.vehicle, api.simulation
+        move = 0.0
+        t0 = time.perf_counter()
+        for x, y, angle, v in traj:
+            a = time.perf_counter()
+            vm.moveToXY(EGO_ID, "", -1, x, y, angle, 2)
+            move += time.perf_counter() - a
+            vm.setSpeed(EGO_ID, v)
+            vm.setSpeed(LEADER_ID, 28.0)
+            sim.step()
+            sim.getCollidingVehiclesIDList()
+            vm.getPosition(LEADER_ID)
+            vm.getAngle(LEADER_ID)
+            vm.getSpeed(LEADER_ID)
+        total = time.perf_counter() - t0
+        return total / len(traj) * 1e6, move / len(traj) * 1e6
+    finally:
+        api.close()
+
+
+def planner_us_per_call(policy, calls: int) -> float:
+    """Mean time [us] of ``policy.plan`` on one feature vector (a policy object or a name)."""
+    if isinstance(policy, str):
+        policy = policies.load(policy)
     f = planner_features([1.75, 0.0, 1e-3], [-1.75, 0.0, 1e-3], 30.0, 27.0, 45.0)
     policy.plan(f)
     t0 = time.perf_counter()
@@ -71,40 +135,205 @@ def planner_us_per_call(policy_name: str, calls: int) -> float:
     return (time.perf_counter() - t0) / calls * 1e6
 
 
+def torch_us_per_call(model, calls: int) -> float:
+    """Mean time [us] of one torch forward on one feature vector (no grad, 1 thread)."""
+    import torch
+
+    f = torch.as_tensor(
+        planner_features([1.75, 0.0, 1e-3], [-1.75, 0.0, 1e-3], 30.0, 27.0, 45.0)).float()[None]
+    prev = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.inference_mode():
+            model(f)
+            t0 = time.perf_counter()
+            for _ in range(calls):
+                model(f)
+            return (time.perf_counter() - t0) / calls * 1e6
+    finally:
+        torch.set_num_threads(prev)
+
+
+def data_and_training(quick: bool, rows: dict, notes: list[str], calls: int) -> None:
+    """NGSIM import + pipeline rows/s, SafeIL training, and the trained MLP's inference cost."""
+    if not NGSIM_PAIRS.is_file():
+        notes.append(f"skipped data processing and training: {NGSIM_PAIRS} is missing")
+        return
+    from safeil_sumo.data.importers import import_ngsim_pairs
+    from safeil_sumo.data.pipeline import run_pipeline
+
+    t0 = time.perf_counter()
+    drive = import_ngsim_pairs(NGSIM_PAIRS)
+    t1 = time.perf_counter()
+    tuples, _ = run_pipeline(drive, source="ngsim")
+    t2 = time.perf_counter()
+    rows["ngsim_rows"] = len(drive)
+    rows["ngsim_import_rows_per_s"] = len(drive) / (t1 - t0)
+    rows["pipeline_rows_per_s"] = len(drive) / (t2 - t1)
+    rows["import_plus_pipeline_rows_per_s"] = len(drive) / (t2 - t0)
+    rows["tuples"] = len(tuples)
+
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        notes.append("skipped training and torch inference: torch is not installed")
+        return
+    from safeil_sumo.learn.checkpoint import save_checkpoint
+    from safeil_sumo.learn.inference import load_policy
+    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+
+    train_set, val_set = split_by_maneuver(tuples, 0.2, seed=0)
+    epochs = 3 if quick else 30
+    cfg = TrainConfig(method="safeil", max_epochs=epochs, patience=epochs)
+    t0 = time.perf_counter()
+    model, hist = train(train_set, val_set, cfg, progress=False)
+    wall = time.perf_counter() - t0
+    n_epochs = len(hist.epochs)
+    rows["train_tuples"] = len(train_set)
+    rows["train_epochs"] = n_epochs
+    rows["train_wall_s"] = wall
+    rows["train_samples_per_s"] = len(train_set) * n_epochs / wall
+    with tempfile.TemporaryDirectory() as tmp:
+        weights, _ = save_checkpoint(Path(tmp) / "bench", model, name="bench",
+                                     horizon=float(train_set.horizon), train_config=cfg)
+        mlp = load_policy(weights)
+    rows["planner_mlp_numpy_us_per_call"] = planner_us_per_call(mlp, calls)
+    rows["planner_mlp_torch_us_per_call"] = torch_us_per_call(model, calls // 4)
+
+
+_PEAK_SCRIPT = """
+import resource, sys
+
+def peak_kb():
+    # VmHWM: this process's own RSS high-water mark. ru_maxrss of RUSAGE_SELF would also count
+    # the parent's memory at fork, which Linux carries across exec (here: the bench with torch).
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+from safeil_sumo import policies
+from safeil_sumo.scenarios.catalogue import resolve_net
+from safeil_sumo.scenarios.road import load_road
+from safeil_sumo.scenarios.safety import safety_scenario
+from safeil_sumo.sim.runner import LoopConfig, run_scenario
+road = load_road(resolve_net("curved500"))
+r = run_scenario(safety_scenario(road, 0), policies.load(sys.argv[1]),
+                 LoopConfig(max_time_s=float(sys.argv[2])))
+print(peak_kb())  # KiB
+"""
+
+
+def closed_loop_peak_rss_mb(policy_name: str, sim_s: float) -> float:
+    """RSS high-water mark [MB] of a fresh process that runs one closed-loop scenario."""
+    out = subprocess.run([sys.executable, "-c", _PEAK_SCRIPT, policy_name, str(sim_s)],
+                         check=True, capture_output=True, text=True, cwd=REPO)
+    return int(out.stdout.split()[-1]) / 1024.0
+
+
+_SWEEP_SCRIPT = """
+import json, resource, sys, time
+
+def peak_kb():
+    # VmHWM: this process's own RSS high-water mark. ru_maxrss of RUSAGE_SELF would also count
+    # the parent's memory at fork, which Linux carries across exec (here: the bench with torch).
+    try:
+        for line in open("/proc/self/status"):
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
+n, workers, out, max_time = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
+specs = [ScenarioSpec(net="curved500", index=i, policy="analytic",
+                      max_time_s=None if max_time == "none" else float(max_time))
+         for i in range(n)]
+t0 = time.perf_counter()
+summary = run_sweep(specs, out, workers=workers, progress=False)
+wall = time.perf_counter() - t0
+print(json.dumps({"wall_s": wall, "tasks": len(summary),
+                  "self_kb": peak_kb(),
+                  "children_kb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}))
+"""
+
+
+def sweep_rows(quick: bool, rows: dict, notes: list[str]) -> None:
+    """A curved500 sweep with 1 and 2 workers, each in a fresh process."""
+    if not (REPO / "safeil_sumo" / "experiments" / "sweep.py").is_file():
+        notes.append("skipped the sweep: safeil_sumo/experiments/sweep.py is missing")
+        return
+    n, max_time = (6, "5") if quick else (100, "none")
+    walls = {}
+    for workers in (1, 2):
+        with tempfile.TemporaryDirectory() as tmp:
+            out = subprocess.run(
+                [sys.executable, "-c", _SWEEP_SCRIPT, str(n), str(workers), tmp, max_time],
+                check=True, capture_output=True, text=True, cwd=REPO)
+        res = json.loads(out.stdout.strip().splitlines()[-1])
+        walls[workers] = res["wall_s"]
+        rows[f"sweep{n}_{workers}w_wall_s"] = res["wall_s"]
+        rows[f"sweep{n}_{workers}w_scenarios_per_s"] = n / res["wall_s"]
+        # 1 worker runs in the sweep's own process; 2 workers are forked children
+        # (ru_maxrss of RUSAGE_CHILDREN: the largest child, shared copy-on-write pages included)
+        peak_kb = res["self_kb"] if workers == 1 else res["children_kb"]
+        rows[f"sweep_{workers}w_worker_peak_rss_mb"] = peak_kb / 1024.0
+    rows["sweep_parallel_efficiency_2w"] = walls[1] / (2.0 * walls[2])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m safeil_sumo.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="short measurements (for CI)")
     p.add_argument("--policy", default=None, help="planner in the loop (default: the shipped)")
+    p.add_argument("--no-extras", action="store_true",
+                   help="closed loop and planner only (no data, training, memory, sweep)")
     p.add_argument("--out", type=Path, default=Path("runs/bench.json"))
     args = p.parse_args(argv)
     policy = args.policy or policies.default_policy_name()
     net = str(resolve_net("curved500"))
     sim_s = 5.0 if args.quick else 30.0
+    calls = 2000 if args.quick else 20000
     rows: dict[str, float] = {}
+    notes: list[str] = []
 
     rows["bare_sumo_steps_per_s"] = bare_sumo_steps_per_s(net, int(sim_s / 0.01))
     rows["closed_loop_libsumo_steps_per_s"], _ = closed_loop_steps_per_s(net, policy, sim_s)
     rows["closed_loop_traci_steps_per_s"], _ = closed_loop_steps_per_s(
         net, policy, sim_s / 5, backend="traci")
-    rows["planner_us_per_call"] = planner_us_per_call(policy, 2000 if args.quick else 20000)
+    rows["closed_loop_us_per_step"] = 1e6 / rows["closed_loop_libsumo_steps_per_s"]
+    rows["sumo_share_us_per_step"], rows["sumo_moveToXY_us_per_step"] = (
+        sumo_share_us_per_step(net, sim_s))
+    rows["python_us_per_step"] = rows["closed_loop_us_per_step"] - rows["sumo_share_us_per_step"]
+    rows["planner_us_per_call"] = planner_us_per_call(policy, calls)
+    if policy != "analytic":
+        rows["planner_analytic_us_per_call"] = planner_us_per_call("analytic", calls)
     rows["closed_loop_x_realtime"] = rows["closed_loop_libsumo_steps_per_s"] * 0.01
     rows["bare_over_closed_loop"] = (rows["bare_sumo_steps_per_s"]
                                      / rows["closed_loop_libsumo_steps_per_s"])
     rows["libsumo_over_traci"] = (rows["closed_loop_libsumo_steps_per_s"]
                                   / rows["closed_loop_traci_steps_per_s"])
+    if not args.no_extras:
+        data_and_training(args.quick, rows, notes, calls)
+        rows["closed_loop_peak_rss_mb"] = closed_loop_peak_rss_mb(policy, sim_s)
+        sweep_rows(args.quick, rows, notes)
 
     report = {
-        "machine": {"cpus": _cpus(), "platform": platform.platform(),
-                    "python": platform.python_version()},
-        "policy": policy, "quick": args.quick, "results": rows,
+        "machine": {"cpus": _cpus(), "cpu": _cpu_model(), "platform": platform.platform(),
+                    "python": platform.python_version(), "sumo": sumo_api.version()},
+        "policy": policy, "quick": args.quick, "results": rows, "notes": notes,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     width = max(map(len, rows))
-    print(f"benchmark on curved500, policy {policy} ({'quick' if args.quick else 'full'})")
+    print(f"benchmark on curved500, policy {policy} ({'quick' if args.quick else 'full'}), "
+          f"{_cpus()} CPUs, {_cpu_model()}")
     for k, v in rows.items():
         print(f"  {k:<{width}}  {v:12.1f}")
+    for note in notes:
+        print(f"  note: {note}")
     print(f"written: {args.out}")
     return 0
 
@@ -113,6 +342,16 @@ def _cpus() -> int:
     import os
 
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
 
 
 if __name__ == "__main__":
