@@ -1,4 +1,7 @@
-"""Safety filter: filtered plans satisfy the constraints at their control points, always."""
+"""Safety filter. mode="control_points": filtered plans satisfy the constraints at their control
+points, always. mode="bernstein" (default): the exact Bernstein coefficients of the lane margins
+along the spline are >= 0 (the whole spline is inside, on curves too) whenever the car is inside
+at tau = 0, and lane-following plans on curves are left alone; closed loop on curved500."""
 
 from __future__ import annotations
 
@@ -8,11 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safeil_sumo import bspline
+from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.features import planner_features
 from safeil_sumo.policy import Policy
 from safeil_sumo.safety_filter import (
     SafeSet,
     SafetyFiltered,
+    bernstein_margins,
     lateral_bounds,
     plan_margins,
     project_plan,
@@ -49,7 +54,7 @@ def scenes(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, float, SafeSet]:
 @given(scene=scenes())
 def test_filtered_plans_satisfy_the_constraints(scene) -> None:
     features, plan, horizon, safe_set = scene
-    filtered, acted = project_plan(features, plan, horizon, safe_set)
+    filtered, acted = project_plan(features, plan, horizon, safe_set, mode="control_points")
     margins = plan_margins(features, filtered, horizon, safe_set)
     for name, m in margins.items():
         assert np.all(m >= -TOL), (name, m)
@@ -64,8 +69,8 @@ def test_filtered_plans_satisfy_the_constraints(scene) -> None:
 @given(scene=scenes())
 def test_projection_is_idempotent_and_minimal(scene) -> None:
     features, plan, horizon, safe_set = scene
-    once, _ = project_plan(features, plan, horizon, safe_set)
-    twice, _ = project_plan(features, once, horizon, safe_set)
+    once, _ = project_plan(features, plan, horizon, safe_set, mode="control_points")
+    twice, _ = project_plan(features, once, horizon, safe_set, mode="control_points")
     np.testing.assert_allclose(twice, once, atol=1e-9)
     # x only ever decreases, y moves no further than onto the nearest bound
     assert np.all(once[:, 0] <= plan[:, 0])
@@ -80,7 +85,7 @@ def test_straight_lane_whole_spline_is_safe_after_filtering() -> None:
     f = planner_features([1.8, 0.0, 0.0], [-1.7, 0.0, 0.0], 30.0, 25.0, 30.0)
     plans = rng.uniform([-5, -8], [250, 8], size=(500, 3, 2))
     feats = np.broadcast_to(f, (500, 9))
-    filtered, acted = project_plan(feats, plans, 5.0)
+    filtered, acted = project_plan(feats, plans, 5.0, mode="control_points")
     tau = np.linspace(0, 1, 101)
     m = plan_margins(feats, filtered, 5.0, tau=tau)
     assert all(np.all(v >= -TOL) for v in m.values())
@@ -89,8 +94,10 @@ def test_straight_lane_whole_spline_is_safe_after_filtering() -> None:
 
 def test_infeasible_lane_goes_to_the_middle() -> None:
     f = planner_features([0.5, 0.0, 0.0], [-0.5, 0.0, 0.0], 20.0, 20.0, 50.0)  # 1 m lane
-    filtered, acted = project_plan(f, np.array([[10.0, 3.0], [20.0, 0.0], [30.0, -3.0]]), 4.0)
-    assert acted and np.allclose(filtered[:, 1], 0.0)
+    plan = np.array([[10.0, 3.0], [20.0, 0.0], [30.0, -3.0]])
+    for mode in ("control_points", "bernstein"):
+        filtered, acted = project_plan(f, plan, 4.0, mode=mode)
+        assert acted and np.allclose(filtered[:, 1], 0.0), mode
 
 
 class _Straight:
@@ -104,7 +111,7 @@ class _Straight:
 
 
 def test_wrapper_counts_interventions() -> None:
-    filt = SafetyFiltered(_Straight(), SafeSet(gap_min=2.0))
+    filt = SafetyFiltered(_Straight(), SafeSet(gap_min=2.0), mode="control_points")
     assert isinstance(filt, Policy) and filt.name == "straight+filter" and filt.horizon == 5.0
     wide = planner_features([5.0, 0, 0], [-5.0, 0, 0], 20.0, 20.0, 100.0)
     narrow = planner_features([1.75, 0, 0], [-1.75, 0, 0], 20.0, 20.0, 100.0)
@@ -114,3 +121,150 @@ def test_wrapper_counts_interventions() -> None:
     filt.plan(np.stack([wide, narrow, narrow]))
     assert (filt.calls, filt.interventions) == (5, 3)
     assert filt.intervention_rate == pytest.approx(0.6)
+
+
+# ---------------------------------------------------------------- mode="bernstein" (the default)
+
+def _bernstein_ok(features, plan, safe_set, tol=TOL) -> bool:
+    m = bernstein_margins(features, plan, safe_set)
+    return bool(np.all(m["left"] >= -tol) and np.all(m["right"] >= -tol))
+
+
+def _ego_inside(features, safe_set) -> bool:
+    m = bernstein_margins(features, np.zeros((3, 2)), safe_set)  # coefficient 0: the car itself
+    return bool(m["left"][0] >= 0 and m["right"][0] >= 0)
+
+
+@settings(max_examples=500, deadline=None)
+@given(scene=scenes())
+def test_bernstein_filter_keeps_the_whole_spline_inside(scene) -> None:
+    features, plan, horizon, safe_set = scene
+    filtered, acted = project_plan(features, plan, horizon, safe_set)
+    lead = plan_margins(features, filtered, horizon, safe_set)["lead"]
+    assert np.all(lead >= -TOL)
+    if not _ego_inside(features, safe_set):
+        return  # no plan starting at the car is inside; see test_car_outside_the_band
+    assert _bernstein_ok(features, filtered, safe_set), bernstein_margins(
+        features, filtered, safe_set)
+    tau = np.linspace(0.0, 1.0, 201)
+    sampled = plan_margins(features, filtered, horizon, safe_set, tau)
+    assert np.all(sampled["left"] >= -TOL) and np.all(sampled["right"] >= -TOL)
+    # plans already inside (all 14 coefficients, leader at the control points) are kept exactly
+    if _bernstein_ok(features, plan, safe_set, tol=0.0) and np.all(
+        plan_margins(features, plan, horizon, safe_set)["lead"] >= 0
+    ):
+        assert not acted
+        np.testing.assert_array_equal(filtered, plan)
+    again, _ = project_plan(features, filtered, horizon, safe_set)
+    np.testing.assert_allclose(again, filtered, atol=1e-9)
+
+
+@st.composite
+def following_scenes(draw: st.DrawFn) -> np.ndarray:
+    """Features in the brief's realistic ranges, the car inside its lane, curved lanes included."""
+    width = draw(st.floats(3.0, 4.5))
+    half_band = (width - 1.76) / 2
+    offset = draw(st.floats(-half_band, half_band))
+    c1 = draw(st.floats(-0.05, 0.05))
+    c2 = draw(st.floats(-0.002, 0.002))
+    v_x, v_lead = draw(st.floats(0.0, 40.0)), draw(st.floats(0.0, 40.0))
+    d_lead = draw(st.floats(5.0, 150.0))
+    return planner_features(
+        [width / 2 - offset, c1, c2], [-width / 2 - offset, c1, c2], v_x, v_lead, d_lead
+    )
+
+
+@settings(max_examples=300, deadline=None)
+@given(features=following_scenes())
+def test_lane_following_plans_are_changed_by_less_than_a_few_cm(features) -> None:
+    plan = AnalyticPlanner().plan(features)
+    filtered, _ = project_plan(features, plan, 5.0)
+    x_clipped = not np.array_equal(filtered[:, 0], plan[:, 0])  # the leader clip, as before
+    if not x_clipped:
+        assert np.abs(filtered[:, 1] - plan[:, 1]).max() < 0.03
+    assert _bernstein_ok(features, filtered, SafeSet())
+
+
+def test_lane_following_on_the_paper_curve_is_untouched_by_the_new_filter_only() -> None:
+    """R = 500 m at 30 m/s over 5 s: the control points sit ~2.5 m outside the centre, so the
+    control-point clip bends the plan; the Bernstein filter leaves it exactly as it is."""
+    c2 = 1 / 1000
+    for offset in (-0.5, 0.0, 0.5):
+        f = planner_features([1.75 - offset, 0.0, c2], [-1.75 - offset, 0.0, c2], 30.0, 30.0, 50.0)
+        plan = AnalyticPlanner().plan(f)
+        new, acted = project_plan(f, plan, 5.0)
+        old, acted_old = project_plan(f, plan, 5.0, mode="control_points")
+        assert not acted and np.array_equal(new, plan)
+        assert acted_old and np.abs(old - plan).max() > 1.0
+        tau = np.linspace(0, 1, 101)
+        m_old = plan_margins(f, old, 5.0, tau=tau)
+        assert min(m_old["left"].min(), m_old["right"].min()) < 0  # the old clip leaves the lane
+
+
+def test_drifting_plan_on_a_curve_is_pulled_inside_by_the_smallest_blend() -> None:
+    c2 = 1 / 1000
+    f = planner_features([1.75, 0.0, c2], [-1.75, 0.0, c2], 30.0, 30.0, 100.0)
+    x = 30.0 * bspline.control_point_times(5.0)
+    plan = np.stack([x, np.array([0.5, 1.5, 3.0])], axis=-1)  # straight ahead, drifting left
+    filtered, acted = project_plan(f, plan, 5.0)
+    assert acted and np.array_equal(filtered[:, 0], x)
+    m = bernstein_margins(f, filtered)
+    # the smallest blend: some coefficient ends exactly on the boundary
+    assert min(m["left"].min(), m["right"].min()) == pytest.approx(0.0, abs=1e-9)
+    assert _bernstein_ok(f, filtered, SafeSet())
+
+
+def test_car_outside_the_band_returns_to_the_lane_centre() -> None:
+    """The car is 1 m right of the allowed band: no plan starting at it is inside. The filter
+    returns the lane-centre reference (x kept), whose coefficients k >= 4 are inside."""
+    f = planner_features([3.6, 0.0, 0.001], [-0.1, 0.0, 0.001], 30.0, 30.0, 100.0)  # centre +1.75
+    x = 30.0 * bspline.control_point_times(5.0)
+    plan = np.stack([x, np.zeros(3)], axis=-1)
+    filtered, acted = project_plan(f, plan, 5.0)
+    assert acted and np.array_equal(filtered[:, 0], x)
+    m = bernstein_margins(f, filtered)
+    assert m["right"][0] < 0 and np.all(m["right"][4:] >= -TOL) and np.all(m["left"] >= 0)
+    end = bspline.evaluate(filtered, np.array([1.0]))[0]
+    assert end[1] == pytest.approx(1.75 + 0.001 * end[0] ** 2, abs=1e-6)  # on the lane centre
+
+
+def test_bernstein_filter_on_straight_lanes_is_no_stricter_than_the_control_point_clip() -> None:
+    rng = np.random.default_rng(0)
+    f = planner_features([1.8, 0.0, 0.0], [-1.7, 0.0, 0.0], 30.0, 25.0, 30.0)
+    plans = rng.uniform([-5, -3], [250, 3], size=(2000, 3, 2))
+    feats = np.broadcast_to(f, (2000, 9))
+    _, acted_cp = project_plan(feats, plans, 5.0, mode="control_points")
+    filtered, acted = project_plan(feats, plans, 5.0)
+    assert np.all(acted <= acted_cp) and acted.sum() <= acted_cp.sum()
+    tau = np.linspace(0, 1, 101)
+    m = plan_margins(feats, filtered, 5.0, tau=tau)
+    assert all(np.all(v >= -TOL) for v in m.values())
+    with pytest.raises(ValueError):
+        project_plan(f, plans[0], 5.0, mode="nope")
+    with pytest.raises(ValueError):
+        SafetyFiltered(_Straight(), mode="nope")
+
+
+def test_wrapper_default_is_the_bernstein_mode() -> None:
+    filt = SafetyFiltered(_Straight())
+    assert filt.mode == "bernstein"
+    narrow = planner_features([1.75, 0, 0], [-1.75, 0, 0], 20.0, 20.0, 100.0)
+    out = filt.plan(narrow)
+    assert _bernstein_ok(narrow, out, SafeSet()) and filt.interventions == 1
+
+
+# ---------------------------------------------------------------- closed loop, real libsumo
+
+def test_analytic_planner_with_the_filter_completes_curved500() -> None:
+    """Before the Bernstein mode, the control-point clip made this 0/10 (lane departure)."""
+    from safeil_sumo.scenarios.catalogue import resolve_net
+    from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.scenarios.safety import safety_scenario
+    from safeil_sumo.sim.runner import run_scenario
+
+    road = load_road(resolve_net("curved500"))
+    policy = SafetyFiltered(AnalyticPlanner())
+    s = run_scenario(safety_scenario(road, 0, master_seed=0), policy).summary
+    assert s["completed"] and s["flag"] == "" and s["path_completed"] == 1.0, s
+    assert s["max_abs_lateral_offset_m"] < 0.5
+    assert policy.calls > 100 and policy.intervention_rate < 0.05
