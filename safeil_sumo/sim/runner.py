@@ -11,16 +11,20 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 import numpy as np
 import pandas as pd
 
 from safeil_sumo.features import planner_features
-from safeil_sumo.geometry import rectangle_corners, rectangles_overlap, sumo_angle_to_yaw
-from safeil_sumo.geometry import yaw_to_sumo_angle
+from safeil_sumo.geometry import (
+    rectangle_corners,
+    rectangles_overlap,
+    sumo_angle_to_yaw,
+    yaw_to_sumo_angle,
+)
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import controller as ctl
