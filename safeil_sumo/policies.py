@@ -8,7 +8,7 @@ from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.policy import Policy
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
-SHIPPED = ("safeil", "bc")
+SHIPPED = ("safeil", "safeil_paper", "bc")
 
 
 class PolicyError(ValueError):
@@ -26,7 +26,8 @@ def default_policy_name() -> str:
 
 
 def load(name_or_path: str) -> Policy:
-    """Resolve ``analytic``, ``safeil``, ``bc`` or a path to a ``.safetensors`` checkpoint."""
+    """Resolve ``analytic``, a shipped model (``safeil``, ``safeil_paper``, ``bc``) or a path to a
+    ``.safetensors`` checkpoint."""
     if name_or_path == "analytic":
         return AnalyticPlanner()
     if name_or_path in SHIPPED:

@@ -62,6 +62,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "coefficients of the margin along the spline")
     p.add_argument("--threads", type=int, default=d.num_threads)
     p.add_argument("--out", required=True, type=Path, help="checkpoint prefix")
+    p.add_argument("--name", default=None,
+                   help="policy name stored in the checkpoint (default: the method)")
     p.add_argument("--no-progress", action="store_true")
     return p.parse_args(argv)
 
@@ -87,10 +89,12 @@ def main(argv: list[str] | None = None) -> dict:
     safe_set = SafeSet(track=config.track, gap_min=config.gap_min, time_gap=config.time_gap)
     best = history.epochs[history.best_epoch - 1]
     metrics = {"best_epoch": history.best_epoch,
-               **{k: v for k, v in best.items() if k.startswith(("train_", "val_"))}}
+               **{k: v for k, v in best.items() if k.startswith(("train_", "val_"))},
+               # which maneuvers were held out: a replay can then check "left out of training"
+               "data": str(args.data), "val_maneuvers": sorted(map(str, va.maneuvers))}
     # Save, then evaluate the checkpoint through the numpy policy the closed loop will use.
     save_checkpoint(
-        args.out, model, name=args.method, horizon=tuples.horizon, train_config=config,
+        args.out, model, name=args.name or args.method, horizon=tuples.horizon, train_config=config,
         data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
     )
     policy = load_policy(args.out)
@@ -99,7 +103,7 @@ def main(argv: list[str] | None = None) -> dict:
             om = open_loop_metrics(policy, part, safe_set)
             metrics.update({f"open_loop_{split}_{k}": om[k] for k in SUMMARY_KEYS})
     save_checkpoint(
-        args.out, model, name=args.method, horizon=tuples.horizon, train_config=config,
+        args.out, model, name=args.name or args.method, horizon=tuples.horizon, train_config=config,
         data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
     )
     print(f"trained {args.method} in {history.seconds:.1f} s ({len(history.epochs)} epochs, "
