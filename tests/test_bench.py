@@ -1,0 +1,17 @@
+"""The benchmark suite runs in quick mode (CI). It asserts nothing about time: only that every
+figure is measured and written."""
+
+import json
+import math
+
+from safeil_sumo.bench import main
+
+
+def test_bench_quick_runs_and_writes_every_figure(tmp_path):
+    out = tmp_path / "bench.json"
+    assert main(["--quick", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    results = report["results"]
+    for key in ("bare_sumo_steps_per_s", "closed_loop_libsumo_steps_per_s",
+                "closed_loop_traci_steps_per_s"):
+        assert key in results and math.isfinite(results[key]) and results[key] > 0
