@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 from safeil_sumo import policies
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.features import planner_features
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
@@ -326,7 +327,8 @@ def main(argv: list[str] | None = None) -> int:
         "policy": policy, "quick": args.quick, "results": rows, "notes": notes,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    with atomic_path(args.out) as tmp:
+        tmp.write_text(json.dumps(report, indent=2) + "\n")
     width = max(map(len, rows))
     print(f"benchmark on curved500, policy {policy} ({'quick' if args.quick else 'full'}), "
           f"{_cpus()} CPUs, {_cpu_model()}")

@@ -25,6 +25,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.data.pipeline import PipelineConfig, run_pipeline
 from safeil_sumo.data.recorder import RecordingConfig, record_drive
 from safeil_sumo.data.report import plot_maneuver, write_report
@@ -81,7 +82,8 @@ def main(argv: list[str] | None = None) -> None:
         "collision_steps": int(sum(s["collision_steps"] for s in stats.values())),
         "recordings": [stats[i] for i in range(args.drivers)],
     }
-    args.out.with_name("drivers.json").write_text(json.dumps(summary, indent=2) + "\n")
+    with atomic_path(args.out.with_name("drivers.json")) as tmp:
+        tmp.write_text(json.dumps(summary, indent=2) + "\n")
     print(f"{args.out}: {len(drives)} rows, {args.drivers} drivers, {hours:.2f} h of driving "
           f"({km:.0f} km) in {wall:.0f} s wall on {args.workers} workers "
           f"({hours * 3600 / wall:.0f}x real time); leader in "

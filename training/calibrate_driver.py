@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import differential_evolution
 
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.data.importers import import_ngsim_pairs, import_openacc_files
 from safeil_sumo.data.synthetic import (
     DESIRED_SPEED_MEAN_MPS,
@@ -320,7 +321,8 @@ def main(argv: list[str] | None = None) -> None:
             "lane changes": "rule-based overtaking / keep right, assumed thresholds",
         },
     }
-    args.out.write_text(json.dumps(out, indent=2) + "\n")
+    with atomic_path(args.out) as tmp:
+        tmp.write_text(json.dumps(out, indent=2) + "\n")
     plot(pairs, fits, median, series, lat_sim, lat, dt_ngsim, args.plot)
     print(f"wrote {args.out} and {args.plot} in {time.perf_counter() - t0:.1f} s")
 

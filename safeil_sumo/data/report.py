@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.bspline import evaluate
 from safeil_sumo.data.pipeline import PipelineReport
 from safeil_sumo.data.tuples import Tuples
@@ -20,9 +21,8 @@ from safeil_sumo.features import FEATURE_NAMES
 
 def _atomic_write(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def report_markdown(report: dict, title: str = "Data processing report") -> str:

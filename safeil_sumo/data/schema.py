@@ -41,6 +41,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from safeil_sumo.atomic import atomic_path
+
 LINE_COLUMNS = tuple(f"{side}_c{i}" for side in ("left", "right") for i in range(4))
 REQUIRED_COLUMNS = (
     "recording_id", "time", "x", "y", "yaw", "v_x", *LINE_COLUMNS, "lead_x", "lead_y",
@@ -147,7 +149,8 @@ def validate_drive(df: pd.DataFrame, source: str = "<frame>") -> pd.DataFrame:
     bad_t = np.r_[False, (dt <= 0) & ~starts[1:]]
     if bad_t.any():
         i = _first(bad_t)
-        raise _fail(source, "time", i, f"time does not increase ({t[i - 1]!r} -> {t[i]!r})")
+        raise _fail(source, "time", i, f"time does not increase ({float(t[i - 1])!r} -> "
+                    f"{float(t[i])!r})")
 
     v = out["v_x"].to_numpy()
     if np.median(np.abs(v)) > MAX_MEDIAN_SPEED:
@@ -202,6 +205,5 @@ def save_drive(df: pd.DataFrame, path: str | Path) -> None:
     path = Path(path)
     clean = validate_drive(df, str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    pq.write_table(pa.Table.from_pandas(clean, preserve_index=False), tmp)
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        pq.write_table(pa.Table.from_pandas(clean, preserve_index=False), tmp)

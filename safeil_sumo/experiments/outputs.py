@@ -19,6 +19,8 @@ from typing import Any, Iterable
 
 import pandas as pd
 
+from safeil_sumo.atomic import atomic_path
+
 
 def git_commit(repo: Path | None = None) -> str:
     """The current git commit of the project (``"unknown"`` outside a checkout)."""
@@ -79,9 +81,9 @@ def _clean(value: Any) -> Any:
 
 def write_json(path: Path, data: Any) -> None:
     """Write JSON atomically (temporary file in the same folder, then rename)."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(_clean(data), indent=2, default=_json_default) + "\n")
-    os.replace(tmp, path)
+    text = json.dumps(_clean(data), indent=2, default=_json_default) + "\n"
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 class AtomicDir:
@@ -110,7 +112,10 @@ class AtomicDir:
 
 
 def write_tables(folder: Path, logs: pd.DataFrame, summaries: pd.DataFrame) -> None:
-    """``steps.parquet`` (all scenarios, ``scenario`` column), ``summary.csv`` and ``.json``."""
-    logs.to_parquet(folder / "steps.parquet", index=False)
-    summaries.to_csv(folder / "summary.csv", index=False)
+    """``steps.parquet`` (all scenarios, ``scenario`` column), ``summary.csv`` and ``.json``,
+    each written atomically."""
+    with atomic_path(folder / "steps.parquet") as tmp:
+        logs.to_parquet(tmp, index=False)
+    with atomic_path(folder / "summary.csv") as tmp:
+        summaries.to_csv(tmp, index=False)
     write_json(folder / "summary.json", summaries.to_dict(orient="records"))

@@ -348,21 +348,26 @@ def write_replay(result: ReplayResult, folder: Path, manifest_extra: dict | None
     ``human.parquet``, ``compared.parquet`` (policies at the human timestamps), ``replay.png``,
     ``manifest.json`` into ``folder`` (the net is already in ``folder/net`` when the replay ran
     there)."""
+    from safeil_sumo.atomic import atomic_path
     from safeil_sumo.experiments import outputs
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    result.metrics.to_csv(folder / "metrics.csv", index=False)
+    with atomic_path(folder / "metrics.csv") as tmp:
+        result.metrics.to_csv(tmp, index=False)
     outputs.write_json(folder / "metrics.json", {
         "maneuver": {k: v for k, v in result.info.items() if k != "config"},
         "policies": result.metrics.to_dict(orient="records"),
     })
     logs = [r.log.assign(policy=name) for name, r in result.rollouts.items()]
     if logs:
-        pd.concat(logs, ignore_index=True).to_parquet(folder / "steps.parquet", index=False)
-        pd.concat([c.assign(policy=name) for name, c in result.compared.items()],
-                  ignore_index=True).to_parquet(folder / "compared.parquet", index=False)
-    result.human.to_parquet(folder / "human.parquet", index=False)
+        with atomic_path(folder / "steps.parquet") as tmp:
+            pd.concat(logs, ignore_index=True).to_parquet(tmp, index=False)
+        with atomic_path(folder / "compared.parquet") as tmp:
+            pd.concat([c.assign(policy=name) for name, c in result.compared.items()],
+                      ignore_index=True).to_parquet(tmp, index=False)
+    with atomic_path(folder / "human.parquet") as tmp:
+        result.human.to_parquet(tmp, index=False)
     plot_replay(result, folder / "replay.png")
     config = {"maneuver_id": result.maneuver_id, **result.info["config"],
               "summaries": [r.summary for r in result.rollouts.values()],

@@ -17,13 +17,13 @@ import dataclasses
 import hashlib
 import json
 import math
-import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.features import FEATURE_NAMES, N_FEATURES
 
 if TYPE_CHECKING:
@@ -96,9 +96,8 @@ def _jsonable(value: Any) -> Any:
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def save_checkpoint(
