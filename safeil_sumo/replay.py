@@ -23,6 +23,7 @@ from pathlib import Path
 import pandas as pd
 
 from safeil_sumo import policies as pol
+from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import SchemaError, load_drive
 from safeil_sumo.experiments import outputs
@@ -62,16 +63,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--maneuver", default="auto",
                    help="a maneuver id (see --list), 'longest', or 'auto' (the window most like "
                         "the paper's: 115 km/h, 58.6 m gap)")
-    p.add_argument("--start", type=float, default=0.0,
+    p.add_argument("--start", type=finite_float, default=0.0,
                    help="start [s] within the maneuver (ignored with auto)")
-    p.add_argument("--duration", type=float, default=rp.PAPER_DURATION_S,
+    p.add_argument("--duration", type=finite_float, default=rp.PAPER_DURATION_S,
                    help="replay length [s] (default 11, the paper's; 0 = to the maneuver end)")
     p.add_argument("--policies", nargs="+", default=["analytic"],
                    help="analytic, safeil, bc and/or checkpoint paths (default analytic)")
-    p.add_argument("--rate", type=float, default=10.0,
+    p.add_argument("--rate", type=finite_float, default=10.0,
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
-    p.add_argument("--plan-rate", type=float, default=10.0, help="re-planning rate [Hz]")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
+    p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--list", action="store_true", help="list the maneuvers and exit")
     p.add_argument("--out", type=Path, default=None, help="results folder "
                    "(default runs/replay_<maneuver>)")

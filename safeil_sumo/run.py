@@ -9,6 +9,7 @@ policy, prints a summary table and writes a results folder:
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from dataclasses import asdict
 from pathlib import Path
@@ -17,6 +18,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from safeil_sumo import policies
+from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import NetworkError, load_road
@@ -38,12 +40,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="analytic, safeil, bc or a checkpoint .safetensors "
                         f"(default: {policies.default_policy_name()})")
     p.add_argument("--scenarios", type=int, default=10, help="number of scenarios (default 10)")
-    p.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
-    p.add_argument("--leader-speed", type=float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
+    p.add_argument("--leader-speed", type=finite_float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
                    metavar=("LOW", "HIGH"), help="leader speed range [m/s] (default 25 32)")
-    p.add_argument("--ego-speed", type=float, default=30.0, help="ego initial speed [m/s]")
-    p.add_argument("--gap", type=float, default=50.0, help="initial bumper gap [m]")
-    p.add_argument("--plan-rate", type=float, default=10.0, help="re-planning rate [Hz]")
+    p.add_argument("--ego-speed", type=finite_float, default=30.0, help="ego initial speed [m/s]")
+    p.add_argument("--gap", type=finite_float, default=50.0, help="initial bumper gap [m]")
+    p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
     p.add_argument("--backend", choices=("libsumo", "traci"), default="libsumo")
     p.add_argument("--gui", action="store_true", help="watch in sumo-gui (implies traci)")
@@ -53,11 +55,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.scenarios < 1:
         p.error("--scenarios must be >= 1")
-    if args.ego_speed < 0 or args.gap <= 0:
-        p.error("--ego-speed must be >= 0 and --gap > 0")
+    if not 0 <= args.ego_speed <= 100 or args.gap <= 0:
+        p.error("--ego-speed must be in [0, 100] m/s and --gap > 0")
     lo, hi = args.leader_speed
-    if not 0 <= lo <= hi:
-        p.error("--leader-speed needs 0 <= LOW <= HIGH")
+    if not 0 <= lo <= hi <= 100:
+        p.error("--leader-speed needs 0 <= LOW <= HIGH <= 100 m/s")
     if not 0 < args.plan_rate <= 100:
         p.error("--plan-rate must be in (0, 100] Hz")
     if args.gui:
@@ -88,7 +90,10 @@ def main(argv: list[str] | None = None) -> int:
     except (NetworkError, policies.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    out = args.out or Path("runs") / f"{args.net if not args.net.endswith('.xml') else road.net_path.stem}_{policy.name}_seed{args.seed}"
+    net_name = args.net if not args.net.endswith(".xml") else road.net_path.stem
+    # the policy name comes from a checkpoint's sidecar: keep it one plain folder name
+    default_name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{net_name}_{policy.name}_seed{args.seed}")
+    out = args.out or Path("runs") / default_name
     loop = LoopConfig(plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
                       backend=args.backend, gui=args.gui)
     vehicle = VehicleParams()

@@ -19,6 +19,7 @@ import itertools
 import sys
 from pathlib import Path
 
+from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
 from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
 
@@ -35,23 +36,30 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
                    help="analytic, safeil, bc or .safetensors checkpoints (default: safeil bc)")
     p.add_argument("--scenarios", type=int, default=10, help="scenarios per cell (default 10)")
-    p.add_argument("--seed", type=int, default=0, help="master seed (default 0)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
     p.add_argument("--leader", choices=("constant", "braking"), default="constant",
                    help="leader: constant speed, or constant then braking (default constant)")
-    p.add_argument("--leader-speed", type=float, nargs=2, default=(25.0, 32.0),
+    p.add_argument("--leader-speed", type=finite_float, nargs=2, default=(25.0, 32.0),
                    metavar=("LOW", "HIGH"), help="leader (initial) speed range [m/s] (25 32)")
-    p.add_argument("--brake-time", type=float, default=5.0, help="braking starts at [s] (5)")
-    p.add_argument("--brake-decel", type=float, default=3.0, help="braking decel. [m/s^2] (3)")
-    p.add_argument("--brake-to", type=float, default=15.0, help="speed after braking [m/s] (15)")
-    p.add_argument("--ego-speed", type=float, default=30.0, help="ego initial speed [m/s] (30)")
+    p.add_argument("--brake-time", type=finite_float, default=5.0, help="braking starts at [s] (5)")
+    p.add_argument("--brake-decel", type=finite_float, default=3.0,
+                   help="braking decel. [m/s^2] (3)")
+    p.add_argument("--brake-to", type=finite_float, default=15.0,
+                   help="speed after braking [m/s] (15)")
+    p.add_argument("--ego-speed", type=finite_float, default=30.0,
+                   help="ego initial speed [m/s] (30)")
     gap = p.add_mutually_exclusive_group()
-    gap.add_argument("--gap", type=float, default=None, help="initial bumper gap [m] (50)")
-    gap.add_argument("--gap-range", type=float, nargs=2, default=None, metavar=("LOW", "HIGH"),
+    gap.add_argument("--gap", type=finite_float, default=None, help="initial bumper gap [m] (50)")
+    gap.add_argument("--gap-range", type=finite_float, nargs=2, default=None,
+                     metavar=("LOW", "HIGH"),
                      help="initial gap drawn uniformly per scenario [m]")
-    p.add_argument("--lane-noise", type=float, default=0.0, help="camera c0 noise std [m] (0)")
-    p.add_argument("--radar-noise", type=float, default=0.0, help="radar range noise std [m] (0)")
-    p.add_argument("--plan-rate", type=float, default=10.0, help="re-planning rate [Hz] (10)")
-    p.add_argument("--max-time", type=float, default=None,
+    p.add_argument("--lane-noise", type=finite_float, default=0.0,
+                   help="camera c0 noise std [m] (0)")
+    p.add_argument("--radar-noise", type=finite_float, default=0.0,
+                   help="radar range noise std [m] (0)")
+    p.add_argument("--plan-rate", type=finite_float, default=10.0,
+                   help="re-planning rate [Hz] (10)")
+    p.add_argument("--max-time", type=finite_float, default=None,
                    help="scenario duration [s] (default: 2x the path at the ego speed + 10 s)")
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
     p.add_argument("--safety-filter", choices=tuple(FILTER_OPTIONS), default="off",
@@ -60,7 +68,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="local worker processes, one simulation each (default 1: in-process)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:port) to run the tasks on")
-    p.add_argument("--task-timeout", type=float, default=None,
+    p.add_argument("--task-timeout", type=finite_float, default=None,
                    help="local workers: kill a task after this many seconds [s]")
     p.add_argument("--out", type=Path, default=Path("runs/sweep"),
                    help="results folder (default runs/sweep); rerun to resume")

@@ -12,8 +12,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 from pathlib import Path
 
+from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
 from safeil_sumo.learn.evaluate import open_loop_metrics
@@ -38,22 +40,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, type=Path, help="Tuples Parquet file")
     p.add_argument("--method", choices=("safeil", "bc"), default=d.method)
-    p.add_argument("--val-fraction", type=float, default=0.2,
+    p.add_argument("--val-fraction", type=finite_float, default=0.2,
                    help="fraction of maneuvers left out for validation (default 0.2)")
     p.add_argument("--val-maneuvers", default=None,
                    help="comma-separated maneuver ids to leave out (overrides --val-fraction)")
-    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--seed", type=nonnegative_int, default=d.seed)
     p.add_argument("--epochs", type=int, default=d.max_epochs, help="max epochs")
     p.add_argument("--patience", type=int, default=d.patience)
-    p.add_argument("--batch-size", type=int, default=d.batch_size, help="0 = full batch")
-    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--batch-size", type=nonnegative_int, default=d.batch_size,
+                   help="0 = full batch")
+    p.add_argument("--lr", type=finite_float, default=d.lr)
     p.add_argument("--hidden", default=",".join(map(str, d.hidden)), help="e.g. 64,64")
     p.add_argument("--activation", choices=("tanh", "relu"), default=d.activation)
-    p.add_argument("--barrier-k", type=float, default=d.barrier_k)
-    p.add_argument("--track", type=float, default=d.track, help="vehicle track T [m]")
-    p.add_argument("--gap-min", type=float, default=d.gap_min, help="extra leader gap [m]")
-    p.add_argument("--time-gap", type=float, default=d.time_gap, help="extra leader gap [s]")
-    p.add_argument("--barrier-samples", type=int, default=d.barrier_samples,
+    p.add_argument("--barrier-k", type=finite_float, default=d.barrier_k)
+    p.add_argument("--track", type=finite_float, default=d.track, help="vehicle track T [m]")
+    p.add_argument("--gap-min", type=finite_float, default=d.gap_min, help="extra leader gap [m]")
+    p.add_argument("--time-gap", type=finite_float, default=d.time_gap, help="extra leader gap [s]")
+    p.add_argument("--barrier-samples", type=nonnegative_int, default=d.barrier_samples,
                    help="also constrain this many points along the spline (0 = paper)")
     p.add_argument("--no-barrier-control-points", action="store_true",
                    help="do not constrain the control points (needs --barrier-samples > 0)")
@@ -65,16 +68,35 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--name", default=None,
                    help="policy name stored in the checkpoint (default: the method)")
     p.add_argument("--no-progress", action="store_true")
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if not 0 <= args.val_fraction < 1:
+        p.error("--val-fraction must be in [0, 1)")
+    if args.epochs < 1 or args.patience < 1 or args.threads < 1:
+        p.error("--epochs, --patience and --threads must be >= 1")
+    if not args.lr > 0 or args.barrier_k < 0 or not args.track > 0:
+        p.error("--lr and --track must be > 0, --barrier-k >= 0")
+    if args.gap_min < 0 or args.time_gap < 0:
+        p.error("--gap-min and --time-gap must be >= 0")
+    try:
+        hidden = tuple(int(h) for h in args.hidden.split(",") if h.strip())
+    except ValueError:
+        p.error(f"--hidden needs comma-separated layer widths, got {args.hidden!r}")
+    if not hidden or min(hidden) < 1:
+        p.error(f"--hidden needs widths >= 1, got {args.hidden!r}")
+    args.hidden = hidden
+    return args
 
 
 def main(argv: list[str] | None = None) -> dict:
+    """Train and save; returns the metrics. Bad input raises ValueError (see :func:`cli`)."""
     args = parse_args(argv)
     tuples = Tuples.load(args.data)
+    if len(tuples) == 0:
+        raise ValueError(f"{args.data}: no tuples to train on")
     val_ids = args.val_maneuvers.split(",") if args.val_maneuvers else None
     tr, va = split_by_maneuver(tuples, args.val_fraction, args.seed, val_ids)
     config = TrainConfig(
-        method=args.method, hidden=tuple(int(h) for h in args.hidden.split(",") if h),
+        method=args.method, hidden=args.hidden,
         activation=args.activation, lr=args.lr, batch_size=args.batch_size,
         max_epochs=args.epochs, patience=args.patience, seed=args.seed,
         barrier_k=args.barrier_k, track=args.track, gap_min=args.gap_min,
@@ -113,5 +135,15 @@ def main(argv: list[str] | None = None) -> dict:
     return metrics
 
 
+def cli(argv: list[str] | None = None) -> int:
+    """Exit code: 0 trained, 2 bad input (one line on stderr, no checkpoint written)."""
+    try:
+        main(argv)
+    except ValueError as exc:  # Tuples.load, split, config, training data
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
 if __name__ == "__main__":
-    main()
+    sys.exit(cli())

@@ -11,6 +11,7 @@ The horizon [s] and sample rate [Hz] are stored in the Parquet schema metadata.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +20,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.features import FEATURE_NAMES, N_FEATURES
 
 
@@ -98,13 +100,16 @@ class Tuples:
             {**(table.schema.metadata or {}), b"safeil": json.dumps(meta).encode()}
         )
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        pq.write_table(table, tmp)
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            pq.write_table(table, tmp)
 
     @staticmethod
     def load(path: str | Path) -> Tuples:
+        """Read a tuples file; ``ValueError`` naming the file (and column, row) if it is not one
+        (unreadable, truncated, no/malformed metadata, missing column, non-numeric or NaN/inf)."""
         path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"{path}: no such tuples file")
         try:
             table = pq.read_table(path)
         except (OSError, pa.ArrowInvalid) as exc:
@@ -112,9 +117,30 @@ class Tuples:
         raw = (table.schema.metadata or {}).get(b"safeil")
         if raw is None:
             raise ValueError(f"{path}: Parquet file has no safeil tuples metadata")
-        meta = json.loads(raw)
+        try:
+            meta = json.loads(raw)
+            horizon, rate = float(meta["horizon_s"]), float(meta["rate_hz"])
+        except (ValueError, TypeError, KeyError) as exc:
+            raise ValueError(f"{path}: malformed safeil tuples metadata ({exc!r})") from exc
+        if not (math.isfinite(horizon) and horizon > 0 and math.isfinite(rate) and rate > 0):
+            raise ValueError(f"{path}: horizon {horizon} s and rate {rate} Hz must be > 0")
         df = table.to_pandas()
         h = sum(1 for c in df.columns if c.startswith("fx_"))
+        numeric = (["t", *(f"f_{n}" for n in FEATURE_NAMES)]
+                   + [f"cp_{a}{i + 1}" for i in range(3) for a in "xy"]
+                   + [f"f{a}_{k + 1}" for k in range(h) for a in "xy"])
+        missing = [c for c in ["maneuver_id", "source", *numeric] if c not in df.columns]
+        if h == 0 or missing:
+            raise ValueError(f"{path}: missing tuples column(s) {missing or ['fx_1', 'fy_1']}")
+        for col in numeric:  # a bad value names its column and row, never trains silently
+            try:
+                vals = df[col].to_numpy(float)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{path}, column {col!r}: not numeric ({exc})") from exc
+            bad = ~np.isfinite(vals)
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise ValueError(f"{path}, column {col!r}, row {i}: non-finite value {vals[i]}")
         features = df[[f"f_{n}" for n in FEATURE_NAMES]].to_numpy(float)
         cp = np.stack(
             [df[[f"cp_x{i + 1}", f"cp_y{i + 1}"]].to_numpy(float) for i in range(3)], axis=1
@@ -124,5 +150,5 @@ class Tuples:
         )
         return Tuples(
             features, cp, fut, df["maneuver_id"].to_numpy(str), df["source"].to_numpy(str),
-            df["t"].to_numpy(float), float(meta["horizon_s"]), float(meta["rate_hz"]),
+            df["t"].to_numpy(float), horizon, rate,
         )

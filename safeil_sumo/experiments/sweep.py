@@ -28,14 +28,17 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
 
 LEADER_KINDS = ("constant", "braking")
 TIMING_FIELDS = ("wall_time_s", "steps_per_s", "task_wall_time_s")  # differ run to run
 STATUS_OK = "ok"
+MAX_SPEED_MPS = 100.0  # [m/s] above: a unit mistake (SUMO refuses such departures)
 STATUS_FAILED = "failed"
 
 TaskFn = Callable[["ScenarioSpec"], dict]
@@ -82,13 +85,21 @@ class ScenarioSpec:
         if self.max_time_s is not None:
             set_(self, "max_time_s", float(self.max_time_s))
 
-        if self.index < 0:
-            raise ValueError(f"scenario index must be >= 0, got {self.index}")
+        if self.index < 0 or self.master_seed < 0:
+            raise ValueError(f"scenario index and master seed must be >= 0, got {self.index}, "
+                             f"{self.master_seed}")
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.type == "float"}
+        values |= {"leader_speed_range_mps": self.leader_speed_range_mps,
+                   "initial_gap_m": self.gap_range_m, "max_time_s": self.max_time_s or 1.0}
+        for name, value in values.items():  # NaN passes every < / > check below
+            if not all(math.isfinite(v) for v in np.atleast_1d(value)):
+                raise ValueError(f"{name} must be finite (no NaN/inf), got {value}")
         if self.leader_kind not in LEADER_KINDS:
             raise ValueError(f"leader kind must be one of {LEADER_KINDS}, got {self.leader_kind!r}")
         lo, hi = self.leader_speed_range_mps
-        if not 0 <= lo <= hi:
-            raise ValueError(f"leader speed range needs 0 <= low <= high, got {lo}, {hi}")
+        if not 0 <= lo <= hi <= MAX_SPEED_MPS:
+            raise ValueError(f"leader speed range needs 0 <= low <= high <= {MAX_SPEED_MPS:g} "
+                             f"m/s, got {lo}, {hi}")
         glo, ghi = self.gap_range_m
         if not 0 < glo <= ghi:
             raise ValueError(f"initial gap needs 0 < low <= high, got {glo}, {ghi}")
@@ -96,8 +107,11 @@ class ScenarioSpec:
                 self.brake_time_s < 0 or self.brake_decel_mps2 <= 0 or self.brake_to_mps < 0):
             raise ValueError("braking leader needs brake time >= 0 s, deceleration > 0 "
                                  "m/s^2 and final speed >= 0 m/s")
-        if self.ego_speed_mps < 0 or self.lane_noise_c0_m < 0 or self.radar_noise_m < 0:
-            raise ValueError("ego speed and sensor noise must be >= 0")
+        if not 0 <= self.ego_speed_mps <= MAX_SPEED_MPS:
+            raise ValueError(f"ego speed must be in [0, {MAX_SPEED_MPS:g}] m/s, "
+                             f"got {self.ego_speed_mps}")
+        if self.lane_noise_c0_m < 0 or self.radar_noise_m < 0:
+            raise ValueError("sensor noise must be >= 0")
         if not self.plan_rate_hz > 0:
             raise ValueError(f"plan rate must be > 0 Hz, got {self.plan_rate_hz}")
         if self.max_time_s is not None and not self.max_time_s > 0:
@@ -355,7 +369,8 @@ def run_sweep(
         bar.close()
 
     summary = collect(specs, out_dir)
-    summary.to_csv(out_dir / "summary.csv", index=False)
+    with atomic_path(out_dir / "summary.csv") as tmp:  # a Ctrl-C here keeps the old summary
+        summary.to_csv(tmp, index=False)
     outputs.write_json(out_dir / "summary.json", summary.to_dict(orient="records"))
     config = {"tasks": len(specs), "run_now": len(todo), "workers": workers,
               "scheduler": scheduler, "retry_failed": retry_failed,
