@@ -72,6 +72,7 @@ def _fail(source: str, column: str | None, row: int | None, what: str) -> Schema
         where.append(f"column {column!r}")
     if row is not None:
         where.append(f"row {row}")
+    what = " ".join(what.split())  # reader messages may span lines: keep one line
     return SchemaError(f"{': '.join([', '.join(where), what])}")
 
 
@@ -197,7 +198,17 @@ def load_drive(path: str | Path) -> pd.DataFrame:
         kind = "CSV" if is_csv else "Parquet"
         raise _fail(name, None, None, f"not a readable {kind} file (truncated or wrong "
                     f"format?): {exc}") from exc
+    if suffixes.endswith(".csv") and not _ends_with_newline(path):
+        # a CSV cut mid-row still parses (its last value shortened): refuse it
+        raise _fail(name, None, len(df) - 1, "the file does not end with a newline "
+                    "(truncated?)")
     return validate_drive(df, name)
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with open(path, "rb") as f:
+        f.seek(-1, 2)
+        return f.read(1) in (b"\n", b"\r")
 
 
 def save_drive(df: pd.DataFrame, path: str | Path) -> None:

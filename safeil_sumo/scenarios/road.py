@@ -125,7 +125,12 @@ def load_road(net_path: str | Path, edge_id: str | None = None, ego_lane: int | 
     lanes.sort(key=lambda lane: lane.index)
 
     sidecar = net_path.with_name(net_path.name.removesuffix(".net.xml") + ".track.json")
-    meta: dict = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+    try:
+        meta: dict = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
+    except (OSError, ValueError) as exc:
+        raise NetworkError(f"{sidecar}: unreadable track sidecar ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise NetworkError(f"{sidecar}: track sidecar is not a JSON object")
     if ego_lane is None:
         ego_lane = int(meta.get("ego_lane", len(lanes) // 2))
     if not 0 <= ego_lane < len(lanes):
