@@ -202,8 +202,8 @@ def data_and_training(quick: bool, rows: dict, notes: list[str], calls: int) -> 
     rows["planner_mlp_torch_us_per_call"] = torch_us_per_call(model, calls // 4)
 
 
-_PEAK_SCRIPT = """
-import resource, sys
+_PEAK_KB = """
+import resource
 
 def peak_kb():
     # VmHWM: this process's own RSS high-water mark. ru_maxrss of RUSAGE_SELF would also count
@@ -215,6 +215,10 @@ def peak_kb():
     except OSError:
         pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+"""
+
+_PEAK_SCRIPT = _PEAK_KB + """
+import sys
 from safeil_sumo import policies
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
@@ -234,19 +238,8 @@ def closed_loop_peak_rss_mb(policy_name: str, sim_s: float) -> float:
     return int(out.stdout.split()[-1]) / 1024.0
 
 
-_SWEEP_SCRIPT = """
-import json, resource, sys, time
-
-def peak_kb():
-    # VmHWM: this process's own RSS high-water mark. ru_maxrss of RUSAGE_SELF would also count
-    # the parent's memory at fork, which Linux carries across exec (here: the bench with torch).
-    try:
-        for line in open("/proc/self/status"):
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+_SWEEP_SCRIPT = _PEAK_KB + """
+import json, sys, time
 from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
 n, workers, out, max_time = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 specs = [ScenarioSpec(net="curved500", index=i, policy="analytic",

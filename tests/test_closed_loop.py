@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
+from bad_policies import DriftLeft, blind_cruise
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.geometry import rectangle_corners
@@ -14,23 +15,6 @@ from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.leaders import constant
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
-
-
-class DriftLeft:
-    """A deliberately bad policy: keeps its speed but plans 1 m further left every 5 s."""
-
-    name = "drift_left"
-    horizon = 5.0
-
-    def plan(self, features):
-        v = features[6]
-        t = np.array([5 / 3, 10 / 3, 5.0])
-        return np.stack([v * t, 1.0 * t / 5.0], axis=1)
-
-
-def blind_cruise() -> AnalyticPlanner:
-    """Lane keeping at a fixed 30 m/s that ignores the leader."""
-    return AnalyticPlanner(name="blind", k_gap=0.0, k_speed=0.0, v_desired_mps=30.0)
 
 
 def circle_fit(points: np.ndarray) -> tuple[np.ndarray, float]:

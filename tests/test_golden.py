@@ -16,23 +16,12 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
+from bad_policies import DriftLeft, blind_cruise
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.leaders import constant, piecewise
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
-
-
-class DriftLeft:
-    """A deliberately bad policy: keeps its speed but plans 1 m further left every 5 s."""
-
-    name = "drift_left"
-    horizon = 5.0
-
-    def plan(self, features):
-        v = features[6]
-        t = np.array([5 / 3, 10 / 3, 5.0])
-        return np.stack([v * t, 1.0 * t / 5.0], axis=1)
 
 
 def _noisy_analytic(road):
@@ -55,7 +44,7 @@ def _drift_left(road):
 def _blind_collision(road):
     """Lane keeping at 30 m/s that ignores a 25 m/s leader: TTC flag, then a collision."""
     sc = Scenario("blind", road, constant(25.0), 30.0, 50.0, seed=2)
-    planner = AnalyticPlanner(name="blind", k_gap=0.0, k_speed=0.0, v_desired_mps=30.0)
+    planner = blind_cruise()
     return sc, planner, LoopConfig(max_time_s=12.0)
 
 

@@ -1,0 +1,22 @@
+"""Deliberately bad policies for closed-loop tests (shared by the monitor and golden tests)."""
+
+import numpy as np
+
+from safeil_sumo.analytic import AnalyticPlanner
+
+
+class DriftLeft:
+    """Keeps its speed but plans 1 m further left every 5 s."""
+
+    name = "drift_left"
+    horizon = 5.0
+
+    def plan(self, features):
+        v = features[6]
+        t = np.array([5 / 3, 10 / 3, 5.0])
+        return np.stack([v * t, 1.0 * t / 5.0], axis=1)
+
+
+def blind_cruise() -> AnalyticPlanner:
+    """Lane keeping at a fixed 30 m/s that ignores the leader."""
+    return AnalyticPlanner(name="blind", k_gap=0.0, k_speed=0.0, v_desired_mps=30.0)
