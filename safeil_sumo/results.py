@@ -109,9 +109,11 @@ def safety(out: Path, work: Path, workers: int, seed: int) -> dict:
                       "mean_path_completed": float(sub["path_completed"].mean()),
                       "flags": sub["flag"].fillna("").replace("", "none").value_counts().to_dict()}
     summary["paper_safeil"] = {"completed": sum(v == 1 for v in PAPER_SAFEIL), "n": 10,
-                               "mean_path_completed": float(np.mean(PAPER_SAFEIL))}
+                               "mean_path_completed": float(np.mean(PAPER_SAFEIL)),
+                               "flags": {"TTC (scenarios 4, 6, 7: leader near 25 m/s)": 3}}
     summary["paper_bc"] = {"completed": sum(v == 1 for v in PAPER_BC), "n": 10,
-                           "mean_path_completed": float(np.mean(PAPER_BC))}
+                           "mean_path_completed": float(np.mean(PAPER_BC)),
+                           "flags": {"lane exit / lost leader": 10}}
     return summary
 
 
@@ -533,7 +535,9 @@ def write_readme(out: Path, facts: dict) -> None:
                                    "tuples": "tuples", "seeds": "seeds", "rate": "completed",
                                    "path": "mean path", "gap": "replay gap RMSE [m]"}),
                   "", "![efficiency](sample_efficiency.png)", ""]
-    lines += [f"Wall time of the last regeneration: {facts.get('wall_time_s', 0):.0f} s.", ""]
+    walls = facts.get("section_wall_s", {})
+    lines += ["Wall time per section on 2 cores (the last time each ran; a resumed sweep is "
+              "faster): " + ", ".join(f"{k} {v:.0f} s" for k, v in walls.items()) + ".", ""]
     tmp = out / ".README.md.tmp"
     tmp.write_text("\n".join(lines))
     tmp.replace(out / "README.md")
@@ -568,26 +572,37 @@ def main(argv: list[str] | None = None) -> int:
     facts: dict = {"versions": outputs.versions(), "git_commit": outputs.git_commit(),
                    "args": {k: (str(v) if isinstance(v, Path) else v)
                             for k, v in vars(args).items()}}
+    walls: dict[str, float] = {}
+
+    def timed(name: str, fn, *a):
+        t = time.perf_counter()
+        value = fn(*a)
+        walls[name] = round(time.perf_counter() - t, 1)
+        return value
+
     if "safety" in args.only:
-        facts["safety"] = safety(args.out, args.work, args.workers, args.seed)
+        facts["safety"] = timed("safety", safety, args.out, args.work, args.workers, args.seed)
     if "large" in args.only:
-        facts["large"] = large(args.out, args.work, args.workers, args.seed,
+        facts["large"] = timed("large", large, args.out, args.work, args.workers, args.seed,
                                args.large).to_dict(orient="records")
     if "grids" in args.only:
-        facts["grids"] = {k: v.to_dict(orient="records") for k, v in
-                          grids(args.out, args.work, args.workers, args.seed, args.grid).items()}
+        facts["grids"] = {k: v.to_dict(orient="records") for k, v in timed(
+            "grids", grids, args.out, args.work, args.workers, args.seed, args.grid).items()}
     if "replay" in args.only:
-        facts["replay"] = replay(args.out, args.work, args.seed).to_dict(orient="records")
+        facts["replay"] = timed("replay", replay, args.out, args.work,
+                                args.seed).to_dict(orient="records")
     if "openloop" in args.only:
-        facts["openloop"] = openloop(args.out, args.work).to_dict(orient="records")
+        facts["openloop"] = timed("openloop", openloop, args.out,
+                                  args.work).to_dict(orient="records")
     if "efficiency" in args.only:
-        facts["efficiency"] = efficiency(args.out, args.work, args.workers, args.fractions,
-                                         args.seeds, args.efficiency_scenarios
-                                         ).to_dict(orient="records")
+        facts["efficiency"] = timed("efficiency", efficiency, args.out, args.work, args.workers,
+                                    args.fractions, args.seeds, args.efficiency_scenarios
+                                    ).to_dict(orient="records")
     facts["wall_time_s"] = time.perf_counter() - t0
     previous = args.out / "facts.json"
     merged = json.loads(previous.read_text()) if previous.is_file() else {}
-    merged.update(facts)
+    merged.setdefault("section_wall_s", {}).update(walls)
+    merged.update({k: v for k, v in facts.items() if k != "section_wall_s"})
     outputs.write_json(previous, merged)
     write_readme(args.out, json.loads(previous.read_text()))
     print(f"results in {args.out} ({facts['wall_time_s']:.0f} s)")
