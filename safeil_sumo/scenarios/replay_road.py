@@ -33,10 +33,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import shutil
-import subprocess
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -45,17 +43,16 @@ import numpy as np
 import pandas as pd
 from scipy.signal import savgol_filter
 
-from safeil_sumo.scenarios.network import find_netconvert
+from safeil_sumo.scenarios import network
 from safeil_sumo.scenarios.road import NetworkError, Road, load_road
 
-EDGE_ID = "road"
-ROUTE_ID = "r0"
+EDGE_ID = network.EDGE_ID
+ROUTE_ID = network.ROUTE_ID
 REPLAY_GENERATOR_VERSION = 1
 # Chord tolerance [m] of the SUMO shape: ~18 m chords at R = 800 m. Finer than network.py's 10 cm
 # because here the SUMO polygon is also what the camera and the monitors measure against.
 REPLAY_SAGITTA_M = 0.05
 LANE_WIDTH_RANGE_M = (2.8, 4.5)  # [m] plausible lane widths; outside = a bad lane-line fit
-NET_PRECISION = 3  # decimals of coordinates in the .net.xml
 
 _NAME_RE = re.compile(r"[^A-Za-z0-9_-]+")
 
@@ -290,58 +287,6 @@ def safe_name(text: str) -> str:
     return _NAME_RE.sub("_", text).strip("_") or "replay"
 
 
-def _nodes_xml(shape: np.ndarray) -> str:
-    (xs, ys), (xe, ye) = shape[0], shape[-1]
-    return ("<nodes>\n"
-            f'    <node id="start" x="{xs:.4f}" y="{ys:.4f}"/>\n'
-            f'    <node id="end" x="{xe:.4f}" y="{ye:.4f}"/>\n'
-            "</nodes>\n")
-
-
-def _edges_xml(shape: np.ndarray, lanes: int, width: float, speed: float) -> str:
-    shape_txt = " ".join(f"{x:.4f},{y:.4f}" for x, y in shape)
-    return ("<edges>\n"
-            f'    <edge id="{EDGE_ID}" from="start" to="end" numLanes="{lanes}" '
-            f'width="{width:.4f}" speed="{speed}" spreadType="center"\n'
-            f'          shape="{shape_txt}"/>\n'
-            "</edges>\n")
-
-
-def _routes_xml() -> str:
-    vtype = ('    <vType id="{id}" vClass="passenger" length="4.54" width="1.76" minGap="2.50" '
-             'maxSpeed="50.00" speedFactor="1" speedDev="0" color="{color}"/>\n')
-    return ("<routes>\n" + vtype.format(id="ego", color="1,0,0")
-            + vtype.format(id="leader", color="0,0.4,1")
-            + f'    <route id="{ROUTE_ID}" edges="{EDGE_ID}"/>\n'
-            + "    <!-- vehicles are added by the replay -->\n</routes>\n")
-
-
-def _sumocfg_xml(name: str) -> str:
-    return ("<configuration>\n    <input>\n"
-            f'        <net-file value="{name}.net.xml"/>\n'
-            f'        <route-files value="{name}.rou.xml"/>\n'
-            "    </input>\n    <time>\n"
-            '        <step-length value="0.01"/>\n'
-            "    </time>\n</configuration>\n")
-
-
-def _netconvert(name: str, work: Path) -> str:
-    cmd = [find_netconvert(), "--node-files", f"{name}.nod.xml", "--edge-files",
-           f"{name}.edg.xml", "--output-file", f"{name}.net.xml",
-           "--offset.disable-normalization", "true", "--no-turnarounds", "true",
-           "--precision", str(NET_PRECISION)]
-    try:
-        proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=120,
-                              check=False)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        raise NetworkError(f"netconvert could not run for replay road {name!r}: {exc}") from exc
-    if proc.returncode != 0 or not (work / f"{name}.net.xml").is_file():
-        lines = [ln for ln in (proc.stderr or "").splitlines() if ln.strip()] or ["(no message)"]
-        raise NetworkError(f"netconvert failed for replay road {name!r}: {lines[0]}")
-    m = re.search(r"Eclipse SUMO netconvert (\S+)", (work / f"{name}.net.xml").read_text())
-    return m.group(1) if m else "unknown"
-
-
 def build_replay_net(rows: pd.DataFrame, out_dir: Path, name: str,
                      config: ReplayRoadConfig = ReplayRoadConfig(),
                      meta: dict | None = None) -> Path:
@@ -357,12 +302,12 @@ def build_replay_net(rows: pd.DataFrame, out_dir: Path, name: str,
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{name}-build-", dir=out_dir.parent))
     try:
-        (tmp / f"{name}.nod.xml").write_text(_nodes_xml(geo.shape))
-        (tmp / f"{name}.edg.xml").write_text(
-            _edges_xml(geo.shape, config.lanes, geo.lane_width_m, config.speed_limit_mps))
-        version = _netconvert(name, tmp)
-        (tmp / f"{name}.rou.xml").write_text(_routes_xml())
-        (tmp / f"{name}.sumocfg").write_text(_sumocfg_xml(name))
+        (tmp / f"{name}.nod.xml").write_text(network.nodes_xml(geo.shape))
+        (tmp / f"{name}.edg.xml").write_text(network.edges_xml(
+            geo.shape, config.lanes, geo.lane_width_m, config.speed_limit_mps))
+        version = network.run_netconvert(name, tmp, "safeil_sumo.scenarios.replay_road")
+        (tmp / f"{name}.rou.xml").write_text(network.routes_xml())
+        (tmp / f"{name}.sumocfg").write_text(network.sumocfg_xml(name))
         net = tmp / f"{name}.net.xml"
         road = load_road(net, edge_id=EDGE_ID, ego_lane=config.ego_lane)
         if len(road.lanes) != config.lanes:
@@ -385,24 +330,11 @@ def build_replay_net(rows: pd.DataFrame, out_dir: Path, name: str,
             "netconvert_version": version, **(meta or {}),
         }
         (tmp / f"{name}.track.json").write_text(json.dumps(sidecar, indent=2) + "\n")
-        _publish(tmp, out_dir, [name + sfx for sfx in (".nod.xml", ".edg.xml", ".net.xml",
+        network.publish(tmp, out_dir, [name + sfx for sfx in (".nod.xml", ".edg.xml", ".net.xml",
                                                         ".rou.xml", ".sumocfg", ".track.json")])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir / f"{name}.net.xml"
-
-
-def _publish(tmp: Path, out_dir: Path, names: list[str]) -> None:
-    """The finished folder replaces ``out_dir`` at once, or file by file (track.json last)."""
-    os.chmod(tmp, 0o755)  # mkdtemp makes it private
-    try:
-        os.rename(tmp, out_dir)
-        return
-    except OSError:
-        if not out_dir.is_dir():
-            raise
-    for name in names:
-        os.replace(tmp / name, out_dir / name)
 
 
 def load_replay_road(net_path: Path) -> tuple[Road, LocalFrame]:

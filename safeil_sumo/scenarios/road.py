@@ -29,7 +29,7 @@ class Lane:
     lane_id: str
     index: int
     width: float
-    sumo_length: float  # SUMO's lane length [m]; lane positions scale by sumo_length / centre.length
+    sumo_length: float  # SUMO's lane length [m]; positions scale by sumo_length / centre.length
     centre: Polyline
     left_boundary: Polyline
     right_boundary: Polyline
@@ -71,7 +71,9 @@ def _parse_shape(text: str) -> np.ndarray:
     return arr[keep]
 
 
-def load_road(net_path: str | Path, edge_id: str | None = None, ego_lane: int | None = None) -> Road:
+def load_road(
+    net_path: str | Path, edge_id: str | None = None, ego_lane: int | None = None
+) -> Road:
     """Read the lanes of ``edge_id`` (default: the net's only non-internal edge).
 
     Raises :class:`NetworkError` with a one-line reason for a missing file, malformed XML, an
@@ -108,7 +110,9 @@ def load_road(net_path: str | Path, edge_id: str | None = None, ego_lane: int | 
             centre = Polyline(shape)
             width = float(el.get("width", 3.2))  # SUMO's default lane width [m]
         except (ValueError, TypeError) as exc:
-            raise NetworkError(f"{net_path}: lane {el.get('id')!r} has a bad shape ({exc})") from exc
+            raise NetworkError(
+                f"{net_path}: lane {el.get('id')!r} has a bad shape ({exc})"
+            ) from exc
         lanes.append(
             Lane(
                 lane_id=el.get("id", ""),
