@@ -25,6 +25,12 @@ class VehicleDomain(Protocol):
     def getAngle(self, vehID: str) -> float: ...
     def getSpeed(self, vehID: str) -> float: ...
     def getIDList(self) -> Sequence[str]: ...
+    # used by the synthetic-drive recorder (data/recorder.py) to see the surrounding traffic
+    def getLanePosition(self, vehID: str) -> float: ...
+    def subscribeContext(self, objectID: str, domain: int, dist: float,
+                         varIDs: Sequence[int] = ..., begin: float = ...,
+                         end: float = ...) -> None: ...
+    def getContextSubscriptionResults(self, objectID: str) -> dict: ...
 
 
 class SimulationDomain(Protocol):
@@ -37,12 +43,18 @@ class RouteDomain(Protocol):
     def add(self, routeID: str, edges: Sequence[str]) -> None: ...
 
 
+class LaneDomain(Protocol):
+    def getLastStepVehicleIDs(self, laneID: str) -> Sequence[str]: ...
+
+
 class SumoApi(Protocol):
-    """The subset of the TraCI API the closed loop uses (libsumo and traci both satisfy it)."""
+    """The subset of the TraCI API the closed loop and the recorder use (libsumo and traci both
+    satisfy it)."""
 
     vehicle: VehicleDomain
     simulation: SimulationDomain
     route: RouteDomain
+    lane: LaneDomain
 
     def close(self) -> None: ...
 
