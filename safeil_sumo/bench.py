@@ -50,18 +50,23 @@ REPO = Path(__file__).resolve().parent.parent
 NGSIM_PAIRS = REPO.parent / "shared" / "data" / "ngsim_i80" / "i80_pairs.parquet"
 
 
+def _add_two_cars(api, road) -> None:
+    """Ego at the test path's start at 30 m/s, leader 55 m ahead at 28 m/s, on the ego lane."""
+    api.route.add(ROUTE_ID, [road.edge_id])
+    lane = str(road.ego_lane)
+    api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=lane,
+                    departPos=f"{road.path_start_s:.1f}", departSpeed="30")
+    api.vehicle.add(LEADER_ID, ROUTE_ID, depart="now", departLane=lane,
+                    departPos=f"{road.path_start_s + 55:.1f}", departSpeed="28")
+
+
 def bare_sumo_steps_per_s(net: str, steps: int, backend: str = "libsumo") -> float:
     """SUMO stepping the same two-car scenario with its own car-following only."""
     road = load_road(net)
     sc = safety_scenario(road, 0)
     api = sumo_api.start(sumo_args(sc, LoopConfig()), backend=backend)
     try:
-        api.route.add(ROUTE_ID, [road.edge_id])
-        lane = str(road.ego_lane)
-        api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=lane,
-                        departPos=f"{road.path_start_s:.1f}", departSpeed="30")
-        api.vehicle.add(LEADER_ID, ROUTE_ID, depart="now", departLane=lane,
-                        departPos=f"{road.path_start_s + 55:.1f}", departSpeed="28")
+        _add_two_cars(api, road)
         api.simulation.step()
         t0 = time.perf_counter()
         for _ in range(steps):
@@ -95,12 +100,7 @@ def sumo_share_us_per_step(net: str, sim_s: float) -> tuple[float, float]:
                     [yaw_to_sumo_angle(y) for y in log["yaw"].tolist()], log["v"].tolist()))
     api = sumo_api.start(sumo_args(sc, LoopConfig()))
     try:
-        api.route.add(ROUTE_ID, [road.edge_id])
-        lane = str(road.ego_lane)
-        api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=lane,
-                        departPos=f"{road.path_start_s:.1f}", departSpeed="30")
-        api.vehicle.add(LEADER_ID, ROUTE_ID, depart="now", departLane=lane,
-                        departPos=f"{road.path_start_s + 55:.1f}", departSpeed="28")
+        _add_two_cars(api, road)
         for veh_id in (EGO_ID, LEADER_ID):
             _configure(api, veh_id, VehicleParams())
         api.simulation.step()

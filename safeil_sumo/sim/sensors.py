@@ -62,10 +62,23 @@ def current_lane_index(road: Road, ego_xy: np.ndarray) -> int:
 
     Off the road the outermost lane is returned: a camera keeps reporting the nearest lines.
     """
-    ref = road.lanes[road.ego_lane]
-    _, d = ref.centre.project(ego_xy)
-    k = int(np.rint(float(d) / ref.width))
-    return int(np.clip(road.ego_lane + k, 0, len(road.lanes) - 1))
+    _, d = road.lanes[road.ego_lane].centre.project(ego_xy)
+    return _lane_index_at(road, float(d))
+
+
+def _lane_index_at(road: Road, d: float) -> int:
+    """Lane index at signed offset ``d`` [m] from the ego lane's centre (clipped to the road)."""
+    k = int(np.rint(d / road.lanes[road.ego_lane].width))
+    return min(max(road.ego_lane + k, 0), len(road.lanes) - 1)
+
+
+def _add_lane_noise(left: np.ndarray, right: np.ndarray, config: SensorConfig,
+                    rng: np.random.Generator | None) -> None:
+    """Seeded camera error on c0, c1, in place; it moves both lines together."""
+    if rng is not None and (config.lane_noise_c0_m > 0 or config.lane_noise_c1 > 0):
+        noise = rng.normal(size=2) * [config.lane_noise_c0_m, config.lane_noise_c1]
+        left[:2] += noise
+        right[:2] += noise
 
 
 def fit_boundary(
@@ -125,10 +138,7 @@ def camera_lane_lines(
     lane = road.lanes[current_lane_index(road, ego_xy)]
     left = fit_boundary(lane.left_boundary, ego_xy, ego_yaw, config)
     right = fit_boundary(lane.right_boundary, ego_xy, ego_yaw, config)
-    if rng is not None and (config.lane_noise_c0_m > 0 or config.lane_noise_c1 > 0):
-        noise = rng.normal(size=2) * [config.lane_noise_c0_m, config.lane_noise_c1]
-        left[:2] += noise  # a camera's error moves both lines together
-        right[:2] += noise
+    _add_lane_noise(left, right, config, rng)
     return left, right, lane.index
 
 
@@ -215,17 +225,11 @@ class LaneCamera:
         """Like :func:`camera_lane_lines` (same arguments, same result)."""
         road, config = self.road, self.config
         x, y = float(ego_xy[0]), float(ego_xy[1])
-        # current_lane_index
-        ref = road.lanes[road.ego_lane]
-        _, d = self._project(ref.centre, x, y)
-        k = int(np.rint(d / ref.width))
-        lane = road.lanes[min(max(road.ego_lane + k, 0), len(road.lanes) - 1)]
+        _, d = self._project(road.lanes[road.ego_lane].centre, x, y)
+        lane = road.lanes[_lane_index_at(road, d)]
         left = _fit_from(lane.left_boundary, self._project(lane.left_boundary, x, y)[0],
                          ego_xy, ego_yaw, config)
         right = _fit_from(lane.right_boundary, self._project(lane.right_boundary, x, y)[0],
                           ego_xy, ego_yaw, config)
-        if rng is not None and (config.lane_noise_c0_m > 0 or config.lane_noise_c1 > 0):
-            noise = rng.normal(size=2) * [config.lane_noise_c0_m, config.lane_noise_c1]
-            left[:2] += noise  # a camera's error moves both lines together
-            right[:2] += noise
+        _add_lane_noise(left, right, config, rng)
         return left, right, lane.index
