@@ -38,7 +38,8 @@ SUMMARY_KEYS = (
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     d = TrainConfig()
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", required=True, type=Path, help="Tuples Parquet file")
+    p.add_argument("--data", required=True, type=Path, nargs="+",
+                   help="Tuples Parquet file(s); several are concatenated (e.g. sources)")
     p.add_argument("--method", choices=("safeil", "bc"), default=d.method)
     p.add_argument("--val-fraction", type=finite_float, default=0.2,
                    help="fraction of maneuvers left out for validation (default 0.2)")
@@ -63,6 +64,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--barrier-lateral", choices=LATERAL_MODES, default=d.barrier_lateral,
                    help="lane barrier on the control points (paper) or on the exact Bernstein "
                         "coefficients of the margin along the spline")
+    p.add_argument("--output-mode", choices=("absolute", "residual"), default=d.output_mode,
+                   help="control points (paper) or their residual to constant-speed motion")
+    p.add_argument("--longitudinal-only-sources", nargs="*", default=list(d.longitudinal_only_sources),
+                   help="sources whose lateral (y) targets are not learned (e.g. openacc: no lanes)")
+    p.add_argument("--envelope-weight", type=finite_float, default=d.envelope_weight,
+                   help="weight of the barrier on states sampled across the operating envelope "
+                        "(0 = paper)")
+    p.add_argument("--envelope-batch", type=int, default=d.envelope_batch,
+                   help="envelope states per minibatch")
     p.add_argument("--threads", type=int, default=d.num_threads)
     p.add_argument("--out", required=True, type=Path, help="checkpoint prefix")
     p.add_argument("--name", default=None,
@@ -90,9 +100,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> dict:
     """Train and save; returns the metrics. Bad input raises ValueError (see :func:`cli`)."""
     args = parse_args(argv)
-    tuples = Tuples.load(args.data)
+    tuples = Tuples.concat([Tuples.load(path) for path in args.data])
+    data_label = ",".join(map(str, args.data))
     if len(tuples) == 0:
-        raise ValueError(f"{args.data}: no tuples to train on")
+        raise ValueError(f"{data_label}: no tuples to train on")
     val_ids = args.val_maneuvers.split(",") if args.val_maneuvers else None
     tr, va = split_by_maneuver(tuples, args.val_fraction, args.seed, val_ids)
     config = TrainConfig(
@@ -102,9 +113,11 @@ def main(argv: list[str] | None = None) -> dict:
         barrier_k=args.barrier_k, track=args.track, gap_min=args.gap_min,
         time_gap=args.time_gap, barrier_samples=args.barrier_samples,
         barrier_control_points=not args.no_barrier_control_points, num_threads=args.threads,
-        barrier_lateral=args.barrier_lateral,
+        barrier_lateral=args.barrier_lateral, output_mode=args.output_mode,
+        longitudinal_only_sources=tuple(args.longitudinal_only_sources),
+        envelope_weight=args.envelope_weight, envelope_batch=args.envelope_batch,
     )
-    print(f"{args.data}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
+    print(f"{data_label}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
           f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "
           f"horizon {tuples.horizon:g} s")
     model, history = train(tr, va, config, progress=not args.no_progress)
@@ -113,7 +126,7 @@ def main(argv: list[str] | None = None) -> dict:
     metrics = {"best_epoch": history.best_epoch,
                **{k: v for k, v in best.items() if k.startswith(("train_", "val_"))},
                # which maneuvers were held out: a replay can then check "left out of training"
-               "data": str(args.data), "val_maneuvers": sorted(map(str, va.maneuvers))}
+               "data": data_label, "val_maneuvers": sorted(map(str, va.maneuvers))}
     # Save, then evaluate the checkpoint through the numpy policy the closed loop will use.
     save_checkpoint(
         args.out, model, name=args.name or args.method, horizon=tuples.horizon, train_config=config,

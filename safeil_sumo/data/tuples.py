@@ -69,6 +69,28 @@ class Tuples:
             self.maneuver_id[mask], self.source[mask], self.t[mask], self.horizon, self.rate_hz,
         )
 
+    @staticmethod
+    def concat(parts: list[Tuples]) -> Tuples:
+        """One set from several (e.g. sources); horizons and rates must agree."""
+        if not parts:
+            raise ValueError("nothing to concatenate")
+        first = parts[0]
+        for p in parts[1:]:
+            if not (np.isclose(p.horizon, first.horizon) and np.isclose(p.rate_hz, first.rate_hz)
+                    and p.future.shape[1] == first.future.shape[1]):
+                raise ValueError(
+                    f"tuples disagree: horizon {p.horizon} vs {first.horizon} s, rate "
+                    f"{p.rate_hz} vs {first.rate_hz} Hz, {p.future.shape[1]} vs "
+                    f"{first.future.shape[1]} future samples"
+                )
+        cat = np.concatenate
+        return Tuples(
+            cat([p.features for p in parts]), cat([p.control_points for p in parts]),
+            cat([p.future for p in parts]), cat([p.maneuver_id.astype(str) for p in parts]),
+            cat([p.source.astype(str) for p in parts]), cat([p.t for p in parts]),
+            first.horizon, first.rate_hz,
+        )
+
     @property
     def maneuvers(self) -> np.ndarray:
         """Sorted unique maneuver ids."""

@@ -246,7 +246,9 @@ def load_model(path: str | Path) -> tuple[PlannerMLP, dict]:
     arrays, meta = load_checkpoint(path)
     arch = meta["architecture"]
     try:
-        model = PlannerMLP(arch["hidden"], arch["activation"])
+        model = PlannerMLP(arch["hidden"], arch["activation"],
+                           arch.get("output_mode", "absolute"),
+                           arch.get("horizon_s", meta["horizon_s"]))
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from exc
     model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in arrays.items()})

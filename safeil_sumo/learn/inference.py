@@ -53,6 +53,14 @@ class MLPPolicy:
             for wt, bi in zip(self._wt[:-1], self._b[:-1], strict=True)
         )
         self._tanh = self.activation == "tanh"
+        # residual output mode: x_i += v_x * t_i (constant-speed motion added back)
+        mode = architecture.get("output_mode", "absolute")
+        if mode not in ("absolute", "residual"):
+            raise CheckpointError(f"unsupported output mode {mode!r}")
+        self._residual_times = (
+            np.arange(1, 4) * (float(architecture.get("horizon_s", horizon)) / 3.0)
+            if mode == "residual" else None
+        )
 
     def _act(self, h: np.ndarray) -> None:
         if self._tanh:
@@ -74,7 +82,10 @@ class MLPPolicy:
             h = buf
         out = np.dot(h, self._wt[-1])  # fresh array: the caller may keep the plan
         out += self._b[-1]
-        return out.reshape(3, 2)
+        out = out.reshape(3, 2)
+        if self._residual_times is not None:
+            out[:, 0] += f[6] * self._residual_times
+        return out
 
     def plan(self, features: np.ndarray) -> np.ndarray:
         """Control points ``(..., 3, 2)`` [m] for ``features (..., 9)``."""
@@ -92,7 +103,10 @@ class MLPPolicy:
             self._act(h)
         out = h @ self._wt[-1]
         out += self._b[-1]
-        return out.reshape(f.shape[:-1] + (3, 2))
+        out = out.reshape(f.shape[:-1] + (3, 2))
+        if self._residual_times is not None:
+            out[..., 0] += f[..., 6, None] * self._residual_times
+        return out
 
 
 def load_policy(path: str | Path, name: str | None = None) -> MLPPolicy:

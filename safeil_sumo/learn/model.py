@@ -7,6 +7,13 @@ mean/std from the training data) are buffers, so they travel with the weights in
 Activation: ``tanh`` by default. The plan is then a smooth (C-infinity) function of the features,
 so small sensor changes give small plan changes in the closed loop; ReLU is available.
 Output order of the 6 outputs: ``(x1, y1, x2, y2, x3, y3)``, i.e. ``control_points.reshape(N, 6)``.
+
+Output modes: ``absolute`` (the paper: the network's de-normalised outputs are the control points)
+and ``residual`` (beyond the paper): the network predicts the control points MINUS constant-speed
+motion, ``x_i - v_x t_i`` with ``t_i = i T_h / 3`` (y unchanged). The x control points are
+~``v t`` (up to ~170 m) while the leader response is a few metres on top; in absolute mode that
+response is a tiny share of the output variance the MSE sees, in residual mode it is most of it.
+The constant-speed part is added back inside ``forward``, so callers always get control points.
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from safeil_sumo.features import N_FEATURES
 
 N_OUTPUTS = 6
 ACTIVATIONS = ("tanh", "relu")
+OUTPUT_MODES = ("absolute", "residual")
 # A feature that is (nearly) constant in the training data keeps std 1 instead of exploding.
 MIN_STD = 1e-6
 
@@ -44,10 +52,17 @@ def scaling_stats(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class PlannerMLP(nn.Module):
     """MLP ``9 -> hidden... -> 6`` with input/output scaling buffers; outputs metres ``(N, 3, 2)``."""
 
-    def __init__(self, hidden: Sequence[int] = (64, 64), activation: str = "tanh") -> None:
+    def __init__(
+        self, hidden: Sequence[int] = (64, 64), activation: str = "tanh",
+        output_mode: str = "absolute", horizon: float = 5.0,
+    ) -> None:
         super().__init__()
+        if output_mode not in OUTPUT_MODES:
+            raise ValueError(f"output_mode must be one of {OUTPUT_MODES}, got {output_mode!r}")
         self.hidden = tuple(int(h) for h in hidden)
         self.activation = activation
+        self.output_mode = output_mode
+        self.horizon = float(horizon)  # T_h [s]: times of the control points in residual mode
         layers: list[nn.Module] = []
         width = N_FEATURES
         for h in self.hidden:
@@ -67,7 +82,10 @@ class PlannerMLP(nn.Module):
     def set_scaling(self, features: np.ndarray, control_points: np.ndarray) -> None:
         """Set the buffers from training data: ``features (N, 9)``, ``control_points (N, 3, 2)``."""
         f_mean, f_std = scaling_stats(features)
-        o_mean, o_std = scaling_stats(np.asarray(control_points).reshape(-1, N_OUTPUTS))
+        targets = np.asarray(control_points, dtype=float)
+        if self.output_mode == "residual":
+            targets = targets - constant_speed_points(np.asarray(features)[:, V_X], self.horizon)
+        o_mean, o_std = scaling_stats(targets.reshape(-1, N_OUTPUTS))
         dtype = self.feature_mean.dtype
         for name, value in (
             ("feature_mean", f_mean), ("feature_std", f_std),
@@ -82,7 +100,12 @@ class PlannerMLP(nn.Module):
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         """Control points ``(N, 3, 2)`` [m] for ``features (N, 9)``."""
         out = self.forward_normalised(features) * self.output_std + self.output_mean
-        return out.reshape(out.shape[:-1] + (3, 2))
+        out = out.reshape(out.shape[:-1] + (3, 2))
+        if self.output_mode == "residual":
+            times = torch.as_tensor(control_times(self.horizon), dtype=out.dtype)
+            x = out[..., 0] + features[..., V_X, None] * times
+            out = torch.stack([x, out[..., 1]], dim=-1)
+        return out
 
     @property
     def architecture(self) -> dict:
@@ -93,4 +116,22 @@ class PlannerMLP(nn.Module):
             "hidden": list(self.hidden),
             "activation": self.activation,
             "n_outputs": N_OUTPUTS,
+            "output_mode": self.output_mode,
+            "horizon_s": self.horizon,
         }
+
+
+V_X = 6  # column of the ego speed in the features (FEATURE_NAMES)
+
+
+def control_times(horizon: float) -> np.ndarray:
+    """Times ``(3,)`` [s] of the free control points (Greville abscissae ``i T_h / 3``)."""
+    return np.arange(1, 4) * (float(horizon) / 3.0)
+
+
+def constant_speed_points(v_x: np.ndarray, horizon: float) -> np.ndarray:
+    """Control points ``(N, 3, 2)`` [m] of driving straight on at ``v_x (N,)`` [m/s]."""
+    v = np.asarray(v_x, dtype=float)
+    out = np.zeros(v.shape + (3, 2))
+    out[..., 0] = v[..., None] * control_times(horizon)
+    return out

@@ -18,11 +18,13 @@ import torch
 from tqdm.auto import tqdm
 
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.learn.losses import BarrierConfig, LossTerms, safe_loss
-from safeil_sumo.learn.model import ACTIVATIONS, PlannerMLP
+from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
+from safeil_sumo.learn.losses import BarrierConfig, LossTerms, barrier_terms, safe_loss
+from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES, PlannerMLP
 
 METHODS = ("safeil", "bc")
 TERMS = ("imitation", "barrier_left", "barrier_right", "barrier_lead", "total")
+ENVELOPE_TERM = "barrier_envelope"
 
 
 @dataclass(frozen=True)
@@ -39,7 +41,14 @@ class TrainConfig:
     barrier_control_points: constrain the control points (True = paper);
     barrier_lateral: "control_points" (paper) | "bernstein" (lane terms on the exact Bernstein
     coefficients of the margin along the spline, see :mod:`safeil_sumo.learn.losses`);
-    num_threads: torch CPU threads while training (fixed for determinism).
+    num_threads: torch CPU threads while training (fixed for determinism);
+    output_mode: "absolute" (paper) | "residual" (x predicted relative to constant-speed motion,
+    see :mod:`safeil_sumo.learn.model`);
+    longitudinal_only_sources: tuples of these sources contribute no lateral (y) imitation error
+    (their lateral positions do not match their lane features, e.g. OpenACC's GNSS);
+    envelope_weight: weight of the barrier on states drawn across the operating envelope
+    (:mod:`safeil_sumo.learn.envelope`; 0 = paper, SafeIL only); envelope_batch: such states per
+    minibatch.
     The horizon [s] is taken from the data.
     """
 
@@ -60,6 +69,10 @@ class TrainConfig:
     barrier_control_points: bool = True
     num_threads: int = 1
     barrier_lateral: str = "control_points"
+    output_mode: str = "absolute"
+    longitudinal_only_sources: tuple[str, ...] = ()
+    envelope_weight: float = 0.0
+    envelope_batch: int = 256
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -67,6 +80,12 @@ class TrainConfig:
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
+        object.__setattr__(self, "longitudinal_only_sources",
+                           tuple(str(x) for x in self.longitudinal_only_sources))
+        if self.output_mode not in OUTPUT_MODES:
+            raise ValueError(f"output_mode must be one of {OUTPUT_MODES}, got {self.output_mode!r}")
+        if self.envelope_weight < 0 or self.envelope_batch < 1:
+            raise ValueError("envelope_weight must be >= 0 and envelope_batch >= 1")
         if self.max_epochs < 1 or self.batch_size < 0 or self.patience < 1:
             raise ValueError("max_epochs and patience must be >= 1, batch_size >= 0")
         _ = self.barrier  # validates the barrier settings
@@ -82,7 +101,9 @@ class TrainConfig:
     @staticmethod
     def from_dict(d: dict) -> TrainConfig:
         """Inverse of ``dataclasses.asdict`` (e.g. from a checkpoint's JSON)."""
-        return TrainConfig(**{**d, "hidden": tuple(d.get("hidden", (64, 64)))})
+        return TrainConfig(**{**d, "hidden": tuple(d.get("hidden", (64, 64))),
+                              "longitudinal_only_sources":
+                                  tuple(d.get("longitudinal_only_sources", ()))})
 
 
 @dataclass(frozen=True)
@@ -113,8 +134,9 @@ def split_by_maneuver(
 ) -> tuple[Tuples, Tuples]:
     """Leave whole maneuvers out: ``(train, val)``.
 
-    ``val_maneuvers`` names them explicitly; otherwise ``round(val_fraction * n_maneuvers)`` (at
-    least 1 when the fraction is > 0 and there are >= 2 maneuvers) are drawn with ``seed``.
+    ``val_maneuvers`` names them explicitly; otherwise, per source (sorted by name),
+    ``round(val_fraction * n_maneuvers)`` (at least 1 when the fraction is > 0 and the source has
+    >= 2 maneuvers) are drawn with ``seed``; a single-source set gives the same split as before.
     """
     maneuvers = tuples.maneuvers
     if val_maneuvers is not None:
@@ -123,11 +145,16 @@ def split_by_maneuver(
             raise ValueError(f"unknown maneuver ids: {sorted(unknown)}")
         chosen = np.asarray(sorted(val_maneuvers))
     else:
-        n_val = round(val_fraction * len(maneuvers))
-        if val_fraction > 0 and len(maneuvers) >= 2:
-            n_val = min(max(n_val, 1), len(maneuvers) - 1)
+        # per source (sorted), so every source of a mixed set is held out in proportion
         rng = np.random.default_rng(seed)
-        chosen = np.sort(rng.choice(maneuvers, size=n_val, replace=False))
+        chosen_parts = []
+        for src in np.unique(tuples.source.astype(str)):
+            ids = np.unique(tuples.maneuver_id[tuples.source.astype(str) == src])
+            n_val = round(val_fraction * len(ids))
+            if val_fraction > 0 and len(ids) >= 2:
+                n_val = min(max(n_val, 1), len(ids) - 1)
+            chosen_parts.append(rng.choice(ids, size=n_val, replace=False))
+        chosen = np.sort(np.concatenate(chosen_parts)) if chosen_parts else np.array([])
     is_val = np.isin(tuples.maneuver_id, chosen)
     return tuples.subset(~is_val), tuples.subset(is_val)
 
@@ -139,23 +166,29 @@ def _tensors(t: Tuples) -> tuple[torch.Tensor, torch.Tensor]:
     )
 
 
+def lateral_weights(t: Tuples, config: TrainConfig) -> torch.Tensor:
+    """Per-tuple weight ``(N,)`` of the lateral imitation error: 0 for longitudinal-only sources."""
+    w = ~np.isin(t.source.astype(str), list(config.longitudinal_only_sources))
+    return torch.as_tensor(w, dtype=torch.float32)
+
+
 def build_model(train: Tuples, config: TrainConfig) -> PlannerMLP:
     """Fresh model for ``config`` (weights from ``config.seed``), scaling from the training data."""
     torch.manual_seed(config.seed)
-    model = PlannerMLP(config.hidden, config.activation)
+    model = PlannerMLP(config.hidden, config.activation, config.output_mode, train.horizon)
     model.set_scaling(train.features, train.control_points)
     return model
 
 
 def evaluate_loss(
     model: PlannerMLP, features: torch.Tensor, targets: torch.Tensor, horizon: float,
-    config: TrainConfig,
+    config: TrainConfig, lateral_weight: torch.Tensor | None = None,
 ) -> LossTerms:
     """Full-batch loss terms without gradients."""
     with torch.no_grad():
         return safe_loss(
             features, model(features), targets, horizon, config.barrier,
-            apply_barrier=config.method == "safeil",
+            apply_barrier=config.method == "safeil", lateral_weight=lateral_weight,
         )
 
 
@@ -189,10 +222,16 @@ def _train(
     gen = torch.Generator().manual_seed(config.seed)
     x_tr, y_tr = _tensors(train)
     x_va, y_va = _tensors(val) if len(val) else (x_tr, y_tr)
+    w_tr = lateral_weights(train, config)
+    w_va = lateral_weights(val, config) if len(val) else w_tr
     n = len(x_tr)
     batch = n if config.batch_size == 0 else min(config.batch_size, n)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     apply_barrier = config.method == "safeil"
+    use_envelope = apply_barrier and config.envelope_weight > 0
+    env_rng = np.random.default_rng([config.seed, 1])  # envelope states: their own stream
+    env_val = torch.as_tensor(sample_states(4096, np.random.default_rng([config.seed, 2])),
+                              dtype=torch.float32) if use_envelope else None
 
     best_val, best_epoch = float("inf"), 0
     best_state = {k: v.clone() for k, v in model.state_dict().items()}
@@ -203,18 +242,34 @@ def _train(
     for epoch in bar:
         model.train()
         perm = torch.randperm(n, generator=gen)
-        sums = dict.fromkeys(TERMS, 0.0)
-        for lo in range(0, n, batch):
+        sums = dict.fromkeys((*TERMS, ENVELOPE_TERM), 0.0)
+        n_batches = -(-n // batch)
+        env = (torch.as_tensor(sample_states(n_batches * config.envelope_batch, env_rng),
+                               dtype=torch.float32) if use_envelope else None)
+        for j, lo in enumerate(range(0, n, batch)):
             idx = perm[lo : lo + batch]
             xb = x_tr[idx]
-            terms = safe_loss(xb, model(xb), y_tr[idx], horizon, config.barrier, apply_barrier)
+            terms = safe_loss(xb, model(xb), y_tr[idx], horizon, config.barrier, apply_barrier,
+                              w_tr[idx])
+            loss = terms.total
+            if env is not None:
+                e = env[j * config.envelope_batch : (j + 1) * config.envelope_batch]
+                env_term = sum(barrier_terms(e, model(e), horizon, config.barrier))
+                loss = loss + config.envelope_weight * env_term
+                sums[ENVELOPE_TERM] += float(env_term.detach()) * len(idx)
             opt.zero_grad(set_to_none=True)
-            terms.total.backward()
+            loss.backward()
             opt.step()
             for name, value in terms.as_floats().items():
                 sums[name] += value * len(idx)
         model.eval()
-        val_terms = evaluate_loss(model, x_va, y_va, horizon, config).as_floats()
+        val_terms = evaluate_loss(model, x_va, y_va, horizon, config, w_va).as_floats()
+        if env_val is not None:
+            with torch.no_grad():
+                env_val_term = float(sum(barrier_terms(env_val, model(env_val), horizon,
+                                                       config.barrier)))
+            val_terms[ENVELOPE_TERM] = env_val_term
+            val_terms["total"] += config.envelope_weight * env_val_term
         row = {"epoch": float(epoch)}
         row.update({f"train_{k}": v / n for k, v in sums.items()})
         row.update({f"val_{k}": v for k, v in val_terms.items()})
