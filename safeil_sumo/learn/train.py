@@ -18,7 +18,7 @@ import torch
 from tqdm.auto import tqdm
 
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
+from safeil_sumo.learn.envelope import sample_states
 from safeil_sumo.learn.losses import BarrierConfig, LossTerms, barrier_terms, safe_loss
 from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES, PlannerMLP
 
