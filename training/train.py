@@ -71,6 +71,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--envelope-weight", type=finite_float, default=d.envelope_weight,
                    help="weight of the barrier on states sampled across the operating envelope "
                         "(0 = paper)")
+    p.add_argument("--monotone-weight", type=finite_float, default=d.monotone_weight,
+                   help="weight of the penalty on plans that shorten as the gap grows "
+                        "(on the envelope states)")
     p.add_argument("--envelope-batch", type=int, default=d.envelope_batch,
                    help="envelope states per minibatch")
     p.add_argument("--threads", type=int, default=d.num_threads)
@@ -116,6 +119,7 @@ def main(argv: list[str] | None = None) -> dict:
         barrier_lateral=args.barrier_lateral, output_mode=args.output_mode,
         longitudinal_only_sources=tuple(args.longitudinal_only_sources),
         envelope_weight=args.envelope_weight, envelope_batch=args.envelope_batch,
+        monotone_weight=args.monotone_weight,
     )
     print(f"{data_label}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
           f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "

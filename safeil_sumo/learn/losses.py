@@ -162,6 +162,31 @@ def barrier_terms(
     return tuple(cfg.k * F.softplus(-m).sum(dim=1).mean() for m in (left, right, lead))
 
 
+def envelope_barrier_terms(
+    features: torch.Tensor, control_points: torch.Tensor, horizon: float, cfg: BarrierConfig,
+    brake_mps2: float = 6.0,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`barrier_terms` for states drawn across the envelope (no demonstrations).
+
+    The leader margin ``gap_min + time_gap v_x`` is required only where braking at
+    ``brake_mps2`` can still reach it (``gap - margin > closing^2 / (2 brake)``); closer states
+    keep the paper's zero margin. Otherwise infeasible margins (a cut-in at 10 m, 30 m/s) would
+    dominate the loss with a barrier no plan can satisfy and bend the network everywhere.
+    """
+    zero_margin = BarrierConfig(k=cfg.k, track=cfg.track, n_samples=cfg.n_samples,
+                                control_points=cfg.control_points, lateral=cfg.lateral)
+    left, right, lead = barrier_terms(features, control_points, horizon, zero_margin)
+    if not (cfg.gap_min or cfg.time_gap):
+        return left, right, lead
+    v, v_lead, gap = features[:, V_X], features[:, V_LEAD], features[:, D_LEAD]
+    margin = cfg.gap_min + cfg.time_gap * v
+    closing = torch.clamp(v - v_lead, min=0.0)
+    feasible = (gap - margin > closing * closing / (2.0 * brake_mps2)).to(features.dtype)
+    points, times = constrained_points(control_points, horizon, cfg.n_samples, cfg.control_points)
+    m = lead_margins(features, points, times) - (feasible * margin)[:, None]
+    return left, right, cfg.k * F.softplus(-m).sum(dim=1).mean()
+
+
 def imitation_loss(
     pred: torch.Tensor, target: torch.Tensor, lateral_weight: torch.Tensor | None = None
 ) -> torch.Tensor:

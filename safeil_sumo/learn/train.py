@@ -19,12 +19,19 @@ from tqdm.auto import tqdm
 
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.envelope import sample_states
-from safeil_sumo.learn.losses import BarrierConfig, LossTerms, barrier_terms, safe_loss
+from safeil_sumo.learn.losses import (
+    BarrierConfig,
+    LossTerms,
+    envelope_barrier_terms,
+    safe_loss,
+)
 from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES, PlannerMLP
 
 METHODS = ("safeil", "bc")
 TERMS = ("imitation", "barrier_left", "barrier_right", "barrier_lead", "total")
 ENVELOPE_TERM = "barrier_envelope"
+MONOTONE_TERM = "gap_monotone"
+MONOTONE_STEP_M = 2.0  # [m] gap increment of the monotonicity pairs
 
 
 @dataclass(frozen=True)
@@ -48,7 +55,8 @@ class TrainConfig:
     (their lateral positions do not match their lane features, e.g. OpenACC's GNSS);
     envelope_weight: weight of the barrier on states drawn across the operating envelope
     (:mod:`safeil_sumo.learn.envelope`; 0 = paper, SafeIL only); envelope_batch: such states per
-    minibatch.
+    minibatch; monotone_weight: weight of :func:`gap_monotone_penalty` on the envelope states (a
+    farther leader must never shorten the plan; needs envelope_weight > 0).
     The horizon [s] is taken from the data.
     """
 
@@ -73,6 +81,7 @@ class TrainConfig:
     longitudinal_only_sources: tuple[str, ...] = ()
     envelope_weight: float = 0.0
     envelope_batch: int = 256
+    monotone_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -84,8 +93,8 @@ class TrainConfig:
                            tuple(str(x) for x in self.longitudinal_only_sources))
         if self.output_mode not in OUTPUT_MODES:
             raise ValueError(f"output_mode must be one of {OUTPUT_MODES}, got {self.output_mode!r}")
-        if self.envelope_weight < 0 or self.envelope_batch < 1:
-            raise ValueError("envelope_weight must be >= 0 and envelope_batch >= 1")
+        if self.envelope_weight < 0 or self.envelope_batch < 1 or self.monotone_weight < 0:
+            raise ValueError("envelope_weight and monotone_weight must be >= 0, envelope_batch >= 1")
         if self.max_epochs < 1 or self.batch_size < 0 or self.patience < 1:
             raise ValueError("max_epochs and patience must be >= 1, batch_size >= 0")
         _ = self.barrier  # validates the barrier settings
@@ -172,6 +181,16 @@ def lateral_weights(t: Tuples, config: TrainConfig) -> torch.Tensor:
     return torch.as_tensor(w, dtype=torch.float32)
 
 
+def gap_monotone_penalty(model: PlannerMLP, features: torch.Tensor,
+                         step_m: float = MONOTONE_STEP_M) -> torch.Tensor:
+    """Mean over states of ``sum_i relu(x_i(gap) - x_i(gap + step))`` [m]: how much the planned x
+    control points shrink when the leader is ``step_m`` farther (0 for a plan monotone in gap)."""
+    farther = features.clone()
+    farther[:, 8] += step_m  # D_LEAD
+    shrink = model(features)[..., 0] - model(farther)[..., 0]
+    return torch.relu(shrink).sum(dim=1).mean()
+
+
 def build_model(train: Tuples, config: TrainConfig) -> PlannerMLP:
     """Fresh model for ``config`` (weights from ``config.seed``), scaling from the training data."""
     torch.manual_seed(config.seed)
@@ -242,7 +261,7 @@ def _train(
     for epoch in bar:
         model.train()
         perm = torch.randperm(n, generator=gen)
-        sums = dict.fromkeys((*TERMS, ENVELOPE_TERM), 0.0)
+        sums = dict.fromkeys((*TERMS, ENVELOPE_TERM, MONOTONE_TERM), 0.0)
         n_batches = -(-n // batch)
         env = (torch.as_tensor(sample_states(n_batches * config.envelope_batch, env_rng),
                                dtype=torch.float32) if use_envelope else None)
@@ -254,9 +273,13 @@ def _train(
             loss = terms.total
             if env is not None:
                 e = env[j * config.envelope_batch : (j + 1) * config.envelope_batch]
-                env_term = sum(barrier_terms(e, model(e), horizon, config.barrier))
+                env_term = sum(envelope_barrier_terms(e, model(e), horizon, config.barrier))
                 loss = loss + config.envelope_weight * env_term
                 sums[ENVELOPE_TERM] += float(env_term.detach()) * len(idx)
+                if config.monotone_weight > 0:
+                    mono = gap_monotone_penalty(model, e)
+                    loss = loss + config.monotone_weight * mono
+                    sums[MONOTONE_TERM] += float(mono.detach()) * len(idx)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -266,10 +289,13 @@ def _train(
         val_terms = evaluate_loss(model, x_va, y_va, horizon, config, w_va).as_floats()
         if env_val is not None:
             with torch.no_grad():
-                env_val_term = float(sum(barrier_terms(env_val, model(env_val), horizon,
-                                                       config.barrier)))
+                env_val_term = float(sum(envelope_barrier_terms(env_val, model(env_val), horizon,
+                                                                config.barrier)))
+                mono_val = float(gap_monotone_penalty(model, env_val))
             val_terms[ENVELOPE_TERM] = env_val_term
-            val_terms["total"] += config.envelope_weight * env_val_term
+            val_terms[MONOTONE_TERM] = mono_val
+            val_terms["total"] += (config.envelope_weight * env_val_term
+                                   + config.monotone_weight * mono_val)
         row = {"epoch": float(epoch)}
         row.update({f"train_{k}": v / n for k, v in sums.items()})
         row.update({f"val_{k}": v for k, v in val_terms.items()})
