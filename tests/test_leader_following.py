@@ -116,7 +116,7 @@ def test_concat_and_per_source_split(data: Tuples) -> None:
     b = _with_source(data, "openacc", "o")
     both = Tuples.concat([a, b])
     assert len(both) == 2 * len(data)
-    tr, va = split_by_maneuver(both, 0.34, 0)
+    _, va = split_by_maneuver(both, 0.34, 0)
     for src in ("synthetic", "openacc"):  # every source held out in proportion (2 of 6)
         assert len(np.unique(va.maneuver_id[va.source == src])) == 2
     with pytest.raises(ValueError, match="disagree"):
@@ -201,7 +201,7 @@ def test_envelope_training_runs_and_logs_its_terms(data: Tuples) -> None:
                               time_gap=1.0, monotone_weight=10.0, envelope_batch=32)
     tr, va = split_by_maneuver(data, 0.3, 0)
     m1, h1 = train(tr, va, cfg, progress=False)
-    m2, h2 = train(tr, va, cfg, progress=False)
+    m2, _ = train(tr, va, cfg, progress=False)
     assert "val_barrier_envelope" in h1.epochs[0] and "train_gap_monotone" in h1.epochs[0]
     for a, b in zip(m1.state_dict().values(), m2.state_dict().values(), strict=True):
         assert torch.equal(a, b)  # same seed, same envelope draws, same weights
