@@ -115,6 +115,18 @@ def test_lookahead_past_the_plan_end_follows_the_final_tangent():
 
 # --- plan evaluation ------------------------------------------------------------------------
 
+
+def test_a_plan_running_backwards_asks_for_a_stop():
+    # a stopped car told to stay 3-7 m behind where it is: x decreases along the plan
+    cp = np.array([[-4.0, 0.0], [-6.0, 0.0], [-7.0, 0.0]])
+    target = make_target(cp, HORIZON, (0.0, 0.0, 0.0))
+    assert target.velocity(0.0)[0] < 0
+    for t in (0.0, 1.0, 4.9):
+        assert target.speed_and_accel(t) == (0.0, 0.0)
+    # forwards at the start: the magnitude as before
+    fwd = make_target(np.array([[10.0, 0.0], [20.0, 0.0], [30.0, 0.0]]), HORIZON, (0.0, 0.0, 0.0))
+    assert fwd.speed_and_accel(0.0)[0] == pytest.approx(30.0 / HORIZON)
+
 control_points = arrays(np.float64, (3, 2), elements=st.floats(-100.0, 200.0))
 
 
@@ -126,6 +138,9 @@ def test_power_basis_matches_bspline(cp, t):
     acc = bspline.evaluate_time(cp, np.array([t]), HORIZON, derivative=2)[0]
     assert target.velocity(t) == pytest.approx(tuple(vel), abs=1e-6)
     v, a = target.speed_and_accel(t)
+    if vel[0] < 0.0:  # a plan running backwards asks for a stop
+        assert (v, a) == (0.0, 0.0)
+        return
     assert v == pytest.approx(float(np.linalg.norm(vel)), abs=1e-6)
     if v > 1e-3:
         assert a == pytest.approx(float(vel @ acc) / v, abs=1e-6)

@@ -142,9 +142,14 @@ class TrackingTarget:
     def speed_and_accel(self, t: float) -> tuple[float, float]:
         """Plan speed [m/s] and tangential acceleration [m/s^2] at ``t`` [s].
 
-        Past the horizon the plan is continued at its final speed (acceleration 0).
+        Past the horizon the plan is continued at its final speed (acceleration 0). A plan that
+        runs backwards (x velocity < 0 in the plan frame: "stay behind the stopped car") asks for
+        a stop: speed 0, no feed-forward (the car does not reverse; reading the speed as the
+        velocity's magnitude would make it creep forwards into the car it is told to stay behind).
         """
         vx, vy = self.velocity(t)
+        if vx < 0.0:
+            return 0.0, 0.0
         v = math.hypot(vx, vy)
         if t > self.horizon_s:
             return v, 0.0
