@@ -1,50 +1,112 @@
 """Reproduce the shipped planners in ``safeil_sumo/models/`` with one command:
 
-    python training/train_shipped_models.py
+    python training/train_shipped_models.py [--workers 2]
 
-Builds the default dataset if it is missing (``training/build_synthetic_dataset.py``: 16
-calibrated synthetic drivers x the 29.2 km n74 road in SUMO, then the paper's processing
-pipeline -> ``data/synthetic/tuples.parquet``), then trains, each with seed 0 and the same
-maneuver split (20 % of maneuvers held out for early stopping):
+Data (built first if missing): the real human car following of OpenACC Vicolungo and NGSIM I-80
+(``training/build_real_datasets.py``, from ``../shared/data``) and the default synthetic dataset
+(``training/build_synthetic_dataset.py``: 16 calibrated synthetic drivers on the 29.2 km n74 road
+in SUMO). Each source teaches what it has: OpenACC (highway, 18-39 m/s, real speed changes, no
+lane information) only the longitudinal plan; NGSIM (congested, real lanes) and the synthetic
+drivers (curves, lane keeping) both. 20 % of the maneuvers of each source are held out (seed 0)
+for early stopping; their ids are stored in each checkpoint (``metrics.val_maneuvers``).
 
-- ``safeil``: SafeIL with the exact Bernstein bound of the lane margin along the whole spline
-  (our extension; on curves the paper's control-point barrier rejects lane-following plans);
-- ``safeil_paper``: SafeIL exactly as the paper (barrier on the three control points);
-- ``bc``: behavioral cloning, the paper's baseline (same network, data and loop, no barrier).
+Models, all on the same data and split:
+
+- ``safeil`` (default): SafeIL with the exact Bernstein lane bound, the network predicting the
+  control points relative to constant-speed motion (``--output-mode residual``), and the barrier
+  also on states drawn across the operating envelope (``--envelope-weight``) with a
+  gap-monotonicity penalty. Two candidates (leader margin: none as in the paper, or a 2 m
+  standstill distance) are trained and the one that does best in a short closed-loop SUMO
+  validation battery (:mod:`safeil_sumo.experiments.selection`: safety first, then the held-out
+  imitation error) is shipped; the battery's table goes to ``models/selection.json``.
+- ``safeil_paper``: SafeIL exactly as the paper (absolute control points, barrier on the three
+  control points, no envelope states).
+- ``bc``: behavioral cloning, the paper's baseline: the same network, data and loop, no barrier.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO / "data" / "synthetic" / "tuples.parquet"
+DATA_DIR = REPO / "data"
+SYNTHETIC = DATA_DIR / "synthetic" / "tuples.parquet"
+REAL = (DATA_DIR / "openacc_tuples.parquet", DATA_DIR / "ngsim_tuples.parquet")
 MODELS = REPO / "safeil_sumo" / "models"
+WORK = DATA_DIR / "models"
 SEED = 0
-MODELS_TO_TRAIN = {
-    "safeil": ["--method", "safeil", "--barrier-lateral", "bernstein"],
-    "safeil_paper": ["--method", "safeil", "--barrier-lateral", "control_points"],
-    "bc": ["--method", "bc"],
+
+MIXED = ["--longitudinal-only-sources", "openacc"]
+SAFEIL = [*MIXED, "--method", "safeil", "--barrier-lateral", "bernstein", "--output-mode",
+          "residual", "--envelope-weight", "1", "--monotone-weight", "10000"]
+SAFEIL_CANDIDATES = {
+    "safeil_margin0": [*SAFEIL],
+    "safeil_margin2m": [*SAFEIL, "--gap-min", "2"],
+}
+OTHERS = {
+    "safeil_paper": [*MIXED, "--method", "safeil", "--barrier-lateral", "control_points"],
+    "bc": [*MIXED, "--method", "bc", "--output-mode", "residual"],
 }
 
 
-def main() -> int:
-    if not DATA.is_file():
+def _train(name: str, extra: list[str], stored_name: str) -> Path:
+    prefix = WORK / name
+    prefix.parent.mkdir(parents=True, exist_ok=True)
+    data = [str(p) for p in (SYNTHETIC, *REAL)]
+    subprocess.run([sys.executable, str(REPO / "training" / "train.py"), "--data", *data,
+                    "--seed", str(SEED), "--name", stored_name, "--out", str(prefix), "--no-progress",
+                    *extra], check=True, stdout=subprocess.DEVNULL)
+    return prefix
+
+
+def _ship(prefix: Path, name: str) -> None:
+    for suffix in (".safetensors", ".json"):
+        shutil.copyfile(prefix.with_suffix(suffix), MODELS / f"{name}{suffix}")
+    print(f"shipped {MODELS / name}.safetensors")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workers", type=int, default=2, help="SUMO workers of the battery")
+    args = ap.parse_args(argv)
+    if not all(p.is_file() for p in REAL):
+        subprocess.run([sys.executable, str(REPO / "training" / "build_real_datasets.py"),
+                        "--out", str(DATA_DIR)], check=True)
+    if not SYNTHETIC.is_file():
         subprocess.run([sys.executable, str(REPO / "training" / "build_synthetic_dataset.py")],
                        check=True)
     MODELS.mkdir(parents=True, exist_ok=True)
-    for name, extra in MODELS_TO_TRAIN.items():
-        prefix = REPO / "data" / "models" / name
-        prefix.parent.mkdir(parents=True, exist_ok=True)
-        subprocess.run([sys.executable, str(REPO / "training" / "train.py"), "--data", str(DATA),
-                        "--seed", str(SEED), "--name", name, "--out", str(prefix), *extra],
-                       check=True)
-        for suffix in (".safetensors", ".json"):
-            shutil.copyfile(prefix.with_suffix(suffix), MODELS / f"{name}{suffix}")
-        print(f"shipped {MODELS / name}.safetensors")
+
+    from safeil_sumo.experiments.selection import evaluate
+
+    # every candidate stores the name "safeil": the chosen one is shipped as it was trained
+    candidates = {name: _train(name, extra, "safeil")
+                  for name, extra in SAFEIL_CANDIDATES.items()}
+    table = evaluate([str(p.with_suffix(".safetensors")) for p in candidates.values()],
+                     WORK / "selection", workers=args.workers, progress=False)
+    val_imitation = {}
+    for name, prefix in candidates.items():
+        meta = json.loads(prefix.with_suffix(".json").read_text())
+        val_imitation[str(prefix.with_suffix(".safetensors"))] = meta["metrics"]["val_imitation"]
+    table["val_imitation"] = table["policy"].map(val_imitation)
+    # safety first (collisions, flags), then the held-out imitation error
+    table = table.sort_values(["collisions", "flags", "val_imitation"], kind="stable")
+    best = Path(table["policy"].iloc[0]).with_suffix("")
+    print(table[["policy", "collisions", "flags", "min_ttc_s", "val_imitation"]].to_string())
+    _ship(best, "safeil")
+    records = table.drop(columns=["rank_key"]).to_dict(orient="records")
+    for r in records:
+        r["policy"] = Path(r["policy"]).stem
+    (MODELS / "selection.json").write_text(json.dumps(
+        {"chosen": best.name, "battery": "safeil_sumo.experiments.selection (per_family=3)",
+         "candidates": records}, indent=1) + "\n")
+    for name, extra in OTHERS.items():
+        _ship(_train(name, extra, name), name)
     return 0
 
 
