@@ -41,7 +41,7 @@ class AnalyticPlanner:
                 f.shape[:-1] + (3, 2)
             )
         # plain floats: the same IEEE arithmetic as numpy scalars, ~5x cheaper per operation
-        c0l, c1l, c2l, c0r, c1r, c2r, v, v_lead, d_lead = f.tolist()
+        v, v_lead, d_lead = f[6:].tolist()
         n = self.samples
         dt = self.horizon / n
         x = [0.0] * n
@@ -59,12 +59,22 @@ class AnalyticPlanner:
             gap += (v_lead - 0.5 * (speed + new_speed)) * dt
             speed = new_speed
             x[k] = pos
-        x = np.array(x)
-        centre = (0.5 * (c0l + c0r), 0.5 * (c1l + c1r), 0.5 * (c2l + c2r))
-        y_centre = centre[0] + centre[1] * x + centre[2] * x * x
-        # start from where the car is (y = 0 at x = 0) and converge on the lane centre
-        y = y_centre - centre[0] * _decay(n, dt, self.lateral_tau_s)
-        return _fit_matrix(n) @ np.stack([x, y], axis=1)
+        return lane_following_plan(f, np.array(x), dt, self.lateral_tau_s)
+
+
+def lane_following_plan(features: np.ndarray, x: np.ndarray, dt: float, lateral_tau_s: float
+                        ) -> np.ndarray:
+    """Control points ``(3, 2)`` [m] of a plan whose longitudinal positions ``x (n,)`` [m] at
+    ``t = k dt`` (k = 1..n) are given: laterally it starts where the car is (y = 0) and converges
+    on the lane centre with time constant ``lateral_tau_s`` [s]; least-squares spline fit.
+    Shared by the analytic and the IDM planner (only their longitudinal law differs)."""
+    c0l, c1l, c2l, c0r, c1r, c2r = features[:6].tolist()
+    n = len(x)
+    centre = (0.5 * (c0l + c0r), 0.5 * (c1l + c1r), 0.5 * (c2l + c2r))
+    y_centre = centre[0] + centre[1] * x + centre[2] * x * x
+    # start from where the car is (y = 0 at x = 0) and converge on the lane centre
+    y = y_centre - centre[0] * _decay(n, dt, lateral_tau_s)
+    return _fit_matrix(n) @ np.stack([x, y], axis=1)
 
 
 _FIT_CACHE: dict[int, np.ndarray] = {}

@@ -1,4 +1,6 @@
-"""Name -> Policy: ``analytic``, the shipped ``safeil`` / ``bc`` checkpoints, or a checkpoint path."""
+"""Name -> Policy: ``analytic``, ``idm`` (the calibrated IDM baseline), the shipped ``safeil`` /
+``safeil_paper`` / ``bc`` checkpoints, a checkpoint path, or an IDM model file (``*.json`` with
+``"type": "idm"``, written by ``training/fit_idm.py``)."""
 
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ from safeil_sumo.policy import Policy
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 SHIPPED = ("safeil", "safeil_paper", "bc")
+NAMES = ("analytic", "idm", *SHIPPED)
 
 
 class PolicyError(ValueError):
@@ -26,10 +29,19 @@ def default_policy_name() -> str:
 
 
 def load(name_or_path: str) -> Policy:
-    """Resolve ``analytic``, a shipped model (``safeil``, ``safeil_paper``, ``bc``) or a path to a
-    ``.safetensors`` checkpoint."""
+    """Resolve ``analytic``, ``idm``, a shipped model (``safeil``, ``safeil_paper``, ``bc``), a
+    path to a ``.safetensors`` checkpoint or to an IDM model file."""
+    from safeil_sumo import idm
+
     if name_or_path == "analytic":
         return AnalyticPlanner()
+    if name_or_path == "idm" or (name_or_path.endswith(".json")
+                                 and idm.is_model_file(name_or_path)):
+        path = MODELS_DIR / "idm.json" if name_or_path == "idm" else Path(name_or_path)
+        try:
+            return idm.load_planner(path)
+        except idm.IDMError as exc:
+            raise PolicyError(f"cannot load the IDM planner: {exc}") from exc
     if name_or_path in SHIPPED:
         path = shipped_checkpoint(name_or_path)
         if not path.is_file():
@@ -38,7 +50,8 @@ def load(name_or_path: str) -> Policy:
         path = Path(name_or_path)
         if not path.is_file():
             raise PolicyError(
-                f"unknown policy {name_or_path!r}: use analytic, safeil, bc or a checkpoint path"
+                f"unknown policy {name_or_path!r}: use one of {', '.join(NAMES)}, a checkpoint "
+                "path (.safetensors) or an IDM model file (.json)"
             )
     from safeil_sumo.learn.inference import load_policy  # torch-free numpy inference
 

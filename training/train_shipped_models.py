@@ -54,14 +54,24 @@ OTHERS = {
 }
 
 
-def _train(name: str, extra: list[str], stored_name: str) -> Path:
-    prefix = WORK / name
-    prefix.parent.mkdir(parents=True, exist_ok=True)
+def _train_all(jobs: dict[str, tuple[list[str], str]], parallel: int) -> dict[str, Path]:
+    """Train ``name -> (extra args, stored name)`` with ``parallel`` processes; the prefixes."""
     data = [str(p) for p in (SYNTHETIC, *REAL)]
-    subprocess.run([sys.executable, str(REPO / "training" / "train.py"), "--data", *data,
-                    "--seed", str(SEED), "--name", stored_name, "--out", str(prefix), "--no-progress",
-                    *extra], check=True, stdout=subprocess.DEVNULL)
-    return prefix
+    WORK.mkdir(parents=True, exist_ok=True)
+    pending = list(jobs.items())
+    running: list[tuple[str, subprocess.Popen]] = []
+    while pending or running:
+        while pending and len(running) < parallel:
+            name, (extra, stored_name) = pending.pop(0)
+            cmd = [sys.executable, str(REPO / "training" / "train.py"), "--data", *data,
+                   "--seed", str(SEED), "--name", stored_name, "--out", str(WORK / name),
+                   "--no-progress", *extra]
+            running.append((name, subprocess.Popen(cmd, stdout=subprocess.DEVNULL)))
+        name, proc = running.pop(0)
+        if proc.wait() != 0:
+            raise SystemExit(f"training {name} failed (exit {proc.returncode})")
+        print(f"trained {name}")
+    return {name: WORK / name for name in jobs}
 
 
 def _ship(prefix: Path, name: str) -> None:
@@ -72,7 +82,8 @@ def _ship(prefix: Path, name: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workers", type=int, default=2, help="SUMO workers of the battery")
+    ap.add_argument("--workers", type=int, default=2,
+                    help="parallel trainings and SUMO workers of the battery")
     args = ap.parse_args(argv)
     if not all(p.is_file() for p in REAL):
         subprocess.run([sys.executable, str(REPO / "training" / "build_real_datasets.py"),
@@ -85,8 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     from safeil_sumo.experiments.selection import evaluate
 
     # every candidate stores the name "safeil": the chosen one is shipped as it was trained
-    candidates = {name: _train(name, extra, "safeil")
-                  for name, extra in SAFEIL_CANDIDATES.items()}
+    prefixes = _train_all({**{n: (x, "safeil") for n, x in SAFEIL_CANDIDATES.items()},
+                           **{n: (x, n) for n, x in OTHERS.items()}}, args.workers)
+    candidates = {name: prefixes[name] for name in SAFEIL_CANDIDATES}
     table = evaluate([str(p.with_suffix(".safetensors")) for p in candidates.values()],
                      WORK / "selection", workers=args.workers, progress=False)
     val_imitation = {}
@@ -105,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     (MODELS / "selection.json").write_text(json.dumps(
         {"chosen": best.name, "battery": "safeil_sumo.experiments.selection (per_family=3)",
          "candidates": records}, indent=1) + "\n")
-    for name, extra in OTHERS.items():
-        _ship(_train(name, extra, name), name)
+    for name in OTHERS:
+        _ship(prefixes[name], name)
     return 0
 
 
