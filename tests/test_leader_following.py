@@ -20,7 +20,7 @@ from safeil_sumo.learn.model import PlannerMLP, constant_speed_points
 from safeil_sumo.learn.train import (
     TrainConfig,
     gap_monotone_penalty,
-    lateral_weights,
+    axis_weights,
     split_by_maneuver,
     train,
 )
@@ -131,19 +131,23 @@ def test_single_source_split_is_unchanged(data: Tuples) -> None:
     np.testing.assert_array_equal(va.maneuvers, expected)
 
 
-def test_longitudinal_only_source_has_no_lateral_error(data: Tuples) -> None:
+def test_per_source_axis_masks(data: Tuples) -> None:
     t = Tuples.concat([_with_source(data, "synthetic", "s"), _with_source(data, "openacc", "o")])
-    cfg = TrainConfig(longitudinal_only_sources=("openacc",))
-    w = lateral_weights(t, cfg).numpy()
-    np.testing.assert_array_equal(w, (t.source == "synthetic").astype(float))
+    cfg = TrainConfig(longitudinal_only_sources=("openacc",), lateral_only_sources=("synthetic",))
+    w = axis_weights(t, cfg).numpy()
+    np.testing.assert_array_equal(w[:, 0], (t.source == "openacc").astype(float))
+    np.testing.assert_array_equal(w[:, 1], (t.source == "synthetic").astype(float))
+    with pytest.raises(ValueError, match="teach nothing"):
+        TrainConfig(longitudinal_only_sources=("a",), lateral_only_sources=("a",))
     from safeil_sumo.learn.losses import imitation_loss
 
     pred = torch.zeros(2, 3, 2)
     target = torch.zeros(2, 3, 2)
     target[:, :, 1] = 1.0  # 1 m lateral error on each control point
     target[:, :, 0] = 2.0  # 2 m longitudinal error
-    loss = imitation_loss(pred, target, torch.tensor([1.0, 0.0]))
-    assert float(loss) == pytest.approx(((3 * 4 + 3 * 1) + 3 * 4) / 2)
+    # sample 0 counts both axes, sample 1 only x: (3*4 + 3*1 + 3*4) / 2
+    loss = imitation_loss(pred, target, torch.tensor([[1.0, 1.0], [1.0, 0.0]]))
+    assert float(loss) == pytest.approx((3 * 4 + 3 * 1 + 3 * 4) / 2)
 
 
 # ------------------------------------------------------------------------------- envelope

@@ -68,6 +68,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="control points (paper) or their residual to constant-speed motion")
     p.add_argument("--longitudinal-only-sources", nargs="*", default=list(d.longitudinal_only_sources),
                    help="sources whose lateral (y) targets are not learned (e.g. openacc: no lanes)")
+    p.add_argument("--lateral-only-sources", nargs="*", default=list(d.lateral_only_sources),
+                   help="sources whose longitudinal (x) targets are not learned (e.g. synthetic)")
     p.add_argument("--envelope-weight", type=finite_float, default=d.envelope_weight,
                    help="weight of the barrier on states sampled across the operating envelope "
                         "(0 = paper)")
@@ -118,6 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
         barrier_control_points=not args.no_barrier_control_points, num_threads=args.threads,
         barrier_lateral=args.barrier_lateral, output_mode=args.output_mode,
         longitudinal_only_sources=tuple(args.longitudinal_only_sources),
+        lateral_only_sources=tuple(args.lateral_only_sources),
         envelope_weight=args.envelope_weight, envelope_batch=args.envelope_batch,
         monotone_weight=args.monotone_weight,
     )

@@ -188,17 +188,18 @@ def envelope_barrier_terms(
 
 
 def imitation_loss(
-    pred: torch.Tensor, target: torch.Tensor, lateral_weight: torch.Tensor | None = None
+    pred: torch.Tensor, target: torch.Tensor, axis_weight: torch.Tensor | None = None
 ) -> torch.Tensor:
     """``||pred - target||^2`` summed over the 6 outputs, mean over the batch ``(N, 3, 2)``.
 
-    ``lateral_weight (N,)`` scales the y errors per sample (0: a source whose lateral positions
-    do not match its lane features, e.g. OpenACC, teaches only the longitudinal plan).
+    ``axis_weight (N, 2)`` scales the x and y errors per sample (0 for y: a source whose lateral
+    positions do not match its lane features, e.g. OpenACC, teaches only the longitudinal plan;
+    0 for x: a source that teaches only lane keeping).
     """
     err = (pred - target).square()
-    if lateral_weight is None:
+    if axis_weight is None:
         return err.sum(dim=(-2, -1)).mean()
-    return (err[..., 0].sum(dim=-1) + lateral_weight * err[..., 1].sum(dim=-1)).mean()
+    return (err.sum(dim=-2) * axis_weight).sum(dim=-1).mean()
 
 
 def safe_loss(
@@ -208,14 +209,14 @@ def safe_loss(
     horizon: float,
     barrier: BarrierConfig = BarrierConfig(),
     apply_barrier: bool = True,
-    lateral_weight: torch.Tensor | None = None,
+    axis_weight: torch.Tensor | None = None,
 ) -> LossTerms:
     """SafeIL loss ``imitation + barriers``; ``apply_barrier=False`` is behavioural cloning.
 
     For BC the barrier terms are still computed and returned for logging (same config, so BC and
     SafeIL runs are comparable term by term), but detached and not added to ``total``.
     """
-    imitation = imitation_loss(pred, target, lateral_weight)
+    imitation = imitation_loss(pred, target, axis_weight)
     if not apply_barrier:
         with torch.no_grad():
             left, right, lead = barrier_terms(features, pred, horizon, barrier)

@@ -53,6 +53,8 @@ class TrainConfig:
     see :mod:`safeil_sumo.learn.model`);
     longitudinal_only_sources: tuples of these sources contribute no lateral (y) imitation error
     (their lateral positions do not match their lane features, e.g. OpenACC's GNSS);
+    lateral_only_sources: tuples of these sources contribute no longitudinal (x) imitation error
+    (e.g. synthetic drivers: lane keeping on curves, but not human car following);
     envelope_weight: weight of the barrier on states drawn across the operating envelope
     (:mod:`safeil_sumo.learn.envelope`; 0 = paper, SafeIL only); envelope_batch: such states per
     minibatch; monotone_weight: weight of :func:`gap_monotone_penalty` on the envelope states (a
@@ -79,6 +81,7 @@ class TrainConfig:
     barrier_lateral: str = "control_points"
     output_mode: str = "absolute"
     longitudinal_only_sources: tuple[str, ...] = ()
+    lateral_only_sources: tuple[str, ...] = ()
     envelope_weight: float = 0.0
     envelope_batch: int = 256
     monotone_weight: float = 0.0
@@ -89,8 +92,12 @@ class TrainConfig:
         if self.activation not in ACTIVATIONS:
             raise ValueError(f"activation must be one of {ACTIVATIONS}, got {self.activation!r}")
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
-        object.__setattr__(self, "longitudinal_only_sources",
-                           tuple(str(x) for x in self.longitudinal_only_sources))
+        for name in ("longitudinal_only_sources", "lateral_only_sources"):
+            object.__setattr__(self, name, tuple(str(x) for x in getattr(self, name)))
+        both = set(self.longitudinal_only_sources) & set(self.lateral_only_sources)
+        if both:
+            raise ValueError(f"sources {sorted(both)} would teach nothing (longitudinal-only and "
+                             "lateral-only)")
         if self.output_mode not in OUTPUT_MODES:
             raise ValueError(f"output_mode must be one of {OUTPUT_MODES}, got {self.output_mode!r}")
         if self.envelope_weight < 0 or self.envelope_batch < 1 or self.monotone_weight < 0:
@@ -112,7 +119,8 @@ class TrainConfig:
         """Inverse of ``dataclasses.asdict`` (e.g. from a checkpoint's JSON)."""
         return TrainConfig(**{**d, "hidden": tuple(d.get("hidden", (64, 64))),
                               "longitudinal_only_sources":
-                                  tuple(d.get("longitudinal_only_sources", ()))})
+                                  tuple(d.get("longitudinal_only_sources", ())),
+                              "lateral_only_sources": tuple(d.get("lateral_only_sources", ()))})
 
 
 @dataclass(frozen=True)
@@ -175,10 +183,13 @@ def _tensors(t: Tuples) -> tuple[torch.Tensor, torch.Tensor]:
     )
 
 
-def lateral_weights(t: Tuples, config: TrainConfig) -> torch.Tensor:
-    """Per-tuple weight ``(N,)`` of the lateral imitation error: 0 for longitudinal-only sources."""
-    w = ~np.isin(t.source.astype(str), list(config.longitudinal_only_sources))
-    return torch.as_tensor(w, dtype=torch.float32)
+def axis_weights(t: Tuples, config: TrainConfig) -> torch.Tensor:
+    """Per-tuple weights ``(N, 2)`` of the x and y imitation errors: y is 0 for
+    longitudinal-only sources, x is 0 for lateral-only sources."""
+    src = t.source.astype(str)
+    x = ~np.isin(src, list(config.lateral_only_sources))
+    y = ~np.isin(src, list(config.longitudinal_only_sources))
+    return torch.as_tensor(np.stack([x, y], axis=1), dtype=torch.float32)
 
 
 def gap_monotone_penalty(model: PlannerMLP, features: torch.Tensor,
@@ -201,13 +212,13 @@ def build_model(train: Tuples, config: TrainConfig) -> PlannerMLP:
 
 def evaluate_loss(
     model: PlannerMLP, features: torch.Tensor, targets: torch.Tensor, horizon: float,
-    config: TrainConfig, lateral_weight: torch.Tensor | None = None,
+    config: TrainConfig, axis_weight: torch.Tensor | None = None,
 ) -> LossTerms:
     """Full-batch loss terms without gradients."""
     with torch.no_grad():
         return safe_loss(
             features, model(features), targets, horizon, config.barrier,
-            apply_barrier=config.method == "safeil", lateral_weight=lateral_weight,
+            apply_barrier=config.method == "safeil", axis_weight=axis_weight,
         )
 
 
@@ -241,8 +252,8 @@ def _train(
     gen = torch.Generator().manual_seed(config.seed)
     x_tr, y_tr = _tensors(train)
     x_va, y_va = _tensors(val) if len(val) else (x_tr, y_tr)
-    w_tr = lateral_weights(train, config)
-    w_va = lateral_weights(val, config) if len(val) else w_tr
+    w_tr = axis_weights(train, config)
+    w_va = axis_weights(val, config) if len(val) else w_tr
     n = len(x_tr)
     batch = n if config.batch_size == 0 else min(config.batch_size, n)
     opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
