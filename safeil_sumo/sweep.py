@@ -10,6 +10,11 @@ command resumes a sweep that stopped (only missing tasks run; ``--retry-failed``
 failed ones). At the end: ``<out>/summary.csv`` / ``summary.json`` (one row per task),
 ``manifest.json``, and a printed breakdown per (net, policy, filter) with Wilson 95 % intervals.
 Exit codes: 0 all tasks ran, 1 some tasks failed, 2 bad arguments, 130 interrupted.
+
+``--suite leader-response [--quick]`` runs the leader-response suite
+(:mod:`safeil_sumo.experiments.suite`) for ``--policies`` instead of the grid and writes
+``<out>/suite.csv`` (per policy x family: collisions, avoidable/unavoidable flags, min TTC, min
+time gap, max deceleration and jerk).
 """
 
 from __future__ import annotations
@@ -19,9 +24,10 @@ import itertools
 import sys
 from pathlib import Path
 
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
-from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
+from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, run_sweep
 
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
 
@@ -37,8 +43,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="analytic, safeil, bc or .safetensors checkpoints (default: safeil bc)")
     p.add_argument("--scenarios", type=int, default=10, help="scenarios per cell (default 10)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
-    p.add_argument("--leader", choices=("constant", "braking"), default="constant",
-                   help="leader: constant speed, or constant then braking (default constant)")
+    p.add_argument("--leader", choices=LEADER_KINDS, default="constant",
+                   help="leader: constant speed; constant then braking or accelerating (to "
+                        "--brake-to at --brake-decel after --brake-time); or recorded (a human "
+                        "leader's speed profile, see --leader-profile) (default constant)")
+    p.add_argument("--leader-profile", default=None,
+                   help="recorded leaders: ngsim (default), openacc (from --data-dir), or a "
+                        "CSV/Parquet file (columns time [s], speed [m/s]) or folder of them")
+    p.add_argument("--suite", choices=("leader-response",), default=None,
+                   help="run a named suite instead of the grid (see docs; uses --policies, "
+                        "--seed, --workers, --out)")
+    p.add_argument("--quick", action="store_true",
+                   help="with --suite: one variant per family and net (CI)")
     p.add_argument("--leader-speed", type=finite_float, nargs=2, default=(25.0, 32.0),
                    metavar=("LOW", "HIGH"), help="leader (initial) speed range [m/s] (25 32)")
     p.add_argument("--brake-time", type=finite_float, default=5.0, help="braking starts at [s] (5)")
@@ -86,6 +102,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--scheduler needs an address like tcp://host:8786, got {args.scheduler!r}")
     if args.task_timeout is not None and args.task_timeout <= 0:
         p.error("--task-timeout must be > 0 s")
+    if args.leader_profile is not None and args.leader != "recorded":
+        p.error("--leader-profile needs --leader recorded")
+    if args.quick and args.suite is None:
+        p.error("--quick needs --suite")
     if args.out.exists() and not args.out.is_dir():
         p.error(f"--out {args.out} exists and is not a folder")
     return args
@@ -93,6 +113,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
     """The grid: nets x policies x filter options x scenario indices (ValueError if invalid)."""
+    if args.suite == "leader-response":
+        from safeil_sumo.experiments.suite import suite_specs
+
+        return suite_specs(args.policies, args.seed, variants=1 if args.quick else 3)
     gap = tuple(args.gap_range) if args.gap_range else (args.gap if args.gap is not None else 50.0)
     return [
         ScenarioSpec(
@@ -102,18 +126,24 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
             brake_to_mps=args.brake_to, ego_speed_mps=args.ego_speed, initial_gap_m=gap,
             lane_noise_c0_m=args.lane_noise, radar_noise_m=args.radar_noise,
             plan_rate_hz=args.plan_rate, max_time_s=args.max_time,
-            stop_on_flag=args.stop_on_flag,
+            stop_on_flag=args.stop_on_flag, leader_profile=args.leader_profile or "",
         )
         for net, policy, filt, index in itertools.product(
             args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
     ]
 
 
-def check_inputs(nets: list[str], policies_: list[str]) -> None:
-    """Resolve every net (building curved<R> once) and load every policy before any task runs.
+def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()) -> None:
+    """Resolve every net (building curved<R> once), load every policy and recorded-leader
+    library before any task runs.
 
-    Raises ``ValueError`` (NetworkError, PolicyError) with a one-line reason. No SUMO is started.
+    Raises ``ValueError`` (NetworkError, PolicyError, ProfileError) with a one-line reason. No
+    SUMO is started.
     """
+    from safeil_sumo.scenarios import recorded_leaders
+
+    for profile in dict.fromkeys(profiles):
+        recorded_leaders.library(profile)
     from safeil_sumo import policies
     from safeil_sumo.scenarios.catalogue import resolve_net
     from safeil_sumo.scenarios.road import load_road
@@ -128,7 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         specs = build_specs(args)
-        check_inputs(args.net, args.policies)
+        check_inputs(sorted({s.net for s in specs}), args.policies,
+                     sorted({s.leader_profile for s in specs if s.leader_profile}))
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -144,7 +175,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 
-    print(format_breakdown(breakdown(summary, by=["net", "policy", "safety_filter"])))
+    if args.suite == "leader-response":
+        from safeil_sumo.experiments.suite import aggregate
+
+        table = aggregate(summary[summary["status"] == "ok"])
+        with atomic_path(args.out / "suite.csv") as tmp:
+            table.to_csv(tmp, index=False)
+        print(table.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
+    else:
+        print(format_breakdown(breakdown(summary, by=["net", "policy", "safety_filter"])))
     failed = summary[summary["status"] != "ok"]
     for _, row in failed.head(20).iterrows():
         print(f"task {row['task_id']} failed: {row['error']}", file=sys.stderr)

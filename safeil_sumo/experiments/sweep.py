@@ -35,7 +35,7 @@ from tqdm import tqdm
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
 
-LEADER_KINDS = ("constant", "braking")
+LEADER_KINDS = ("constant", "braking", "accelerating", "recorded")
 TIMING_FIELDS = ("wall_time_s", "steps_per_s", "task_wall_time_s")  # differ run to run
 STATUS_OK = "ok"
 MAX_SPEED_MPS = 100.0  # [m/s] above: a unit mistake (SUMO refuses such departures)
@@ -53,11 +53,11 @@ class ScenarioSpec:
     master_seed: int = 0  # with ``index`` gives the scenario seed (SUMO, sensors, draws) [-]
     policy: str = "analytic"  # analytic, safeil, bc or a .safetensors checkpoint path
     safety_filter: bool = False  # wrap the policy in the inference-time safety filter
-    leader_kind: str = "constant"  # "constant" | "braking"
+    leader_kind: str = "constant"  # "constant" | "braking" | "accelerating" | "recorded"
     leader_speed_range_mps: tuple[float, float] = (25.0, 32.0)  # leader (initial) speed [m/s]
-    brake_time_s: float = 5.0  # braking leader: braking starts at this time [s]
-    brake_decel_mps2: float = 3.0  # braking leader: deceleration magnitude [m/s^2]
-    brake_to_mps: float = 15.0  # braking leader: final speed [m/s]
+    brake_time_s: float = 5.0  # braking/accelerating leader: the change starts at this time [s]
+    brake_decel_mps2: float = 3.0  # braking/accelerating leader: rate of the change [m/s^2]
+    brake_to_mps: float = 15.0  # braking/accelerating leader: final speed [m/s]
     ego_speed_mps: float = 30.0  # ego initial speed [m/s]
     initial_gap_m: float | tuple[float, float] = 50.0  # bumper gap, fixed or (low, high) [m]
     lane_noise_c0_m: float = 0.0  # std of camera lane-offset noise [m]
@@ -65,12 +65,19 @@ class ScenarioSpec:
     plan_rate_hz: float = 10.0  # re-planning rate [Hz]
     max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
     stop_on_flag: bool = False  # end the scenario at its first safety flag
+    # recorded leader: "ngsim", "openacc" or a CSV/Parquet profile file or folder
+    # (:mod:`safeil_sumo.scenarios.recorded_leaders`); "" (other kinds) is left out of the JSON,
+    # so the task ids of specs without it are those of earlier versions
+    leader_profile: str = ""
 
     def __post_init__(self) -> None:
         # normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same
         set_ = object.__setattr__
         set_(self, "net", str(self.net))
         set_(self, "policy", str(self.policy))
+        set_(self, "leader_profile", str(self.leader_profile))
+        if self.leader_kind == "recorded" and not self.leader_profile:
+            set_(self, "leader_profile", "ngsim")
         set_(self, "index", int(self.index))
         set_(self, "master_seed", int(self.master_seed))
         set_(self, "safety_filter", bool(self.safety_filter))
@@ -103,10 +110,12 @@ class ScenarioSpec:
         glo, ghi = self.gap_range_m
         if not 0 < glo <= ghi:
             raise ValueError(f"initial gap needs 0 < low <= high, got {glo}, {ghi}")
-        if self.leader_kind == "braking" and (
+        if self.leader_kind in ("braking", "accelerating") and (
                 self.brake_time_s < 0 or self.brake_decel_mps2 <= 0 or self.brake_to_mps < 0):
-            raise ValueError("braking leader needs brake time >= 0 s, deceleration > 0 "
-                                 "m/s^2 and final speed >= 0 m/s")
+            raise ValueError(f"{self.leader_kind} leader needs a start time >= 0 s, a rate > 0 "
+                             "m/s^2 and a final speed >= 0 m/s")
+        if self.leader_profile and self.leader_kind != "recorded":
+            raise ValueError("a leader profile needs leader kind 'recorded'")
         if not 0 <= self.ego_speed_mps <= MAX_SPEED_MPS:
             raise ValueError(f"ego speed must be in [0, {MAX_SPEED_MPS:g}] m/s, "
                              f"got {self.ego_speed_mps}")
@@ -124,7 +133,10 @@ class ScenarioSpec:
         return (gap, gap) if isinstance(gap, float) else gap
 
     def to_json(self) -> dict[str, Any]:
-        return asdict(self)
+        out = asdict(self)
+        if not out["leader_profile"]:
+            del out["leader_profile"]
+        return out
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> ScenarioSpec:
@@ -185,13 +197,16 @@ def leader_profile(spec: ScenarioSpec, speed_mps: float):
     """The leader's :class:`SpeedProfile` for an initial speed ``speed_mps`` [m/s]."""
     from safeil_sumo.sim.leaders import constant, piecewise
 
-    if spec.leader_kind == "constant" or spec.brake_to_mps >= speed_mps:
+    target = spec.brake_to_mps
+    changes = (spec.leader_kind == "braking" and target < speed_mps) or (
+        spec.leader_kind == "accelerating" and target > speed_mps)
+    if not changes:
         return constant(speed_mps)
     t0 = spec.brake_time_s
-    t1 = t0 + (speed_mps - spec.brake_to_mps) / spec.brake_decel_mps2
-    if t0 <= 0.0:  # brakes from the start
-        return piecewise([0.0, t1], [speed_mps, spec.brake_to_mps])
-    return piecewise([0.0, t0, t1], [speed_mps, speed_mps, spec.brake_to_mps])
+    t1 = t0 + abs(speed_mps - target) / spec.brake_decel_mps2
+    if t0 <= 0.0:  # changes from the start
+        return piecewise([0.0, t1], [speed_mps, target])
+    return piecewise([0.0, t0, t1], [speed_mps, speed_mps, target])
 
 
 def build_scenario(spec: ScenarioSpec, road):
@@ -207,10 +222,21 @@ def build_scenario(spec: ScenarioSpec, road):
     speed = float(rng.uniform(*spec.leader_speed_range_mps))  # first draw: as safety_scenario
     glo, ghi = spec.gap_range_m
     gap = float(rng.uniform(glo, ghi)) if ghi > glo else glo
+    ego_speed, max_time = spec.ego_speed_mps, spec.max_time_s
+    if spec.leader_kind == "recorded":  # the recording's leader and its follower's start
+        from safeil_sumo.scenarios import recorded_leaders as rl
+
+        drawn = rl.draw(rl.library(spec.leader_profile), rng, spec.max_time_s)
+        leader = drawn.profile
+        ego_speed = drawn.ego_speed_mps if drawn.ego_speed_mps is not None else ego_speed
+        gap = drawn.initial_gap_m if drawn.initial_gap_m is not None else gap
+        max_time = min(max_time or math.inf, drawn.duration_s)
+    else:
+        leader = leader_profile(spec, speed)
     return Scenario(
-        name=f"s{spec.index:04d}", road=road, leader=leader_profile(spec, speed),
-        ego_speed_mps=spec.ego_speed_mps, initial_gap_m=gap, seed=seed,
-        max_time_s=spec.max_time_s,
+        name=f"s{spec.index:04d}", road=road, leader=leader,
+        ego_speed_mps=ego_speed, initial_gap_m=gap, seed=seed,
+        max_time_s=max_time,
         sensors=SensorConfig(lane_noise_c0_m=spec.lane_noise_c0_m,
                              radar_noise_m=spec.radar_noise_m),
     )
@@ -248,7 +274,12 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
         scenario = build_scenario(spec, road)
         policy = _load_policy(spec)
         loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag)
-        summary = dict(run_scenario(scenario, policy, loop).summary)
+        rollout = run_scenario(scenario, policy, loop)
+        summary = dict(rollout.summary)
+        if len(rollout.log):  # how it responded to its leader (the leader-response suite's)
+            from safeil_sumo.experiments.suite import response_metrics
+
+            summary.update({f"resp_{k}": v for k, v in response_metrics(rollout.log).items()})
     except Exception as exc:  # noqa: BLE001 - a record, never an exception: the sweep goes on
         return failed_record(spec, f"{type(exc).__name__}: {exc}")
     failed = summary.get("end_reason") == "error"
@@ -258,6 +289,7 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
     summary["net_name"] = summary.pop("net")
     record.update(summary)
     record["leader_speed0_mps"] = scenario.leader.initial_speed  # the draw (braking: pre-brake)
+    record["leader_label"] = scenario.leader.label
     record["radius_m"] = road.meta.get("radius_m", math.nan)
     if spec.safety_filter:
         record["filter_interventions"] = int(getattr(policy, "interventions", 0))
