@@ -20,9 +20,10 @@ from tqdm import tqdm
 from safeil_sumo import policies
 from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.experiments import outputs, plots
+from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, build_scenario
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import NetworkError, load_road
-from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS, safety_scenario
+from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig, run_scenario
 from safeil_sumo.sim.sumo_api import SumoError
@@ -43,6 +44,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
     p.add_argument("--leader-speed", type=finite_float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
                    metavar=("LOW", "HIGH"), help="leader speed range [m/s] (default 25 32)")
+    p.add_argument("--leader", choices=LEADER_KINDS, default="constant",
+                   help="constant (the paper), braking (to 15 m/s at 3 m/s^2 after 5 s), "
+                        "accelerating, or recorded (a human leader's speed profile; the ego "
+                        "starts as the recorded follower did) (default constant)")
+    p.add_argument("--leader-profile", default=None,
+                   help="with --leader recorded: ngsim (default), openacc, or a CSV/Parquet "
+                        "file (columns time [s], speed [m/s]) or a folder of them")
     p.add_argument("--ego-speed", type=finite_float, default=30.0, help="ego initial speed [m/s]")
     p.add_argument("--gap", type=finite_float, default=50.0, help="initial bumper gap [m]")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
@@ -62,6 +70,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--leader-speed needs 0 <= LOW <= HIGH <= 100 m/s")
     if not 0 < args.plan_rate <= 100:
         p.error("--plan-rate must be in (0, 100] Hz")
+    if args.leader_profile is not None and args.leader != "recorded":
+        p.error("--leader-profile needs --leader recorded")
     if args.gui:
         args.backend = "traci"
     args.policy = args.policy or policies.default_policy_name()
@@ -98,10 +108,15 @@ def main(argv: list[str] | None = None) -> int:
                       backend=args.backend, gui=args.gui)
     vehicle = VehicleParams()
     try:
-        scenarios = [
-            safety_scenario(road, i, args.seed, tuple(args.leader_speed), args.ego_speed, args.gap)
-            for i in range(args.scenarios)
-        ]
+        specs = [ScenarioSpec(net=args.net, index=i, master_seed=args.seed, policy=args.policy,
+                              leader_kind=args.leader,
+                              leader_speed_range_mps=tuple(args.leader_speed),
+                              ego_speed_mps=args.ego_speed, initial_gap_m=args.gap,
+                              plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
+                              leader_profile=args.leader_profile or "")
+                 for i in range(args.scenarios)]
+        # the sweep's scenario builder: scenario i of a run is task i of a sweep
+        scenarios = [build_scenario(spec, road) for spec in specs]
     except (ValueError, ProfileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -122,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     config = {
         "net": str(road.net_path), "policy": args.policy, "scenarios": args.scenarios,
         "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
+        "leader": args.leader, "leader_profile": args.leader_profile,
+        "leaders": [sc.leader.label for sc in scenarios],
         "ego_speed_mps": args.ego_speed, "initial_gap_m": args.gap,
         "loop": asdict(loop), "vehicle": asdict(vehicle),
         "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
@@ -137,8 +154,9 @@ def main(argv: list[str] | None = None) -> int:
 
     print(format_table(summaries))
     done = int(summaries["completed"].sum())
-    print(f"\n{policy.name}: {done}/{len(summaries)} scenarios completed without a flag, "
-          f"mean path completed {100 * summaries['path_completed'].mean():.1f} %")
+    flagged = int((summaries["flag"] != "").sum())
+    print(f"\n{policy.name}: {done}/{len(summaries)} scenarios completed without a flag "
+          f"({flagged} flagged), mean path completed {100 * summaries['path_completed'].mean():.1f} %")
     errors = summaries[summaries["end_reason"] == "error"]
     for _, row in errors.iterrows():
         print(f"scenario {row['scenario']} failed: {row['error']}", file=sys.stderr)
