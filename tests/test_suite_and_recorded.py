@@ -1,0 +1,143 @@
+"""Recorded leaders in run/sweep and the leader-response suite (metrics hand-computed, a quick
+suite in real libsumo)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from safeil_sumo import run as run_cli
+from safeil_sumo import sweep as sweep_cli
+from safeil_sumo.experiments import suite
+from safeil_sumo.experiments.sweep import ScenarioSpec, _road, build_scenario, run_sweep, task_id
+from safeil_sumo.scenarios import recorded_leaders as rl
+from safeil_sumo.sim.leaders import ProfileError
+from safeil_sumo.sim.runner import LoopConfig, run_scenario
+
+
+def _profile(path, times, speeds) -> str:
+    pd.DataFrame({"time": times, "speed": speeds}).to_csv(path, index=False)
+    return str(path)
+
+
+@pytest.fixture()
+def stop_and_go(tmp_path) -> str:
+    t = np.arange(0.0, 60.0, 0.1)
+    v = np.clip(12 + 8 * np.sin(2 * np.pi * t / 25), 0, None)  # 4..20 m/s, real-ish waves
+    return _profile(tmp_path / "stopgo.csv", t, v)
+
+
+# ---------------------------------------------------------------------- avoidability (pure)
+
+
+def test_braking_avoids_hand_computed() -> None:
+    t = np.arange(0.0, 10.0, 0.01)
+    # leader standing still 30 m ahead of an ego at 15 m/s: braking at 6 needs 18.75 m; TTC
+    # stays above 1 s? at the start TTC = 2 s; it grows as the ego slows: avoidable
+    assert suite.braking_avoids(t, 30.0, 15.0, np.zeros_like(t))
+    # 15 m ahead: TTC 1 s at once -> not avoidable
+    assert not suite.braking_avoids(t, 15.0, 15.0, np.zeros_like(t))
+    # 20 m ahead at 20 m/s against a stopped car: 33 m needed -> collision, not avoidable
+    assert not suite.braking_avoids(t, 20.0, 20.0, np.zeros_like(t))
+    # a faster leader is always avoidable
+    assert suite.braking_avoids(t, 5.0, 20.0, np.full_like(t, 25.0))
+
+
+def test_response_metrics_hand_computed() -> None:
+    t = np.arange(0.0, 4.0, 0.01)
+    v = np.where(t < 2.0, 20.0, 20.0 - 3.0 * (t - 2.0))  # brakes at 3 m/s^2 from t = 2 s
+    log = pd.DataFrame({"t": t, "v": v, "gap": np.full_like(t, 40.0), "ttc": np.inf,
+                        "leader_v": 20.0, "collision": False})
+    m = suite.response_metrics(log)
+    assert m["max_decel_mps2"] == pytest.approx(3.0, rel=1e-6)
+    assert m["min_time_gap_s"] == pytest.approx(40.0 / 20.0)
+    assert m["max_jerk_mps3"] == pytest.approx(3.0 / 0.1, rel=0.05)  # the step, over 0.1 s
+    assert m["avoidable"] and not m["collision"]
+
+
+# ----------------------------------------------------------------------- recorded leaders
+
+
+def test_recorded_draw_is_seeded_and_the_spec_id_is_stable(stop_and_go) -> None:
+    spec = ScenarioSpec(net="straight", index=3, leader_kind="recorded", leader_profile=stop_and_go)
+    road = _road("straight")
+    a, b = build_scenario(spec, road), build_scenario(spec, road)
+    assert a.leader.label == b.leader.label
+    np.testing.assert_array_equal(a.leader.speeds, b.leader.speeds)
+    assert a.max_time_s <= 60.0
+    # specs without a profile keep the JSON (and task id) of earlier versions
+    assert "leader_profile" not in ScenarioSpec().to_json()
+    assert ScenarioSpec.from_json(spec.to_json()) == spec
+    assert task_id(spec) != task_id(ScenarioSpec(net="straight", index=3))
+
+
+def test_recorded_profile_is_driven_in_sumo_within_5_cm_per_s(stop_and_go) -> None:
+    spec = ScenarioSpec(net="straight", index=0, leader_kind="recorded",
+                        leader_profile=stop_and_go, max_time_s=30.0, policy="analytic")
+    sc = build_scenario(spec, _road("straight"))
+    from safeil_sumo import policies
+
+    log = run_scenario(sc, policies.load("analytic"), LoopConfig()).log
+    # the logged leader speed is SUMO's (read back each step) after the step it was set for
+    expected = sc.leader.speed_at(log["t"].to_numpy() - 0.01)
+    err = np.abs(log["leader_v"].to_numpy() - expected)
+    assert err.max() < 0.05, err.max()
+
+
+@pytest.mark.parametrize("bad,message", [
+    ({"time": [0, 1, 2], "speed": [10, float("nan"), 10]}, "finite"),
+    ({"time": [0, 1, 2], "speed": [10, -1, 10]}, "negative"),
+    ({"time": [0, 0.5, 0.3], "speed": [10, 10, 10]}, "increase"),
+])
+def test_bad_profile_files_exit_2(tmp_path, capsys, bad, message) -> None:
+    path = tmp_path / "bad.csv"
+    pd.DataFrame(bad).to_csv(path, index=False)
+    rl.library.cache_clear()
+    out = tmp_path / "out"
+    assert run_cli.main(["--leader", "recorded", "--leader-profile", str(path), "--scenarios",
+                         "1", "--no-plots", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and message in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_profile_too_short_for_the_scenario(tmp_path, capsys) -> None:
+    path = _profile(tmp_path / "short.csv", np.arange(0, 30, 0.1), np.full(300, 20.0))
+    rl.library.cache_clear()
+    code = sweep_cli.main(["--net", "straight", "--policies", "analytic", "--leader", "recorded",
+                           "--leader-profile", path, "--max-time", "60", "--scenarios", "1",
+                           "--out", str(tmp_path / "sw"), "--no-progress"])
+    assert code == 1  # the task fails with the reason recorded (the library itself is valid)
+    summary = pd.read_csv(tmp_path / "sw" / "summary.csv")
+    assert "too short" in summary["error"].iloc[0]
+    with pytest.raises(ProfileError, match="too short"):
+        rl.draw(rl.library(path), np.random.default_rng(0), max_time_s=60.0)
+
+
+def test_recorded_ngsim_library_from_the_shared_data() -> None:
+    from tests.fixtures_data import NGSIM_PAIRS, require_file
+
+    data_dir = require_file(NGSIM_PAIRS).parents[1]
+    lib = rl.library("ngsim", str(data_dir))
+    assert len(lib) > 100  # 143 maneuvers, all >= 20 s
+    d = rl.draw(lib, np.random.default_rng(1))
+    assert d.ego_speed_mps is not None and d.initial_gap_m > 0 and d.duration_s >= 20.0
+
+
+# ------------------------------------------------------------------------------------ suite
+
+
+def test_quick_suite_runs_every_family_in_libsumo(tmp_path) -> None:
+    specs = suite.suite_specs(["analytic"], seed=0, variants=1)
+    assert len(specs) == len(suite.FAMILIES) * len(suite.NETS)
+    summary = run_sweep(specs, tmp_path, workers=1, progress=False)
+    assert (summary["status"] == "ok").all(), summary["error"].tolist()
+    table = suite.aggregate(summary)
+    assert list(table["family"]) == list(suite.FAMILIES)
+    for col in ("collisions", "flags_avoidable", "flags_unavoidable", "min_ttc_s",
+                "min_time_gap_s", "max_decel_mps2", "max_jerk_mps3"):
+        assert col in table.columns
+    assert table["collisions"].sum() == 0
+    acc = summary[summary["index"].map(suite.family_of) == "accelerating"]
+    assert (acc["leader_label"] == "piecewise").all()
