@@ -28,6 +28,7 @@ from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import SchemaError, load_drive
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import replay as rp
+from safeil_sumo.experiments import replay_all as ra
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.sumo_api import SumoError
@@ -61,8 +62,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR,
                    help=f"folder of the real data (default {DEFAULT_DATA_DIR})")
     p.add_argument("--maneuver", default="auto",
-                   help="a maneuver id (see --list), 'longest', or 'auto' (the window most like "
-                        "the paper's: 115 km/h, 58.6 m gap)")
+                   help="a maneuver id (see --list), 'longest', 'auto' (the window most like "
+                        "the paper's: 115 km/h, 58.6 m gap), or 'all' / a comma-separated list "
+                        "of ids: every window of those maneuvers (see --windows)")
+    p.add_argument("--windows", choices=ra.WINDOW_MODES, default="sliding",
+                   help="with --maneuver all/list: the paper's 11 s from each maneuver start, "
+                        "11 s windows every --stride s (default), or whole maneuvers")
+    p.add_argument("--stride", type=finite_float, default=20.0,
+                   help="sliding windows: seconds between window starts (default 20)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="with --maneuver all/list: worker processes (default 1)")
+    p.add_argument("--held-out-of", type=Path, default=None, metavar="CHECKPOINT_JSON",
+                   help="with --maneuver all: only the maneuvers this checkpoint held out of "
+                        "training (its metrics.val_maneuvers)")
     p.add_argument("--start", type=finite_float, default=0.0,
                    help="start [s] within the maneuver (ignored with auto)")
     p.add_argument("--duration", type=finite_float, default=rp.PAPER_DURATION_S,
@@ -81,7 +93,61 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--duration and --start must be >= 0")
     if not 0 < args.rate <= 100 or not 0 < args.plan_rate <= 100:
         p.error("--rate and --plan-rate must be in (0, 100] Hz")
+    if args.stride <= 0 or args.workers < 1:
+        p.error("--stride must be > 0 s and --workers >= 1")
+    args.many = args.maneuver == "all" or "," in args.maneuver
+    if args.held_out_of is not None and args.maneuver != "all":
+        p.error("--held-out-of needs --maneuver all")
     return args
+
+
+def _held_out(path: Path) -> list[str]:
+    import json
+
+    try:
+        doc = json.loads(Path(path).read_text())
+        ids = doc["metrics"]["val_maneuvers"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: no held-out maneuvers (metrics.val_maneuvers): {exc}") from exc
+    return [str(i) for i in ids]
+
+
+def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
+    """``--maneuver all`` / a list: every window, in workers, resumable; table + aggregate."""
+    if args.maneuver == "all":
+        only = None
+        if args.held_out_of is not None:
+            present = set(maneuvers["maneuver_id"].astype(str))
+            only = [m for m in _held_out(args.held_out_of) if m in present]
+            if not only:
+                raise rp.ReplayError(f"none of the maneuvers held out by {args.held_out_of} is "
+                                     f"in {args.source}")
+    else:
+        only = [m.strip() for m in args.maneuver.split(",") if m.strip()]
+    wins = ra.windows(maneuvers, args.windows, args.duration or rp.PAPER_DURATION_S,
+                      args.stride, only)
+    if not wins:
+        raise rp.ReplayError(f"no maneuver of {args.source} is long enough for a "
+                             f"{args.duration:g} s window")
+    for name in args.policies:  # fail fast on a bad policy, before any worker starts
+        pol.load(name)
+    out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
+    config = rp.ReplayConfig(seed=args.seed)
+    config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate))
+    records = ra.replay_all(maneuvers, wins, list(args.policies), out, config, args.workers)
+    _, agg = ra.write(out, records, {"source": args.source, "policies": args.policies,
+                                     "windows_mode": args.windows, "stride_s": args.stride,
+                                     "duration_s": args.duration, "maneuvers": only or "all"},
+                      seed=args.seed, title=str(args.source))
+    failed = [r for r in records if r["status"] != "ok"]
+    print(f"{args.source}: {len(records)} windows of {len({w.maneuver_id for w in wins})} "
+          f"maneuvers ({args.windows}), {len(failed)} failed")
+    if len(agg):
+        print(agg.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
+    for r in failed[:10]:
+        print(f"window {r['task_id']} failed: {r['error']}", file=sys.stderr)
+    print(f"results: {out}")
+    return 1 if failed else 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,6 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.list:
             print(rp.maneuver_table(maneuvers).to_string(float_format=lambda v: f"{v:.2f}"))
             return 0
+        if len(maneuvers) == 0 or "maneuver_id" not in maneuvers:
+            raise rp.ReplayError(f"{args.source}: no car-following maneuver to replay")
+        if args.many:
+            return main_many(args, maneuvers)
         mid, start, rows = rp.select_maneuver(maneuvers, args.maneuver, args.start,
                                               args.duration or None)
         policies = {}

@@ -1,0 +1,265 @@
+"""Human-likeness over the whole distribution: replay every maneuver window, aggregate, plot.
+
+One *task* is one window of one maneuver (rebuilt once in SUMO) driven by every policy; its
+metrics (one row per policy, :func:`safeil_sumo.experiments.replay.compare`) and the time-gap
+histograms of the human and each policy are written at once and atomically to
+``<out>/tasks/<task>.json``, so an interrupted run resumes (done windows are skipped). Windows
+run in ``workers`` processes (one libsumo each).
+
+Windows (``mode``):
+- ``paper``: the paper's 11 s from the start of each maneuver;
+- ``sliding``: 11 s windows every ``stride_s`` s through each maneuver (the default of
+  ``replay --maneuver all``: many windows per maneuver, all its traffic situations);
+- ``whole``: each maneuver from start to end.
+
+The aggregate per policy: windows, median and mean gap RMSE with seeded bootstrap 95 % intervals,
+median speed and lateral RMSE, the time-gap Wasserstein distance to the human, flags and
+collisions.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import multiprocessing as mp
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from safeil_sumo.atomic import atomic_path
+from safeil_sumo.experiments import outputs
+from safeil_sumo.experiments import replay as rp
+
+WINDOW_MODES = ("paper", "sliding", "whole")
+HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
+BOOTSTRAP_SAMPLES = 2000
+
+
+@dataclass(frozen=True)
+class Window:
+    """One replayed window: ``start_s`` [s after the maneuver's first sample], ``duration_s``
+    (None: to the maneuver's end)."""
+
+    maneuver_id: str
+    start_s: float
+    duration_s: float | None
+
+    @property
+    def task_id(self) -> str:
+        text = f"{self.maneuver_id}|{self.start_s:.3f}|{self.duration_s}"
+        digest = hashlib.sha256(text.encode()).hexdigest()[:10]
+        return re.sub(r"[^A-Za-z0-9_]+", "_", self.maneuver_id)[:40] + f"-{self.start_s:07.1f}-{digest}"
+
+
+def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
+            duration_s: float = rp.PAPER_DURATION_S, stride_s: float = 20.0,
+            only: list[str] | None = None) -> list[Window]:
+    """The windows of every maneuver (or of ``only``) in ``mode``; maneuvers shorter than one
+    window are skipped in ``paper`` / ``sliding`` mode."""
+    if mode not in WINDOW_MODES:
+        raise ValueError(f"windows must be one of {WINDOW_MODES}, got {mode!r}")
+    table = rp.maneuver_table(maneuvers)
+    if only is not None:
+        unknown = sorted(set(only) - set(table.index))
+        if unknown:
+            ids = list(table.index)
+            raise rp.ReplayError(f"unknown maneuver(s) {unknown}; available: "
+                                 f"{', '.join(ids[:10])}{' ...' if len(ids) > 10 else ''}")
+        table = table.loc[sorted(set(only))]
+    out = []
+    for mid, row in table.iterrows():
+        dur = float(row["duration_s"])
+        if mode == "whole":
+            out.append(Window(str(mid), 0.0, None))
+        elif dur >= duration_s - 1e-9:
+            starts = [0.0] if mode == "paper" else np.arange(0.0, dur - duration_s + 1e-9,
+                                                             stride_s)
+            out += [Window(str(mid), float(s), duration_s) for s in starts]
+    return out
+
+
+def _headway_hist(values: np.ndarray) -> list[int]:
+    v = np.asarray(values, float)
+    return np.histogram(v[np.isfinite(v)], bins=HEADWAY_BINS)[0].tolist()
+
+
+def run_window(window: Window, maneuvers: pd.DataFrame, policies: dict, config: rp.ReplayConfig
+               ) -> dict:
+    """Replay one window with every policy: a JSON-able record (never raises)."""
+    try:
+        rows = maneuvers[maneuvers["maneuver_id"] == window.maneuver_id].reset_index(drop=True)
+        rows = rp.window(rows, window.start_s, window.duration_s)
+        with tempfile.TemporaryDirectory() as tmp:
+            res = rp.replay_maneuver(rows, policies, Path(tmp), config,
+                                     maneuver_id=window.maneuver_id)
+    except Exception as exc:  # noqa: BLE001 - a record, never an exception: the run goes on
+        return {"task_id": window.task_id, "maneuver_id": window.maneuver_id,
+                "start_s": window.start_s, "status": "failed",
+                "error": f"{type(exc).__name__}: {exc}"}
+    metrics = res.metrics.replace({np.nan: None}).to_dict(orient="records")
+    return {
+        "task_id": window.task_id, "maneuver_id": window.maneuver_id,
+        "start_s": window.start_s, "duration_s": res.info["duration_s"], "status": "ok",
+        "mean_speed_mps": res.info["mean_speed_mps"], "mean_gap_m": res.info["mean_gap_m"],
+        "metrics": metrics,
+        "headway_hist": {"human": _headway_hist(res.human["headway"]),
+                         **{name: _headway_hist(tr["headway"])
+                            for name, tr in res.compared.items()}},
+    }
+
+
+_STATE: dict = {}
+
+
+def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig) -> None:
+    from safeil_sumo import policies as pol
+
+    _STATE.update(maneuvers=maneuvers, config=config,
+                  policies={name: pol.load(name) for name in policy_names})
+
+
+def _work(window: Window) -> dict:
+    return run_window(window, _STATE["maneuvers"], _STATE["policies"], _STATE["config"])
+
+
+def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[str],
+               out_dir: Path, config: rp.ReplayConfig | None = None, workers: int = 1,
+               progress: bool = True) -> list[dict]:
+    """Run every window not done yet in ``out_dir/tasks``; return all records (window order)."""
+    config = config or rp.ReplayConfig()
+    tasks = Path(out_dir) / "tasks"
+    tasks.mkdir(parents=True, exist_ok=True)
+    todo = [w for w in wins if not (tasks / f"{w.task_id}.json").is_file()]
+    bar = tqdm(total=len(todo), desc="replay", unit="window", disable=not progress or None)
+    try:
+        if workers <= 1 or len(todo) <= 1:
+            _init(maneuvers, policy_names, config)
+            results = map(_work, todo)
+            for rec in results:
+                outputs.write_json(tasks / f"{rec['task_id']}.json", rec)
+                bar.update(1)
+        else:
+            ctx = mp.get_context("fork")
+            with ctx.Pool(workers, initializer=_init,
+                          initargs=(maneuvers, policy_names, config)) as pool:
+                for rec in pool.imap_unordered(_work, todo):
+                    outputs.write_json(tasks / f"{rec['task_id']}.json", rec)
+                    bar.update(1)
+    finally:
+        bar.close()
+    return [json.loads((tasks / f"{w.task_id}.json").read_text()) for w in wins
+            if (tasks / f"{w.task_id}.json").is_file()]
+
+
+def table(records: list[dict]) -> pd.DataFrame:
+    """One row per window x policy (failed windows: one row with the error)."""
+    rows = []
+    for r in records:
+        base = {k: r.get(k) for k in ("maneuver_id", "start_s", "duration_s", "mean_speed_mps",
+                                      "mean_gap_m", "status")}
+        if r["status"] != "ok":
+            rows.append({**base, "error": r.get("error")})
+            continue
+        rows += [{**base, **m} for m in r["metrics"]]
+    df = pd.DataFrame(rows)
+    if "flag" in df:
+        df["flag"] = df["flag"].fillna("")
+    return df
+
+
+def bootstrap_ci(values: np.ndarray, stat=np.median, samples: int = BOOTSTRAP_SAMPLES,
+                 seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+    """Percentile bootstrap interval of ``stat`` (seeded: the same values give the same CI)."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return math.nan, math.nan
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(v), size=(samples, len(v)))
+    stats = stat(v[idx], axis=1)
+    lo, hi = np.quantile(stats, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def aggregate(df: pd.DataFrame, seed: int = 0) -> pd.DataFrame:
+    """Per policy: windows, gap RMSE median/mean with bootstrap 95 % CIs, speed and lateral RMSE
+    medians, time-gap W1 median, flags, collisions."""
+    ok = df[df["status"] == "ok"]
+    rows = []
+    for policy, g in ok.groupby("policy", sort=False):
+        gap = g["rmse_gap"].to_numpy(float)
+        med_lo, med_hi = bootstrap_ci(gap, np.median, seed=seed)
+        mean_lo, mean_hi = bootstrap_ci(gap, np.mean, seed=seed)
+        rows.append({
+            "policy": policy, "windows": len(g),
+            "gap_rmse_median_m": float(np.nanmedian(gap)), "gap_rmse_median_lo": med_lo,
+            "gap_rmse_median_hi": med_hi, "gap_rmse_mean_m": float(np.nanmean(gap)),
+            "gap_rmse_mean_lo": mean_lo, "gap_rmse_mean_hi": mean_hi,
+            "speed_rmse_median_mps": float(np.nanmedian(g["rmse_v"])),
+            "lateral_rmse_median_m": float(np.nanmedian(g["rmse_d"])),
+            "time_gap_w1_median_s": float(np.nanmedian(g["w1_headway"])),
+            "flags": int((g["flag"] != "").sum()),
+            "collisions": int((g["flag"] == "collision").sum()
+                              | (g["end_reason"] == "collision").sum()),
+        })
+    return pd.DataFrame(rows)
+
+
+def plot(records: list[dict], df: pd.DataFrame, path: Path, title: str = "") -> None:
+    """Gap-RMSE CDF per policy, and the time-gap histograms of the human and each policy."""
+    ok = df[df["status"] == "ok"]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.2))
+    for policy, g in ok.groupby("policy", sort=False):
+        v = np.sort(g["rmse_gap"].dropna().to_numpy(float))
+        if len(v):
+            a.step(v, np.arange(1, len(v) + 1) / len(v), where="post",
+                   label=f"{policy} (median {np.median(v):.2f} m)")
+    a.axvline(0.78, color="k", ls=":", lw=1, label="paper, SafeIL: 0.78 m (one window)")
+    a.set_xscale("log")
+    a.set_xlabel("gap RMSE vs the human over a window [m]")
+    a.set_ylabel("share of windows")
+    a.legend(fontsize=7)
+    a.set_title(f"{title} closed-loop replays: gap RMSE CDF", fontsize=9)
+    sums: dict[str, np.ndarray] = {}
+    for r in records:
+        for name, h in r.get("headway_hist", {}).items():
+            sums[name] = sums.get(name, 0) + np.asarray(h, float)
+    centres = 0.5 * (HEADWAY_BINS[1:] + HEADWAY_BINS[:-1])
+    for name, h in sums.items():
+        if h.sum() > 0:
+            b.plot(centres, h / h.sum() / np.diff(HEADWAY_BINS), lw=2.5 if name == "human" else 1.2,
+                   color="k" if name == "human" else None, label=name)
+    b.set_xlabel("time gap [s]")
+    b.set_ylabel("density [1/s]")
+    b.legend(fontsize=7)
+    b.set_title("time gap: human vs planners (all windows)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write(out_dir: Path, records: list[dict], extra_manifest: dict, seed: int = 0,
+          title: str = "") -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``windows.csv`` (per window x policy), ``aggregate.csv``, ``replay_all.png``,
+    ``manifest.json``; returns (per-window table, aggregate)."""
+    df = table(records)
+    agg = aggregate(df, seed) if len(df) and "policy" in df else pd.DataFrame()
+    with atomic_path(out_dir / "windows.csv") as tmp:
+        df.to_csv(tmp, index=False)
+    with atomic_path(out_dir / "aggregate.csv") as tmp:
+        agg.to_csv(tmp, index=False)
+    if len(agg):
+        plot(records, df, out_dir / "replay_all.png", title)
+    outputs.write_json(out_dir / "manifest.json", outputs.manifest(
+        {**extra_manifest, "windows": len(records)}, [seed]))
+    return df, agg
