@@ -254,3 +254,56 @@ def test_cli_one_line_errors(tmp_path, capsys):
                      "--out", str(tmp_path / "o")]) == 2
     assert "unknown policy" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+# ------------------------------------------------------------------- every window, aggregated
+
+
+def test_windows_modes_and_unknown_ids():
+    from safeil_sumo.experiments import replay_all as ra
+
+    rows = pd.concat([arc_drive(35.0).assign(maneuver_id="a#0"),
+                      arc_drive(8.0).assign(maneuver_id="b#0")], ignore_index=True)
+    assert [(w.maneuver_id, w.start_s) for w in ra.windows(rows, "paper")] == [("a#0", 0.0)]
+    assert [w.start_s for w in ra.windows(rows, "sliding", stride_s=10.0)] == [0.0, 10.0, 20.0]
+    assert {w.maneuver_id for w in ra.windows(rows, "whole")} == {"a#0", "b#0"}
+    with pytest.raises(rp.ReplayError, match="unknown maneuver"):
+        ra.windows(rows, "paper", only=["nope"])
+
+
+def test_bootstrap_ci_is_seeded_and_brackets_the_median():
+    from safeil_sumo.experiments.replay_all import bootstrap_ci
+
+    v = np.random.default_rng(0).lognormal(1.0, 0.5, 200)
+    lo, hi = bootstrap_ci(v, seed=3)
+    assert (lo, hi) == bootstrap_ci(v, seed=3)
+    assert lo < np.median(v) < hi and hi - lo < 1.0
+
+
+def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
+    from safeil_sumo import replay as cli
+
+    drive = pd.concat([arc_drive(24.0).assign(recording_id="a"),
+                       arc_drive(12.0, origin=(6.0e5, 4.9e6)).assign(recording_id="b")],
+                      ignore_index=True).drop(columns="maneuver_id")
+    src = tmp_path / "drive.parquet"
+    save_drive(drive, src)
+    out = tmp_path / "all"
+    args = ["--source", str(src), "--maneuver", "all", "--stride", "10", "--policies",
+            "analytic", "idm", "--out", str(out)]
+    assert cli.main(args) == 0
+    table = pd.read_csv(out / "windows.csv")
+    agg = pd.read_csv(out / "aggregate.csv")
+    assert set(table["policy"]) == {"analytic", "idm"}
+    assert table.groupby("policy").size().tolist() == [len(table) // 2] * 2
+    assert list(agg["policy"]) == ["analytic", "idm"] and (agg["flags"] == 0).all()
+    assert (out / "replay_all.png").is_file() and (out / "manifest.json").is_file()
+    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "tasks").iterdir()}
+    capsys.readouterr()
+    assert cli.main(args) == 0  # resumed: every window is done, nothing reruns
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "tasks").iterdir()} == stamps
+    # an unknown id: one error line, exit 2
+    assert cli.main(["--source", str(src), "--maneuver", "a#0,zz", "--out",
+                     str(tmp_path / "x")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+    assert not (tmp_path / "x").exists()
