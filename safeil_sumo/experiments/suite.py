@@ -136,7 +136,7 @@ def aggregate(records: pd.DataFrame) -> pd.DataFrame:
     for (policy, family), g in r.groupby(["policy", "family"], sort=False):
         rows.append({
             "policy": policy, "family": family, "scenarios": len(g),
-            "collisions": int(g["resp_collision"].sum()),
+            "collisions": int((g["resp_collision"] | (g["end_reason"] == "collision")).sum()),
             "flags_avoidable": int((g["flagged"] & g["resp_avoidable"]).sum()),
             "flags_unavoidable": int((g["flagged"] & ~g["resp_avoidable"]).sum()),
             "min_ttc_s": float(g["resp_min_ttc_s"].min()),
