@@ -34,15 +34,23 @@ SOURCES = {"synthetic": DATA / "synthetic" / "tuples.parquet",
 SYN = ("synthetic",)
 ALL = ("synthetic", "openacc", "ngsim")
 MIX = {"longitudinal_only_sources": ("openacc",)}
-ENV = {"envelope_weight": 1.0, "monotone_weight": 10000.0}
+ENV = {"envelope_weight": 1.0, "monotone_weight": 10000.0}  # weight 1: the first envelope tried
+ENV_SHIPPED = {"envelope_weight": 0.01, "monotone_weight": 10000.0}
 # name -> (sources, TrainConfig overrides); all SafeIL with the Bernstein lane bound unless said
 VARIANTS: dict[str, tuple[tuple[str, ...], dict]] = {
     "synthetic (earlier shipped recipe)": (SYN, {}),
     "synthetic, residual outputs": (SYN, {"output_mode": "residual"}),
     "synthetic, residual, envelope": (SYN, {"output_mode": "residual", **ENV}),
     "real+synthetic, residual": (ALL, {"output_mode": "residual", **MIX}),
-    "real+synthetic, residual, envelope (shipped recipe)": (ALL, {"output_mode": "residual",
-                                                                  **MIX, **ENV}),
+    "real+synthetic, residual, envelope": (ALL, {"output_mode": "residual", **MIX, **ENV}),
+    "real+synthetic, residual, envelope weight 0.01 (shipped recipe)": (
+        ALL, {"output_mode": "residual", **MIX, **ENV_SHIPPED}),
+    "real+synthetic, residual, envelope, no monotonicity penalty": (
+        ALL, {"output_mode": "residual", **MIX, "envelope_weight": 1.0}),
+    "real+synthetic, residual, envelope, 128x128": (ALL, {"output_mode": "residual", **MIX,
+                                                          **ENV, "hidden": (128, 128)}),
+    "real+synthetic, residual, envelope, synthetic lateral only": (
+        ALL, {"output_mode": "residual", **MIX, **ENV, "lateral_only_sources": ("synthetic",)}),
     "real+synthetic, absolute, envelope": (ALL, {**MIX, **ENV}),
     "real+synthetic, residual, envelope, margin 2 m": (ALL, {"output_mode": "residual", **MIX,
                                                              **ENV, "gap_min": 2.0}),
