@@ -198,6 +198,9 @@ def test_gap_monotone_penalty() -> None:
     assert float(gap_monotone_penalty(Linear(0.5), f)) == 0.0
     # x shrinks by 0.5 * 2 m per control point when the gap grows by 2 m
     assert float(gap_monotone_penalty(Linear(-0.5), f)) == pytest.approx(3.0)
+    # a margin asks for growth: a flat plan pays it on each of the 3 control points
+    assert float(gap_monotone_penalty(Linear(0.0), f, margin_m=0.01)) == pytest.approx(0.03)
+    assert float(gap_monotone_penalty(Linear(0.5), f, margin_m=0.01)) == 0.0
 
 
 def test_envelope_training_runs_and_logs_its_terms(data: Tuples) -> None:

@@ -76,6 +76,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--monotone-weight", type=finite_float, default=d.monotone_weight,
                    help="weight of the penalty on plans that shorten as the gap grows "
                         "(on the envelope states)")
+    p.add_argument("--monotone-margin", type=finite_float, default=d.monotone_margin_m,
+                   help="growth [m] of the plan per 2 m of gap asked by the monotonicity penalty")
     p.add_argument("--envelope-batch", type=int, default=d.envelope_batch,
                    help="envelope states per minibatch")
     p.add_argument("--threads", type=int, default=d.num_threads)
@@ -122,7 +124,7 @@ def main(argv: list[str] | None = None) -> dict:
         longitudinal_only_sources=tuple(args.longitudinal_only_sources),
         lateral_only_sources=tuple(args.lateral_only_sources),
         envelope_weight=args.envelope_weight, envelope_batch=args.envelope_batch,
-        monotone_weight=args.monotone_weight,
+        monotone_weight=args.monotone_weight, monotone_margin_m=args.monotone_margin,
     )
     print(f"{data_label}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
           f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "

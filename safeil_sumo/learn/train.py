@@ -58,7 +58,8 @@ class TrainConfig:
     envelope_weight: weight of the barrier on states drawn across the operating envelope
     (:mod:`safeil_sumo.learn.envelope`; 0 = paper, SafeIL only); envelope_batch: such states per
     minibatch; monotone_weight: weight of :func:`gap_monotone_penalty` on the envelope states (a
-    farther leader must never shorten the plan; needs envelope_weight > 0).
+    farther leader must never shorten the plan; needs envelope_weight > 0); monotone_margin_m:
+    the growth [m] per 2 m of gap that penalty asks for (0: none).
     The horizon [s] is taken from the data.
     """
 
@@ -85,6 +86,7 @@ class TrainConfig:
     envelope_weight: float = 0.0
     envelope_batch: int = 256
     monotone_weight: float = 0.0
+    monotone_margin_m: float = 0.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -193,13 +195,15 @@ def axis_weights(t: Tuples, config: TrainConfig) -> torch.Tensor:
 
 
 def gap_monotone_penalty(model: PlannerMLP, features: torch.Tensor,
-                         step_m: float = MONOTONE_STEP_M) -> torch.Tensor:
-    """Mean over states of ``sum_i relu(x_i(gap) - x_i(gap + step))`` [m]: how much the planned x
-    control points shrink when the leader is ``step_m`` farther (0 for a plan monotone in gap)."""
+                         step_m: float = MONOTONE_STEP_M, margin_m: float = 0.0) -> torch.Tensor:
+    """Mean over states of ``sum_i relu(x_i(gap) - x_i(gap + step) + margin)`` [m]: how much the
+    planned x control points shrink when the leader is ``step_m`` farther (0 for a plan monotone
+    in gap). A small ``margin_m`` asks for a slight growth, so that the soft penalty leaves no
+    shrinking pair between the sampled states either."""
     farther = features.clone()
     farther[:, 8] += step_m  # D_LEAD
     shrink = model(features)[..., 0] - model(farther)[..., 0]
-    return torch.relu(shrink).sum(dim=1).mean()
+    return torch.relu(shrink + margin_m).sum(dim=1).mean()
 
 
 def build_model(train: Tuples, config: TrainConfig) -> PlannerMLP:
@@ -288,7 +292,7 @@ def _train(
                 loss = loss + config.envelope_weight * env_term
                 sums[ENVELOPE_TERM] += float(env_term.detach()) * len(idx)
                 if config.monotone_weight > 0:
-                    mono = gap_monotone_penalty(model, e)
+                    mono = gap_monotone_penalty(model, e, margin_m=config.monotone_margin_m)
                     loss = loss + config.monotone_weight * mono
                     sums[MONOTONE_TERM] += float(mono.detach()) * len(idx)
             opt.zero_grad(set_to_none=True)
@@ -302,7 +306,7 @@ def _train(
             with torch.no_grad():
                 env_val_term = float(sum(envelope_barrier_terms(env_val, model(env_val), horizon,
                                                                 config.barrier)))
-                mono_val = float(gap_monotone_penalty(model, env_val))
+                mono_val = float(gap_monotone_penalty(model, env_val))  # without the margin
             val_terms[ENVELOPE_TERM] = env_val_term
             val_terms[MONOTONE_TERM] = mono_val
             val_terms["total"] += (config.envelope_weight * env_val_term
