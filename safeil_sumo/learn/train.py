@@ -104,6 +104,8 @@ class TrainConfig:
             raise ValueError(f"output_mode must be one of {OUTPUT_MODES}, got {self.output_mode!r}")
         if self.envelope_weight < 0 or self.envelope_batch < 1 or self.monotone_weight < 0:
             raise ValueError("envelope_weight and monotone_weight must be >= 0, envelope_batch >= 1")
+        if self.monotone_weight > 0 and not self.envelope_weight > 0:
+            raise ValueError("monotone_weight acts on the envelope states: set envelope_weight > 0")
         if self.max_epochs < 1 or self.batch_size < 0 or self.patience < 1:
             raise ValueError("max_epochs and patience must be >= 1, batch_size >= 0")
         _ = self.barrier  # validates the barrier settings
