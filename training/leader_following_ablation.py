@@ -43,8 +43,10 @@ VARIANTS: dict[str, tuple[tuple[str, ...], dict]] = {
     "synthetic, residual, envelope": (SYN, {"output_mode": "residual", **ENV}),
     "real+synthetic, residual": (ALL, {"output_mode": "residual", **MIX}),
     "real+synthetic, residual, envelope": (ALL, {"output_mode": "residual", **MIX, **ENV}),
-    "real+synthetic, residual, envelope weight 0.01 (shipped recipe)": (
+    "real+synthetic, residual, envelope weight 0.01": (
         ALL, {"output_mode": "residual", **MIX, **ENV_SHIPPED}),
+    "real+synthetic, residual, envelope weight 0.01, monotone margin 2 mm (shipped recipe)": (
+        ALL, {"output_mode": "residual", **MIX, **ENV_SHIPPED, "monotone_margin_m": 0.002}),
     "real+synthetic, residual, envelope, no monotonicity penalty": (
         ALL, {"output_mode": "residual", **MIX, "envelope_weight": 1.0}),
     "real+synthetic, residual, envelope, 128x128": (ALL, {"output_mode": "residual", **MIX,
@@ -64,7 +66,7 @@ REPLAY_STRIDE_S = 20.0  # [s] between the starts of the 11 s replay windows
 
 
 def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() else "_" for c in name).strip("_")[:60]
+    return "".join(c if c.isalnum() else "_" for c in name).strip("_")[:80]
 
 
 def train_variant(name: str, sources: tuple[str, ...], overrides: dict, cache: Path) -> Path:

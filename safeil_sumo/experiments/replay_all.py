@@ -137,28 +137,35 @@ def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[s
                progress: bool = True) -> list[dict]:
     """Run every window not done yet in ``out_dir/tasks``; return all records (window order)."""
     config = config or rp.ReplayConfig()
+    # a window's result holds every policy: its file name carries the policies and the config,
+    # so a rerun with other policies or settings never reuses a stale result
+    tag = hashlib.sha256(json.dumps([sorted(policy_names), repr(config)]).encode()).hexdigest()[:8]
     tasks = Path(out_dir) / "tasks"
     tasks.mkdir(parents=True, exist_ok=True)
-    todo = [w for w in wins if not (tasks / f"{w.task_id}.json").is_file()]
+
+    def path(w: Window) -> Path:
+        return tasks / f"{w.task_id}-{tag}.json"
+
+    todo = [w for w in wins if not path(w).is_file()]
     bar = tqdm(total=len(todo), desc="replay", unit="window", disable=not progress or None)
     try:
         if workers <= 1 or len(todo) <= 1:
             _init(maneuvers, policy_names, config)
             results = map(_work, todo)
-            for rec in results:
-                outputs.write_json(tasks / f"{rec['task_id']}.json", rec)
+            for w, rec in zip(todo, results, strict=True):
+                outputs.write_json(path(w), rec)
                 bar.update(1)
         else:
             ctx = mp.get_context("fork")
             with ctx.Pool(workers, initializer=_init,
                           initargs=(maneuvers, policy_names, config)) as pool:
+                by_id = {w.task_id: w for w in todo}
                 for rec in pool.imap_unordered(_work, todo):
-                    outputs.write_json(tasks / f"{rec['task_id']}.json", rec)
+                    outputs.write_json(path(by_id[rec["task_id"]]), rec)
                     bar.update(1)
     finally:
         bar.close()
-    return [json.loads((tasks / f"{w.task_id}.json").read_text()) for w in wins
-            if (tasks / f"{w.task_id}.json").is_file()]
+    return [json.loads(path(w).read_text()) for w in wins if path(w).is_file()]
 
 
 def table(records: list[dict]) -> pd.DataFrame:
