@@ -302,6 +302,10 @@ def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
     capsys.readouterr()
     assert cli.main(args) == 0  # resumed: every window is done, nothing reruns
     assert {p.name: p.stat().st_mtime_ns for p in (out / "tasks").iterdir()} == stamps
+    # other policies: new results, never the stale ones of the first run
+    assert cli.main([*args[:-4], "analytic", "--out", str(out)]) == 0
+    assert len(list((out / "tasks").iterdir())) == 2 * len(stamps)
+    assert set(pd.read_csv(out / "windows.csv")["policy"]) == {"analytic"}
     # an unknown id: one error line, exit 2
     assert cli.main(["--source", str(src), "--maneuver", "a#0,zz", "--out",
                      str(tmp_path / "x")]) == 2
