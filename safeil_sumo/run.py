@@ -9,6 +9,7 @@ policy, prints a summary table and writes a results folder:
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import sys
 from dataclasses import asdict
@@ -73,6 +74,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.leader_profile is not None and args.leader != "recorded":
         p.error("--leader-profile needs --leader recorded")
     if args.gui:
+        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            p.error("--gui needs a display (DISPLAY is not set): run without --gui, or under a "
+                    "virtual display, e.g. xvfb-run -a python -m safeil_sumo.run --gui ...")
         args.backend = "traci"
     args.policy = args.policy or policies.default_policy_name()
     return args

@@ -439,8 +439,23 @@ def _prepare_nets(specs: Sequence[ScenarioSpec]) -> None:
 
 # -- local worker processes ----------------------------------------------------------------------
 
+def _die_with_parent() -> None:
+    """Linux: the kernel sends this process SIGTERM when its parent dies (even by SIGKILL), so a
+    worker never outlives its sweep holding a SUMO instance. Elsewhere: nothing (the worker
+    still ends when its pipe to the parent closes)."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        pr_set_pdeathsig = 1
+        libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
 def _worker_main(conn: Connection, task_fn: TaskFn) -> None:
     """A worker: receive a spec, run it, send the record back; ``None`` ends the worker."""
+    _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     while True:
         try:

@@ -94,7 +94,9 @@ def load_road(
             names = ", ".join(e.get("id", "?") for e in edges[:10])
             raise NetworkError(
                 f"{net_path}: expected exactly one road edge, found {len(edges)} ({names}); "
-                "name the edge to use"
+                "the closed loop drives single-edge roads only (multi-edge routes are not "
+                "supported yet): use a network with one road edge, e.g. curved500, straight or "
+                "curved<R>"
             )
         edge = edges[0]
     else:

@@ -80,6 +80,9 @@ def sumo_binary(gui: bool = False) -> str:
     raise SumoError(f"cannot find the {name!r} executable: pip install eclipse-sumo==1.28.0")
 
 
+GUI_CONNECT_RETRIES = 5  # [-] traci connection attempts (1 s apart) to a starting sumo-gui
+
+
 def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> SumoApi:
     """Start SUMO with command-line ``args`` (without the binary) and return the API module.
 
@@ -96,7 +99,10 @@ def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> S
     else:
         raise SumoError(f"unknown backend {backend!r}: use 'libsumo' or 'traci'")
     try:
-        api.start([binary, *args])
+        if gui:  # sumo-gui that cannot open its window dies: fail in seconds, not traci's minute
+            api.start([binary, *args], numRetries=GUI_CONNECT_RETRIES)
+        else:
+            api.start([binary, *args])
     except Exception as exc:  # libsumo raises TraCIException / FatalTraCIError
         raise SumoError(f"SUMO failed to start: {exc}") from exc
     return api  # type: ignore[return-value]

@@ -1,0 +1,56 @@
+"""Things a new user trips on: --gui without a display, workers outliving a killed sweep, the
+multi-edge network message."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import psutil
+import pytest
+
+from safeil_sumo import run as run_cli
+from safeil_sumo.scenarios.road import NetworkError, load_road
+
+
+def test_gui_without_a_display_fails_fast_with_one_line(monkeypatch, capsys, tmp_path) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    t0 = time.monotonic()
+    with pytest.raises(SystemExit) as exc:
+        run_cli.main(["--gui", "--scenarios", "1", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    assert time.monotonic() - t0 < 5.0
+    assert "error: --gui needs a display" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_workers_die_with_a_killed_sweep(tmp_path) -> None:
+    cmd = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policies",
+           "analytic", "--scenarios", "40", "--workers", "2", "--no-progress", "--out",
+           str(tmp_path / "sw")]
+    parent = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = psutil.Process(parent.pid)
+    workers: list[psutil.Process] = []
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(workers) < 2:
+        workers = proc.children(recursive=True)
+        time.sleep(0.2)
+    assert len(workers) >= 2, "the sweep did not start its workers"
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.wait()
+    _, alive = psutil.wait_procs(workers, timeout=10)
+    assert not alive, f"workers outlived their sweep: {[p.pid for p in alive]}"
+
+
+def test_a_multi_edge_network_names_no_option_that_does_not_exist() -> None:
+    from pathlib import Path
+
+    n74 = Path(__file__).resolve().parents[1] / "sumo_scenarios" / "n74" / "n74.net.xml"
+    with pytest.raises(NetworkError) as exc:
+        load_road(n74)
+    msg = str(exc.value)
+    assert "single-edge" in msg and "name the edge" not in msg
