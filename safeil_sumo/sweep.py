@@ -11,6 +11,9 @@ failed ones). At the end: ``<out>/summary.csv`` / ``summary.json`` (one row per 
 ``manifest.json``, and a printed breakdown per (net, policy, filter) with Wilson 95 % intervals.
 Exit codes: 0 all tasks ran, 1 some tasks failed, 2 bad arguments, 130 interrupted.
 
+``--config study.toml`` reads the options from a file (see ``sumo_scenarios/studies/``); the
+resolved arguments are written into the sweep's ``manifest.json``.
+
 ``--suite leader-response [--quick]`` runs the leader-response suite
 (:mod:`safeil_sumo.experiments.suite`) for ``--policies`` instead of the grid and writes
 ``<out>/suite.csv`` (per policy x family: collisions, avoidable/unavoidable flags, min TTC, min
@@ -32,7 +35,45 @@ from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, run_sweep
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
 
 
+def toml_argv(path: Path) -> list[str]:
+    """A sweep file (TOML, keys = the long options without ``--``, ``-`` or ``_``) as arguments:
+    ``workers = 2`` -> ``--workers 2``, ``policies = ["safeil", "bc"]`` -> ``--policies safeil
+    bc``, ``stop_on_flag = true`` -> ``--stop-on-flag`` (false: left out)."""
+    import tomllib
+
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable TOML sweep file ({exc})") from exc
+    argv: list[str] = []
+    for key, value in data.items():
+        flag = "--" + key.replace("_", "-")
+        if flag == "--config":
+            raise ValueError(f"{path}: a sweep file cannot name another config")
+        if isinstance(value, bool):
+            argv += [flag] if value else []
+        elif isinstance(value, list):
+            argv += [flag, *map(str, value)]
+        elif isinstance(value, (int, float, str)):
+            argv += [flag, str(value)]
+        else:
+            raise ValueError(  # noqa: TRY004 - a bad file, reported as such
+                f"{path}: {key} = {value!r}: use a number, string, boolean or list")
+    return argv
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if "--config" in argv:  # the file's options first: flags on the command line override them
+        i = argv.index("--config")
+        if i + 1 >= len(argv):
+            print("error: --config needs a TOML file", file=sys.stderr)
+            raise SystemExit(2)
+        try:
+            argv = toml_argv(Path(argv[i + 1])) + argv[:i] + argv[i + 2:]
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
     p = argparse.ArgumentParser(
         prog="python -m safeil_sumo.sweep",
         description="Closed-loop scenario sweeps in SUMO (local processes or a Dask cluster).",
@@ -90,7 +131,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="results folder (default runs/sweep); rerun to resume")
     p.add_argument("--retry-failed", action="store_true", help="rerun tasks that failed before")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--config", metavar="STUDY.toml",
+                   help="options from a TOML sweep file (keys = these long options, e.g. "
+                        "sumo_scenarios/studies/*.toml); command-line flags override it")
     args = p.parse_args(argv)
+    args.resolved_argv = argv
 
     if args.scenarios < 1:
         p.error("--scenarios must be >= 1")
@@ -166,7 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run_sweep(specs, args.out, workers=args.workers, scheduler=args.scheduler,
                             progress=not args.no_progress, retry_failed=args.retry_failed,
-                            task_timeout_s=args.task_timeout)
+                            task_timeout_s=args.task_timeout,
+                            manifest_extra={"arguments": args.resolved_argv})
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished tasks are saved in {args.out / 'tasks'}; "
               "rerun the same command to resume", file=sys.stderr)

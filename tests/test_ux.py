@@ -54,3 +54,37 @@ def test_a_multi_edge_network_names_no_option_that_does_not_exist() -> None:
         load_road(n74)
     msg = str(exc.value)
     assert "single-edge" in msg and "name the edge" not in msg
+
+
+def test_a_toml_sweep_equals_the_same_sweep_from_flags(tmp_path, capsys) -> None:
+    from safeil_sumo import sweep as cli
+
+    study = tmp_path / "study.toml"
+    study.write_text('net = ["straight", "curved500"]\npolicies = ["analytic"]\nscenarios = 3\n'
+                     'seed = 4\nleader = "braking"\ngap_range = [20, 60]\nstop_on_flag = true\n')
+    flags = ["--net", "straight", "curved500", "--policies", "analytic", "--scenarios", "3",
+             "--seed", "4", "--leader", "braking", "--gap-range", "20", "60", "--stop-on-flag"]
+    a = cli.build_specs(cli.parse_args(["--config", str(study)]))
+    b = cli.build_specs(cli.parse_args(flags))
+    assert a == b and len(a) == 6
+    # flags on the command line override the file
+    c = cli.build_specs(cli.parse_args(["--config", str(study), "--scenarios", "1"]))
+    assert len(c) == 2
+    # the shipped study files parse
+    from pathlib import Path
+
+    for f in sorted((Path(__file__).resolve().parents[1] / "sumo_scenarios" / "studies")
+                    .glob("*.toml")):
+        assert cli.build_specs(cli.parse_args(["--config", str(f)]))
+    # a bad file: one error line, exit 2
+    bad = tmp_path / "bad.toml"
+    bad.write_text("scenarios = \n")
+    with pytest.raises(SystemExit) as exc:
+        cli.parse_args(["--config", str(bad)])
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.startswith("error:")
+    unknown = tmp_path / "unknown.toml"
+    unknown.write_text("nope = 1\n")
+    with pytest.raises(SystemExit) as exc:
+        cli.parse_args(["--config", str(unknown)])
+    assert exc.value.code == 2 and "--nope" in capsys.readouterr().err

@@ -352,6 +352,7 @@ def run_sweep(
     retry_failed: bool = False,
     task_fn: TaskFn = run_task,
     task_timeout_s: float | None = None,
+    manifest_extra: dict[str, Any] | None = None,
 ) -> pd.DataFrame:
     """Run every spec that has no result file yet; return the summary of all specs, in order.
 
@@ -406,7 +407,7 @@ def run_sweep(
     outputs.write_json(out_dir / "summary.json", summary.to_dict(orient="records"))
     config = {"tasks": len(specs), "run_now": len(todo), "workers": workers,
               "scheduler": scheduler, "retry_failed": retry_failed,
-              "specs": [s.to_json() for s in specs]}
+              "specs": [s.to_json() for s in specs], **(manifest_extra or {})}
     from safeil_sumo.scenarios.safety import scenario_seed
 
     seeds = [scenario_seed(s.master_seed, s.index) for s in specs]
