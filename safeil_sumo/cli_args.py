@@ -27,3 +27,18 @@ def nonnegative_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
     return value
+
+
+def add_leader_options(parser: argparse.ArgumentParser, kinds: tuple[str, ...],
+                       change: str) -> None:
+    """``--leader`` and ``--leader-profile``, shared by ``run`` and ``sweep``; ``change`` says
+    how a braking/accelerating leader changes its speed in that command."""
+    parser.add_argument(
+        "--leader", choices=kinds, default="constant",
+        help=f"constant speed (the paper); braking or accelerating ({change}); or recorded (a "
+             "human leader's speed profile, the ego starting as the recorded follower did) "
+             "(default constant)")
+    parser.add_argument(
+        "--leader-profile", default=None,
+        help="with --leader recorded: ngsim (default) or openacc (from ../shared/data), or a "
+             "CSV/Parquet file with columns time [s] and speed [m/s], or a folder of them")

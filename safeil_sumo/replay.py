@@ -80,7 +80,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--duration", type=finite_float, default=rp.PAPER_DURATION_S,
                    help="replay length [s] (default 11, the paper's; 0 = to the maneuver end)")
     p.add_argument("--policies", nargs="+", default=["analytic"],
-                   help="analytic, safeil, bc and/or checkpoint paths (default analytic)")
+                   help="safeil, safeil_paper, bc, analytic, idm and/or checkpoint paths "
+                        "(default analytic)")
     p.add_argument("--rate", type=finite_float, default=10.0,
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")

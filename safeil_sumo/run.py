@@ -19,7 +19,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from safeil_sumo import policies
-from safeil_sumo.cli_args import finite_float, nonnegative_int
+from safeil_sumo.cli_args import add_leader_options, finite_float, nonnegative_int
 from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, build_scenario
 from safeil_sumo.scenarios.catalogue import resolve_net
@@ -39,19 +39,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--net", default="curved500",
                    help="curved500, straight, curved<R> (e.g. curved300) or a .net.xml path")
     p.add_argument("--policy", default=None,
-                   help="analytic, safeil, bc or a checkpoint .safetensors "
+                   help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
+                        "IDM model .json "
                         f"(default: {policies.default_policy_name()})")
     p.add_argument("--scenarios", type=int, default=10, help="number of scenarios (default 10)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
     p.add_argument("--leader-speed", type=finite_float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
                    metavar=("LOW", "HIGH"), help="leader speed range [m/s] (default 25 32)")
-    p.add_argument("--leader", choices=LEADER_KINDS, default="constant",
-                   help="constant (the paper), braking (to 15 m/s at 3 m/s^2 after 5 s), "
-                        "accelerating, or recorded (a human leader's speed profile; the ego "
-                        "starts as the recorded follower did) (default constant)")
-    p.add_argument("--leader-profile", default=None,
-                   help="with --leader recorded: ngsim (default), openacc, or a CSV/Parquet "
-                        "file (columns time [s], speed [m/s]) or a folder of them")
+    # accelerating leaders need a target speed: sweep has the options for it
+    add_leader_options(p, tuple(k for k in LEADER_KINDS if k != "accelerating"),
+                       "braking: to 15 m/s at 3 m/s^2 after 5 s; accelerating: use sweep")
     p.add_argument("--ego-speed", type=finite_float, default=30.0, help="ego initial speed [m/s]")
     p.add_argument("--gap", type=finite_float, default=50.0, help="initial bumper gap [m]")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")

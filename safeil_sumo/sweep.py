@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
-from safeil_sumo.cli_args import finite_float, nonnegative_int
+from safeil_sumo.cli_args import add_leader_options, finite_float, nonnegative_int
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
 from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, run_sweep
 
@@ -81,16 +81,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--net", nargs="+", default=["curved500"], metavar="NET",
                    help="curved500, straight, curved<R> (e.g. curved300) or .net.xml paths")
     p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
-                   help="analytic, safeil, bc or .safetensors checkpoints (default: safeil bc)")
+                   help="safeil, safeil_paper, bc, analytic, idm, .safetensors checkpoints or IDM "
+                        "model .json files (default: safeil bc)")
     p.add_argument("--scenarios", type=int, default=10, help="scenarios per cell (default 10)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
-    p.add_argument("--leader", choices=LEADER_KINDS, default="constant",
-                   help="leader: constant speed; constant then braking or accelerating (to "
-                        "--brake-to at --brake-decel after --brake-time); or recorded (a human "
-                        "leader's speed profile, see --leader-profile) (default constant)")
-    p.add_argument("--leader-profile", default=None,
-                   help="recorded leaders: ngsim (default), openacc (from --data-dir), or a "
-                        "CSV/Parquet file (columns time [s], speed [m/s]) or folder of them")
+    add_leader_options(p, LEADER_KINDS, "to --brake-to at --brake-decel after --brake-time")
     p.add_argument("--suite", choices=("leader-response",), default=None,
                    help="run a named suite instead of the grid (see docs; uses --policies, "
                         "--seed, --workers, --out)")

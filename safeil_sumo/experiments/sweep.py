@@ -51,7 +51,7 @@ class ScenarioSpec:
     net: str = "curved500"  # catalogue name (curved500, straight, curved<R>) or .net.xml path
     index: int = 0  # scenario index within the master seed [-]
     master_seed: int = 0  # with ``index`` gives the scenario seed (SUMO, sensors, draws) [-]
-    policy: str = "analytic"  # analytic, safeil, bc or a .safetensors checkpoint path
+    policy: str = "analytic"  # a name of safeil_sumo.policies.NAMES or a checkpoint/IDM path
     safety_filter: bool = False  # wrap the policy in the inference-time safety filter
     leader_kind: str = "constant"  # "constant" | "braking" | "accelerating" | "recorded"
     leader_speed_range_mps: tuple[float, float] = (25.0, 32.0)  # leader (initial) speed [m/s]
