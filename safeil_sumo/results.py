@@ -214,23 +214,25 @@ def _plot_radius(table: pd.DataFrame, path: Path, n: int) -> None:
 # ------------------------------------------------------------------------------------ replay
 
 
-def _held_out_synthetic(drive_path: Path) -> str | None:
+def _held_out_synthetic(drive_path: Path) -> list[str] | None:
     meta = json.loads((REPO / "safeil_sumo" / "models" / "safeil.json").read_text())
     held = [m for m in meta.get("metrics", {}).get("val_maneuvers") or []
             if m.startswith("n74_")]  # the synthetic drivers' maneuvers (the set mixes sources)
-    return held[0] if held and drive_path.is_file() else None
+    return held if held and drive_path.is_file() else None
 
 
-def _paper_like_window(source: str, maneuver: str = "auto") -> tuple[str, float, pd.DataFrame]:
-    """``(maneuver id, start [s], rows)`` of the 11 s window most like the paper's replay, in one
-    maneuver or in all of ``source`` (10 Hz). Raises OSError/ValueError without the data."""
+def _paper_like_window(source: str, maneuver: str | list[str] = "auto"
+                       ) -> tuple[str, float, pd.DataFrame]:
+    """``(maneuver id, start [s], rows)`` of the 11 s window most like the paper's replay, in
+    some maneuvers or in all of ``source`` (10 Hz). Raises OSError/ValueError without the data."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay as rp
     from safeil_sumo.replay import load_source
 
     maneuvers, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
     if maneuver != "auto":
-        maneuvers = maneuvers[maneuvers["maneuver_id"] == maneuver]
+        ids = [maneuver] if isinstance(maneuver, str) else maneuver
+        maneuvers = maneuvers[maneuvers["maneuver_id"].isin(ids)]
     return rp.select_maneuver(maneuvers, "auto", 0.0, rp.PAPER_DURATION_S)
 
 
@@ -246,7 +248,7 @@ def replay(out: Path, work: Path, seed: int) -> pd.DataFrame:
     loaded = {p: pol.load(p) for p in POLICIES}
     rows_out = []
     for label, (source, which) in sources.items():
-        try:  # for the synthetic source: the paper-like window of a held-out maneuver
+        try:  # for the synthetic source: the paper-like window among the held-out maneuvers
             mid, start, rows = _paper_like_window(source, which)
         except (OSError, ValueError) as exc:
             print(f"[replay] {label} skipped: {exc}")
