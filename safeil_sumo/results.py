@@ -439,7 +439,8 @@ def _pct(rate: float, low: float | None = None, high: float | None = None) -> st
     if rate is None or (isinstance(rate, float) and math.isnan(rate)):
         return "–"
     text = f"{100 * rate:.0f} %"
-    return text + (f" [{100 * low:.0f}, {100 * high:.0f}]" if low is not None else "")
+    # 3 significant digits: 1,000/1,000 has the interval [99.6, 100], not "[100, 100]"
+    return text + (f" [{100 * low:.3g}, {100 * high:.3g}]" if low is not None else "")
 
 
 def write_readme(out: Path, facts: dict) -> None:
