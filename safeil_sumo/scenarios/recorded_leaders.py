@@ -27,7 +27,6 @@ import numpy as np
 from safeil_sumo.sim.leaders import ProfileError, SpeedProfile, from_file
 
 LIBRARIES = ("ngsim", "openacc")
-DEFAULT_DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
 MIN_DURATION_S = 20.0  # [s] shortest recording drawn, and shortest remainder after the start
 RATE_HZ = 10.0  # [Hz] rate of the library profiles
 
@@ -69,6 +68,8 @@ def library(source: str, data_dir: str | None = None) -> tuple[LeaderRecording, 
     """The recordings of ``ngsim``, ``openacc``, a profile file or a folder of profile files
     (cached per process). Raises :class:`ProfileError` with one clear line."""
     if source in LIBRARIES:
+        from safeil_sumo.replay import DEFAULT_DATA_DIR  # the data folder every command reads
+
         return _from_dataset(source, Path(data_dir) if data_dir else DEFAULT_DATA_DIR)
     path = Path(source).expanduser()
     if path.is_dir():
