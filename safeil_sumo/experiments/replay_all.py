@@ -123,6 +123,9 @@ _STATE: dict = {}
 
 def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig) -> None:
     from safeil_sumo import policies as pol
+    from safeil_sumo.experiments.sweep import _die_with_parent
+
+    _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
 
     _STATE.update(maneuvers=maneuvers, config=config,
                   policies={name: pol.load(name) for name in policy_names})
