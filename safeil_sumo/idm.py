@@ -82,23 +82,15 @@ def simulate_follower(times: np.ndarray, v_lead: np.ndarray, v0: float, gap0: fl
 
     The leader's position is integrated from its recorded speed (trapezoid); the follower starts
     at speed ``v0`` [m/s] and bumper gap ``gap0`` [m] and moves ballistically with the IDM
-    acceleration held over each step; speeds never go negative.
+    acceleration held over each step; speeds never go negative. (:func:`simulate_stacked` for
+    one maneuver.)
     """
     t = np.asarray(times, dtype=float)
-    vl = np.asarray(v_lead, dtype=float)
-    gaps = np.empty(len(t))
-    speeds = np.empty(len(t))
-    gap, v = float(gap0), float(v0)
-    gaps[0], speeds[0] = gap, v
-    for k in range(1, len(t)):
-        dt = t[k] - t[k - 1]
-        a = float(idm_acceleration(v, vl[k - 1], gap, p))
-        v_new = max(v + a * dt, 0.0)
-        lead_move = 0.5 * (vl[k - 1] + vl[k]) * dt
-        gap += lead_move - 0.5 * (v + v_new) * dt
-        v = v_new
-        gaps[k], speeds[k] = gap, v
-    return gaps, speeds
+    n = len(t)
+    start = Maneuver("", t, np.full(n, float(v0)), np.full(n, float(gap0)),
+                     np.asarray(v_lead, dtype=float))
+    gaps, speeds = simulate_stacked(_stacked([start]), p)
+    return gaps[0], speeds[0]
 
 
 @dataclass(frozen=True)

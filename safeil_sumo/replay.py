@@ -29,6 +29,7 @@ from safeil_sumo.data.schema import SchemaError, load_drive
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import replay as rp
 from safeil_sumo.experiments import replay_all as ra
+from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.sumo_api import SumoError
@@ -102,24 +103,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def _held_out(path: Path) -> list[str]:
-    import json
-
-    try:
-        doc = json.loads(Path(path).read_text())
-        ids = doc["metrics"]["val_maneuvers"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path}: no held-out maneuvers (metrics.val_maneuvers): {exc}") from exc
-    return [str(i) for i in ids]
-
-
 def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
     """``--maneuver all`` / a list: every window, in workers, resumable; table + aggregate."""
     if args.maneuver == "all":
         only = None
         if args.held_out_of is not None:
             present = set(maneuvers["maneuver_id"].astype(str))
-            only = [m for m in _held_out(args.held_out_of) if m in present]
+            only = [m for m in held_out_maneuvers(args.held_out_of) if m in present]
             if not only:
                 raise rp.ReplayError(f"none of the maneuvers held out by {args.held_out_of} is "
                                      f"in {args.source}")

@@ -40,6 +40,7 @@ from safeil_sumo.experiments.sweep import ScenarioSpec, comparable, run_sweep
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED_DATA = REPO / "data" / "synthetic" / "tuples.parquet"
+SHIPPED_SAFEIL = REPO / "safeil_sumo" / "models" / "safeil.json"
 
 # The paper's Fig. "Safety Performance" (path completed before the first flag, scenarios 1..10)
 PAPER_SAFEIL = (1, 1, 1, 0.243652537072041, 1, 0.251206141365427, 0.286587934750144, 1, 1, 1)
@@ -223,8 +224,9 @@ def _plot_radius(table: pd.DataFrame, path: Path, n: int) -> None:
 
 
 def _held_out_synthetic(drive_path: Path) -> list[str] | None:
-    meta = json.loads((REPO / "safeil_sumo" / "models" / "safeil.json").read_text())
-    held = [m for m in meta.get("metrics", {}).get("val_maneuvers") or []
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers
+
+    held = [m for m in held_out_maneuvers(SHIPPED_SAFEIL)
             if m.startswith("n74_")]  # the synthetic drivers' maneuvers (the set mixes sources)
     return held if held and drive_path.is_file() else None
 
@@ -672,10 +674,10 @@ def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay as rp
     from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers
     from safeil_sumo.replay import load_source
 
-    held = set(json.loads((REPO / "safeil_sumo" / "models" / "safeil.json").read_text())
-               ["metrics"]["val_maneuvers"])
+    held = set(held_out_maneuvers(SHIPPED_SAFEIL))
     rows = []
     for source in ("openacc", "ngsim"):
         try:

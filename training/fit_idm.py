@@ -25,6 +25,7 @@ from tqdm import tqdm
 from safeil_sumo import idm
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import load_drive
+from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.replay import DEFAULT_DATA_DIR, load_source
 
 REPO = Path(__file__).resolve().parents[1]
@@ -48,7 +49,7 @@ def held_out_ids(paths: list[Path]) -> set[str]:
     ids: set[str] = set()
     for p in paths:
         doc = json.loads(Path(p).read_text())
-        ids |= set(doc if isinstance(doc, list) else doc.get("metrics", {}).get("val_maneuvers", []))
+        ids |= set(map(str, doc)) if isinstance(doc, list) else set(held_out_maneuvers(p))
     return ids
 
 

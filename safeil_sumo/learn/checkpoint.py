@@ -254,3 +254,16 @@ def load_model(path: str | Path) -> tuple[PlannerMLP, dict]:
     model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in arrays.items()})
     model.eval()
     return model, meta
+
+
+def held_out_maneuvers(path: str | Path) -> list[str]:
+    """The maneuver ids a checkpoint held out of training (its sidecar's
+    ``metrics.val_maneuvers``); ``path``: the sidecar JSON (or the weights / prefix beside it).
+    Raises :class:`CheckpointError` naming the file when there are none."""
+    sidecar = Path(path).with_suffix(".json")
+    try:
+        ids = json.loads(sidecar.read_text())["metrics"]["val_maneuvers"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CheckpointError(f"{sidecar}: no held-out maneuvers (metrics.val_maneuvers): "
+                              f"{exc}") from exc
+    return [str(i) for i in ids]
