@@ -1,6 +1,7 @@
 """Name -> Policy: ``analytic``, ``idm`` (the calibrated IDM baseline), the shipped ``safeil`` /
 ``safeil_paper`` / ``bc`` checkpoints, a checkpoint path, or an IDM model file (``*.json`` with
-``"type": "idm"``, written by ``training/fit_idm.py``)."""
+``"type": "idm"``, written by ``training/fit_idm.py``). Replays also know ``recorded``, the
+human's own path (:mod:`safeil_sumo.sim.recorded_ego`, :func:`load_for_replay`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.policy import Policy
+from safeil_sumo.sim.recorded_ego import RECORDED_NAME, RecordedPath
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 SHIPPED = ("safeil", "safeil_paper", "bc")
@@ -33,6 +35,9 @@ def load(name_or_path: str) -> Policy:
     path to a ``.safetensors`` checkpoint or to an IDM model file."""
     from safeil_sumo import idm
 
+    if name_or_path == RECORDED_NAME:
+        raise PolicyError("the 'recorded' pseudo-planner drives a recorded maneuver's own path: "
+                          "use it with python -m safeil_sumo.replay")
     if name_or_path == "analytic":
         return AnalyticPlanner()
     if name_or_path == "idm" or (name_or_path.endswith(".json")
@@ -59,3 +64,9 @@ def load(name_or_path: str) -> Policy:
         return load_policy(path)
     except Exception as exc:  # CheckpointError and friends: one clear line for the CLI
         raise PolicyError(f"cannot load policy from {path}: {exc}") from exc
+
+
+def load_for_replay(name_or_path: str) -> Policy:
+    """:func:`load`, plus ``recorded``: an unbound :class:`RecordedPath` that the replay binds to
+    the maneuver it rebuilds."""
+    return RecordedPath() if name_or_path == RECORDED_NAME else load(name_or_path)

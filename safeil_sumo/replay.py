@@ -81,7 +81,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--duration", type=finite_float, default=rp.PAPER_DURATION_S,
                    help="replay length [s] (default 11, the paper's; 0 = to the maneuver end)")
     p.add_argument("--policies", nargs="+", default=["analytic"],
-                   help="safeil, safeil_paper, bc, analytic, idm and/or checkpoint paths "
+                   help="safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
+                        "path: the instrument's error floor) and/or checkpoint paths "
                         "(default analytic)")
     p.add_argument("--rate", type=finite_float, default=10.0,
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
@@ -121,7 +122,7 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
         raise rp.ReplayError(f"no maneuver of {args.source} is long enough for a "
                              f"{args.duration:g} s window")
     for name in args.policies:  # fail fast on a bad policy, before any worker starts
-        pol.load(name)
+        pol.load_for_replay(name)
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
     config = rp.ReplayConfig(seed=args.seed)
     config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate))
@@ -157,8 +158,8 @@ def main(argv: list[str] | None = None) -> int:
                                               args.duration or None)
         policies = {}
         for name in args.policies:
-            policy = pol.load(name)
-            label = name if name in ("analytic", *pol.SHIPPED) else policy.name
+            policy = pol.load_for_replay(name)
+            label = name if name in ("analytic", "recorded", *pol.SHIPPED) else policy.name
             policies[label if label not in policies else name] = policy
     except (SchemaError, rp.ReplayError, pol.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -12,7 +12,12 @@ NGSIM (US-101 / I-80 layout, a straight road):
   derivatives (window 1.5 s, order 2) of the lateral and longitudinal position: the raw lateral
   position is too noisy to differentiate directly; the 1 m/s floor keeps near-standstill heading
   from blowing up.
-- lane lines: lane ``i`` (1 = leftmost) spans ``Local_X`` in ``[(i-1) W, i W]``, ``W = 12 ft``.
+- lane lines: lane ``i`` (1 = leftmost) spans ``Local_X`` in ``[(i-1) W + o, i W + o]``,
+  ``W = 12 ft``, with the grid offset ``o`` = the median over all rows of the vehicles' offset
+  from their grid lane centre (clipped to ``±W/4``; 0 below :data:`NGSIM_GRID_MIN_ROWS` rows).
+  On the I-80 pairs every lane's median sits 0.34-0.40 m left of the 12 ft grid (``o = -0.37``
+  m); with the plain grid 6.7 % of the samples put a 1.76 m wide car's body over a lane line,
+  with the offset grid 1.3 % (``import_stats["lane_grid_offset_m"]``).
   A straight line at world ``y = b`` seen from the ego at ``(x0, y0)`` with heading ``psi`` is
   ``c0 = (b - y0) / cos(psi)``, ``c1 = -tan(psi)``, ``c2 = c3 = 0``.
 - leader: bumper gap = front-to-front distance minus ``preceding_length``, the front-to-front
@@ -55,6 +60,7 @@ OPENACC_LANE_WIDTH = 3.5  # [m] assumed (no lane data in OpenACC)
 MIN_GAP = 0.1  # [m] smallest bumper gap kept; smaller (incl. negative) values are clipped to it
 MIN_HEADING_SPEED = 1.0  # [m/s] floor on the longitudinal speed when computing heading
 MAX_PATH_CURVATURE = 1.0 / 250.0  # [1/m]
+NGSIM_GRID_MIN_ROWS = 100  # [-] fewest rows to estimate the NGSIM lane-grid offset from
 
 NGSIM_CSV_COLUMNS = (
     "Vehicle_ID", "Frame_ID", "Total_Frames", "Global_Time", "Local_X", "Local_Y", "Global_X",
@@ -132,7 +138,8 @@ def _ngsim_drive(p: pd.DataFrame, source: str) -> pd.DataFrame:
     psi = np.arctan2(v_lat, np.maximum(v_lon, MIN_HEADING_SPEED))
 
     lane = p["lane"].to_numpy(float)
-    left_edge = (lane - 1.0) * NGSIM_LANE_WIDTH  # Local_X of the lane's left line
+    offset = ngsim_lane_grid_offset(lat, lane)
+    left_edge = (lane - 1.0) * NGSIM_LANE_WIDTH + offset  # Local_X of the lane's left line
     cos = np.cos(psi)
     c0l = (lat - left_edge) / cos
     c0r = (lat - left_edge - NGSIM_LANE_WIDTH) / cos
@@ -178,8 +185,21 @@ def _ngsim_drive(p: pd.DataFrame, source: str) -> pd.DataFrame:
         "gap_clipped": int(clipped.sum()),
         "gap_min_raw_m": float(raw_gap.min()) if n else float("nan"),
         "lead_lateral_from_lane_centre": int(from_centre.sum()),
+        "lane_grid_offset_m": offset,
     }
     return out
+
+
+def ngsim_lane_grid_offset(lat: np.ndarray, lane: np.ndarray) -> float:
+    """Lateral shift [m] of the 12 ft lane grid that centres the vehicles in their lanes: the
+    median of ``lat - (lane - 1/2) W`` (``lat`` from the left edge, rightwards), clipped to
+    ``±W/4``; 0 with fewer than :data:`NGSIM_GRID_MIN_ROWS` finite rows."""
+    off = np.asarray(lat, float) - (np.asarray(lane, float) - 0.5) * NGSIM_LANE_WIDTH
+    off = off[np.isfinite(off)]
+    if len(off) < NGSIM_GRID_MIN_ROWS:
+        return 0.0
+    quarter = 0.25 * NGSIM_LANE_WIDTH
+    return float(np.clip(np.median(off), -quarter, quarter))
 
 
 def import_ngsim_pairs(path: str | Path, headway_source: str = "positions") -> pd.DataFrame:

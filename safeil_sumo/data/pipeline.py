@@ -7,7 +7,13 @@ median step: removing rows splits segments, and derivatives never reach across a
 
 1. :func:`remove_lane_changes` — a change of ``lane_index``, or a jump of ``left_c0`` and
    ``right_c0`` by more than ``lane_jump_fraction`` of the lane width between two samples, is a
-   lane change; rows within ``lane_change_window`` [s] either side are dropped.
+   lane change; rows within ``lane_change_window`` [s] either side are dropped. A sample where a
+   corner of the car's body (``body_length_m`` x ``body_width_m``, the closed loop's car) lies
+   beyond a lane line (:func:`body_outside_lines`) is a *line crossing* — a lane change under
+   way, or lateral tracking noise (NGSIM) — and rows within ``line_crossing_window`` [s] are
+   dropped: a car-following maneuver keeps its lane, as the closed loop's lane-departure monitor
+   requires of the planner (and of the recorded human replayed, see
+   :mod:`safeil_sumo.sim.recorded_ego`).
 2. :func:`keep_leader_samples` — spacing control only: rows without a leader are dropped.
 3. :func:`leader_speed` — ``v_lead = d(lead_x)/dt + v_x`` (the paper's approximation, ignoring
    yaw rate) with a Savitzky-Golay derivative (order 2, window ``smooth_window`` [s]) per segment;
@@ -45,6 +51,7 @@ from safeil_sumo.bspline import fit_control_points
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.features import planner_features
 from safeil_sumo.geometry import world_to_ego
+from safeil_sumo.sim.vehicle import VehicleParams
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,9 @@ class PipelineConfig:
     gap_factor: float = 1.5  # [-] a step > gap_factor x median step breaks a segment
     lane_jump_fraction: float = 0.5  # [-] |d c0| above this x lane width = a lane change
     lane_change_window: float = 4.0  # [s] dropped either side of a lane change
+    body_length_m: float = VehicleParams.length_m  # [m] car body for the line-crossing test
+    body_width_m: float = VehicleParams.width_m  # [m]
+    line_crossing_window: float = 0.5  # [s] dropped either side of a line crossing
     smooth_window: float = 1.0  # [s] Savitzky-Golay window for d/dt of lead_x and v_x
     use_measured_lead_v: bool = True  # use the source's lead_v when present
     max_gap_rate: float = 15.0  # [m/s] |d lead_x/dt| between two samples above = a jump
@@ -193,8 +203,27 @@ def _per_segment_savgol(values: np.ndarray, seg: np.ndarray, window_s: float,
 # --------------------------------------------------------------------------------------- steps
 
 
+def body_outside_lines(df: pd.DataFrame, length_m: float, width_m: float) -> np.ndarray:
+    """``(N,)`` True where a corner of the body lies beyond the left or right lane line.
+
+    Corners in the ego frame: front bumper ``x = 0`` and rear ``x = -length_m``, ``y = ±width_m
+    / 2``; a line is ``y = c0 + c1 x + c2 x^2 + c3 x^3`` (the schema's cubic, evaluated behind
+    the origin for the rear corners). Rows without lane lines are False.
+    """
+    out = np.zeros(len(df), dtype=bool)
+    half = 0.5 * width_m
+    for x in (0.0, -length_m):
+        for side, sign in (("left", 1.0), ("right", -1.0)):
+            c = [df[f"{side}_c{k}"].to_numpy(float) for k in range(4)]
+            line = c[0] + x * (c[1] + x * (c[2] + x * c[3]))
+            with np.errstate(invalid="ignore"):
+                out |= sign * (line - sign * half) < 0  # NaN compares False
+    return out
+
+
 def remove_lane_changes(df: pd.DataFrame, cfg: PipelineConfig) -> tuple[pd.DataFrame, StepResult]:
-    """Step 1: drop a window around every lane change (lane_index change or lane-line jump)."""
+    """Step 1: drop a window around every lane change (lane_index change or lane-line jump) and
+    every line crossing (the body beyond a lane line)."""
     seg = segment_ids(df, cfg.gap_factor)
     t = df["time"].to_numpy(float)
     same = np.r_[False, seg[1:] == seg[:-1]]
@@ -207,10 +236,14 @@ def remove_lane_changes(df: pd.DataFrame, cfg: PipelineConfig) -> tuple[pd.DataF
         lane = df["lane_index"].to_numpy(float)
         dl = np.r_[0.0, np.diff(lane)]
         lane_change = lane_change | (same & np.isfinite(dl) & (dl != 0))
-    drop = _near_flags(seg, t, lane_change, cfg.lane_change_window)
+    near_change = _near_flags(seg, t, lane_change, cfg.lane_change_window)
+    # a body over a line away from any lane change (those windows are dropped already)
+    crossing = body_outside_lines(df, cfg.body_length_m, cfg.body_width_m) & ~near_change
+    drop = near_change | _near_flags(seg, t, crossing, cfg.line_crossing_window)
     out = df.loc[~drop].reset_index(drop=True)
-    n_events = int(_runs(lane_change, seg).sum())
-    return out, StepResult("remove_lane_changes", len(df), len(out), {"lane_change": n_events})
+    events = {"lane_change": int(_runs(lane_change, seg).sum()),
+              "line_crossing": int(_runs(crossing, seg).sum())}
+    return out, StepResult("remove_lane_changes", len(df), len(out), events)
 
 
 def keep_leader_samples(df: pd.DataFrame) -> tuple[pd.DataFrame, StepResult]:

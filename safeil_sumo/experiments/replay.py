@@ -3,13 +3,17 @@
 The digital twin of a maneuver left out of training:
 - the road: the recorded ego lane (:mod:`safeil_sumo.scenarios.replay_road`);
 - the leader: driven by the RECORDED leader speed (``v_lead`` of the pipeline, else ``lead_v``,
-  else ``v_x + d(lead_x)/dt``), placed at the recorded initial bumper gap on the ego lane;
+  else ``v_x + d(lead_x)/dt``), placed at the recorded initial bumper gap on the ego lane, with
+  the speed's slow drift from the recorded positions removed (``leader_drift_window_s``, see
+  :func:`safeil_sumo.scenarios.replay_road.drift_corrected_speed`): over a long maneuver the
+  leader stays where it was recorded, not metres off;
 - the ego: starts exactly at the recorded front-bumper position, heading and speed (the lateral
   offset is the recorded position's offset from the rebuilt lane centre, i.e.
   ``-(c0l + c0r) / 2`` up to the smoothing of the lane centre);
 - the duration: the maneuver's.
 
-Each policy runs closed-loop; its state is compared with the human's at the recorded timestamps
+The ``recorded`` pseudo-planner (:mod:`safeil_sumo.sim.recorded_ego`) drives the ego along the
+human's own path: its error is the instrument's floor. Each policy runs closed-loop; its state is compared with the human's at the recorded timestamps
 (:mod:`safeil_sumo.experiments.metrics`): x, y in the local frame (origin at the recorded start,
 x along the initial lane heading, as the paper plots them), along-lane ``s`` and lateral offset
 ``d`` on the ego lane, ``v_x`` and ``d_lead`` (bumper gap along the lane): RMSE and max error;
@@ -29,11 +33,14 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.data.pipeline import body_outside_lines
 from safeil_sumo.experiments import metrics as hm
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios import replay_road as rr
 from safeil_sumo.scenarios.road import Road
+from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim.leaders import SpeedProfile
+from safeil_sumo.sim.recorded_ego import RecordedPath
 from safeil_sumo.sim.runner import LoopConfig, Rollout, Scenario, run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -58,6 +65,13 @@ class ReplayConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     seed: int = 0  # SUMO and sensor-noise seed (sensors are noise-free by default)
+    # low-pass window of the leader-drift correction [s] (rr.drift_corrected_speed); 0: drive
+    # the leader by its recorded speed alone
+    leader_drift_window_s: float = 5.0
+    # a replay's lane is rebuilt from the recording, accurate to a few cm (chords within
+    # rr.REPLAY_SAGITTA_M, smoothing, heading noise): a body less than this over its line is
+    # within that error, not a departure [m] (MonitorConfig.lane_margin_m)
+    lane_margin_m: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -184,25 +198,61 @@ def _check_rows(rows: pd.DataFrame) -> pd.DataFrame:
     return rows
 
 
-def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame) -> pd.DataFrame:
-    """The recorded human in the replay's terms (see :class:`ReplayResult`)."""
+def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame,
+                leader_drift_window_s: float = 5.0,
+                vehicle: VehicleParams = VehicleParams()) -> pd.DataFrame:
+    """The recorded human in the replay's terms (see :class:`ReplayResult`); ``leader_v`` is
+    the speed the replay drives the leader by (:func:`replay_leader_speed`), ``leader_drift``
+    how far that leader ends up from the recorded one; ``ttc`` [s] and ``lane_departure`` are
+    the closed loop's monitors on the recorded samples, lanes from the recorded lane lines (the
+    car's size from ``vehicle``)."""
     t = rows["time"].to_numpy(float)
     xy = frame.points(rows["x"].to_numpy(float), rows["y"].to_numpy(float))
     s, d = road.lanes[road.ego_lane].centre.project(xy)
     v = rows["v_x"].to_numpy(float)
     gap = rows["lead_x"].to_numpy(float)
+    lead_v = rr.drift_corrected_speed(t, rr.leader_speed(rows), s + gap, leader_drift_window_s)
+    # the closed loop's monitors on the recording itself, against its own lane lines
+    departed = body_outside_lines(rows, vehicle.length_m, vehicle.width_m)
+    ttc = [mon.time_to_collision(g, vi, vl) for g, vi, vl in zip(gap, v, lead_v, strict=True)]
     return pd.DataFrame({
         "t": t - t[0], "x": xy[:, 0], "y": xy[:, 1], "s": s, "d": d, "v": v, "gap": gap,
-        "headway": hm.time_headway(gap, v),
-        "leader_drift": hm.leader_drift(t, gap, s, rr.leader_speed(rows)),
+        "headway": hm.time_headway(gap, v), "leader_v": lead_v,
+        "leader_drift": hm.leader_drift(t, gap, s, lead_v),
+        "ttc": ttc, "lane_departure": departed,
+        # the offset from the lane centre the recorded lines give; d - d_lines is the error of
+        # the rebuilt lane (smoothing, chords)
+        "d_lines": -0.5 * (rows["left_c0"].to_numpy(float) + rows["right_c0"].to_numpy(float)),
     })
 
 
-def replay_scenario(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame, name: str,
-                    seed: int = 0) -> Scenario:
-    """The closed-loop scenario of the recorded maneuver on its rebuilt road."""
+def human_flag(human: pd.DataFrame, monitors: mon.MonitorConfig = mon.MonitorConfig()
+               ) -> mon.FirstFlag:
+    """The recording's own first flag (TTC <= threshold, or the body over a recorded lane line)
+    at the recorded samples: a replay flag the human also has is not the
+    instrument's, nor, for a policy, a flag the recording left it any room to avoid."""
+    ttc_flag = human["ttc"].to_numpy(float) <= monitors.ttc_threshold_s
+    return mon.first_flag(human["t"].to_numpy(float), np.zeros(len(human)),
+                          human["lane_departure"].to_numpy(bool), ttc_flag,
+                          np.zeros(len(human), dtype=bool))
+
+
+def recorded_path(rows: pd.DataFrame, frame: rr.LocalFrame) -> RecordedPath:
+    """The human's own path in the replay frame: the ``recorded`` pseudo-planner."""
     t = rows["time"].to_numpy(float)
-    leader = SpeedProfile(t - t[0], rr.leader_speed(rows), f"recorded leader of {name}")
+    return RecordedPath(t - t[0], frame.points(rows["x"].to_numpy(float),
+                                               rows["y"].to_numpy(float)),
+                        frame.yaw(rows["yaw"].to_numpy(float)), rows["v_x"].to_numpy(float))
+
+
+def replay_scenario(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame, name: str,
+                    seed: int = 0, leader_speed_mps: np.ndarray | None = None,
+                    monitors: mon.MonitorConfig = mon.MonitorConfig()) -> Scenario:
+    """The closed-loop scenario of the recorded maneuver on its rebuilt road; the leader drives
+    ``leader_speed_mps`` (default: the recorded speed, ``rr.leader_speed``)."""
+    t = rows["time"].to_numpy(float)
+    lead_v = rr.leader_speed(rows) if leader_speed_mps is None else leader_speed_mps
+    leader = SpeedProfile(t - t[0], lead_v, f"recorded leader of {name}")
     centre = road.lanes[road.ego_lane].centre
     start = frame.points(rows["x"].iloc[0], rows["y"].iloc[0])
     s0, d0 = centre.project(start)
@@ -213,7 +263,7 @@ def replay_scenario(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame, name: 
         name=name, road=road, leader=leader,
         ego_speed_mps=float(rows["v_x"].iloc[0]), initial_gap_m=float(rows["lead_x"].iloc[0]),
         seed=seed, ego_lateral_offset_m=float(d0), ego_heading_offset_rad=heading,
-        max_time_s=float(t[-1] - t[0]),
+        max_time_s=float(t[-1] - t[0]), monitors=monitors,
     )
 
 
@@ -267,12 +317,17 @@ def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_d
     net = rr.build_replay_net(rows, Path(out_dir) / "net", name, config.road,
                               meta={"maneuver_id": maneuver_id})
     road, frame = rr.load_replay_road(net)
-    scenario = replay_scenario(rows, road, frame, name, config.seed)
-    human = human_trace(rows, road, frame)
+    human = human_trace(rows, road, frame, config.leader_drift_window_s, config.vehicle)
+    scenario = replay_scenario(rows, road, frame, name, config.seed,
+                               human["leader_v"].to_numpy(float),
+                               mon.MonitorConfig(lane_margin_m=config.lane_margin_m))
+    own = human_flag(human, scenario.monitors)
     rollouts: dict[str, Rollout] = {}
     compared: dict[str, pd.DataFrame] = {}
     table = []
     for label, policy in policies.items():
+        if isinstance(policy, RecordedPath):  # the human's own path, in this replay's frame
+            policy = recorded_path(rows, frame)
         rollout = run_scenario(scenario, policy, config.loop, config.vehicle)
         rollouts[label] = rollout
         trace = policy_trace(rollout.log, human)
@@ -280,7 +335,8 @@ def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_d
         sm = rollout.summary
         table.append({"policy": label, **compare(human, trace),
                       "end_reason": sm["end_reason"], "flag": sm["flag"],
-                      "flag_time_s": sm["flag_time_s"], "error": sm["error"]})
+                      "flag_time_s": sm["flag_time_s"], "error": sm["error"],
+                      "human_flag": own.reason, "human_flag_time_s": own.time_s})
     t = rows["time"].to_numpy(float)
     info = {
         "maneuver_id": maneuver_id,
@@ -296,6 +352,9 @@ def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_d
             -0.5 * (rows["left_c0"].iloc[0] + rows["right_c0"].iloc[0])),
         "initial_heading_offset_rad": scenario.ego_heading_offset_rad,
         "max_abs_leader_drift_m": float(np.nanmax(np.abs(human["leader_drift"]))),
+        "max_abs_lane_rebuild_error_m": float(np.nanmax(np.abs(human["d"] - human["d_lines"]))),
+        "max_abs_leader_drift_uncorrected_m": float(np.nanmax(np.abs(hm.leader_drift(
+            t, human["gap"].to_numpy(), human["s"].to_numpy(), rr.leader_speed(rows))))),
         "road_shape_points": int(road.meta.get("shape_points", 0)),
         "net": str(net),
         "config": asdict(config),
@@ -393,4 +452,8 @@ def format_metrics(metrics: pd.DataFrame) -> str:
     out["flag"] = [f"{f}@{t:.1f}s" if f else "-" for f, t in
                    zip(metrics["flag"], metrics["flag_time_s"], strict=True)]
     out["end"] = metrics["end_reason"]
+    if "human_flag" in metrics:  # the recording's own flag (the same for every policy)
+        out["human flag"] = [f"{f}@{t:.1f}s" if f else "-" for f, t in
+                             zip(metrics["human_flag"], metrics["human_flag_time_s"],
+                                 strict=True)]
     return out.to_string(index=False)

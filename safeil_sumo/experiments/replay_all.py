@@ -13,7 +13,8 @@ Windows (``mode``):
 - ``whole``: each maneuver from start to end.
 
 The aggregate per policy: windows, median and mean gap RMSE with seeded bootstrap 95 % intervals,
-median speed and lateral RMSE, the time-gap Wasserstein distance to the human, flags and
+median speed and lateral RMSE, the time-gap Wasserstein distance to the human, flags (also
+counted apart when the recording itself has a flag there, ``flags_beyond_human``) and
 collisions.
 """
 
@@ -43,6 +44,9 @@ from safeil_sumo.experiments import replay as rp
 WINDOW_MODES = ("paper", "sliding", "whole")
 HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
 BOOTSTRAP_SAMPLES = 2000
+# the replay's own reconstruction error per window (replay.ReplayResult.info)
+INSTRUMENT_KEYS = ("max_abs_lane_rebuild_error_m", "max_abs_leader_drift_m",
+                   "max_abs_leader_drift_uncorrected_m")
 
 
 @dataclass(frozen=True)
@@ -111,6 +115,7 @@ def run_window(window: Window, maneuvers: pd.DataFrame, policies: dict, config: 
         "task_id": window.task_id, "maneuver_id": window.maneuver_id,
         "start_s": window.start_s, "duration_s": res.info["duration_s"], "status": "ok",
         "mean_speed_mps": res.info["mean_speed_mps"], "mean_gap_m": res.info["mean_gap_m"],
+        **{k: res.info[k] for k in INSTRUMENT_KEYS},
         "metrics": metrics,
         "headway_hist": {"human": _headway_hist(res.human["headway"]),
                          **{name: _headway_hist(tr["headway"])
@@ -128,7 +133,7 @@ def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayCon
     _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
 
     _STATE.update(maneuvers=maneuvers, config=config,
-                  policies={name: pol.load(name) for name in policy_names})
+                  policies={name: pol.load_for_replay(name) for name in policy_names})
 
 
 def _work(window: Window) -> dict:
@@ -176,14 +181,15 @@ def table(records: list[dict]) -> pd.DataFrame:
     rows = []
     for r in records:
         base = {k: r.get(k) for k in ("maneuver_id", "start_s", "duration_s", "mean_speed_mps",
-                                      "mean_gap_m", "status")}
+                                      "mean_gap_m", *INSTRUMENT_KEYS, "status")}
         if r["status"] != "ok":
             rows.append({**base, "error": r.get("error")})
             continue
         rows += [{**base, **m} for m in r["metrics"]]
     df = pd.DataFrame(rows)
-    if "flag" in df:
-        df["flag"] = df["flag"].fillna("")
+    for col in ("flag", "human_flag"):
+        if col in df:
+            df[col] = df[col].fillna("")
     return df
 
 
@@ -203,7 +209,8 @@ def bootstrap_ci(values: np.ndarray, stat=np.median, samples: int = BOOTSTRAP_SA
 
 def aggregate(df: pd.DataFrame, seed: int = 0) -> pd.DataFrame:
     """Per policy: windows, gap RMSE median/mean with bootstrap 95 % CIs, speed and lateral RMSE
-    medians, time-gap W1 median, flags, collisions."""
+    medians, time-gap W1 median, flags, flags in windows whose recording has no flag of its
+    own, collisions."""
     ok = df[df["status"] == "ok"]
     rows = []
     for policy, g in ok.groupby("policy", sort=False):
@@ -219,6 +226,8 @@ def aggregate(df: pd.DataFrame, seed: int = 0) -> pd.DataFrame:
             "lateral_rmse_median_m": float(np.nanmedian(g["rmse_d"])),
             "time_gap_w1_median_s": float(np.nanmedian(g["w1_headway"])),
             "flags": int((g["flag"] != "").sum()),
+            # a flag in a window whose recording has none of its own (replay.human_flag)
+            "flags_beyond_human": int(((g["flag"] != "") & (g["human_flag"] == "")).sum()),
             "collisions": int((g["flag"] == "collision").sum()
                               | (g["end_reason"] == "collision").sum()),
         })

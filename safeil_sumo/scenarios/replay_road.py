@@ -49,9 +49,11 @@ from safeil_sumo.scenarios.road import NetworkError, Road, load_road
 EDGE_ID = network.EDGE_ID
 ROUTE_ID = network.ROUTE_ID
 REPLAY_GENERATOR_VERSION = 1
-# Chord tolerance [m] of the SUMO shape: ~18 m chords at R = 800 m. Finer than network.py's 10 cm
-# because here the SUMO polygon is also what the camera and the monitors measure against.
-REPLAY_SAGITTA_M = 0.05
+# Chord tolerance [m] of the SUMO shape: ~11 m chords at R = 800 m. Finer than network.py's 10 cm
+# because here the SUMO polygon is also what the camera and the monitors measure against: the
+# recorded human replayed on it (sim/recorded_ego.py) must stay in its lane (5 cm let the chords
+# push bodies that keep 1-2 cm from a recorded line over it; 2 cm costs ~10 % more replay time).
+REPLAY_SAGITTA_M = 0.02
 LANE_WIDTH_RANGE_M = (2.8, 4.5)  # [m] plausible lane widths; outside = a bad lane-line fit
 
 _NAME_RE = re.compile(r"[^A-Za-z0-9_-]+")
@@ -280,6 +282,35 @@ def leader_speed(rows: pd.DataFrame) -> np.ndarray:
             v = rows[col].to_numpy(float)
             break
     return np.maximum(np.where(np.isfinite(v), v, diff), 0.0)
+
+
+def drift_corrected_speed(t: np.ndarray, speed: np.ndarray, position: np.ndarray,
+                          window_s: float) -> np.ndarray:
+    """A speed ``(N,)`` [m/s] close to ``speed`` whose integral follows ``position`` ``(N,)`` [m].
+
+    A recorded leader driven by its recorded speed drifts from where it was recorded: the speed
+    sensor and the GNSS path (plus the radar gap) disagree by about 1 %, metres over a minute.
+    The drift ``position - position[0] - integral(speed)`` is low-passed (Savitzky-Golay, order
+    2, ``window_s``, on a uniform grid) and its derivative added to ``speed``: the speed keeps its
+    fine detail (a braking onset) and loses the slow drift; what is left of the drift is its part
+    faster than ``window_s``. ``window_s <= 0``: ``speed`` unchanged. Clipped at 0.
+    """
+    t = np.asarray(t, float)
+    v = np.asarray(speed, float)
+    if window_s <= 0 or len(t) < 2:
+        return np.maximum(v, 0.0)
+    p = np.asarray(position, float)
+    travelled = np.r_[0.0, np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))]
+    drift = (p - p[0]) - travelled
+    dt = float(np.median(np.diff(t)))
+    grid = np.arange(t[0], t[-1] + 0.5 * dt, dt)
+    d = np.interp(grid, t, drift)
+    w = min(round(window_s / dt) | 1, len(grid) if len(grid) % 2 else len(grid) - 1)
+    if w >= 5:
+        rate = savgol_filter(d, w, 2, deriv=1, delta=dt, mode="interp")
+    else:  # too few samples for a filter: the mean drift rate
+        rate = np.full(len(grid), (drift[-1] - drift[0]) / (t[-1] - t[0]))
+    return np.maximum(v + np.interp(t, grid, rate), 0.0)
 
 
 def safe_name(text: str) -> str:

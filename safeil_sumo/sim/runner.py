@@ -139,6 +139,9 @@ def run_scenario(
     ``end_reason="error"`` and keeps the log up to that step.
     """
     road = scenario.road
+    # a policy with pose_at(t) (the recorded pseudo-planner) is a kinematic ego: it is moved to
+    # its pose every step instead of being planned for, tracked and integrated by the plant
+    pose_at = getattr(policy, "pose_at", None)
     lane = road.lanes[road.ego_lane]
     centre = lane.centre
     scale = lane.sumo_length / centre.length  # SUMO lane position per geometric metre
@@ -158,7 +161,7 @@ def run_scenario(
     state = veh.state_from_front_bumper(
         float(start_xy[0]), float(start_xy[1]),
         float(lane_yaw) + scenario.ego_heading_offset_rad, scenario.ego_speed_mps, vehicle,
-    )
+    ) if pose_at is None else veh.state_from_front_bumper(*pose_at(0.0), vehicle)
     s_leader_front0 = s_ego0 + scenario.initial_gap_m + vehicle.length_m
 
     factory = api_factory or _default_factory(loop)
@@ -222,14 +225,19 @@ def run_scenario(
                 features = planner_features(left, right, v, v_lead, d_lead)
                 f = features.tolist()
                 feature_log = (*f[:6], f[7], f[8])
-                plan = policy.plan(features)
-                target = ctl.make_target(plan, policy.horizon, (front[0], front[1], yaw))
-                t_plan = t
-            steer_cmd, accel_cmd, integral, prev_error = ctl.track_values(
-                target, t - t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, integral, prev_error,
-                controller, dt)
-            throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle)
-            st = plant.step(st, steer_cmd, throttle, brake)
+                if pose_at is None:
+                    plan = policy.plan(features)
+                    target = ctl.make_target(plan, policy.horizon, (front[0], front[1], yaw))
+                    t_plan = t
+            if pose_at is None:
+                steer_cmd, accel_cmd, integral, prev_error = ctl.track_values(
+                    target, t - t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, integral,
+                    prev_error, controller, dt)
+                throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle)
+                st = plant.step(st, steer_cmd, throttle, brake)
+            else:  # a kinematic ego (the recorded path): no plan, controller or plant
+                st = _kinematic_state(pose_at(t + dt), vehicle)
+                steer_cmd = accel_cmd = math.nan
 
             # move the ego in SUMO (front bumper, navigation angle), command the leader, step
             x, y, yaw, vx, vy = st[:5]
@@ -347,6 +355,14 @@ def _move_ego(api: sumo_api.SumoApi, state: veh.VehicleState, vehicle: veh.Vehic
     x, y = veh.front_bumper(state, vehicle)
     api.vehicle.moveToXY(EGO_ID, "", -1, x, y, yaw_to_sumo_angle(state.yaw), 2)
     api.vehicle.setSpeed(EGO_ID, veh.speed(state))
+
+
+def _kinematic_state(pose: tuple[float, float, float, float], vehicle: veh.VehicleParams
+                     ) -> tuple:
+    """The loop's state tuple of an ego at front bumper ``pose[:2]``, heading ``pose[2]``,
+    speed ``pose[3]``."""
+    s = veh.state_from_front_bumper(*pose, vehicle)
+    return (s.x, s.y, s.yaw, s.vx, s.vy, s.yaw_rate, s.steer, s.drive_force)
 
 
 def _centre_xy(front: tuple[float, float], yaw: float, vehicle: veh.VehicleParams) -> np.ndarray:
