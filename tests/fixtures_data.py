@@ -190,3 +190,64 @@ def write_openacc(path: Path, gz: bool = False, **kwargs) -> Path:
     else:
         path.write_text(text)
     return path
+
+
+# ------------------------------------------------------------ a long curved OpenACC recording
+
+
+def _curved_path(segments: list[tuple[float, float]], ds: float = 0.5,
+                 transition_m: float = 60.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Arc length ``s``, points ``(N, 2)`` and heading of a road made of ``(length [m],
+    curvature [1/m])`` pieces joined by linear curvature ramps (clothoids) of ``transition_m``."""
+    knots_s, knots_k = [0.0], [segments[0][1]]
+    for length, kappa in segments:
+        knots_s += [knots_s[-1] + transition_m, knots_s[-1] + length]
+        knots_k += [kappa, kappa]
+    s = np.arange(0.0, knots_s[-1], ds)
+    kappa = np.interp(s, knots_s, knots_k)
+    heading = np.r_[0.0, np.cumsum(0.5 * (kappa[1:] + kappa[:-1]) * ds)]
+    xy = np.stack([np.r_[0.0, np.cumsum(np.cos(heading[:-1]) * ds)],
+                   np.r_[0.0, np.cumsum(np.sin(heading[:-1]) * ds)]], axis=1)
+    return s, xy, heading
+
+
+CURVED_SEGMENTS = [(400.0, 0.0), (250.0, 1 / 200.0), (600.0, 0.0), (700.0, -1 / 500.0),
+                   (500.0, 0.0), (1500.0, 1 / 1000.0), (6000.0, 0.0)]
+
+
+def curved_openacc_text(duration: float = 240.0, speed_bias: float = 0.005,
+                        gnss_noise_m: float = 0.02, seed: int = 0) -> str:
+    """An OpenACC file of one human follower behind a human leader over ``duration`` [s] on a
+    road with a tight curve (R = 200 m: the importer clips the lane curvature there), an
+    S-bend and a long gentle curve (``CURVED_SEGMENTS``, clothoid transitions). The leader's
+    speed swings 24-32 m/s, the bumper gap 25-45 m; the follower wanders 0.25 m in its lane; the
+    GNSS positions carry white noise (``gnss_noise_m``) and the speed sensors read
+    ``speed_bias`` high (so a leader driven by its speed alone drifts, ~35 m over the drive).
+    """
+    rng = np.random.default_rng(seed)
+    s_road, xy, heading = _curved_path(CURVED_SEGMENTS)
+    t = np.arange(0.0, duration + 1e-9, 0.1)
+    v1 = 28.0 + 4.0 * np.sin(2 * np.pi * t / 60.0)
+    s1 = 100.0 + np.r_[0.0, np.cumsum(0.5 * (v1[1:] + v1[:-1]) * 0.1)]  # leader front [m]
+    gap = 35.0 + 10.0 * np.sin(2 * np.pi * t / 45.0 + 1.0)
+    length = 4.5
+    s2 = s1 - gap - length
+    v2 = np.gradient(s2, t)
+    wander = 0.25 * np.sin(2 * np.pi * t / 30.0)
+
+    def world(s: np.ndarray, lateral: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x, y = np.interp(s, s_road, xy[:, 0]), np.interp(s, s_road, xy[:, 1])
+        h = np.interp(s, s_road, heading)
+        noise = rng.normal(0.0, gnss_noise_m, size=(2, len(s)))
+        return x - lateral * np.sin(h) + noise[0], y + lateral * np.cos(h) + noise[1]
+
+    e1, n1 = world(s1, np.zeros_like(t))
+    e2, n2 = world(s2, wander)
+    df = pd.DataFrame({
+        "Time": 1000.0 + t, "Speed1": v1 * (1.0 + speed_bias), "E1": e1, "N1": n1, "Driver1": "Human",
+        "Speed2": v2 * (1.0 + speed_bias), "E2": e2, "N2": n2, "Driver2": "Human",
+        "IVS1": gap,
+    })
+    meta = ("Date,28,2,2019\nVehicle_order,car1,car2\nNumber_of_vehicles,2\nACC,0\n"
+            "Distance_setting,min\n")
+    return meta + df.to_csv(index=False)
