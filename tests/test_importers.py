@@ -118,7 +118,7 @@ def test_ngsim_pairs_missing_column(tmp_path):
 def test_openacc_human_followers(tmp_path):
     path = write_openacc(tmp_path / "JRC-VC_280219_part2.csv.gz", gz=True)
     df = import_openacc(path)
-    assert list(pd.unique(df["recording_id"])) == [f"VC280219p2_f{k}" for k in (2, 3, 4, 5)]
+    assert list(pd.unique(df["recording_id"])) == [f"JRC-VC_280219_part2_f{k}" for k in (2, 3, 4, 5)]
     np.testing.assert_allclose(df["lead_x"], 35.5)
     np.testing.assert_allclose(df["lead_y"], 0.0)
     np.testing.assert_allclose(df["lead_v"], 30.0)
@@ -139,7 +139,7 @@ def test_openacc_acc_followers_skipped_unless_asked(tmp_path):
     drivers = ("Human", "ACC", "ACC", "Human", "ACC")
     path = write_openacc(tmp_path / "JRC-VC_260219_part3.csv", drivers=drivers)
     df = import_openacc(path)
-    assert list(pd.unique(df["recording_id"])) == ["VC260219p3_f4"]
+    assert list(pd.unique(df["recording_id"])) == ["JRC-VC_260219_part3_f4"]
     assert import_openacc(path, include_acc=True)["recording_id"].nunique() == 4
     all_acc = write_openacc(tmp_path / "JRC-VC_260219_part4.csv", drivers=("Human",) + ("ACC",) * 4)
     empty = import_openacc(all_acc)
@@ -175,8 +175,12 @@ def test_openacc_without_metadata_rows_is_rejected(tmp_path):
 
 
 def test_openacc_recording_prefix():
-    assert openacc_recording_prefix("a/JRC-VC_280219_part2.csv.gz") == "VC280219p2"
-    assert openacc_recording_prefix("Cher-JRC_240918_rec2_part1.csv") == "JRC240918r2p1"
+    # one rule for every campaign's file naming: the name without extensions
+    assert openacc_recording_prefix("a/JRC-VC_280219_part2.csv.gz") == "JRC-VC_280219_part2"
+    assert openacc_recording_prefix("JRC-VC_280219_part3.csv") == "JRC-VC_280219_part3"
+    assert (openacc_recording_prefix("Cher-JRC_240918_rec2_part1.csv")
+            == "Cher-JRC_240918_rec2_part1")
+    assert openacc_recording_prefix("ASta platoon 1.csv") == "ASta_platoon_1"
 
 
 def test_missing_file_is_schema_error(tmp_path):
@@ -205,7 +209,8 @@ def test_real_openacc_vicolungo_8_human_pairs(tmp_path):
     paths = [require_file(OPENACC_DIR / f"JRC-VC_280219_part{i}.csv.gz") for i in (2, 3)]
     df = import_openacc_files(paths)
     ids = sorted(df["recording_id"].unique())
-    assert ids == sorted(f"VC280219p{p}_f{k}" for p in (2, 3) for k in (2, 3, 4, 5))
+    assert ids == sorted(f"JRC-VC_280219_part{p}_f{k}" for p in (2, 3)
+                        for k in (2, 3, 4, 5))
     assert 15 < df["v_x"].median() < 40
     _round_trip(df, tmp_path)
 

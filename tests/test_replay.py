@@ -193,7 +193,7 @@ def test_replay_openacc_maneuver_with_analytic(tmp_path):
     drive = pd.concat([import_openacc(f) for f in files], ignore_index=True)
     maneuvers, _ = process_drive(drive, PipelineConfig(rate_hz=10.0))
     mid, start, rows = rp.select_maneuver(maneuvers, "auto")
-    assert mid == "VC280219p3_f4#1" and start == 72.0  # 32.0 m/s, 58.2 m: like the paper
+    assert mid == "JRC-VC_280219_part3_f4#1" and start == 72.0  # 32.0 m/s, 58.2 m: like the paper
     res = rp.replay_maneuver(rows, {"analytic": AnalyticPlanner()}, tmp_path, maneuver_id=mid)
     assert res.info["duration_s"] == pytest.approx(11.0)
     assert res.info["mean_speed_mps"] > 25.0

@@ -29,7 +29,7 @@ from safeil_sumo.atomic import atomic_path
 from safeil_sumo.data.pipeline import PipelineConfig, run_pipeline
 from safeil_sumo.data.recorder import RecordingConfig, record_drive
 from safeil_sumo.data.report import plot_maneuver, write_report
-from safeil_sumo.data.schema import save_drive
+from safeil_sumo.data.schema import load_drive, save_drive
 from safeil_sumo.data.synthetic import sample_driver
 
 REPO = Path(__file__).resolve().parents[1]
@@ -54,7 +54,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-lane-changes", action="store_true", help="drivers never change lane")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--reuse-drives", action="store_true",
+                    help="keep the recorded drives in --out (same seed and drivers) and only "
+                         "rerun the processing pipeline into tuples")
     args = ap.parse_args(argv)
+    if args.reuse_drives and args.out.is_file():
+        build_tuples(load_drive(args.out), args.out)
+        return
 
     t0 = time.perf_counter()
     jobs = [(i, args.seed, not args.no_lane_changes) for i in range(args.drivers)]
@@ -90,11 +96,16 @@ def main(argv: list[str] | None = None) -> None:
           f"{summary['leader_fraction']:.0%} of samples, {summary['lane_changes']} lane changes, "
           f"{summary['collision_steps']} collision steps")
 
+    build_tuples(drives, args.out)
+
+
+def build_tuples(drives: pd.DataFrame, out: Path) -> None:
+    """The processing pipeline over the recorded drives -> ``tuples.parquet`` and its report."""
     tuples, report = run_pipeline(drives, PipelineConfig(), source="synthetic")
-    tuples.save(args.out.with_name("tuples.parquet"))
-    write_report(report, args.out.parent, "synthetic")
-    plot_maneuver(tuples, args.out.parent / "synthetic_maneuver.png")
-    print(f"{args.out.with_name('tuples.parquet')}: {len(tuples)} tuples from "
+    tuples.save(out.with_name("tuples.parquet"))
+    write_report(report, out.parent, "synthetic")
+    plot_maneuver(tuples, out.parent / "synthetic_maneuver.png")
+    print(f"{out.with_name('tuples.parquet')}: {len(tuples)} tuples from "
           f"{len(tuples.maneuvers)} maneuvers; events {report.events}")
 
 

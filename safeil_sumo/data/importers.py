@@ -30,7 +30,7 @@ NGSIM (US-101 / I-80 layout, a straight road):
 - ``lead_v`` = the leader's recorded speed; ``lane_index`` = ``Lane_ID``; ``v_x`` = ``v_Vel``.
 
 OpenACC (JRC, 5 metadata rows then a header): each HUMAN follower ``k >= 2`` of a platoon gives one
-recording ``<campaign><date>[r<rec>]p<part>_f<k>``, e.g. ``VC280219p2_f3``.
+recording ``<file name without extensions>_f<k>``, e.g. ``JRC-VC_280219_part2_f3``.
 - world ``x, y = E{k}, N{k}``; heading from the Savitzky-Golay smoothed path (window 2 s).
 - no lane information (GNSS lateral bias 1-3 m): the follower is centred in a straight-ahead lane
   of width 3.5 m, ``c0l = +1.75``, ``c0r = -1.75``, ``c1 = 0``; the lane bends with the path:
@@ -324,13 +324,14 @@ def import_ngsim_csv(path: str | Path, min_pair_frames: int = 2) -> pd.DataFrame
 
 
 def openacc_recording_prefix(path: str | Path) -> str:
-    """``JRC-VC_280219_part2.csv.gz`` -> ``VC280219p2`` (campaign destination, date, rec, part)."""
+    """The file's name without its extensions, characters other than letters, digits, ``_`` and
+    ``-`` made ``_``: ``JRC-VC_280219_part2.csv.gz`` -> ``JRC-VC_280219_part2``.
+
+    One rule for every campaign's naming (the OpenACC campaigns name their files differently), so
+    ids of the files of one campaign are alike and an id names its file.
+    """
     stem = Path(path).name.split(".")[0]
-    m = re.match(r"^[^-_]+-([^_]+)_(\d{6})(?:_rec(\d+))?(?:_part(\d+))?", stem)
-    if not m:
-        return re.sub(r"[^A-Za-z0-9]+", "", stem)
-    dest, date, rec, part = m.groups()
-    return f"{dest}{date}" + (f"r{rec}" if rec else "") + (f"p{part}" if part else "")
+    return re.sub(r"[^A-Za-z0-9_-]", "_", stem) or "openacc"
 
 
 def read_openacc(path: str | Path) -> tuple[pd.DataFrame, list[str]]:

@@ -314,7 +314,7 @@ def drift_corrected_speed(t: np.ndarray, speed: np.ndarray, position: np.ndarray
 
 
 def safe_name(text: str) -> str:
-    """A file-name stem from a maneuver id (``VC280219p3_f2#0`` -> ``VC280219p3_f2_0``)."""
+    """A file-name stem from a maneuver id (``JRC-VC_280219_part3_f2#0`` -> ``JRC-VC_280219_part3_f2_0``)."""
     return _NAME_RE.sub("_", text).strip("_") or "replay"
 
 
