@@ -12,6 +12,8 @@ Sections (``--only`` picks some; every sweep is resumable, its task files live i
 - ``humanlike``: every 11 s window (every 20 s) of the held-out OpenACC and NGSIM maneuvers
   replayed with every planner: gap-RMSE distributions with bootstrap intervals;
 - ``ablation``: ``training/leader_following_ablation.py`` (one lever at a time);
+- ``instrument``: the replay's own error: the ``recorded`` pseudo-planner (the human's path)
+  over every whole maneuver of OpenACC, NGSIM and the synthetic drives;
 - and ``results/README.md`` with our numbers beside the paper's.
 
 Only small outputs (PNG, CSV, Markdown) go to ``results/``; logs stay in the work folder.
@@ -54,12 +56,13 @@ PAPER_REPLAY_GAP_RMSE_M, PAPER_REPLAY_GAP_MAX_M = 0.78, 1.52
 
 POLICIES = ("safeil", "safeil_paper", "bc", "analytic", "idm")
 LABELS = {"safeil": "SafeIL (exact lane bound)", "safeil_paper": "SafeIL (paper barrier)",
-          "bc": "BC", "analytic": "analytic", "idm": "IDM (calibrated)"}
+          "bc": "BC", "analytic": "analytic", "idm": "IDM (calibrated)",
+          "recorded": "recorded human path (the replay's floor)"}
 COLORS = {"safeil": "tab:green", "safeil_paper": "tab:olive", "bc": "tab:red",
           "analytic": "tab:gray", "idm": "tab:blue"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
-            "humanlike", "ablation")
+            "humanlike", "ablation", "instrument")
 
 
 def _sweep(specs: list[ScenarioSpec], work: Path, name: str, workers: int) -> pd.DataFrame:
@@ -544,10 +547,30 @@ def write_readme(out: Path, facts: dict) -> None:
                                    "speed_rmse_median_mps": "speed RMSE median [m/s]",
                                    "lateral_rmse_median_m": "lateral RMSE median [m]",
                                    "time_gap_w1_median_s": "time-gap W1 median [s]",
-                                   "flags": "flags", "collisions": "collisions"}), ""]
+                                   "flags": "flags", "flags_beyond_human":
+                                   "flags where the human has none", "collisions":
+                                   "collisions"}), ""]
         lines += [f"![{s}](humanlike_{s}.png)"
                   for s in dict.fromkeys(r["source"] for r in facts["humanlike"])]
         lines += [""]
+    if facts.get("instrument"):
+        lines += ["## The replay's own error: the human's path replayed", "",
+                  "The `recorded` pseudo-planner drives the ego along the human's own recorded "
+                  "path (`python -m safeil_sumo.replay --policies recorded ...`): on a faithful "
+                  "digital twin it raises no flag and its gap equals the human's. Every maneuver "
+                  "of each source, whole. Its gap error is the floor under every planner's "
+                  "above. A flag the recording itself has (its TTC <= 1 s, its body over a "
+                  "recorded lane line) is counted apart.", "",
+                  _md_table(facts["instrument"], {
+                      "source": "source", "maneuvers": "maneuvers", "longest_s": "longest [s]",
+                      "gap_rmse_median_m": "gap RMSE median [m]",
+                      "gap_rmse_p95_m": "p95 [m]", "gap_rmse_max_m": "max [m]",
+                      "gap_rmse_over_0.2m": "> 0.2 m", "lane_rebuild_max_m":
+                      "lane rebuild error max [m]", "leader_drift_uncorrected_max_m":
+                      "leader drift, speed alone, max [m]", "leader_drift_max_m":
+                      "corrected [m]", "flags": "flags", "human_flags":
+                      "the recording's own flags", "flags_beyond_human":
+                      "flags beyond the recording's"}), ""]
     if facts.get("leader"):
         lead = facts["leader"]
         rows = [dict(r, planner=LABELS.get(r["policy"], r["policy"])) for r in lead["probe"]]
@@ -688,7 +711,8 @@ def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
         only = sorted(held & set(maneuvers["maneuver_id"].astype(str)))
         wins = ra.windows(maneuvers, "sliding", rp.PAPER_DURATION_S, 20.0, only)
         folder = work / f"humanlike_{source}"
-        records = ra.replay_all(maneuvers, wins, list(POLICIES), folder,
+        # "recorded" (the human's own path) is the instrument's floor beside the planners
+        records = ra.replay_all(maneuvers, wins, [*POLICIES, "recorded"], folder,
                                 rp.ReplayConfig(seed=seed), workers)
         _, agg = ra.write(folder, records, {"source": source, "maneuvers": only}, seed, source)
         shutil.copyfile(folder / "replay_all.png", out / f"humanlike_{source}.png")
@@ -697,6 +721,50 @@ def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     table = pd.DataFrame(rows)
     if len(table):
         _save_csv(table, out / "humanlike.csv")
+    return rows
+
+
+def instrument(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
+    """The ``recorded`` pseudo-planner over every whole maneuver of each source: the replay's
+    error floor (gap RMSE, lane rebuild error, leader drift before and after its correction) and
+    its flags, apart from those the recording itself has."""
+    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.replay import load_source
+
+    rows = []
+    for source, where in (("openacc", "openacc"), ("ngsim", "ngsim"),
+                          ("synthetic", str(REPO / "data" / "synthetic" / "drives.parquet"))):
+        try:
+            maneuvers, _ = process_drive(load_source(where), PipelineConfig(rate_hz=10.0))
+        except (OSError, ValueError) as exc:
+            print(f"[instrument] {source} skipped: {exc}")
+            continue
+        wins = ra.windows(maneuvers, "whole")
+        records = ra.replay_all(maneuvers, wins, ["recorded"], work / f"instrument_{source}",
+                                rp.ReplayConfig(seed=seed), workers)
+        df = ra.table(records)
+        ok = df[df["status"] == "ok"]
+        gap = ok["rmse_gap"].to_numpy(float)
+        rows.append({
+            "source": source, "maneuvers": len(ok), "failed": int((df["status"] != "ok").sum()),
+            "longest_s": float(ok["duration_s"].max()),
+            "gap_rmse_median_m": float(np.median(gap)),
+            "gap_rmse_p95_m": float(np.quantile(gap, 0.95)), "gap_rmse_max_m": float(gap.max()),
+            "gap_rmse_over_0.2m": int((gap > 0.2).sum()),
+            "gap_max_abs_m": float(ok["max_gap"].max()),
+            "lane_rebuild_max_m": float(ok["max_abs_lane_rebuild_error_m"].max()),
+            "leader_drift_max_m": float(ok["max_abs_leader_drift_m"].max()),
+            "leader_drift_uncorrected_max_m": float(
+                ok["max_abs_leader_drift_uncorrected_m"].max()),
+            "flags": int((ok["flag"] != "").sum()),
+            "flags_beyond_human": int(((ok["flag"] != "") & (ok["human_flag"] == "")).sum()),
+            "human_flags": int((ok["human_flag"] != "").sum()),
+        })
+        print(f"[instrument] {source}: {len(ok)} maneuvers replayed whole")
+    if rows:
+        _save_csv(pd.DataFrame(rows), out / "instrument.csv")
     return rows
 
 
@@ -773,6 +841,9 @@ def main(argv: list[str] | None = None) -> int:
                                    args.seed)
     if "ablation" in args.only:
         facts["ablation"] = timed("ablation", ablation, args.out, args.workers)
+    if "instrument" in args.only:
+        facts["instrument"] = timed("instrument", instrument, args.out, args.work, args.workers,
+                                    args.seed)
     facts["wall_time_s"] = time.perf_counter() - t0
     previous = args.out / "facts.json"
     merged = json.loads(previous.read_text()) if previous.is_file() else {}
