@@ -74,10 +74,20 @@ EXPECTED = {
 }
 
 
+# the columns the hashes were computed over; columns added to the log later (the plan being
+# tracked, for animations) are logged values, not new numbers of the loop
+GOLDEN_COLUMNS = (
+    "t", "x", "y", "yaw", "v", "vy", "yaw_rate", "steer", "front_x", "front_y", "steer_cmd",
+    "accel_cmd", "s", "d", "d_min", "d_max", "c0l", "c1l", "c2l", "c0r", "c1r", "c2r",
+    "v_lead_sensed", "d_lead_sensed", "leader_x", "leader_y", "leader_v", "gap", "ttc",
+    "lane_departure", "ttc_flag", "collision", "path_fraction",
+)
+
+
 def log_hash(log: pd.DataFrame) -> str:
-    """SHA-256 over each column's name and float64 bytes, in column order."""
+    """SHA-256 over each golden column's name and float64 bytes, in column order."""
     h = hashlib.sha256()
-    for col in log.columns:
+    for col in GOLDEN_COLUMNS:
         h.update(col.encode())
         h.update(np.ascontiguousarray(log[col].to_numpy(dtype=np.float64)).tobytes())
     return h.hexdigest()

@@ -200,6 +200,7 @@ def run_scenario(
         t_plan = 0.0
         features = np.zeros(9)
         feature_log = (math.nan,) * 8  # c0l..c2r, v_lead, d_lead as logged
+        plan_log = (math.nan,) * 10  # the plan being tracked: time, pose, control points
         leader = _read_leader(api, vehicle) if has_leader else None
         # the leader's commanded speed of every step, in one vectorised call (same values)
         lead_speeds = (scenario.leader.speed_at(np.arange(n_max) * dt + dt).tolist()
@@ -229,6 +230,8 @@ def run_scenario(
                     plan = policy.plan(features)
                     target = ctl.make_target(plan, policy.horizon, (front[0], front[1], yaw))
                     t_plan = t
+                    plan_log = (t, front[0], front[1], yaw,
+                                *np.asarray(plan, float).reshape(6).tolist())
             if pose_at is None:
                 steer_cmd, accel_cmd, integral, prev_error = ctl.track_values(
                     target, t - t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, integral,
@@ -277,7 +280,7 @@ def run_scenario(
             log.rows.append((
                 t + dt, x, y, yaw, v, vy, st[5], st[6], front[0], front[1], steer_cmd,
                 accel_cmd, s, d, d_min, d_max, *feature_log, lx, ly, v_lead_true, gap, ttc,
-                departed, ttc_flag, colliding, fraction,
+                departed, ttc_flag, colliding, fraction, *plan_log,
             ))
 
             if s >= road.path_end_s:
@@ -390,6 +393,10 @@ class _Log:
         "accel_cmd", "s", "d", "d_min", "d_max", "c0l", "c1l", "c2l", "c0r", "c1r", "c2r",
         "v_lead_sensed", "d_lead_sensed", "leader_x", "leader_y", "leader_v", "gap", "ttc",
         "lane_departure", "ttc_flag", "collision", "path_fraction",
+        # the plan being tracked: made at plan_t [s] at the front-bumper pose plan_x, plan_y
+        # [m], plan_yaw [rad]; its free control points cp{i}_x, cp{i}_y [m] in that pose's frame
+        "plan_t", "plan_x", "plan_y", "plan_yaw",
+        "cp1_x", "cp1_y", "cp2_x", "cp2_y", "cp3_x", "cp3_y",
     )
 
     def __init__(self, n: int) -> None:
