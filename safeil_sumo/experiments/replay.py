@@ -13,7 +13,8 @@ The digital twin of a maneuver left out of training:
 - the duration: the maneuver's.
 
 The ``recorded`` pseudo-planner (:mod:`safeil_sumo.sim.recorded_ego`) drives the ego along the
-human's own path: its error is the instrument's floor. Each policy runs closed-loop; its state is compared with the human's at the recorded timestamps
+human's own path: its error is the instrument's floor (docs/replay_instrument.md). Each policy
+runs closed-loop; its state is compared with the human's at the recorded timestamps
 (:mod:`safeil_sumo.experiments.metrics`): x, y in the local frame (origin at the recorded start,
 x along the initial lane heading, as the paper plots them), along-lane ``s`` and lateral offset
 ``d`` on the ego lane, ``v_x`` and ``d_lead`` (bumper gap along the lane): RMSE and max error;
@@ -202,7 +203,7 @@ def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame,
                 leader_drift_window_s: float = 5.0,
                 vehicle: VehicleParams = VehicleParams()) -> pd.DataFrame:
     """The recorded human in the replay's terms (see :class:`ReplayResult`); ``leader_v`` is
-    the speed the replay drives the leader by (:func:`replay_leader_speed`), ``leader_drift``
+    the speed the replay drives the leader by (``rr.drift_corrected_speed``), ``leader_drift``
     how far that leader ends up from the recorded one; ``ttc`` [s] and ``lane_departure`` are
     the closed loop's monitors on the recorded samples, lanes from the recorded lane lines (the
     car's size from ``vehicle``)."""
@@ -229,8 +230,8 @@ def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame,
 def human_flag(human: pd.DataFrame, monitors: mon.MonitorConfig = mon.MonitorConfig()
                ) -> mon.FirstFlag:
     """The recording's own first flag (TTC <= threshold, or the body over a recorded lane line)
-    at the recorded samples: a replay flag the human also has is not the
-    instrument's, nor, for a policy, a flag the recording left it any room to avoid."""
+    at the recorded samples: a replay flag the human also has is not the instrument's, and a
+    policy's flag there may be one the recording left no room to avoid."""
     ttc_flag = human["ttc"].to_numpy(float) <= monitors.ttc_threshold_s
     return mon.first_flag(human["t"].to_numpy(float), np.zeros(len(human)),
                           human["lane_departure"].to_numpy(bool), ttc_flag,
