@@ -38,6 +38,7 @@ from matplotlib.patches import Polygon
 from matplotlib.transforms import Affine2D
 
 from safeil_sumo import bspline
+from safeil_sumo.atomic import atomic_path
 from safeil_sumo.geometry import ego_to_world, rectangle_corners
 from safeil_sumo.scenarios.road import NetworkError, Road, load_road
 from safeil_sumo.sim.vehicle import VehicleParams
@@ -477,13 +478,16 @@ def animate(run_dir: Path | str, scenario: str | None = None, policy: str | None
     out.parent.mkdir(parents=True, exist_ok=True)
     drawer = FrameDrawer(ep, dpi)
     try:
-        with matplotlib.rc_context({"animation.ffmpeg_path": ffmpeg or "ffmpeg"}):
+        # a temporary sibling ending in the same suffix (ffmpeg picks the container by it), so
+        # an interrupted animation leaves no half-written file
+        with atomic_path(out) as tmp, \
+                matplotlib.rc_context({"animation.ffmpeg_path": ffmpeg or "ffmpeg"}):
             if ffmpeg:
                 writer = FFMpegWriter(fps=fps, codec="h264", bitrate=-1)
             else:
                 writer = _GifWriter(fps=fps)
             # GIF frame delays are whole centiseconds: fps above 50 play slower than asked
-            with writer.saving(drawer.fig, str(out), dpi):
+            with writer.saving(drawer.fig, str(tmp), dpi):
                 for i in rows:
                     drawer.draw(int(i))
                     writer.grab_frame()
