@@ -443,8 +443,10 @@ class _GifWriter(PillowWriter):
         super().grab_frame(**savefig_kwargs)
         from PIL import Image
 
-        self._frames[-1] = self._frames[-1].convert("RGB").quantize(
-            colors=64, method=Image.Quantize.FASTOCTREE)
+        frames = getattr(self, "_frames", None)  # matplotlib's own list (>= 3.1); else as is
+        if frames:
+            frames[-1] = frames[-1].convert("RGB").quantize(colors=64,
+                                                            method=Image.Quantize.FASTOCTREE)
 
 
 def default_output(run_dir: Path, name: str) -> Path:
