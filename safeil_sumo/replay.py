@@ -6,8 +6,9 @@ Imports the source (``openacc``/``ngsim`` from the shared data folder, or a driv
 schema of :mod:`safeil_sumo.data.schema`, e.g. a synthetic recording), runs the processing
 pipeline (maneuvers), rebuilds the chosen maneuver in SUMO, drives it closed-loop with each policy
 and prints the comparison with the human. Writes into ``--out``: ``metrics.csv/json``,
-``steps.parquet``, ``human.parquet``, ``compared.parquet``, ``replay.png``, ``manifest.json`` and
-the SUMO files in ``net/``. Exit codes: 0 ok, 1 a run failed, 2 bad input, 3 SUMO error.
+``steps.parquet``, ``human.parquet``, ``compared.parquet``, ``replay.png``, ``manifest.json``,
+the SUMO files in ``net/``, and with ``--animate`` ``animation_<policy>.mp4`` (or ``.gif``, see
+:mod:`safeil_sumo.animate`). Exit codes: 0 ok, 1 a run failed, 2 bad input, 3 SUMO error.
 
 The maneuver should be one left out of the policies' training (``training/train.py
 --val-maneuvers <id>``); the replay does not know which maneuvers a checkpoint was trained on.
@@ -89,6 +90,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
     p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--list", action="store_true", help="list the maneuvers and exit")
+    p.add_argument("--animate", action="store_true",
+                   help="one maneuver: also write animation_<policy>.mp4 (.gif without an "
+                        "ffmpeg) of each policy; see python -m safeil_sumo.animate")
     p.add_argument("--out", type=Path, default=None, help="results folder "
                    "(default runs/replay_<maneuver>)")
     args = p.parse_args(argv)
@@ -101,6 +105,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args.many = args.maneuver == "all" or "," in args.maneuver
     if args.held_out_of is not None and args.maneuver != "all":
         p.error("--held-out-of needs --maneuver all")
+    if args.animate and args.many:
+        p.error("--animate needs one maneuver (not --maneuver all or a list)")
     return args
 
 
@@ -187,6 +193,15 @@ def main(argv: list[str] | None = None) -> int:
     failed = result.metrics[result.metrics["end_reason"] == "error"]
     for _, row in failed.iterrows():
         print(f"policy {row['policy']} failed: {row['error']}", file=sys.stderr)
+    if args.animate:  # from the written results folder, as the animate CLI does
+        from safeil_sumo import animate
+
+        for name in result.rollouts:
+            try:
+                print(f"animation: {animate.animate(out, policy=name)}")
+            except animate.AnimateError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 1
     print(f"results: {out}")
     return 1 if len(failed) else 0
 

@@ -3,7 +3,8 @@
 Runs N scenarios (leader at a constant random speed in [25, 32] m/s ahead of the ego) with one
 policy, prints a summary table and writes a results folder:
 ``steps.parquet`` (per-step log), ``summary.csv`` / ``summary.json`` (per scenario),
-``manifest.json`` (config, seeds, git commit, versions), and PNG plots.
+``manifest.json`` (config, seeds, git commit, versions), PNG plots, and with ``--animate``
+``animation_<scenario>.mp4`` (or ``.gif``, see :mod:`safeil_sumo.animate`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import pandas as pd
 from tqdm import tqdm
 
-from safeil_sumo import policies
+from safeil_sumo import animate, policies
 from safeil_sumo.cli_args import add_leader_options, finite_float, nonnegative_int
 from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, build_scenario
@@ -58,6 +59,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=None,
                    help="results folder (default runs/<net>_<policy>_seed<seed>)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--animate", nargs="*", default=None, metavar="SCENARIO",
+                   help="also write animation_<scenario>.mp4 (.gif without an ffmpeg) of these "
+                        "scenarios, e.g. s0000 s0003 (no name: the first); see "
+                        "python -m safeil_sumo.animate")
     args = p.parse_args(argv)
     if args.scenarios < 1:
         p.error("--scenarios must be >= 1")
@@ -121,6 +126,14 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, ProfileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    names = [sc.name for sc in scenarios]
+    animated = (args.animate or names[:1]) if args.animate is not None else []
+    unknown = [a for a in animated if a not in names]
+    if unknown:
+        shown = ", ".join(names[:20]) + (", ..." if len(names) > 20 else "")
+        print(f"error: --animate: unknown scenario {unknown[0]!r}; available: {shown}",
+              file=sys.stderr)
+        return 2
 
     logs, rows = [], []
     try:
@@ -161,6 +174,14 @@ def main(argv: list[str] | None = None) -> int:
     errors = summaries[summaries["end_reason"] == "error"]
     for _, row in errors.iterrows():
         print(f"scenario {row['scenario']} failed: {row['error']}", file=sys.stderr)
+    # after the results are in place (an animation never costs a run), from the Parquet log
+    # just written, as the animate CLI does
+    for name in tqdm(animated, desc="animating", unit="scenario", disable=None):
+        try:
+            print(f"animation: {animate.animate(out, scenario=name)}")
+        except animate.AnimateError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
     print(f"results: {out}")
     return 1 if len(errors) else 0
 
