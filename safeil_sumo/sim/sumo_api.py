@@ -162,7 +162,8 @@ def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
             pass
         why = f"it exited with code {proc.returncode}" if died else "it did not answer"
         raise SumoError(f"sumo-gui failed to start ({why}: {exc}); see its messages above and "
-                        "the README's sumo-gui paragraph (OpenGL/Mesa, 24-bit display)") from exc
+                        "the README's sumo-gui paragraph (OpenGL via Mesa, a 24-bit display, "
+                        "a font)") from exc
     finally:
         watchdog.cancel()
 
