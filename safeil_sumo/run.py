@@ -13,7 +13,7 @@ import argparse
 import os
 import re
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import pandas as pd
@@ -56,6 +56,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
     p.add_argument("--backend", choices=("libsumo", "traci"), default="libsumo")
     p.add_argument("--gui", action="store_true", help="watch in sumo-gui (implies traci)")
+    p.add_argument("--gui-screenshot", type=Path, default=None, metavar="PNG",
+                   help="with --gui: save sumo-gui's view 1 s into the first scenario")
     p.add_argument("--out", type=Path, default=None,
                    help="results folder (default runs/<net>_<policy>_seed<seed>)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -75,6 +77,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--plan-rate must be in (0, 100] Hz")
     if args.leader_profile is not None and args.leader != "recorded":
         p.error("--leader-profile needs --leader recorded")
+    if args.gui_screenshot is not None and not args.gui:
+        p.error("--gui-screenshot needs --gui")
     if args.gui:
         if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
             p.error("--gui needs a display (DISPLAY is not set): run without --gui, or under a "
@@ -111,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     default_name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{net_name}_{policy.name}_seed{args.seed}")
     out = args.out or Path("runs") / default_name
     loop = LoopConfig(plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
-                      backend=args.backend, gui=args.gui)
+                      backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot)
     vehicle = VehicleParams()
     try:
         specs = [ScenarioSpec(net=args.net, index=i, master_seed=args.seed, policy=args.policy,
@@ -137,9 +141,12 @@ def main(argv: list[str] | None = None) -> int:
 
     logs, rows = [], []
     try:
-        for sc in tqdm(scenarios, desc=f"{policy.name} on {road.net_path.name}", unit="scenario",
-                       disable=None):
-            rollout = run_scenario(sc, policy, loop, vehicle)
+        progress = tqdm(scenarios, desc=f"{policy.name} on {road.net_path.name}",
+                        unit="scenario", disable=None)
+        for i, sc in enumerate(progress):
+            # one screenshot: the first scenario's
+            sc_loop = replace(loop, gui_screenshot=None) if i else loop
+            rollout = run_scenario(sc, policy, sc_loop, vehicle)
             logs.append(rollout.log.assign(scenario=sc.name))
             rows.append(rollout.summary)
     except SumoError as exc:

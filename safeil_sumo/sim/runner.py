@@ -37,6 +37,8 @@ from safeil_sumo.sim.leaders import SpeedProfile
 EGO_ID = "ego"
 LEADER_ID = "leader"
 ROUTE_ID = "r_ego"
+GUI_VIEW_WIDTH_M = 150.0  # sumo-gui's view width around the ego: it and a leader 50 m ahead [m]
+GUI_SCREENSHOT_AT_S = 1.0  # simulation time of LoopConfig.gui_screenshot [s]
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,7 @@ class LoopConfig:
     offroad_stop_m: float = 6.0  # end the run when the ego centre is this far off its lane [m]
     backend: str = "libsumo"  # "libsumo" | "traci"
     gui: bool = False  # sumo-gui (traci backend only)
+    gui_screenshot: Path | None = None  # PNG of sumo-gui's view at GUI_SCREENSHOT_AT_S (gui only)
     ssm_file: Path | None = None  # write SUMO's SSM device output for the ego here
 
     def __post_init__(self) -> None:
@@ -86,6 +89,8 @@ class LoopConfig:
             raise ValueError(f"step_s must be in (0, 0.1] s, got {self.step_s}")
         if not 0 < self.plan_rate_hz <= 1.0 / self.step_s:
             raise ValueError(f"plan_rate_hz must be in (0, {1.0 / self.step_s:g}] Hz")
+        if self.gui_screenshot is not None and not self.gui:
+            raise ValueError("gui_screenshot needs gui=True")
 
 
 @dataclass(frozen=True)
@@ -184,6 +189,9 @@ def run_scenario(
             _configure(api, LEADER_ID, vehicle)
         _move_ego(api, state, vehicle)
         api.simulation.step()
+        if loop.gui:  # the ego exists only after the first step
+            sumo_api.track_in_gui(api, EGO_ID, GUI_VIEW_WIDTH_M)
+        shot_k = round(GUI_SCREENSHOT_AT_S / dt) if loop.gui_screenshot is not None else -1
 
         # The loop works on plain floats (state tuple, PID memory) and the internal fast paths
         # of the plant, tracker and camera: bit-identical to the public functions, which build
@@ -251,6 +259,8 @@ def run_scenario(
             set_speed(EGO_ID, v)
             if has_leader and leader is not None:
                 set_speed(LEADER_ID, lead_speeds[k] * scale)
+            if k == shot_k:  # sumo-gui saves it during this step
+                sumo_api.gui_screenshot(api, loop.gui_screenshot)
             sim_step()
             colliding = EGO_ID in colliding_ids()
             leader = _read_leader(api, vehicle) if has_leader and leader is not None else None

@@ -6,7 +6,11 @@ only ever talks to SUMO through the methods listed here.
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
+import subprocess
+import threading
 from pathlib import Path
 from typing import Any, Protocol, Sequence
 
@@ -47,6 +51,17 @@ class LaneDomain(Protocol):
     def getLastStepVehicleIDs(self, laneID: str) -> Sequence[str]: ...
 
 
+class GuiDomain(Protocol):
+    """sumo-gui's view (traci with ``gui=True`` only)."""
+
+    def trackVehicle(self, viewID: str, vehID: str) -> None: ...
+    def setZoom(self, viewID: str, zoom: float) -> None: ...
+    def getZoom(self, viewID: str = ...) -> float: ...
+    def getBoundary(self, viewID: str = ...) -> tuple[tuple[float, float], tuple[float, float]]: ...
+    def screenshot(self, viewID: str, filename: str, width: int = ...,
+                   height: int = ...) -> None: ...
+
+
 class SumoApi(Protocol):
     """The subset of the TraCI API the closed loop and the recorder use (libsumo and traci both
     satisfy it)."""
@@ -55,6 +70,7 @@ class SumoApi(Protocol):
     simulation: SimulationDomain
     route: RouteDomain
     lane: LaneDomain
+    gui: GuiDomain  # only usable when started with gui=True
 
     def close(self) -> None: ...
 
@@ -81,6 +97,13 @@ def sumo_binary(gui: bool = False) -> str:
 
 
 GUI_CONNECT_RETRIES = 5  # [-] traci connection attempts (1 s apart) to a starting sumo-gui
+# --start: without it sumo-gui waits for its play button and the first traci step blocks forever;
+# --quit-on-end: without it the window stays open and traci's close() waits for the user
+GUI_OPTIONS = ("--start", "--quit-on-end")
+GUI_VIEW = "View #0"  # sumo-gui's first (and only) view
+# a sumo-gui whose OpenGL context fails (e.g. no Mesa DRI driver: "X Error ... BadValue") accepts
+# the traci connection and never answers: it is killed after this long [s]
+GUI_START_TIMEOUT_S = GUI_CONNECT_RETRIES + 5.0
 
 
 def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> SumoApi:
@@ -98,14 +121,73 @@ def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> S
         import traci as api
     else:
         raise SumoError(f"unknown backend {backend!r}: use 'libsumo' or 'traci'")
+    if gui:
+        _start_gui(api, binary, args)
+        return api  # type: ignore[return-value]
     try:
-        if gui:  # sumo-gui that cannot open its window dies: fail in seconds, not traci's minute
-            api.start([binary, *args], numRetries=GUI_CONNECT_RETRIES)
-        else:
-            api.start([binary, *args])
+        api.start([binary, *args])
     except Exception as exc:  # libsumo raises TraCIException / FatalTraCIError
         raise SumoError(f"SUMO failed to start: {exc}") from exc
     return api  # type: ignore[return-value]
+
+
+def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
+    """Start sumo-gui and connect traci to it, failing in seconds whether it dies or hangs.
+
+    Not ``traci.start``: that relaunches a dying sumo-gui ``numRetries`` times and waits forever
+    for one that hangs. sumo-gui runs in its own process group so the watchdog also kills the
+    binary the eclipse-sumo ``sumo-gui`` wrapper script starts.
+    """
+    port = traci.getFreeSocketPort()
+    proc = subprocess.Popen([binary, *GUI_OPTIONS, *args, "--remote-port", str(port)],
+                            process_group=0)
+    answered = threading.Event()
+
+    def kill() -> None:
+        if not answered.is_set():
+            _kill_group(proc)
+
+    watchdog = threading.Timer(GUI_START_TIMEOUT_S, kill)
+    watchdog.start()
+    try:
+        traci.init(port, numRetries=GUI_CONNECT_RETRIES, proc=proc)
+        answered.set()
+    except Exception as exc:  # TraCIException / FatalTraCIError
+        died = proc.poll() is not None and not watchdog.finished.is_set()
+        _kill_group(proc)
+        proc.wait()
+        try:  # forget the half-open connection so a later start can use the default label
+            traci.close(wait=False)
+        except Exception:
+            pass
+        why = f"it exited with code {proc.returncode}" if died else "it did not answer"
+        raise SumoError(f"sumo-gui failed to start ({why}: {exc}); see its messages above and "
+                        "the README's sumo-gui paragraph (OpenGL via Mesa, a 24-bit display, "
+                        "a font)") from exc
+    finally:
+        watchdog.cancel()
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:  # already gone
+        pass
+
+
+def track_in_gui(api: SumoApi, veh_id: str, view_width_m: float) -> None:
+    """Make sumo-gui's view follow ``veh_id`` (already in the simulation), zoomed so the view is
+    about ``view_width_m`` wide whatever the network's size and the window's."""
+    api.gui.trackVehicle(GUI_VIEW, veh_id)
+    (x0, _), (x1, _) = api.gui.getBoundary(GUI_VIEW)
+    if x1 > x0:  # sumo-gui's zoom is relative to the whole network: scale the current one
+        api.gui.setZoom(GUI_VIEW, api.gui.getZoom(GUI_VIEW) * (x1 - x0) / view_width_m)
+
+
+def gui_screenshot(api: SumoApi, path: Path) -> None:
+    """Save sumo-gui's view as an image (format from the suffix) at the next simulation step."""
+    # sumo-gui writes the file itself, relative to its own working directory: pass it absolute
+    api.gui.screenshot(GUI_VIEW, str(Path(path).resolve()))
 
 
 def version() -> str:
