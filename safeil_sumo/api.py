@@ -16,23 +16,29 @@ runs); :func:`sweep` and :func:`replay` wrap the sweep engine and the replay of 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import pandas as pd
+from tqdm import tqdm
 
 from safeil_sumo import policies
+from safeil_sumo.experiments.replay import ReplayConfig
 from safeil_sumo.experiments.sweep import ScenarioSpec, build_scenario, run_sweep
 from safeil_sumo.policy import Policy
+from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+from safeil_sumo.sim.vehicle import VehicleParams
 
 
 @dataclass(frozen=True)
 class RunResult:
-    """``summary``: one row per scenario; ``log``: every step of every scenario."""
+    """``summary``: one row per scenario; ``log``: every step of every scenario (column
+    ``scenario``); ``scenarios``: the scenarios that ran."""
 
     summary: pd.DataFrame
     log: pd.DataFrame
+    scenarios: tuple[Scenario, ...] = ()
 
 
 def load_policy(policy: str | Policy) -> Policy:
@@ -44,28 +50,51 @@ def load_policy(policy: str | Policy) -> Policy:
     return policy
 
 
+def road(net: str = "curved500") -> Road:
+    """The road of a catalogue name (``curved500``, ``straight``, ``curved<R>``) or a
+    ``.net.xml`` path, read once per process."""
+    from safeil_sumo.experiments.sweep import _road
+
+    return _road(net)
+
+
 def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: object) -> Scenario:
     """Scenario ``index`` of master ``seed`` on ``net``; ``spec`` takes any
     :class:`~safeil_sumo.experiments.sweep.ScenarioSpec` field (``leader_kind="recorded"``,
     ``leader_profile="ngsim"``, ``leader_speed_range_mps=(20, 25)``, ``initial_gap_m=30``, ...)."""
-    from safeil_sumo.experiments.sweep import _road
+    return build_scenario(ScenarioSpec(net=net, index=index, master_seed=seed, **spec), road(net))
 
-    s = ScenarioSpec(net=net, index=index, master_seed=seed, **spec)
-    return build_scenario(s, _road(s.net))
+
+def build_scenarios(net: str = "curved500", count: int = 10, seed: int = 0,
+                    **spec: object) -> list[Scenario]:
+    """Scenarios ``0..count-1`` of master ``seed`` (the sweep's builder: scenario i of a run is
+    task i of a sweep)."""
+    return [scenario(net, i, seed, **spec) for i in range(count)]
+
+
+def run_scenarios(scenarios: Sequence[Scenario], policy: str | Policy,
+                  loop: LoopConfig | None = None, vehicle: VehicleParams | None = None,
+                  progress: bool = False) -> RunResult:
+    """Run each scenario closed loop (one libsumo per scenario, in turn); a sumo-gui screenshot
+    (``loop.gui_screenshot``) is taken in the first only."""
+    planner = load_policy(policy)
+    loop = loop or LoopConfig()
+    vehicle = vehicle or VehicleParams()
+    rows, logs = [], []
+    bar = tqdm(scenarios, desc=planner.name, unit="scenario", disable=not progress or None)
+    for i, sc in enumerate(bar):
+        rollout = run_scenario(sc, planner, replace(loop, gui_screenshot=None) if i else loop,
+                               vehicle)
+        rows.append(rollout.summary)
+        logs.append(rollout.log.assign(scenario=sc.name))
+    return RunResult(pd.DataFrame(rows), pd.concat(logs, ignore_index=True), tuple(scenarios))
 
 
 def run(net: str = "curved500", policy: str | Policy = "safeil", scenarios: int = 10,
         seed: int = 0, loop: LoopConfig | None = None, **spec: object) -> RunResult:
     """Run ``scenarios`` scenarios (indices 0..n-1 of master ``seed``) closed loop in libsumo."""
-    planner = load_policy(policy)
-    loop = loop or LoopConfig()
-    rows, logs = [], []
-    for i in range(scenarios):
-        sc = scenario(net, i, seed, **spec)
-        rollout = run_scenario(sc, planner, loop)
-        rows.append(rollout.summary)
-        logs.append(rollout.log.assign(scenario=sc.name))
-    return RunResult(pd.DataFrame(rows), pd.concat(logs, ignore_index=True))
+    planner = load_policy(policy)  # a bad policy fails before any scenario is built
+    return run_scenarios(build_scenarios(net, scenarios, seed, **spec), planner, loop)
 
 
 def sweep(policies_: Sequence[str], out: str | Path, scenarios: int = 10, nets: Sequence[str] =
@@ -78,18 +107,34 @@ def sweep(policies_: Sequence[str], out: str | Path, scenarios: int = 10, nets: 
     return run_sweep(specs, out, workers=workers, progress=False)
 
 
-def replay(source: str, policies_: Sequence[str], out: str | Path, maneuvers: str | list[str] =
-           "all", windows: str = "sliding", workers: int = 1) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Replay every window of ``maneuvers`` of ``source`` (``openacc``, ``ngsim`` or a drive file)
-    with each policy: ``(per-window table, per-policy aggregate)``, both also written to ``out``."""
+def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path,
+           maneuvers: str | Sequence[str] = "all", windows: str = "sliding",
+           workers: int = 1, duration_s: float = 11.0, stride_s: float = 20.0,
+           config: ReplayConfig | None = None, progress: bool = False,
+           name: str | None = None, manifest: dict | None = None
+           ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Replay every window of ``maneuvers`` (``"all"`` or ids) of ``source`` (``openacc``,
+    ``ngsim``, a drive file, or an already processed maneuvers frame) with each policy (names or
+    paths, ``recorded`` for the human's own path): ``(per-window table, per-policy
+    aggregate)``, both also written to ``out`` with the plots; resumable. ``name`` titles the
+    plots and messages (default: the source)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay_all as ra
     from safeil_sumo.replay import load_source
 
-    rows, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
+    if isinstance(source, pd.DataFrame):
+        rows = source
+    else:
+        rows, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
+    name = name or (str(source) if isinstance(source, str) else "maneuvers")
     only = None if maneuvers == "all" else list(maneuvers)
-    wins = ra.windows(rows, windows, only=only)
-    records = ra.replay_all(rows, wins, list(policies_), Path(out), workers=workers,
-                            progress=False)
-    return ra.write(Path(out), records, {"source": source, "policies": list(policies_)},
-                    title=str(source))
+    wins = ra.windows(rows, windows, duration_s, stride_s, only)
+    if not wins:
+        raise ra.rp.ReplayError(f"no maneuver of {name} is long enough for a {duration_s:g} s "
+                                "window")
+    config = config or ReplayConfig()
+    records = ra.replay_all(rows, wins, list(policies_), Path(out), config, workers,
+                            progress=progress)
+    return ra.write(Path(out), records, manifest or {"source": name, "policies": list(policies_),
+                                                     "windows_mode": windows},
+                    seed=config.seed, title=name)

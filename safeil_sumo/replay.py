@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from safeil_sumo import api
 from safeil_sumo import policies as pol
 from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
@@ -122,30 +123,29 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
                                      f"in {args.source}")
     else:
         only = [m.strip() for m in args.maneuver.split(",") if m.strip()]
-    wins = ra.windows(maneuvers, args.windows, args.duration or rp.PAPER_DURATION_S,
-                      args.stride, only)
-    if not wins:
-        raise rp.ReplayError(f"no maneuver of {args.source} is long enough for a "
-                             f"{args.duration:g} s window")
     for name in args.policies:  # fail fast on a bad policy, before any worker starts
         pol.load_for_replay(name)
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
     config = rp.ReplayConfig(seed=args.seed)
     config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate))
-    records = ra.replay_all(maneuvers, wins, list(args.policies), out, config, args.workers)
-    _, agg = ra.write(out, records, {"source": args.source, "policies": args.policies,
-                                     "windows_mode": args.windows, "stride_s": args.stride,
-                                     "duration_s": args.duration, "maneuvers": only or "all"},
-                      seed=args.seed, title=str(args.source))
-    failed = [r for r in records if r["status"] != "ok"]
-    print(f"{args.source}: {len(records)} windows of {len({w.maneuver_id for w in wins})} "
+    table, agg = api.replay(
+        maneuvers, args.policies, out, only or "all", args.windows, args.workers,
+        args.duration or rp.PAPER_DURATION_S, args.stride, config, progress=True,
+        name=str(args.source), manifest={"source": args.source, "policies": args.policies,
+                  "windows_mode": args.windows, "stride_s": args.stride,
+                  "duration_s": args.duration, "maneuvers": only or "all"})
+    failed = table.drop_duplicates(["maneuver_id", "start_s"])
+    failed = failed[failed["status"] != "ok"]
+    n_windows = len(table.drop_duplicates(["maneuver_id", "start_s"]))
+    print(f"{args.source}: {n_windows} windows of {table['maneuver_id'].nunique()} "
           f"maneuvers ({args.windows}), {len(failed)} failed")
     if len(agg):
         print(agg.to_string(index=False, float_format=lambda v: f"{v:.3g}"))
-    for r in failed[:10]:
-        print(f"window {r['task_id']} failed: {r['error']}", file=sys.stderr)
+    for _, r in failed.head(10).iterrows():
+        print(f"window {r['maneuver_id']} @ {r['start_s']:g} s failed: {r['error']}",
+              file=sys.stderr)
     print(f"results: {out}")
-    return 1 if failed else 0
+    return 1 if len(failed) else 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,21 +13,20 @@ import argparse
 import os
 import re
 import sys
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import pandas as pd
 from tqdm import tqdm
 
-from safeil_sumo import animate, policies
+from safeil_sumo import animate, api, policies
 from safeil_sumo.cli_args import add_leader_options, finite_float, nonnegative_int
 from safeil_sumo.experiments import outputs, plots
-from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, build_scenario
-from safeil_sumo.scenarios.catalogue import resolve_net
-from safeil_sumo.scenarios.road import NetworkError, load_road
+from safeil_sumo.experiments.sweep import LEADER_KINDS
+from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
 from safeil_sumo.sim.leaders import ProfileError
-from safeil_sumo.sim.runner import LoopConfig, run_scenario
+from safeil_sumo.sim.runner import LoopConfig
 from safeil_sumo.sim.sumo_api import SumoError
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -104,8 +103,7 @@ def format_table(summaries: pd.DataFrame) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        net = resolve_net(args.net)
-        road = load_road(net)
+        road = api.road(args.net)
         policy = policies.load(args.policy)
     except (NetworkError, policies.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -118,15 +116,10 @@ def main(argv: list[str] | None = None) -> int:
                       backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot)
     vehicle = VehicleParams()
     try:
-        specs = [ScenarioSpec(net=args.net, index=i, master_seed=args.seed, policy=args.policy,
-                              leader_kind=args.leader,
-                              leader_speed_range_mps=tuple(args.leader_speed),
-                              ego_speed_mps=args.ego_speed, initial_gap_m=args.gap,
-                              plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
-                              leader_profile=args.leader_profile or "")
-                 for i in range(args.scenarios)]
-        # the sweep's scenario builder: scenario i of a run is task i of a sweep
-        scenarios = [build_scenario(spec, road) for spec in specs]
+        scenarios = api.build_scenarios(
+            args.net, args.scenarios, args.seed, leader_kind=args.leader,
+            leader_speed_range_mps=tuple(args.leader_speed), ego_speed_mps=args.ego_speed,
+            initial_gap_m=args.gap, leader_profile=args.leader_profile or "")
     except (ValueError, ProfileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -139,21 +132,12 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
 
-    logs, rows = [], []
     try:
-        progress = tqdm(scenarios, desc=f"{policy.name} on {road.net_path.name}",
-                        unit="scenario", disable=None)
-        for i, sc in enumerate(progress):
-            # one screenshot: the first scenario's
-            sc_loop = replace(loop, gui_screenshot=None) if i else loop
-            rollout = run_scenario(sc, policy, sc_loop, vehicle)
-            logs.append(rollout.log.assign(scenario=sc.name))
-            rows.append(rollout.summary)
+        result = api.run_scenarios(scenarios, policy, loop, vehicle, progress=True)
     except SumoError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 3
-    summaries = pd.DataFrame(rows)
-    steps = pd.concat(logs, ignore_index=True)
+    summaries, steps = result.summary, result.log
 
     config = {
         "net": str(road.net_path), "policy": args.policy, "scenarios": args.scenarios,
