@@ -1,14 +1,17 @@
 """Road geometry read once from a SUMO ``.net.xml``: lane centre lines and boundaries as polylines.
 
 The closed loop never asks SUMO for geometry per step: sensors and monitors use this object.
-A road is one SUMO edge (a closed test track is one edge; see DESIGN.md). Lane index 0 is the
-rightmost lane, as in SUMO. A sidecar ``<net stem>.track.json`` written by the network generator
+A road is one SUMO edge (a closed test track is one edge; see DESIGN.md), or a route of edges
+whose lanes are concatenated across the junctions (:mod:`safeil_sumo.scenarios.route`). Lane
+index 0 is the rightmost lane, as in SUMO. A sidecar ``<net stem>.track.json`` written by the network generator
 marks the test path (where the measured part of the scenario starts and ends on the ego lane).
 """
 
 from __future__ import annotations
 
+import bisect
 import json
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,14 +36,42 @@ class Lane:
     centre: Polyline
     left_boundary: Polyline
     right_boundary: Polyline
+    # on a route, a neighbour lane that does not continue across a junction ends there: the arc
+    # length [m] along the EGO lane's centre beyond which it is no longer offered (inf: never)
+    ends_at_s: float = math.inf
+
+
+@dataclass(frozen=True)
+class RoutePiece:
+    """One SUMO lane the ego lane runs through: an edge's lane or a junction's internal lane.
+
+    ``s0`` / ``s1`` [m]: where it lies along the ego lane's (concatenated) centre polyline;
+    ``sumo_length`` [m]: SUMO's length of that lane (positions on it scale by ``scale``).
+    """
+
+    lane_id: str
+    edge_id: str
+    lane_index: int  # SUMO lane index on its edge (0 = rightmost)
+    route_index: int  # index in ``Road.route_edges`` of its edge (internal: of the edge before)
+    internal: bool  # a junction's internal lane (no vehicle can depart on it)
+    s0: float
+    s1: float
+    sumo_length: float
+
+    @property
+    def scale(self) -> float:
+        """SUMO lane position (and speed) per geometric metre [-]."""
+        return self.sumo_length / (self.s1 - self.s0)
 
 
 @dataclass(frozen=True)
 class Road:
-    """The lanes of one edge and the test path on the ego lane.
+    """The lanes of one edge (or route of edges) and the test path on the ego lane.
 
     ``path_start_s`` / ``path_end_s`` [m]: arc lengths along ``lanes[ego_lane].centre`` between
-    which the scenario's "path completed" is measured.
+    which the scenario's "path completed" is measured. ``route_edges``: the SUMO edges the ego
+    drives, in order (default: ``(edge_id,)``); ``ego_pieces``: the SUMO lanes along the ego lane
+    (default: the ego lane of ``edge_id`` over its whole centre).
     """
 
     net_path: Path
@@ -50,10 +81,37 @@ class Road:
     path_start_s: float
     path_end_s: float
     meta: dict
+    route_edges: tuple[str, ...] = ()
+    ego_pieces: tuple[RoutePiece, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.route_edges:
+            object.__setattr__(self, "route_edges", (self.edge_id,))
+        if not self.ego_pieces and 0 <= self.ego_lane < len(self.lanes):
+            lane = self.lanes[self.ego_lane]
+            object.__setattr__(self, "ego_pieces", (RoutePiece(
+                lane.lane_id, self.edge_id, lane.index, 0, False, 0.0, lane.centre.length,
+                lane.sumo_length),))
+        object.__setattr__(self, "_piece_ends", [p.s1 for p in self.ego_pieces])
 
     @property
     def path_length(self) -> float:
         return self.path_end_s - self.path_start_s
+
+    def piece_at(self, s: float) -> RoutePiece:
+        """The SUMO lane under arc length ``s`` [m] of the ego lane (clipped to the ends)."""
+        i = bisect.bisect_right(self._piece_ends, s)
+        return self.ego_pieces[min(i, len(self.ego_pieces) - 1)]
+
+    def lanes_at(self, s: float) -> tuple[int, int]:
+        """Lowest and highest lane index offered at arc length ``s`` [m] of the ego lane (a
+        neighbour that ended at a junction is not; see :attr:`Lane.ends_at_s`)."""
+        lo = hi = self.ego_lane
+        while lo > 0 and s < self.lanes[lo - 1].ends_at_s:
+            lo -= 1
+        while hi < len(self.lanes) - 1 and s < self.lanes[hi + 1].ends_at_s:
+            hi += 1
+        return lo, hi
 
     def lane(self, index: int) -> Lane:
         if not 0 <= index < len(self.lanes):
@@ -71,15 +129,8 @@ def _parse_shape(text: str) -> np.ndarray:
     return arr[keep]
 
 
-def load_road(
-    net_path: str | Path, edge_id: str | None = None, ego_lane: int | None = None
-) -> Road:
-    """Read the lanes of ``edge_id`` (default: the net's only non-internal edge).
-
-    Raises :class:`NetworkError` with a one-line reason for a missing file, malformed XML, an
-    unknown edge, or a net with several edges and no ``edge_id``.
-    """
-    net_path = Path(net_path)
+def read_net(net_path: Path) -> ET.Element:
+    """The ``<net>`` root of a ``.net.xml``; :class:`NetworkError` if missing or malformed."""
     if not net_path.is_file():
         raise NetworkError(f"network file not found: {net_path}")
     try:
@@ -88,15 +139,32 @@ def load_road(
         raise NetworkError(f"{net_path}: malformed XML ({exc})") from exc
     if root.tag != "net":
         raise NetworkError(f"{net_path}: not a SUMO network (root element <{root.tag}>)")
+    return root
+
+
+def load_road(
+    net_path: str | Path, edge_id: str | None = None, ego_lane: int | None = None
+) -> Road:
+    """Read the lanes of ONE edge, ``edge_id`` (default: the net's only non-internal edge).
+
+    ``ego_lane``: SUMO lane index of the ego (default: the sidecar's, else the middle lane).
+    For a route over several edges use :func:`safeil_sumo.scenarios.route.load_route` (CLI:
+    ``--route EDGE [EDGE ...]``).
+
+    Raises :class:`NetworkError` with a one-line reason for a missing file, malformed XML, an
+    unknown edge, or a net with several edges and no ``edge_id`` (naming ``--route``).
+    """
+    net_path = Path(net_path)
+    root = read_net(net_path)
     edges = [e for e in root.iter("edge") if e.get("function") != "internal"]
     if edge_id is None:
         if len(edges) != 1:
             names = ", ".join(e.get("id", "?") for e in edges[:10])
             raise NetworkError(
                 f"{net_path}: expected exactly one road edge, found {len(edges)} ({names}); "
-                "the closed loop drives single-edge roads only (multi-edge routes are not "
-                "supported yet): use a network with one road edge, e.g. curved500, straight or "
-                "curved<R>"
+                "without a route the closed loop drives single-edge roads only: give the edges "
+                "to drive, in order, with --route EDGE [EDGE ...], or use a single-edge network "
+                "(curved500, straight, curved<R>)"
             )
         edge = edges[0]
     else:

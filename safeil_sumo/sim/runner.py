@@ -37,6 +37,7 @@ from safeil_sumo.sim.leaders import SpeedProfile
 EGO_ID = "ego"
 LEADER_ID = "leader"
 ROUTE_ID = "r_ego"
+LEADER_ROUTE_ID = "r_leader"  # the route's edges from the leader's first edge (when not the ego's)
 GUI_VIEW_WIDTH_M = 150.0  # sumo-gui's view width around the ego: it and a leader 50 m ahead [m]
 GUI_SCREENSHOT_AT_S = 1.0  # simulation time of LoopConfig.gui_screenshot [s]
 
@@ -149,7 +150,9 @@ def run_scenario(
     pose_at = getattr(policy, "pose_at", None)
     lane = road.lanes[road.ego_lane]
     centre = lane.centre
-    scale = lane.sumo_length / centre.length  # SUMO lane position per geometric metre
+    # SUMO lane position (and speed) per geometric metre differs per SUMO lane (lanes of a curved
+    # edge share its length): on a route it is looked up where the leader is (Road.piece_at)
+    multi_piece = len(road.ego_pieces) > 1
     rng = np.random.default_rng(scenario.seed)
     dt = loop.step_s
     plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
@@ -176,16 +179,21 @@ def run_scenario(
     error = ""
     wall0 = time.perf_counter()
     try:
-        api.route.add(ROUTE_ID, [road.edge_id])
-        api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=str(road.ego_lane),
-                        departPos=f"{min(s_ego0, centre.length) * scale:.3f}",
-                        departSpeed=f"{scenario.ego_speed_mps:.3f}")
+        ego_k, ego_lane, ego_pos, _ = _depart(road, min(s_ego0, centre.length), "ego")
+        api.route.add(ROUTE_ID, list(road.route_edges[ego_k:]))
+        api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=ego_lane,
+                        departPos=ego_pos, departSpeed=f"{scenario.ego_speed_mps:.3f}")
         _configure(api, EGO_ID, vehicle)
         has_leader = scenario.leader is not None
         if has_leader:
-            api.vehicle.add(LEADER_ID, ROUTE_ID, depart="now", departLane=str(road.ego_lane),
-                            departPos=f"{s_leader_front0 * scale:.3f}",
-                            departSpeed=f"{scenario.leader.initial_speed * scale:.3f}")
+            lead_k, lead_lane, lead_pos, lead_scale = _depart(road, s_leader_front0, "leader")
+            lead_route = ROUTE_ID
+            if lead_k != ego_k:  # departPos is per edge: the leader starts on a later edge
+                lead_route = LEADER_ROUTE_ID
+                api.route.add(lead_route, list(road.route_edges[lead_k:]))
+            api.vehicle.add(LEADER_ID, lead_route, depart="now", departLane=lead_lane,
+                            departPos=lead_pos,
+                            departSpeed=f"{scenario.leader.initial_speed * lead_scale:.3f}")
             _configure(api, LEADER_ID, vehicle)
         _move_ego(api, state, vehicle)
         api.simulation.step()
@@ -228,7 +236,7 @@ def run_scenario(
                 left, right, _ = camera.lane_lines(front_xy, yaw, rng)
                 target_r = sen.radar_leader(
                     front_xy, yaw, None if leader is None else leader[0],
-                    0.0 if leader is None else leader[1] / scale, left, right,
+                    0.0 if leader is None else leader[1] / lead_scale, left, right,
                     scenario.sensors, rng)
                 v_lead, d_lead = sen.leader_features(target_r, v, scenario.sensors)
                 features = planner_features(left, right, v, v_lead, d_lead)
@@ -258,7 +266,7 @@ def run_scenario(
             move_to_xy(EGO_ID, "", -1, front[0], front[1], yaw_to_sumo_angle(yaw), 2)
             set_speed(EGO_ID, v)
             if has_leader and leader is not None:
-                set_speed(LEADER_ID, lead_speeds[k] * scale)
+                set_speed(LEADER_ID, lead_speeds[k] * lead_scale)
             if k == shot_k:  # sumo-gui saves it during this step
                 sumo_api.gui_screenshot(api, loop.gui_screenshot)
             sim_step()
@@ -275,8 +283,10 @@ def run_scenario(
             if leader is not None:
                 (lead_rear, v_lead_sumo, lead_yaw, lead_front) = leader
                 lx, ly = lead_rear
-                v_lead_true = v_lead_sumo / scale
                 s_lead_rear, _, _, lead_seg = centre.project_near(lx, ly, lead_seg)
+                if multi_piece:  # the SUMO lane under the leader's front bumper
+                    lead_scale = road.piece_at(s_lead_rear + length).scale
+                v_lead_true = v_lead_sumo / lead_scale
                 gap = s_lead_rear - s
                 ttc = mon.time_to_collision(gap, v, v_lead_true)
                 if gap < 2.0 * length and not colliding:
@@ -354,6 +364,24 @@ def summarize(
         "wall_time_s": wall_s,
         "steps_per_s": n / wall_s if wall_s > 0 else math.nan,
     }
+
+
+def _depart(road: Road, s: float, who: str) -> tuple[int, str, str, float]:
+    """Where SUMO departs a vehicle whose front bumper is at arc length ``s`` [m] of the ego
+    lane: ``(index of its first edge in road.route_edges, departLane, departPos, speed scale)``.
+
+    SUMO's departPos is a position on one edge's lane; vehicles cannot depart inside a junction.
+    """
+    end = road.ego_pieces[-1].s1
+    if s > end:
+        raise ValueError(f"the {who} would start {s - end:.1f} m beyond the end of the road "
+                         f"({end:.1f} m along the ego lane): use a smaller initial gap")
+    p = road.piece_at(s)
+    if p.internal:
+        raise ValueError(f"the {who} would start inside junction lane {p.lane_id} ({s:.1f} m "
+                         "along the ego lane) and SUMO departs vehicles on edges only: change "
+                         "the initial gap by a few metres")
+    return p.route_index, str(p.lane_index), f"{(s - p.s0) * p.scale:.3f}", p.scale
 
 
 def _configure(api: sumo_api.SumoApi, veh_id: str, vehicle: veh.VehicleParams) -> None:

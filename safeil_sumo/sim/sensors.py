@@ -62,14 +62,16 @@ def current_lane_index(road: Road, ego_xy: np.ndarray) -> int:
 
     Off the road the outermost lane is returned: a camera keeps reporting the nearest lines.
     """
-    _, d = road.lanes[road.ego_lane].centre.project(ego_xy)
-    return _lane_index_at(road, float(d))
+    s, d = road.lanes[road.ego_lane].centre.project(ego_xy)
+    return _lane_index_at(road, float(d), float(s))
 
 
-def _lane_index_at(road: Road, d: float) -> int:
-    """Lane index at signed offset ``d`` [m] from the ego lane's centre (clipped to the road)."""
+def _lane_index_at(road: Road, d: float, s: float) -> int:
+    """Lane index at signed offset ``d`` [m] from the ego lane's centre, at arc length ``s`` [m]
+    along it (clipped to the lanes the road has there: on a route a neighbour can end)."""
     k = int(np.rint(d / road.lanes[road.ego_lane].width))
-    return min(max(road.ego_lane + k, 0), len(road.lanes) - 1)
+    lo, hi = road.lanes_at(s)
+    return min(max(road.ego_lane + k, lo), hi)
 
 
 def _add_lane_noise(left: np.ndarray, right: np.ndarray, config: SensorConfig,
@@ -225,8 +227,8 @@ class LaneCamera:
         """Like :func:`camera_lane_lines` (same arguments, same result)."""
         road, config = self.road, self.config
         x, y = float(ego_xy[0]), float(ego_xy[1])
-        _, d = self._project(road.lanes[road.ego_lane].centre, x, y)
-        lane = road.lanes[_lane_index_at(road, d)]
+        s, d = self._project(road.lanes[road.ego_lane].centre, x, y)
+        lane = road.lanes[_lane_index_at(road, d, s)]
         left = _fit_from(lane.left_boundary, self._project(lane.left_boundary, x, y)[0],
                          ego_xy, ego_yaw, config)
         right = _fit_from(lane.right_boundary, self._project(lane.right_boundary, x, y)[0],
