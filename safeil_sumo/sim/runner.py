@@ -218,6 +218,8 @@ def run_scenario(
         feature_log = (math.nan,) * 8  # c0l..c2r, v_lead, d_lead as logged
         plan_log = (math.nan,) * 10  # the plan being tracked: time, pose, control points
         leader = _read_leader(api, vehicle) if has_leader else None
+        # the leader's true speed [m/s]: SUMO's, in the units of the lane it was commanded on
+        lead_v = leader[1] / lead_scale if leader is not None else 0.0
         # the leader's commanded speed of every step, in one vectorised call (same values)
         lead_speeds = (scenario.leader.speed_at(np.arange(n_max) * dt + dt).tolist()
                        if has_leader else None)
@@ -236,7 +238,7 @@ def run_scenario(
                 left, right, _ = camera.lane_lines(front_xy, yaw, rng)
                 target_r = sen.radar_leader(
                     front_xy, yaw, None if leader is None else leader[0],
-                    0.0 if leader is None else leader[1] / lead_scale, left, right,
+                    0.0 if leader is None else lead_v, left, right,
                     scenario.sensors, rng)
                 v_lead, d_lead = sen.leader_features(target_r, v, scenario.sensors)
                 features = planner_features(left, right, v, v_lead, d_lead)
@@ -283,10 +285,10 @@ def run_scenario(
             if leader is not None:
                 (lead_rear, v_lead_sumo, lead_yaw, lead_front) = leader
                 lx, ly = lead_rear
+                v_lead_true = lead_v = v_lead_sumo / lead_scale
                 s_lead_rear, _, _, lead_seg = centre.project_near(lx, ly, lead_seg)
-                if multi_piece:  # the SUMO lane under the leader's front bumper
+                if multi_piece:  # the next command's scale: the SUMO lane under its front bumper
                     lead_scale = road.piece_at(s_lead_rear + length).scale
-                v_lead_true = v_lead_sumo / lead_scale
                 gap = s_lead_rear - s
                 ttc = mon.time_to_collision(gap, v, v_lead_true)
                 if gap < 2.0 * length and not colliding:
