@@ -98,8 +98,8 @@ def _pick(kind: str, wanted: str | None, available: list[str]) -> str:
 
 
 def _run_road(run_dir: Path, config: dict) -> Road:
-    """The road of a ``run`` folder: the manifest's net, or the catalogue net of the same name
-    when the folder was moved to another machine."""
+    """The road of a ``run`` folder: the manifest's net (along its route, if any), or the
+    catalogue net of the same name when the folder was moved to another machine."""
     from safeil_sumo.scenarios.catalogue import resolve_net
 
     net = config.get("net")
@@ -111,6 +111,11 @@ def _run_road(run_dir: Path, config: dict) -> Road:
             path = resolve_net(path.name.removesuffix(".net.xml"))
         except NetworkError as exc:
             raise AnimateError(f"{run_dir}: network {net} not found") from exc
+    route = config.get("route") or []
+    if route:  # a run along several edges (run --route)
+        from safeil_sumo.scenarios.route import load_route
+
+        return load_route(path, route)
     return load_road(path)
 
 

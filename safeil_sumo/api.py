@@ -50,19 +50,22 @@ def load_policy(policy: str | Policy) -> Policy:
     return policy
 
 
-def road(net: str = "curved500") -> Road:
+def road(net: str = "curved500", route: Sequence[str] = ()) -> Road:
     """The road of a catalogue name (``curved500``, ``straight``, ``curved<R>``) or a
-    ``.net.xml`` path, read once per process."""
+    ``.net.xml`` path, read once per process; on a multi-edge net, along ``route`` (SUMO edge
+    ids in driving order, see :func:`safeil_sumo.scenarios.route.load_route`)."""
     from safeil_sumo.experiments.sweep import _road
 
-    return _road(net)
+    return _road(net, tuple(route))
 
 
 def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: object) -> Scenario:
     """Scenario ``index`` of master ``seed`` on ``net``; ``spec`` takes any
     :class:`~safeil_sumo.experiments.sweep.ScenarioSpec` field (``leader_kind="recorded"``,
-    ``leader_profile="ngsim"``, ``leader_speed_range_mps=(20, 25)``, ``initial_gap_m=30``, ...)."""
-    return build_scenario(ScenarioSpec(net=net, index=index, master_seed=seed, **spec), road(net))
+    ``leader_profile="ngsim"``, ``leader_speed_range_mps=(20, 25)``, ``initial_gap_m=30``,
+    ``route=("E0", "E1")``, ...)."""
+    sc = ScenarioSpec(net=net, index=index, master_seed=seed, **spec)
+    return build_scenario(sc, road(net, sc.route))
 
 
 def build_scenarios(net: str = "curved500", count: int = 10, seed: int = 0,

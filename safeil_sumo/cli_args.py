@@ -42,3 +42,12 @@ def add_leader_options(parser: argparse.ArgumentParser, kinds: tuple[str, ...],
         "--leader-profile", default=None,
         help="with --leader recorded: ngsim (default) or openacc (from ../shared/data), or a "
              "CSV/Parquet file with columns time [s] and speed [m/s], or a folder of them")
+
+
+def add_route_option(parser: argparse.ArgumentParser) -> None:
+    """``--route EDGE [EDGE ...]``, shared by ``run`` and ``sweep``."""
+    parser.add_argument(
+        "--route", nargs="+", default=[], metavar="EDGE",
+        help="SUMO edges the ego drives, in driving order, on a multi-edge .net.xml (its lane is "
+             "followed across the junctions; the route must end where that lane ends); "
+             "default: the net's one edge")

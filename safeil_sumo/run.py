@@ -20,7 +20,12 @@ import pandas as pd
 from tqdm import tqdm
 
 from safeil_sumo import animate, api, policies
-from safeil_sumo.cli_args import add_leader_options, finite_float, nonnegative_int
+from safeil_sumo.cli_args import (
+    add_leader_options,
+    add_route_option,
+    finite_float,
+    nonnegative_int,
+)
 from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.experiments.sweep import LEADER_KINDS
 from safeil_sumo.scenarios.road import NetworkError
@@ -38,6 +43,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--net", default="curved500",
                    help="curved500, straight, curved<R> (e.g. curved300) or a .net.xml path")
+    add_route_option(p)
     p.add_argument("--policy", default=None,
                    help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
                         "IDM model .json "
@@ -103,7 +109,7 @@ def format_table(summaries: pd.DataFrame) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        road = api.road(args.net)
+        road = api.road(args.net, args.route)
         policy = policies.load(args.policy)
     except (NetworkError, policies.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -119,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
         scenarios = api.build_scenarios(
             args.net, args.scenarios, args.seed, leader_kind=args.leader,
             leader_speed_range_mps=tuple(args.leader_speed), ego_speed_mps=args.ego_speed,
-            initial_gap_m=args.gap, leader_profile=args.leader_profile or "")
+            initial_gap_m=args.gap, leader_profile=args.leader_profile or "",
+            route=tuple(args.route))
     except (ValueError, ProfileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -140,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     summaries, steps = result.summary, result.log
 
     config = {
-        "net": str(road.net_path), "policy": args.policy, "scenarios": args.scenarios,
+        "net": str(road.net_path), "route": list(args.route), "policy": args.policy, "scenarios": args.scenarios,
         "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
         "leader": args.leader, "leader_profile": args.leader_profile,
         "leaders": [sc.leader.label for sc in scenarios],

@@ -28,7 +28,12 @@ import sys
 from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
-from safeil_sumo.cli_args import add_leader_options, finite_float, nonnegative_int
+from safeil_sumo.cli_args import (
+    add_leader_options,
+    add_route_option,
+    finite_float,
+    nonnegative_int,
+)
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
 from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, run_sweep
 
@@ -80,6 +85,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--net", nargs="+", default=["curved500"], metavar="NET",
                    help="curved500, straight, curved<R> (e.g. curved300) or .net.xml paths")
+    add_route_option(p)
     p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
                    help="safeil, safeil_paper, bc, analytic, idm, .safetensors checkpoints or IDM "
                         "model .json files (default: safeil bc)")
@@ -146,6 +152,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--leader-profile needs --leader recorded")
     if args.quick and args.suite is None:
         p.error("--quick needs --suite")
+    if args.route and args.suite is not None:
+        p.error("--route does not apply to --suite (the suite has its own nets)")
     if args.out.exists() and not args.out.is_dir():
         p.error(f"--out {args.out} exists and is not a folder")
     return args
@@ -167,15 +175,17 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
             lane_noise_c0_m=args.lane_noise, radar_noise_m=args.radar_noise,
             plan_rate_hz=args.plan_rate, max_time_s=args.max_time,
             stop_on_flag=args.stop_on_flag, leader_profile=args.leader_profile or "",
+            route=tuple(args.route),
         )
         for net, policy, filt, index in itertools.product(
             args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
     ]
 
 
-def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()) -> None:
-    """Resolve every net (building curved<R> once), load every policy and recorded-leader
-    library before any task runs.
+def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = (),
+                 route: tuple[str, ...] = ()) -> None:
+    """Resolve every net (building curved<R> once; along ``route`` if given), load every policy
+    and recorded-leader library before any task runs.
 
     Raises ``ValueError`` (NetworkError, PolicyError, ProfileError) with a one-line reason. No
     SUMO is started.
@@ -187,9 +197,10 @@ def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()
     from safeil_sumo import policies
     from safeil_sumo.scenarios.catalogue import resolve_net
     from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.scenarios.route import load_route
 
     for net in dict.fromkeys(nets):
-        load_road(resolve_net(net))
+        load_route(resolve_net(net), route) if route else load_road(resolve_net(net))
     for name in dict.fromkeys(policies_):
         policies.load(name)
 
@@ -199,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         specs = build_specs(args)
         check_inputs(sorted({s.net for s in specs}), args.policies,
-                     sorted({s.leader_profile for s in specs if s.leader_profile}))
+                     sorted({s.leader_profile for s in specs if s.leader_profile}),
+                     tuple(args.route))
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -69,6 +69,9 @@ class ScenarioSpec:
     # (:mod:`safeil_sumo.scenarios.recorded_leaders`); "" (other kinds) is left out of the JSON,
     # so the task ids of specs without it are those of earlier versions
     leader_profile: str = ""
+    # SUMO edges the ego drives, in order, on a multi-edge ``net`` (:mod:`safeil_sumo.scenarios.
+    # route`); () = the net's one edge. Left out of the JSON when empty, like leader_profile
+    route: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         # normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same
@@ -76,6 +79,8 @@ class ScenarioSpec:
         set_(self, "net", str(self.net))
         set_(self, "policy", str(self.policy))
         set_(self, "leader_profile", str(self.leader_profile))
+        route = self.route.split() if isinstance(self.route, str) else self.route
+        set_(self, "route", tuple(str(e) for e in route))
         if self.leader_kind == "recorded" and not self.leader_profile:
             set_(self, "leader_profile", "ngsim")
         set_(self, "index", int(self.index))
@@ -136,6 +141,10 @@ class ScenarioSpec:
         out = asdict(self)
         if not out["leader_profile"]:
             del out["leader_profile"]
+        if out["route"]:
+            out["route"] = list(out["route"])
+        else:
+            del out["route"]
         return out
 
     @classmethod
@@ -176,21 +185,27 @@ def spec_fields(spec: ScenarioSpec) -> dict[str, Any]:
     row["leader_speed_low_mps"], row["leader_speed_high_mps"] = lo, hi
     row.pop("initial_gap_m")  # the drawn gap is the summary's initial_gap_m
     row["gap_low_m"], row["gap_high_m"] = spec.gap_range_m
+    if "route" in row:  # one table cell
+        row["route"] = " ".join(row["route"])
     return row
 
 
 # -- one task ------------------------------------------------------------------------------------
 
-_ROADS: dict[str, Any] = {}  # per-process cache: net string -> Road (geometry is read once)
+_ROADS: dict[tuple, Any] = {}  # per-process cache: (net, route) -> Road (geometry read once)
 
 
-def _road(net: str):
+def _road(net: str, route: tuple[str, ...] = ()):
+    """The road of ``net`` (a catalogue name or ``.net.xml`` path), along ``route`` if given."""
     from safeil_sumo.scenarios.catalogue import resolve_net
     from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.scenarios.route import load_route
 
-    if net not in _ROADS:
-        _ROADS[net] = load_road(resolve_net(net))
-    return _ROADS[net]
+    key = (net, tuple(route))
+    if key not in _ROADS:
+        path = resolve_net(net)
+        _ROADS[key] = load_route(path, route) if route else load_road(path)
+    return _ROADS[key]
 
 
 def leader_profile(spec: ScenarioSpec, speed_mps: float):
@@ -270,7 +285,7 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
     try:
         from safeil_sumo.sim.runner import LoopConfig, run_scenario
 
-        road = _road(spec.net)
+        road = _road(spec.net, spec.route)
         scenario = build_scenario(spec, road)
         policy = _load_policy(spec)
         loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag)
