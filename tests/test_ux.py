@@ -54,6 +54,7 @@ def test_a_multi_edge_network_names_no_option_that_does_not_exist() -> None:
         load_road(n74)
     msg = str(exc.value)
     assert "single-edge" in msg and "name the edge" not in msg
+    assert "--route EDGE [EDGE ...]" in msg  # an option that exists (run and sweep)
 
 
 def test_a_toml_sweep_equals_the_same_sweep_from_flags(tmp_path, capsys) -> None:
