@@ -174,7 +174,7 @@ def load_route(net_path: str | Path, edges: Sequence[str], ego_lane: int | None 
         raise NetworkError(f"{net_path}: the scenario needs lane index {ego_lane} but edge "
                            f"{edges[0]!r} has {len(first)} lane(s)")
 
-    # the ego lane's SUMO lanes, edge by edge; index[k] = its SUMO index on edges[k]
+    # the ego lane's SUMO lanes, edge by edge; ego_index[k] = its SUMO lane index on edges[k]
     ego_index = [ego_lane]
     pieces: list[tuple[_SumoLane, int]] = [(first[ego_lane], 0)]  # (lane, route index)
     for k, (a, b) in enumerate(pairwise(edges)):
