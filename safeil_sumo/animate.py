@@ -112,6 +112,10 @@ def _run_road(run_dir: Path, config: dict) -> Road:
         except NetworkError as exc:
             raise AnimateError(f"{run_dir}: network {net} not found") from exc
     route = config.get("route") or []
+    if config.get("stretch_km"):  # run --net n74 --from-km/--to-km
+        from safeil_sumo.scenarios.n74 import stretch_road
+
+        return stretch_road(*config["stretch_km"], net_dir=path.parent)
     if route:  # a run along several edges (run --route)
         from safeil_sumo.scenarios.route import load_route
 

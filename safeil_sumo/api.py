@@ -50,13 +50,16 @@ def load_policy(policy: str | Policy) -> Policy:
     return policy
 
 
-def road(net: str = "curved500", route: Sequence[str] = ()) -> Road:
+def road(net: str = "curved500", route: Sequence[str] = (), from_km: float | None = None,
+         to_km: float | None = None) -> Road:
     """The road of a catalogue name (``curved500``, ``straight``, ``curved<R>``) or a
     ``.net.xml`` path, read once per process; on a multi-edge net, along ``route`` (SUMO edge
-    ids in driving order, see :func:`safeil_sumo.scenarios.route.load_route`)."""
+    ids in driving order, see :func:`safeil_sumo.scenarios.route.load_route`); ``n74``: the
+    stretch of direction A between the kilometre posts ``from_km`` and ``to_km`` (default: all
+    of it, see :func:`safeil_sumo.scenarios.n74.stretch_road`)."""
     from safeil_sumo.experiments.sweep import _road
 
-    return _road(net, tuple(route))
+    return _road(net, tuple(route), from_km, to_km)
 
 
 def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: object) -> Scenario:
@@ -65,7 +68,7 @@ def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: obje
     ``leader_profile="ngsim"``, ``leader_speed_range_mps=(20, 25)``, ``initial_gap_m=30``,
     ``route=("E0", "E1")``, ...)."""
     sc = ScenarioSpec(net=net, index=index, master_seed=seed, **spec)
-    return build_scenario(sc, road(net, sc.route))
+    return build_scenario(sc, road(net, sc.route, sc.from_km, sc.to_km))
 
 
 def build_scenarios(net: str = "curved500", count: int = 10, seed: int = 0,

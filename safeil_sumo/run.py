@@ -42,8 +42,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description="Closed-loop safety test of a planner in SUMO (the paper's curved track).",
     )
     p.add_argument("--net", default="curved500",
-                   help="curved500, straight, curved<R> (e.g. curved300) or a .net.xml path")
+                   help="curved500, straight, curved<R> (e.g. curved300), n74 (29.2 km highway "
+                        "with on-ramps; see --from-km/--to-km) or a .net.xml path")
     add_route_option(p)
+    p.add_argument("--from-km", type=finite_float, default=None, metavar="KM",
+                   help="with --net n74: start of the stretch driven, kilometre post of "
+                        "direction A (default 0)")
+    p.add_argument("--to-km", type=finite_float, default=None, metavar="KM",
+                   help="with --net n74: end of the stretch (default 29.2, the whole "
+                        "carriageway)")
     p.add_argument("--policy", default=None,
                    help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
                         "IDM model .json "
@@ -82,6 +89,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--plan-rate must be in (0, 100] Hz")
     if args.leader_profile is not None and args.leader != "recorded":
         p.error("--leader-profile needs --leader recorded")
+    if (args.from_km is not None or args.to_km is not None) and args.net != "n74":
+        p.error("--from-km/--to-km need --net n74")
+    if args.net == "n74" and args.route:
+        p.error("--net n74 drives a stretch of --from-km/--to-km; --route needs a .net.xml path "
+                "(e.g. sumo_scenarios/n74/n74.net.xml)")
     if args.gui_screenshot is not None and not args.gui:
         p.error("--gui-screenshot needs --gui")
     if args.gui:
@@ -91,6 +103,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.backend = "traci"
     args.policy = args.policy or policies.default_policy_name()
     return args
+
+
+def _stretch(args: argparse.Namespace) -> dict:
+    """The ScenarioSpec fields of --from-km/--to-km (none when not given)."""
+    return {k: v for k, v in (("from_km", args.from_km), ("to_km", args.to_km))
+            if v is not None}
 
 
 def format_table(summaries: pd.DataFrame) -> str:
@@ -109,7 +127,7 @@ def format_table(summaries: pd.DataFrame) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        road = api.road(args.net, args.route)
+        road = api.road(args.net, args.route, args.from_km, args.to_km)
         policy = policies.load(args.policy)
     except (NetworkError, policies.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -126,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
             args.net, args.scenarios, args.seed, leader_kind=args.leader,
             leader_speed_range_mps=tuple(args.leader_speed), ego_speed_mps=args.ego_speed,
             initial_gap_m=args.gap, leader_profile=args.leader_profile or "",
-            route=tuple(args.route))
+            route=tuple(args.route), **_stretch(args))
     except (ValueError, ProfileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -147,7 +165,9 @@ def main(argv: list[str] | None = None) -> int:
     summaries, steps = result.summary, result.log
 
     config = {
-        "net": str(road.net_path), "route": list(args.route), "policy": args.policy, "scenarios": args.scenarios,
+        "net": str(road.net_path), "route": list(args.route),
+        "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
+        "scenarios": args.scenarios,
         "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
         "leader": args.leader, "leader_profile": args.leader_profile,
         "leaders": [sc.leader.label for sc in scenarios],

@@ -72,6 +72,14 @@ class ScenarioSpec:
     # SUMO edges the ego drives, in order, on a multi-edge ``net`` (:mod:`safeil_sumo.scenarios.
     # route`); () = the net's one edge. Left out of the JSON when empty, like leader_profile
     route: tuple[str, ...] = ()
+    # ``net="n74"``: the stretch of direction A between these kilometre posts (None: its start /
+    # end; :func:`safeil_sumo.scenarios.n74.stretch_road`); left out of the JSON when None
+    from_km: float | None = None
+    to_km: float | None = None
+    # background traffic of the net's route files: "" (none) or a density of
+    # :data:`safeil_sumo.sim.traffic.DENSITIES`; it replaces the scripted leader. Left out of the
+    # JSON when ""
+    traffic: str = ""
 
     def __post_init__(self) -> None:
         # normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same
@@ -96,6 +104,10 @@ class ScenarioSpec:
             set_(self, name, float(getattr(self, name)))
         if self.max_time_s is not None:
             set_(self, "max_time_s", float(self.max_time_s))
+        for name in ("from_km", "to_km"):
+            if getattr(self, name) is not None:
+                set_(self, name, float(getattr(self, name)))
+        set_(self, "traffic", "" if self.traffic in ("", "none", None) else str(self.traffic))
 
         if self.index < 0 or self.master_seed < 0:
             raise ValueError(f"scenario index and master seed must be >= 0, got {self.index}, "
@@ -128,6 +140,16 @@ class ScenarioSpec:
             raise ValueError("sensor noise must be >= 0")
         if not self.plan_rate_hz > 0:
             raise ValueError(f"plan rate must be > 0 Hz, got {self.plan_rate_hz}")
+        if (self.from_km is not None or self.to_km is not None) and self.net != "n74":
+            raise ValueError("--from-km/--to-km apply to --net n74 only")
+        if self.traffic:
+            from safeil_sumo.sim.traffic import DENSITIES
+
+            if self.traffic not in DENSITIES:
+                raise ValueError(f"traffic must be one of none, {', '.join(DENSITIES)}, got "
+                                 f"{self.traffic!r}")
+            if self.net != "n74":
+                raise ValueError("--traffic needs --net n74 (the net with traffic route files)")
         if self.max_time_s is not None and not self.max_time_s > 0:
             raise ValueError(f"max time must be > 0 s, got {self.max_time_s}")
 
@@ -145,6 +167,11 @@ class ScenarioSpec:
             out["route"] = list(out["route"])
         else:
             del out["route"]
+        for name in ("from_km", "to_km"):
+            if out[name] is None:
+                del out[name]
+        if not out["traffic"]:
+            del out["traffic"]
         return out
 
     @classmethod
@@ -195,16 +222,25 @@ def spec_fields(spec: ScenarioSpec) -> dict[str, Any]:
 _ROADS: dict[tuple, Any] = {}  # per-process cache: (net, route) -> Road (geometry read once)
 
 
-def _road(net: str, route: tuple[str, ...] = ()):
-    """The road of ``net`` (a catalogue name or ``.net.xml`` path), along ``route`` if given."""
+def _road(net: str, route: tuple[str, ...] = (), from_km: float | None = None,
+          to_km: float | None = None):
+    """The road of ``net`` (a catalogue name or ``.net.xml`` path), along ``route`` if given;
+    ``n74`` without a route: its stretch ``from_km``-``to_km`` (default the whole carriageway)."""
     from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.scenarios.road import NetworkError, load_road
     from safeil_sumo.scenarios.route import load_route
 
-    key = (net, tuple(route))
+    key = (net, tuple(route), from_km, to_km)
     if key not in _ROADS:
-        path = resolve_net(net)
-        _ROADS[key] = load_route(path, route) if route else load_road(path)
+        if net == "n74" and not route:
+            from safeil_sumo.scenarios.n74 import stretch_road
+
+            _ROADS[key] = stretch_road(from_km or 0.0, to_km)
+        elif from_km is not None or to_km is not None:
+            raise NetworkError("--from-km/--to-km apply to --net n74 (without --route) only")
+        else:
+            path = resolve_net(net)
+            _ROADS[key] = load_route(path, route) if route else load_road(path)
     return _ROADS[key]
 
 
@@ -285,7 +321,7 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
     try:
         from safeil_sumo.sim.runner import LoopConfig, run_scenario
 
-        road = _road(spec.net, spec.route)
+        road = _road(spec.net, spec.route, spec.from_km, spec.to_km)
         scenario = build_scenario(spec, road)
         policy = _load_policy(spec)
         loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag)

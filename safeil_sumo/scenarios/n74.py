@@ -65,6 +65,7 @@ RAMP_FLOW_VPH = 120.0  # [veh/h] per ramp (direction A ends at 1200 + 5 x 120 = 
 OPPOSITE_FLOW_VPH = 1500.0  # [veh/h] direction B
 TRUCK_SHARE = 0.1  # [-]
 GENERATOR_VERSION = 1
+MIN_STRETCH_M = 100.0  # [m] shortest --from-km/--to-km stretch
 
 
 @dataclass(frozen=True)
@@ -400,6 +401,71 @@ def build_n74(out_dir: Path, seed: int = DEFAULT_SEED) -> Path:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir / f"{NAME}.net.xml"
+
+
+def layout(net_dir: Path | None = None) -> dict:
+    """The committed ``n74.json`` (edges of direction A with their reference arc lengths)."""
+    return json.loads(((net_dir or n74_dir()) / f"{NAME}.json").read_text())
+
+
+def stretch_edges(from_m: float, to_m: float, net_dir: Path | None = None
+                  ) -> tuple[list[str], list[tuple[float, float]]]:
+    """Direction-A edges covering reference arc lengths ``[from_m, to_m]`` [m] in driving
+    order, with each edge's ``(s_start, s_end)`` [m]. Raises :class:`NetworkError` (one line) for
+    a stretch outside the road or an empty one."""
+    from safeil_sumo.scenarios.road import NetworkError
+
+    edges = layout(net_dir)["edges"]
+    total = edges[-1]["s_end"]
+    if not (math.isfinite(from_m) and math.isfinite(to_m)):
+        raise NetworkError("--from-km/--to-km must be finite numbers")
+    if from_m < 0 or to_m > total + 1e-6:
+        raise NetworkError(f"the stretch {from_m / 1000:g}-{to_m / 1000:g} km is outside {NAME} "
+                           f"(0-{total / 1000:g} km of direction A)")
+    if to_m - from_m < MIN_STRETCH_M:
+        raise NetworkError(f"the stretch {from_m / 1000:g}-{to_m / 1000:g} km is shorter than "
+                           f"{MIN_STRETCH_M:g} m: --to-km must exceed --from-km")
+    first = next(i for i, e in enumerate(edges) if from_m < e["s_end"])
+    last = next(i for i, e in enumerate(edges) if to_m <= e["s_end"])
+    chosen = edges[first:last + 1]
+    return [e["id"] for e in chosen], [(e["s_start"], e["s_end"]) for e in chosen]
+
+
+def stretch_road(from_km: float = 0.0, to_km: float | None = None, lane: str = "right",
+                 net_dir: Path | None = None):
+    """The :class:`~safeil_sumo.scenarios.road.Road` of direction A between two kilometre
+    posts (reference-line chainage, the ``s_start``/``s_end`` of ``n74.json``; default: the
+    whole carriageway), ego in the ``right`` (default) or ``left`` main lane.
+
+    The route is the edges covering the stretch (:func:`~safeil_sumo.scenarios.route.
+    load_route`); the test path starts and ends at the kilometre posts, mapped onto the ego
+    lane linearly within each edge (lanes of a curve are slightly longer or shorter than the
+    reference line: < 0.3 % on n74), so the ego departs at ``from_km`` on the right edge.
+    """
+    from dataclasses import replace
+
+    from safeil_sumo.scenarios.road import NetworkError
+    from safeil_sumo.scenarios.route import load_route
+
+    net_dir = net_dir or n74_dir()
+    if lane not in ("right", "left"):
+        raise NetworkError(f"lane must be 'right' or 'left', got {lane!r}")
+    total = layout(net_dir)["edges"][-1]["s_end"]
+    from_m = 1000.0 * float(from_km)
+    to_m = total if to_km is None else 1000.0 * float(to_km)
+    edges, spans = stretch_edges(from_m, to_m, net_dir)
+    # main lanes are 0 (right), 1 (left) on main edges and 1, 2 on merge edges (0: acc. lane)
+    main0 = 1 if edges[0].startswith("merge") else 0
+    road = load_route(net_dir / f"{NAME}.net.xml", edges, main0 + (lane == "left"))
+
+    def lane_s(k: int, s_ref: float) -> float:
+        piece = next(p for p in road.ego_pieces if p.route_index == k and not p.internal)
+        s0, s1 = spans[k]
+        return piece.s0 + (s_ref - s0) / (s1 - s0) * (piece.s1 - piece.s0)
+
+    s_start, s_end = lane_s(0, from_m), lane_s(len(edges) - 1, to_m)
+    meta = dict(road.meta, stretch_km=[from_m / 1000.0, to_m / 1000.0], lane=lane)
+    return replace(road, path_start_s=s_start, path_end_s=s_end, meta=meta)
 
 
 def n74_dir() -> Path:

@@ -1,0 +1,63 @@
+"""``run --net n74``: kilometre posts -> route of edges, departure mid-road, one-line errors;
+and (real libsumo) background traffic as the ego's leaders."""
+
+from __future__ import annotations
+
+import time
+
+import pandas as pd
+import pytest
+
+from safeil_sumo.run import main
+from safeil_sumo.scenarios import n74
+from safeil_sumo.scenarios.road import NetworkError
+
+
+def test_stretch_maps_kilometres_to_the_edges_and_the_ego_lane():
+    road = n74.stretch_road(0.0, 3.0)
+    assert road.route_edges == ("main0",) and road.ego_lane == 0
+    assert road.path_start_s == 0.0 and road.path_end_s == pytest.approx(3000.0, abs=5.0)
+    mid = n74.stretch_road(4.4, 10.0)  # starts on merge1: the right main lane is SUMO lane 1
+    assert mid.route_edges == ("merge1", "main1", "merge2", "main2") and mid.ego_lane == 1
+    assert mid.path_start_s == pytest.approx(91.0, abs=3.0)
+    assert mid.path_length == pytest.approx(5600.0, abs=15.0)
+    whole = n74.stretch_road()
+    assert len(whole.route_edges) == 11 and whole.path_length == pytest.approx(29200, abs=30)
+    assert n74.stretch_road(1, 2, lane="left").ego_lane == 1
+
+
+@pytest.mark.parametrize("lo, hi, message", [
+    (-1.0, 2.0, "outside n74"), (28.0, 31.0, "outside n74"), (3.0, 2.0, "shorter than"),
+])
+def test_stretch_outside_the_road_is_refused_in_one_line(lo, hi, message):
+    with pytest.raises(NetworkError, match=message):
+        n74.stretch_road(lo, hi)
+
+
+def test_run_n74_drives_three_km_without_flags(tmp_path, capsys):
+    out = tmp_path / "res"
+    t0 = time.perf_counter()
+    code = main(["--net", "n74", "--from-km", "0", "--to-km", "3", "--policy", "analytic",
+                 "--scenarios", "1", "--no-plots", "--out", str(out)])
+    wall = time.perf_counter() - t0
+    assert code == 0, capsys.readouterr().err
+    summary = pd.read_csv(out / "summary.csv")
+    assert summary["completed"].all() and (summary["flag"].isna() | (summary["flag"] == "")).all()
+    assert wall < 60.0  # ~2 s on the 2-core CI machine (10,000 steps)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--net", "n74", "--from-km", "28", "--to-km", "31"], "outside n74"),
+    (["--net", "n74", "--from-km", "3", "--to-km", "2"], "shorter than"),
+    (["--net", "curved500", "--from-km", "1"], "need --net n74"),
+    (["--net", "n74", "--route", "main0"], "--route needs"),
+])
+def test_run_n74_bad_stretch_gives_one_line_and_exit_2(tmp_path, capsys, args, message):
+    out = tmp_path / "res"
+    try:
+        code = main([*args, "--out", str(out)])
+    except SystemExit as exc:
+        code = exc.code
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and message in err and "Traceback" not in err
+    assert not out.exists()
