@@ -33,6 +33,7 @@ from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig
 from safeil_sumo.sim.sumo_api import SumoError
+from safeil_sumo.sim.traffic import DENSITIES
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
@@ -51,6 +52,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--to-km", type=finite_float, default=None, metavar="KM",
                    help="with --net n74: end of the stretch (default 29.2, the whole "
                         "carriageway)")
+    p.add_argument("--traffic", choices=("none", *DENSITIES), default="none",
+                   help="with --net n74: SUMO's own traffic from sumo_scenarios/n74/n74.rou.xml "
+                        "(main road + on-ramps), flows scaled x0.5 light, x1 default, x2 dense, "
+                        "seeded by the scenario seed; the ego's leader is whichever vehicle is "
+                        "ahead in its lane (no scripted leader). Default none")
     p.add_argument("--policy", default=None,
                    help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
                         "IDM model .json "
@@ -91,6 +97,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--leader-profile needs --leader recorded")
     if (args.from_km is not None or args.to_km is not None) and args.net != "n74":
         p.error("--from-km/--to-km need --net n74")
+    if args.traffic != "none" and args.net != "n74":
+        p.error("--traffic needs --net n74 (the net with traffic route files)")
     if args.net == "n74" and args.route:
         p.error("--net n74 drives a stretch of --from-km/--to-km; --route needs a .net.xml path "
                 "(e.g. sumo_scenarios/n74/n74.net.xml)")
@@ -107,8 +115,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def _stretch(args: argparse.Namespace) -> dict:
     """The ScenarioSpec fields of --from-km/--to-km (none when not given)."""
-    return {k: v for k, v in (("from_km", args.from_km), ("to_km", args.to_km))
-            if v is not None}
+    out = {k: v for k, v in (("from_km", args.from_km), ("to_km", args.to_km)) if v is not None}
+    if args.traffic != "none":
+        out["traffic"] = args.traffic
+    return out
 
 
 def format_table(summaries: pd.DataFrame) -> str:
@@ -170,7 +180,9 @@ def main(argv: list[str] | None = None) -> int:
         "scenarios": args.scenarios,
         "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
         "leader": args.leader, "leader_profile": args.leader_profile,
-        "leaders": [sc.leader.label for sc in scenarios],
+        "leaders": [sc.leader.label if sc.leader is not None else "traffic"
+                    for sc in scenarios],
+        "traffic": args.traffic,
         "ego_speed_mps": args.ego_speed, "initial_gap_m": args.gap,
         "loop": asdict(loop), "vehicle": asdict(vehicle),
         "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),

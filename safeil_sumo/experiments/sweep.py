@@ -284,12 +284,18 @@ def build_scenario(spec: ScenarioSpec, road):
         max_time = min(max_time or math.inf, drawn.duration_s)
     else:
         leader = leader_profile(spec, speed)
+    traffic = None
+    if spec.traffic:  # SUMO's vehicles are the leaders: no scripted one
+        from safeil_sumo.sim.traffic import n74_traffic
+
+        traffic, leader = n74_traffic(spec.traffic), None
     return Scenario(
         name=f"s{spec.index:04d}", road=road, leader=leader,
         ego_speed_mps=ego_speed, initial_gap_m=gap, seed=seed,
         max_time_s=max_time,
         sensors=SensorConfig(lane_noise_c0_m=spec.lane_noise_c0_m,
                              radar_noise_m=spec.radar_noise_m),
+        traffic=traffic,
     )
 
 

@@ -31,6 +31,7 @@ from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import sumo_api
+from safeil_sumo.sim import traffic as trf
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.leaders import SpeedProfile
 
@@ -63,8 +64,13 @@ class Scenario:
     max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
     sensors: sen.SensorConfig = field(default_factory=sen.SensorConfig)
     monitors: mon.MonitorConfig = field(default_factory=mon.MonitorConfig)
+    # SUMO's own vehicles as leaders (the radar target is SUMO's leader of the ego); no
+    # scripted leader then
+    traffic: trf.Traffic | None = None
 
     def __post_init__(self) -> None:
+        if self.traffic is not None and self.leader is not None:
+            raise ValueError("a scenario with traffic has no scripted leader (leader=None)")
         if not self.ego_speed_mps >= 0:
             raise ValueError(f"ego initial speed must be >= 0 m/s, got {self.ego_speed_mps}")
         if not self.initial_gap_m > 0:
@@ -117,6 +123,8 @@ def sumo_args(scenario: Scenario, loop: LoopConfig) -> list[str]:
         "--collision.mingap-factor", "0",
         "--time-to-teleport", "-1",
     ]
+    if scenario.traffic is not None:
+        args += scenario.traffic.sumo_args()
     if loop.ssm_file is not None:
         args += [
             "--device.ssm.explicit", EGO_ID,
@@ -195,6 +203,10 @@ def run_scenario(
                             departPos=lead_pos,
                             departSpeed=f"{scenario.leader.initial_speed * lead_scale:.3f}")
             _configure(api, LEADER_ID, vehicle)
+        traffic = scenario.traffic
+        if traffic is not None:
+            trf.prefill(api, traffic, road.route_edges[ego_k], float(ego_pos),
+                        road.route_edges[-1], np.random.default_rng([scenario.seed, 1]))
         _move_ego(api, state, vehicle)
         api.simulation.step()
         if loop.gui:  # the ego exists only after the first step
@@ -220,11 +232,19 @@ def run_scenario(
         leader = _read_leader(api, vehicle) if has_leader else None
         # the leader's true speed [m/s]: SUMO's, in the units of the lane it was commanded on
         lead_v = leader[1] / lead_scale if leader is not None else 0.0
+        lead_len, lead_wid = vehicle.length_m, vehicle.width_m  # the leader's footprint [m]
+        # traffic: the leader is whichever SUMO vehicle getLeader names (met: ids in order)
+        lead_id, met, cut_ins, last_id, last_gap = "", {}, 0, "", math.inf
+        radar_dist = scenario.sensors.radar_range_m + 50.0
+        sizes: dict[str, tuple[float, float]] = {}
+        if traffic is not None:
+            lead_id, leader, lead_v, lead_len, lead_wid, _, lead_seg0 = _traffic_leader(
+                api, road, centre.segment_index(s_ego0), radar_dist, sizes)
         # the leader's commanded speed of every step, in one vectorised call (same values)
         lead_speeds = (scenario.leader.speed_at(np.arange(n_max) * dt + dt).tolist()
                        if has_leader else None)
         ego_seg = centre.segment_index(s_ego0)
-        lead_seg = centre.segment_index(s_leader_front0)
+        lead_seg = centre.segment_index(s_leader_front0) if traffic is None else lead_seg0
         half_width = 0.5 * lane.width
         lane_margin, ttc_threshold = scenario.monitors.lane_margin_m, scenario.monitors.ttc_threshold_s
         length, width = vehicle.length_m, vehicle.width_m
@@ -273,7 +293,12 @@ def run_scenario(
                 sumo_api.gui_screenshot(api, loop.gui_screenshot)
             sim_step()
             colliding = EGO_ID in colliding_ids()
-            leader = _read_leader(api, vehicle) if has_leader and leader is not None else None
+            if traffic is None:
+                leader = _read_leader(api, vehicle) if has_leader and leader is not None else None
+            else:
+                lead_id, leader, lead_v, lead_len, lead_wid, s_lead_rear, lead_seg = (
+                    _traffic_leader(api, road, lead_seg if lead_id else ego_seg, radar_dist,
+                                    sizes))
 
             # monitors on the state at t + dt (O(1) walks along the lane from the last segment)
             s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
@@ -285,17 +310,26 @@ def run_scenario(
             if leader is not None:
                 (lead_rear, v_lead_sumo, lead_yaw, lead_front) = leader
                 lx, ly = lead_rear
-                v_lead_true = lead_v = v_lead_sumo / lead_scale
-                s_lead_rear, _, _, lead_seg = centre.project_near(lx, ly, lead_seg)
-                if multi_piece:  # the next command's scale: the SUMO lane under its front bumper
-                    lead_scale = road.piece_at(s_lead_rear + length).scale
+                if traffic is None:
+                    v_lead_true = lead_v = v_lead_sumo / lead_scale
+                    s_lead_rear, _, _, lead_seg = centre.project_near(lx, ly, lead_seg)
+                    if multi_piece:  # the next command's scale: the SUMO lane under its front
+                        lead_scale = road.piece_at(s_lead_rear + length).scale
+                else:
+                    v_lead_true = lead_v
                 gap = s_lead_rear - s
+                if traffic is not None and gap <= scenario.sensors.radar_range_m:
+                    if lead_id not in met:
+                        met[lead_id] = len(met)
+                    if lead_id != last_id and last_id and gap < last_gap:
+                        cut_ins += 1  # a new leader closer than the one before
+                    last_id, last_gap = lead_id, gap
                 ttc = mon.time_to_collision(gap, v, v_lead_true)
                 if gap < 2.0 * length and not colliding:
                     ego_box = rectangle_corners(
                         _centre_xy(front, yaw, vehicle), yaw, length, width)
                     lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
-                    lead_box = rectangle_corners(lead_centre, lead_yaw, length, width)
+                    lead_box = rectangle_corners(lead_centre, lead_yaw, lead_len, lead_wid)
                     colliding = rectangles_overlap(ego_box, lead_box)
             ttc_flag = ttc <= ttc_threshold
             fraction = mon.path_completed(s, road.path_start_s, road.path_end_s)
@@ -303,6 +337,8 @@ def run_scenario(
                 t + dt, x, y, yaw, v, vy, st[5], st[6], front[0], front[1], steer_cmd,
                 accel_cmd, s, d, d_min, d_max, *feature_log, lx, ly, v_lead_true, gap, ttc,
                 departed, ttc_flag, colliding, fraction, *plan_log,
+                (0.0 if traffic is None else float(met.get(lead_id, math.nan)))
+                if leader is not None else math.nan,
             ))
 
             if s >= road.path_end_s:
@@ -328,6 +364,11 @@ def run_scenario(
     wall = time.perf_counter() - wall0
     frame = log.frame()
     summary = summarize(scenario, frame, end_reason, error, wall, policy.name)
+    summary |= drive_stats(frame, road.path_start_s)
+    summary["leaders_met"] = (len(met) if scenario.traffic is not None
+                              else int(frame["leader_no"].notna().any()) if len(frame) else 0)
+    summary["cut_ins_met"] = cut_ins if scenario.traffic is not None else 0
+    summary["traffic"] = scenario.traffic.density if scenario.traffic is not None else ""
     return Rollout(frame, summary)
 
 
@@ -413,6 +454,44 @@ def _centre_xy(front: tuple[float, float], yaw: float, vehicle: veh.VehicleParam
     return np.array([front[0] - half * math.cos(yaw), front[1] - half * math.sin(yaw)])
 
 
+def _traffic_leader(api: sumo_api.SumoApi, road: Road, hint: int, dist: float,
+                    sizes: dict[str, tuple[float, float]]):
+    """SUMO's leader of the ego (traffic): ``(id, (rear_xy, v_sumo, yaw, front_xy), true speed
+    [m/s], length [m], width [m], arc length of its rear on the ego lane [m], segment)``;
+    id ``""`` and leader None when there is none. Its speed is SUMO's divided by the SUMO
+    lane scale under its front bumper."""
+    lead_id = trf.read_leader(api, EGO_ID, dist)
+    if not lead_id:
+        return "", None, 0.0, 0.0, 0.0, math.nan, hint
+    try:
+        if lead_id not in sizes:
+            sizes[lead_id] = (api.vehicle.getLength(lead_id), api.vehicle.getWidth(lead_id))
+        length, width = sizes[lead_id]
+        fx, fy = api.vehicle.getPosition(lead_id)
+        yaw = sumo_angle_to_yaw(api.vehicle.getAngle(lead_id))
+        v = api.vehicle.getSpeed(lead_id)
+    except Exception:  # noqa: BLE001  # it arrived (left the network) this step
+        return "", None, 0.0, 0.0, 0.0, math.nan, hint
+    rear = (fx - length * math.cos(yaw), fy - length * math.sin(yaw))
+    s_rear, _, _, seg = road.lanes[road.ego_lane].centre.project_near(rear[0], rear[1], hint)
+    scale = road.piece_at(s_rear + length).scale
+    return lead_id, (rear, v, yaw, (fx, fy)), v / scale, length, width, s_rear, seg
+
+
+def drive_stats(log: pd.DataFrame, path_start_s: float) -> dict:
+    """Distance driven and flag events per 100 km by kind (an event = a run of flagged steps)."""
+    n = len(log)
+    km = max(float(log["s"].iloc[-1]) - path_start_s, 0.0) / 1000.0 if n else 0.0
+    out: dict = {"km_driven": km}
+    for col, kind in (("ttc_flag", "ttc"), ("lane_departure", "lane_departure"),
+                      ("collision", "collision")):
+        flags = log[col].to_numpy(bool) if n else np.zeros(0, bool)
+        events = int(np.count_nonzero(flags[1:] & ~flags[:-1]) + (flags[:1].sum() if n else 0))
+        out[f"{kind}_events"] = events
+        out[f"{kind}_per_100km"] = 100.0 * events / km if km > 0 else math.nan
+    return out
+
+
 def _read_leader(api: sumo_api.SumoApi, vehicle: veh.VehicleParams):
     """``(rear_xy, speed, yaw, front_xy)`` of the leader, or None once it has left the network."""
     try:
@@ -437,6 +516,8 @@ class _Log:
         # [m], plan_yaw [rad]; its free control points cp{i}_x, cp{i}_y [m] in that pose's frame
         "plan_t", "plan_x", "plan_y", "plan_yaw",
         "cp1_x", "cp1_y", "cp2_x", "cp2_y", "cp3_x", "cp3_y",
+        # which leader [-]: 0, 1, ... in the order met (traffic); 0 the scripted one; NaN none
+        "leader_no",
     )
 
     def __init__(self, n: int) -> None:
