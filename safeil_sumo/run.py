@@ -201,6 +201,16 @@ def main(argv: list[str] | None = None) -> int:
     flagged = int((summaries["flag"] != "").sum())
     print(f"\n{policy.name}: {done}/{len(summaries)} scenarios completed without a flag "
           f"({flagged} flagged), mean path completed {100 * summaries['path_completed'].mean():.1f} %")
+    if args.net == "n74":  # long drives: rates per distance, leaders met
+        km = float(summaries["km_driven"].sum())
+        rates = ", ".join(
+            f"{kind} {100.0 * summaries[f'{col}_events'].sum() / km:.1f}" if km > 0 else
+            f"{kind} -" for kind, col in (("TTC", "ttc"), ("lane departure", "lane_departure"),
+                                         ("collision", "collision")))
+        print(f"{km:.2f} km driven; flags per 100 km: {rates}; min TTC "
+              f"{summaries['min_ttc_s'].min():.2f} s; leaders met "
+              f"{int(summaries['leaders_met'].sum())}, cut-ins "
+              f"{int(summaries['cut_ins_met'].sum())}")
     errors = summaries[summaries["end_reason"] == "error"]
     for _, row in errors.iterrows():
         print(f"scenario {row['scenario']} failed: {row['error']}", file=sys.stderr)

@@ -321,8 +321,8 @@ def run_scenario(
                 if traffic is not None and gap <= scenario.sensors.radar_range_m:
                     if lead_id not in met:
                         met[lead_id] = len(met)
-                    if lead_id != last_id and last_id and gap < last_gap:
-                        cut_ins += 1  # a new leader closer than the one before
+                        if last_id and gap < last_gap:
+                            cut_ins += 1  # a newly met leader closer than the one before
                     last_id, last_gap = lead_id, gap
                 ttc = mon.time_to_collision(gap, v, v_lead_true)
                 if gap < 2.0 * length and not colliding:
