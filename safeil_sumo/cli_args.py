@@ -51,3 +51,21 @@ def add_route_option(parser: argparse.ArgumentParser) -> None:
         help="SUMO edges the ego drives, in driving order, on a multi-edge .net.xml (its lane is "
              "followed across the junctions; the route must end where that lane ends); "
              "default: the net's one edge")
+
+
+def add_n74_options(parser: argparse.ArgumentParser) -> None:
+    """``--from-km/--to-km/--traffic`` for ``--net n74``, shared by ``run`` and ``sweep``."""
+    from safeil_sumo.sim.traffic import DENSITIES
+
+    parser.add_argument("--from-km", type=finite_float, default=None, metavar="KM",
+                        help="with --net n74: start of the stretch driven, kilometre post of "
+                             "direction A (default 0)")
+    parser.add_argument("--to-km", type=finite_float, default=None, metavar="KM",
+                        help="with --net n74: end of the stretch (default 29.2, the whole "
+                             "carriageway)")
+    parser.add_argument("--traffic", choices=("none", *DENSITIES), default="none",
+                        help="with --net n74: SUMO's own traffic from "
+                             "sumo_scenarios/n74/n74.rou.xml (main road + on-ramps), flows "
+                             "scaled x0.5 light, x1 default, x2 dense, seeded by the scenario "
+                             "seed; the ego's leader is whichever vehicle is ahead in its lane "
+                             "(no scripted leader). Default none")

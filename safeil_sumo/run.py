@@ -22,6 +22,7 @@ from tqdm import tqdm
 from safeil_sumo import animate, api, policies
 from safeil_sumo.cli_args import (
     add_leader_options,
+    add_n74_options,
     add_route_option,
     finite_float,
     nonnegative_int,
@@ -33,7 +34,6 @@ from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig
 from safeil_sumo.sim.sumo_api import SumoError
-from safeil_sumo.sim.traffic import DENSITIES
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
@@ -46,17 +46,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="curved500, straight, curved<R> (e.g. curved300), n74 (29.2 km highway "
                         "with on-ramps; see --from-km/--to-km) or a .net.xml path")
     add_route_option(p)
-    p.add_argument("--from-km", type=finite_float, default=None, metavar="KM",
-                   help="with --net n74: start of the stretch driven, kilometre post of "
-                        "direction A (default 0)")
-    p.add_argument("--to-km", type=finite_float, default=None, metavar="KM",
-                   help="with --net n74: end of the stretch (default 29.2, the whole "
-                        "carriageway)")
-    p.add_argument("--traffic", choices=("none", *DENSITIES), default="none",
-                   help="with --net n74: SUMO's own traffic from sumo_scenarios/n74/n74.rou.xml "
-                        "(main road + on-ramps), flows scaled x0.5 light, x1 default, x2 dense, "
-                        "seeded by the scenario seed; the ego's leader is whichever vehicle is "
-                        "ahead in its lane (no scripted leader). Default none")
+    add_n74_options(p)
     p.add_argument("--policy", default=None,
                    help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
                         "IDM model .json "

@@ -30,6 +30,7 @@ from pathlib import Path
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
     add_leader_options,
+    add_n74_options,
     add_route_option,
     finite_float,
     nonnegative_int,
@@ -86,6 +87,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--net", nargs="+", default=["curved500"], metavar="NET",
                    help="curved500, straight, curved<R> (e.g. curved300) or .net.xml paths")
     add_route_option(p)
+    add_n74_options(p)
     p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
                    help="safeil, safeil_paper, bc, analytic, idm, .safetensors checkpoints or IDM "
                         "model .json files (default: safeil bc)")
@@ -152,8 +154,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--leader-profile needs --leader recorded")
     if args.quick and args.suite is None:
         p.error("--quick needs --suite")
-    if args.route and args.suite is not None:
-        p.error("--route does not apply to --suite (the suite has its own nets)")
+    if (args.route or args.from_km is not None or args.to_km is not None
+            or args.traffic != "none") and args.suite is not None:
+        p.error("--route, --from-km/--to-km and --traffic do not apply to --suite (the suite "
+                "has its own nets)")
     if args.out.exists() and not args.out.is_dir():
         p.error(f"--out {args.out} exists and is not a folder")
     return args
@@ -175,7 +179,8 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
             lane_noise_c0_m=args.lane_noise, radar_noise_m=args.radar_noise,
             plan_rate_hz=args.plan_rate, max_time_s=args.max_time,
             stop_on_flag=args.stop_on_flag, leader_profile=args.leader_profile or "",
-            route=tuple(args.route),
+            route=tuple(args.route), from_km=args.from_km, to_km=args.to_km,
+            traffic=args.traffic,
         )
         for net, policy, filt, index in itertools.product(
             args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
@@ -183,8 +188,10 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
 
 
 def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = (),
-                 route: tuple[str, ...] = ()) -> None:
-    """Resolve every net (building curved<R> once; along ``route`` if given), load every policy
+                 route: tuple[str, ...] = (), from_km: float | None = None,
+                 to_km: float | None = None) -> None:
+    """Resolve every net (building curved<R> once; along ``route`` or the n74 stretch if given),
+    load every policy
     and recorded-leader library before any task runs.
 
     Raises ``ValueError`` (NetworkError, PolicyError, ProfileError) with a one-line reason. No
@@ -195,12 +202,10 @@ def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()
     for profile in dict.fromkeys(profiles):
         recorded_leaders.library(profile)
     from safeil_sumo import policies
-    from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import load_road
-    from safeil_sumo.scenarios.route import load_route
+    from safeil_sumo.experiments.sweep import _road
 
     for net in dict.fromkeys(nets):
-        load_route(resolve_net(net), route) if route else load_road(resolve_net(net))
+        _road(net, route, from_km, to_km)
     for name in dict.fromkeys(policies_):
         policies.load(name)
 
@@ -211,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         specs = build_specs(args)
         check_inputs(sorted({s.net for s in specs}), args.policies,
                      sorted({s.leader_profile for s in specs if s.leader_profile}),
-                     tuple(args.route))
+                     tuple(args.route), args.from_km, args.to_km)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

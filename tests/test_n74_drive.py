@@ -103,3 +103,22 @@ def test_traffic_needs_n74(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--net", "curved500", "--traffic", "dense", "--out", str(tmp_path / "r")])
     assert exc.value.code == 2 and "--traffic needs --net n74" in capsys.readouterr().err
+
+
+def test_sweep_over_n74_stretches(tmp_path, capsys):
+    """Sweeps take the same stretch and traffic options as run; their tasks drive the stretch."""
+    from safeil_sumo.sweep import main as sweep_main
+
+    out = tmp_path / "sweep"
+    code = sweep_main(["--net", "n74", "--from-km", "0", "--to-km", "1", "--policies",
+                       "analytic", "--scenarios", "2", "--workers", "1", "--out", str(out),
+                       "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    summary = pd.read_csv(out / "summary.csv")
+    assert len(summary) == 2 and summary["completed"].all()
+    assert summary["km_driven"].between(0.95, 1.1).all()
+    capsys.readouterr()
+    code = sweep_main(["--net", "curved500", "--traffic", "dense", "--policies", "analytic",
+                       "--scenarios", "1", "--out", str(tmp_path / "bad")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "n74" in err[0]
