@@ -26,11 +26,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from safeil_sumo import bspline
+from safeil_sumo.sim.xp import ARRAYS, FLOATS
 from safeil_sumo.sim.vehicle import (
     VehicleParams,
     VehicleState,
+    _resistance,
     available_drive_force,
-    resistance_force,
 )
 
 # how far the sampled path is extended beyond its ends along the end tangents [m]
@@ -140,26 +141,131 @@ class TrackingTarget:
         )
 
     def speed_and_accel(self, t: float) -> tuple[float, float]:
-        """Plan speed [m/s] and tangential acceleration [m/s^2] at ``t`` [s].
+        """Plan speed [m/s] and tangential acceleration [m/s^2] at ``t`` [s] (see
+        :func:`plan_speed_and_accel`)."""
+        return plan_speed_and_accel(self.coeff_x, self.coeff_y, self.horizon_s, t)
 
-        Past the horizon the plan is continued at its final speed (acceleration 0). A plan that
-        runs backwards (x velocity < 0 in the plan frame: "stay behind the stopped car") asks for
-        a stop: speed 0, no feed-forward (the car does not reverse; reading the speed as the
-        velocity's magnitude would make it creep forwards into the car it is told to stay behind).
-        """
-        vx, vy = self.velocity(t)
-        if vx < 0.0:
-            return 0.0, 0.0
-        v = math.hypot(vx, vy)
-        if t > self.horizon_s:
-            return v, 0.0
-        tc = max(t, 0.0)
-        cx, cy = self.coeff_x, self.coeff_y
-        ax = 2.0 * cx[2] + 6.0 * cx[3] * tc
-        ay = 2.0 * cy[2] + 6.0 * cy[3] * tc
-        if v < 1e-6:  # starting from rest: the acceleration points along the path
-            return v, math.hypot(ax, ay)
-        return v, (vx * ax + vy * ay) / v
+    def lookahead(self, px: float, py: float, ld: float) -> tuple[float, float]:
+        """:func:`lookahead_point` on this plan's path."""
+        return lookahead_point(self.segments, px, py, ld)
+
+
+@dataclass(frozen=True)
+class BatchTarget:
+    """N plans prepared for tracking at once (:func:`track_values` with ``xp=ARRAYS``): the
+    fields of N :class:`TrackingTarget` of one horizon, stacked."""
+
+    horizon_s: float  # T_h [s], shared
+    origin_x: np.ndarray  # (N,) [m]
+    origin_y: np.ndarray  # (N,) [m]
+    yaw: np.ndarray  # (N,) [rad]
+    cos_yaw: np.ndarray  # (N,)
+    sin_yaw: np.ndarray  # (N,)
+    coeff_x: tuple[np.ndarray, ...]  # 4 x (N,) power-basis coefficients of x(t)
+    coeff_y: tuple[np.ndarray, ...]  # 4 x (N,)
+    path_x: np.ndarray  # (N, M) [m] path vertices in each plan's frame
+    path_y: np.ndarray  # (N, M) [m]
+
+    @staticmethod
+    def stack(targets: list[TrackingTarget]) -> BatchTarget:
+        horizon = targets[0].horizon_s
+        if any(tg.horizon_s != horizon for tg in targets):
+            raise ValueError("a batch of plans shares one horizon")
+        paths = np.stack([tg.path for tg in targets])
+
+        def col(name: str) -> np.ndarray:
+            return np.array([getattr(tg, name) for tg in targets])
+
+        cx, cy = col("coeff_x"), col("coeff_y")
+        return BatchTarget(
+            horizon, col("origin_x"), col("origin_y"), col("yaw"), col("cos_yaw"),
+            col("sin_yaw"), tuple(cx.T), tuple(cy.T), paths[:, :, 0].copy(),
+            paths[:, :, 1].copy())
+
+    def take(self, keep: np.ndarray) -> BatchTarget:
+        """The plans of rows ``keep`` (indices or a boolean mask)."""
+        return BatchTarget(
+            self.horizon_s, self.origin_x[keep], self.origin_y[keep], self.yaw[keep],
+            self.cos_yaw[keep], self.sin_yaw[keep], tuple(c[keep] for c in self.coeff_x),
+            tuple(c[keep] for c in self.coeff_y), self.path_x[keep], self.path_y[keep])
+
+    def lookahead(self, px: np.ndarray, py: np.ndarray, ld: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`lookahead_points` on these paths."""
+        return lookahead_points(self.path_x, self.path_y, px, py, ld)
+
+
+def lookahead_points(
+    vertex_x: np.ndarray, vertex_y: np.ndarray, px: np.ndarray, py: np.ndarray, ld: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`lookahead_point` of N points ``px, py (N,)`` on N polylines ``(N, M)`` at
+    distances ``ld (N,)`` [m]: the same arithmetic, the walk replaced by a first-index search."""
+    n, m = vertex_x.shape
+    rows = np.arange(n)
+    dx = vertex_x - px[:, None]
+    dy = vertex_y - py[:, None]
+    d2 = dx * dx + dy * dy
+    i0 = d2.argmin(axis=1)
+    seg_dx = vertex_x[:, 1:] - vertex_x[:, :-1]
+    seg_dy = vertex_y[:, 1:] - vertex_y[:, :-1]
+    seg_len2 = np.maximum(seg_dx**2 + seg_dy**2, 1e-12)
+    best_f2, best_k, best_u = np.full(n, np.inf), np.zeros(n, int), np.zeros(n)
+    for k in (i0 - 1, i0):  # the two segments at the closest vertex
+        valid = (k >= 0) & (k < m - 1)
+        kc = np.clip(k, 0, m - 2)
+        ax, ay = dx[rows, kc], dy[rows, kc]
+        sx, sy, q = seg_dx[rows, kc], seg_dy[rows, kc], seg_len2[rows, kc]
+        dot = ax * sx + ay * sy
+        u = np.minimum(np.maximum(-dot / q, 0.0), 1.0)
+        f2 = ax * ax + ay * ay + u * (2.0 * dot + u * q)  # |d + u e|^2
+        better = valid & (f2 < best_f2)
+        best_f2 = np.where(better, f2, best_f2)
+        best_k = np.where(better, kc, best_k)
+        best_u = np.where(better, u, best_u)
+    k, u = best_k, best_u
+    ld2 = ld * ld
+    # far off the path: its closest point
+    near_x = px + dx[rows, k] + u * seg_dx[rows, k]
+    near_y = py + dy[rows, k] + u * seg_dy[rows, k]
+    # else the first vertex after segment k outside the circle ends the crossing segment j
+    outside = (np.arange(m)[None, :] > k[:, None]) & (d2 >= ld2[:, None])
+    beyond = ~outside.any(axis=1)  # the circle encloses the rest: the last vertex
+    j = np.maximum(outside.argmax(axis=1) - 1, 0)
+    ax, ay = dx[rows, j], dy[rows, j]
+    sx, sy, qa = seg_dx[rows, j], seg_dy[rows, j], seg_len2[rows, j]
+    qb = ax * sx + ay * sy
+    qc = ax * ax + ay * ay - ld2
+    s = (-qb + np.sqrt(np.maximum(qb * qb - qa * qc, 0.0))) / qa
+    s = np.minimum(np.maximum(s, 0.0), 1.0)
+    cross_x = np.where(beyond, vertex_x[:, -1], px + ax + s * sx)
+    cross_y = np.where(beyond, vertex_y[:, -1], py + ay + s * sy)
+    far = best_f2 >= ld2
+    return np.where(far, near_x, cross_x), np.where(far, near_y, cross_y)
+
+
+def plan_speed_and_accel(coeff_x, coeff_y, horizon: float, t, xp=FLOATS):
+    """Speed [m/s] and tangential acceleration [m/s^2] at ``t`` [s] of a plan whose x(t), y(t)
+    have power-basis coefficients ``coeff_x``, ``coeff_y`` (4 each) over ``horizon`` [s].
+
+    Past the horizon the plan is continued at its final speed (acceleration 0). A plan that
+    runs backwards (x velocity < 0 in the plan frame: "stay behind the stopped car") asks for
+    a stop: speed 0, no feed-forward (the car does not reverse; reading the speed as the
+    velocity's magnitude would make it creep forwards into the car it is told to stay behind).
+    Floats, or with ``xp=ARRAYS`` coefficients and ``t`` of arrays ``(N,)``.
+    """
+    cx, cy = coeff_x, coeff_y
+    tc = xp.clip(t, 0.0, horizon)
+    vx = cx[1] + tc * (2.0 * cx[2] + 3.0 * cx[3] * tc)
+    vy = cy[1] + tc * (2.0 * cy[2] + 3.0 * cy[3] * tc)
+    v = xp.hypot(vx, vy)
+    ax = 2.0 * cx[2] + 6.0 * cx[3] * tc
+    ay = 2.0 * cy[2] + 6.0 * cy[3] * tc
+    # starting from rest the acceleration points along the path (the floor keeps the other
+    # side finite)
+    accel = xp.where(v < 1e-6, xp.hypot(ax, ay), (vx * ax + vy * ay) / xp.maximum(v, 1e-6))
+    accel = xp.where(t > horizon, 0.0, accel)
+    backwards = vx < 0.0
+    return xp.where(backwards, 0.0, v), xp.where(backwards, 0.0, accel)
 
 
 def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -224,10 +330,10 @@ def _sample_basis(horizon: float, n_samples: int) -> tuple[np.ndarray, np.ndarra
     return _BASIS_CACHE[key]
 
 
-def lookahead_distance(v: float, params: ControllerParams) -> float:
+def lookahead_distance(v, params: ControllerParams, xp=FLOATS):
     """``L_d`` [m] at speed ``v`` [m/s]."""
-    ld = params.lookahead_gain_s * v + params.lookahead_min_m
-    return min(max(ld, params.lookahead_min_m), params.lookahead_max_m)
+    return xp.clip(params.lookahead_gain_s * v + params.lookahead_min_m, params.lookahead_min_m,
+                   params.lookahead_max_m)
 
 
 def lookahead_point(
@@ -282,17 +388,15 @@ def lookahead_point(
     return px + ax + s * sx, py + ay + s * sy
 
 
-def pure_pursuit_steer(target_x: float, target_y: float, wheelbase: float) -> tuple[float, float]:
+def pure_pursuit_steer(target_x, target_y, wheelbase: float, xp=FLOATS):
     """Road-wheel angle [rad] and curvature [1/m] reaching a target given in the rear-axle frame.
 
     ``delta = atan(2 L sin(alpha) / l)`` with ``l`` the distance to the target and ``alpha`` its
-    bearing; ``kappa = 2 sin(alpha) / l = 2 y / l^2``.
+    bearing; ``kappa = 2 sin(alpha) / l = 2 y / l^2`` (0 for a target on the axle).
     """
     l2 = target_x * target_x + target_y * target_y
-    if l2 < 1e-12:
-        return 0.0, 0.0
-    kappa = 2.0 * target_y / l2
-    return math.atan(wheelbase * kappa), kappa
+    kappa = xp.where(l2 < 1e-12, 0.0, 2.0 * target_y / xp.maximum(l2, 1e-12))
+    return xp.atan(wheelbase * kappa), kappa
 
 
 def track(
@@ -316,62 +420,74 @@ def track(
 
 
 def track_values(
-    target: TrackingTarget,
-    t_since_plan: float,
-    x: float,
-    y: float,
-    yaw: float,
-    vx: float,
-    vy: float,
-    yaw_rate: float,
+    target,
+    t_since_plan,
+    x,
+    y,
+    yaw,
+    vx,
+    vy,
+    yaw_rate,
     vehicle: VehicleParams,
-    integral: float,
-    prev_error: float | None,
+    integral,
+    prev_error,
     params: ControllerParams,
     dt: float,
-) -> tuple[float, float, float, float]:
+    xp=FLOATS,
+):
     """:func:`track` on plain floats (the closed loop's path: no per-step dataclasses).
 
     Takes the state's fields and the PID memory, returns ``(steer_cmd, accel_cmd, integral,
-    error)``; the last two are the next call's ``integral`` and ``prev_error``.
+    error)``; the last two are the next call's ``integral`` and ``prev_error`` (None or NaN:
+    no previous error). With ``xp=ARRAYS`` every argument but the parameters is an array
+    ``(N,)`` and ``target`` a :class:`BatchTarget`: N cars tracked at once.
     """
+    where = xp.where
     # --- rear axle in the plan frame ----------------------------------------------------------
     lr = vehicle.lr_m
-    rx = x - lr * math.cos(yaw) - target.origin_x
-    ry = y - lr * math.sin(yaw) - target.origin_y
+    rx = x - lr * xp.cos(yaw) - target.origin_x
+    ry = y - lr * xp.sin(yaw) - target.origin_y
     c0, s0 = target.cos_yaw, target.sin_yaw
     px, py = c0 * rx + s0 * ry, -s0 * rx + c0 * ry
     heading = yaw - target.yaw
-    if params.use_course_angle and vx > 1.0:
-        heading += math.atan2(vy - lr * yaw_rate, vx)
+    if params.use_course_angle:
+        heading = where(vx > 1.0, heading + xp.atan2(vy - lr * yaw_rate, vx), heading)
 
     # --- lateral: pure pursuit ----------------------------------------------------------------
     v = vx
-    ld = lookahead_distance(v, params)
-    gx, gy = lookahead_point(target.segments, px, py, ld)
-    ch, sh = math.cos(heading), math.sin(heading)
+    ld = lookahead_distance(v, params, xp)
+    gx, gy = target.lookahead(px, py, ld)
+    ch, sh = xp.cos(heading), xp.sin(heading)
     lx, ly = ch * (gx - px) + sh * (gy - py), -sh * (gx - px) + ch * (gy - py)
-    steer, kappa = pure_pursuit_steer(lx, ly, vehicle.wheelbase_m)
+    steer, kappa = pure_pursuit_steer(lx, ly, vehicle.wheelbase_m, xp)
     if params.understeer_feedforward:
-        steer += vehicle.understeer_gradient * v * v * kappa
-    steer = min(max(steer, -vehicle.max_steer_rad), vehicle.max_steer_rad)
+        steer = steer + vehicle.understeer_gradient * v * v * kappa
+    steer = xp.clip(steer, -vehicle.max_steer_rad, vehicle.max_steer_rad)
 
     # --- longitudinal: PID on speed + plan acceleration feed-forward ----------------------------
-    v_ref, _ = target.speed_and_accel(t_since_plan + params.speed_preview_s)
-    _, a_ref = target.speed_and_accel(t_since_plan + params.accel_preview_s)
+    horizon = target.horizon_s
+    v_ref, _ = plan_speed_and_accel(target.coeff_x, target.coeff_y, horizon,
+                                    t_since_plan + params.speed_preview_s, xp)
+    _, a_ref = plan_speed_and_accel(target.coeff_x, target.coeff_y, horizon,
+                                    t_since_plan + params.accel_preview_s, xp)
     error = v_ref - v
-    deriv = 0.0 if prev_error is None else (error - prev_error) / dt
+    if prev_error is None:
+        prev_error = math.nan
+    deriv = where(xp.isnan(prev_error), 0.0, (error - prev_error) / dt)
     lim = params.integral_limit_m
     integral0 = integral
-    if abs(error) < params.integral_band_mps:  # integrate near the reference only
-        integral = min(max(integral + error * dt, -lim), lim)
+    # integrate near the reference only
+    integral = where(xp.abs(error) < params.integral_band_mps,
+                     xp.clip(integral + error * dt, -lim, lim), integral)
     base = params.accel_feedforward_gain * a_ref + params.kp * error + params.kd * deriv
     accel = base + params.ki * integral
     lo, hi = params.accel_min_mps2, params.accel_max_mps2
     # the integrator also stops where the powertrain saturates (power limit at high speed)
-    hi_plant = (available_drive_force(v, vehicle) - resistance_force(v, vehicle)) / vehicle.mass_kg
-    if (accel > min(hi, hi_plant) and error > 0.0) or (accel < lo and error < 0.0):
-        integral = integral0  # anti-windup: stop integrating into the saturation
-        accel = base + params.ki * integral
-    accel = min(max(accel, lo), hi)
+    hi_plant = (available_drive_force(v, vehicle, xp)
+                - xp.where(v <= 0.0, 0.0, _resistance(v, vehicle))) / vehicle.mass_kg
+    windup = xp.logical_or(xp.logical_and(accel > xp.minimum(hi, hi_plant), error > 0.0),
+                           xp.logical_and(accel < lo, error < 0.0))
+    integral = where(windup, integral0, integral)  # anti-windup: stop integrating into it
+    accel = base + params.ki * integral
+    accel = xp.clip(accel, lo, hi)
     return steer, accel, integral, error

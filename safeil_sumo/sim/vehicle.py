@@ -29,6 +29,8 @@ import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+from safeil_sumo.sim.xp import FLOATS
+
 GRAVITY = 9.81  # [m/s^2]
 
 
@@ -126,13 +128,19 @@ def resistance_force(vx: float, params: VehicleParams) -> float:
     """Drag + rolling resistance [N] opposing motion at ``vx`` [m/s] (0 at standstill)."""
     if vx <= 0.0:
         return 0.0
+    return _resistance(vx, params)
+
+
+def _resistance(vx, params: VehicleParams):
+    """Drag + rolling resistance [N] at ``vx`` > 0 [m/s] (a float or an array)."""
     drag = 0.5 * params.air_density_kgm3 * params.drag_coefficient * params.frontal_area_m2
     return drag * vx * vx + params.rolling_resistance * params.mass_kg * GRAVITY
 
 
-def available_drive_force(vx: float, params: VehicleParams) -> float:
-    """Traction force [N] at full throttle: force-limited at low speed, power-limited above."""
-    return min(params.max_drive_force_n, params.max_drive_power_w / max(vx, 0.1))
+def available_drive_force(vx, params: VehicleParams, xp=FLOATS):
+    """Traction force [N] at full throttle: force-limited at low speed, power-limited above
+    (``vx`` [m/s] a float, or an array with ``xp=ARRAYS``)."""
+    return xp.minimum(params.max_drive_force_n, params.max_drive_power_w / xp.maximum(vx, 0.1))
 
 
 def pedals_from_accel(
@@ -146,14 +154,14 @@ def pedals_from_accel(
     return pedals_from_accel_vx(accel_cmd, state.vx, params)
 
 
-def pedals_from_accel_vx(accel_cmd: float, vx: float, params: VehicleParams) -> tuple[float, float]:
-    """:func:`pedals_from_accel` from the longitudinal speed ``vx`` [m/s] alone."""
-    force = params.mass_kg * accel_cmd + resistance_force(vx, params)
-    if force > 0.0:
-        return min(force / available_drive_force(vx, params), 1.0), 0.0
-    if force < 0.0:
-        return 0.0, min(-force / params.max_brake_force_n, 1.0)
-    return 0.0, 0.0
+def pedals_from_accel_vx(accel_cmd, vx, params: VehicleParams, xp=FLOATS):
+    """:func:`pedals_from_accel` from the longitudinal speed ``vx`` [m/s] alone (floats, or
+    arrays ``(N,)`` with ``xp=ARRAYS``)."""
+    force = params.mass_kg * accel_cmd + xp.where(vx <= 0.0, 0.0, _resistance(vx, params))
+    throttle = xp.where(force > 0.0,
+                        xp.minimum(force / available_drive_force(vx, params, xp), 1.0), 0.0)
+    brake = xp.where(force < 0.0, xp.minimum(-force / params.max_brake_force_n, 1.0), 0.0)
+    return throttle, brake
 
 
 def _lag(value: float, target: float, time_constant: float, dt: float) -> float:
@@ -176,6 +184,9 @@ def step(
     return VehicleState(*Plant.of(params, dt).step(
         (s.x, s.y, s.yaw, s.vx, s.vy, s.yaw_rate, s.steer, s.drive_force),
         steer_cmd, throttle, brake))
+
+
+_TINY = 1e-300  # a divisor's floor on the untaken side of a branch
 
 
 class Plant:
@@ -218,84 +229,86 @@ class Plant:
             plant = cls._cache[key] = cls(params, dt)
         return plant
 
-    def resistance(self, vx: float) -> float:
-        """:func:`resistance_force` at ``vx`` [m/s]."""
-        if vx <= 0.0:
-            return 0.0
-        return self.drag * vx * vx + self.rolling
+    def resistance(self, vx, xp=FLOATS):
+        """:func:`resistance_force` at ``vx`` [m/s] (a float, or an array with ``xp=ARRAYS``)."""
+        return xp.where(vx <= 0.0, 0.0, self.drag * vx * vx + self.rolling)
 
-    def step(
-        self, state: tuple[float, ...], steer_cmd: float, throttle: float, brake: float
-    ) -> tuple[float, float, float, float, float, float, float, float]:
-        """Next ``(x, y, yaw, vx, vy, yaw_rate, steer, drive_force)`` (see :func:`step`)."""
+    def step(self, state, steer_cmd, throttle, brake, xp=FLOATS):
+        """Next ``(x, y, yaw, vx, vy, yaw_rate, steer, drive_force)`` (see :func:`step`).
+
+        ``state`` is a tuple of those 8 fields and the commands are floats, or with
+        ``xp=ARRAYS`` each is an array ``(N,)`` of N cars stepped at once (see :mod:`.xp`).
+        """
         p = self.params
         dt = self.dt
         m, lf, lr, L = p.mass_kg, p.lf_m, p.lr_m, p.wheelbase_m
         x0, y0, yaw0, vx, vy, r, steer0, force0 = state
+        where, clip = xp.where, xp.clip
 
         # --- actuators -----------------------------------------------------------------------
         max_steer = p.max_steer_rad
-        cmd = min(max(steer_cmd, -max_steer), max_steer)
+        cmd = clip(steer_cmd, -max_steer, max_steer)
         d_steer = (cmd - steer0) * self.steer_gain
         max_d = self.max_d_steer
-        delta = steer0 + min(max(d_steer, -max_d), max_d)
+        delta = steer0 + clip(d_steer, -max_d, max_d)
 
-        throttle = min(max(throttle, 0.0), 1.0)
-        brake = min(max(brake, 0.0), 1.0)
-        drive = min(p.max_drive_force_n, p.max_drive_power_w / max(vx, 0.1))
+        throttle = clip(throttle, 0.0, 1.0)
+        brake = clip(brake, 0.0, 1.0)
+        drive = available_drive_force(vx, p, xp)
         target = throttle * drive - brake * self.max_brake_force
-        # brake circuit dynamics whenever braking is involved (applying or releasing)
-        decay = self.brake_decay if (target < 0.0 or force0 < 0.0) else self.drive_decay
-        fx = target if decay is None else target + (force0 - target) * decay  # first-order lag
+        # brake circuit dynamics whenever braking is involved (applying or releasing); a first-
+        # order lag, or none for a time constant <= 0 (decay None)
+        braking = xp.logical_or(target < 0.0, force0 < 0.0)
+        fx_brake = target if self.brake_decay is None else (
+            target + (force0 - target) * self.brake_decay)
+        fx_drive = target if self.drive_decay is None else (
+            target + (force0 - target) * self.drive_decay)
+        fx = where(braking, fx_brake, fx_drive)
 
         # --- lateral: dynamic single track, implicit Euler with secant tyre stiffness -----------
         v_lo = p.kinematic_speed_low_mps
-        w = min(max((vx - v_lo) / self.v_band, 0.0), 1.0)
+        w = clip((vx - v_lo) / self.v_band, 0.0, 1.0)
         w = w * w * (3.0 - 2.0 * w)  # smoothstep: weight of the dynamic model
-        fyf = 0.0
-        if w > 0.0:
-            u = max(vx, v_lo)
-            alpha_f = delta - (vy + lf * r) / u
-            alpha_r = -(vy - lr * r) / u
-            cf = p.cornering_stiffness_front_npr
-            cr = p.cornering_stiffness_rear_npr
-            mu = p.friction_coefficient
-            # saturate |F_y| at mu F_z by lowering the stiffness to the secant through the limit
-            if cf * abs(alpha_f) > mu * self.fzf:
-                cf = mu * self.fzf / abs(alpha_f)
-            if cr * abs(alpha_r) > mu * self.fzr:
-                cr = mu * self.fzr / abs(alpha_r)
-            iz = p.yaw_inertia_kgm2
-            a11 = -(cf + cr) / (m * u)
-            a12 = -(lf * cf - lr * cr) / (m * u) - u
-            a21 = -(lf * cf - lr * cr) / (iz * u)
-            a22 = -(lf * lf * cf + lr * lr * cr) / (iz * u)
-            b1 = vy + dt * cf * delta / m
-            b2 = r + dt * lf * cf * delta / iz
-            # (I - dt A) [vy, r]' = [b1, b2]'
-            m11, m12, m21, m22 = 1.0 - dt * a11, -dt * a12, -dt * a21, 1.0 - dt * a22
-            det = m11 * m22 - m12 * m21
-            vy_dyn = (b1 * m22 - m12 * b2) / det
-            r_dyn = (m11 * b2 - m21 * b1) / det
-            fyf = cf * (delta - (vy_dyn + lf * r_dyn) / u)
+        dynamic = w > 0.0  # below v_lo the dynamic terms are computed but not used
+        u = xp.maximum(vx, v_lo)
+        alpha_f = delta - (vy + lf * r) / u
+        alpha_r = -(vy - lr * r) / u
+        cf = p.cornering_stiffness_front_npr
+        cr = p.cornering_stiffness_rear_npr
+        mu = p.friction_coefficient
+        # saturate |F_y| at mu F_z by lowering the stiffness to the secant through the limit (the
+        # floor only keeps the untaken side finite: where it is taken |alpha| > mu F_z / C > 0)
+        abs_f, abs_r = xp.abs(alpha_f), xp.abs(alpha_r)
+        cf = where(cf * abs_f > mu * self.fzf, mu * self.fzf / xp.maximum(abs_f, _TINY), cf)
+        cr = where(cr * abs_r > mu * self.fzr, mu * self.fzr / xp.maximum(abs_r, _TINY), cr)
+        iz = p.yaw_inertia_kgm2
+        a11 = -(cf + cr) / (m * u)
+        a12 = -(lf * cf - lr * cr) / (m * u) - u
+        a21 = -(lf * cf - lr * cr) / (iz * u)
+        a22 = -(lf * lf * cf + lr * lr * cr) / (iz * u)
+        b1 = vy + dt * cf * delta / m
+        b2 = r + dt * lf * cf * delta / iz
+        # (I - dt A) [vy, r]' = [b1, b2]'
+        m11, m12, m21, m22 = 1.0 - dt * a11, -dt * a12, -dt * a21, 1.0 - dt * a22
+        det = m11 * m22 - m12 * m21
+        vy_dyn = (b1 * m22 - m12 * b2) / det
+        r_dyn = (m11 * b2 - m21 * b1) / det
+        fyf = where(dynamic, cf * (delta - (vy_dyn + lf * r_dyn) / u), 0.0)
 
         # --- longitudinal ----------------------------------------------------------------------
-        ax = (fx - self.resistance(vx) - w * fyf * math.sin(delta)) / m + w * vy * r
+        ax = (fx - self.resistance(vx, xp) - w * fyf * xp.sin(delta)) / m + w * vy * r
         # no reversing: brakes and resistances hold the car at standstill
-        vx_new = max(vx + ax * dt, 0.0)
+        vx_new = xp.maximum(vx + ax * dt, 0.0)
 
         # --- blend with the kinematic bicycle at low speed --------------------------------------
-        r_kin = vx_new * math.tan(delta) / L
+        r_kin = vx_new * xp.tan(delta) / L
         vy_kin = lr * r_kin
-        if w > 0.0:
-            vy_new = w * vy_dyn + (1.0 - w) * vy_kin
-            r_new = w * r_dyn + (1.0 - w) * r_kin
-        else:
-            vy_new, r_new = vy_kin, r_kin
+        vy_new = where(dynamic, w * vy_dyn + (1.0 - w) * vy_kin, vy_kin)
+        r_new = where(dynamic, w * r_dyn + (1.0 - w) * r_kin, r_kin)
 
         # --- pose (semi-implicit Euler: updated velocities) ------------------------------------
         yaw = yaw0 + r_new * dt
-        c, s = math.cos(yaw), math.sin(yaw)
+        c, s = xp.cos(yaw), xp.sin(yaw)
         return (
             x0 + (vx_new * c - vy_new * s) * dt,
             y0 + (vx_new * s + vy_new * c) * dt,

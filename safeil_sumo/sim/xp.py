@@ -1,0 +1,59 @@
+"""Two array namespaces for the closed loop's stage functions: one function, floats or arrays.
+
+A stage (the plant step, the tracker, the monitors) is written once against a namespace ``xp``:
+:data:`FLOATS` runs it on Python floats (the one-scenario loop: ``math`` functions and ``min``/
+``max``, about 20x cheaper per operation than numpy on one number), :data:`ARRAYS` on numpy
+arrays ``(N,)`` (a batch of N scenarios, one numpy call per operation for all of them).
+
+Branches become ``xp.where(condition, a, b)``, which evaluates both sides: stages keep every
+expression finite on both sides (e.g. a divisor floored at a tiny number where the branch that
+uses it is not taken). ``+ - * /`` and ``sqrt`` round identically in both namespaces;
+``cos``/``sin``/``exp``/``atan``... may differ by an ulp between libm and numpy, which is why a
+batched run equals a scalar run to ~1e-12 m rather than bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+
+
+def _where(condition, a, b):
+    return a if condition else b
+
+
+def _clip(value, lo, hi):
+    return min(max(value, lo), hi)
+
+
+def _or(a, b):
+    return a or b
+
+
+def _and(a, b):
+    return a and b
+
+
+def _isnan(value):
+    return value != value
+
+
+FLOATS = SimpleNamespace(
+    where=_where, minimum=min, maximum=max, clip=_clip, abs=abs,
+    logical_or=_or, logical_and=_and, isnan=_isnan,
+    cos=math.cos, sin=math.sin, tan=math.tan, atan=math.atan, atan2=math.atan2,
+    sqrt=math.sqrt, hypot=math.hypot, exp=math.exp,
+)
+
+def _clip_arrays(value, lo, hi):
+    return np.minimum(np.maximum(value, lo), hi)  # np.clip's overhead is ~10x on small arrays
+
+
+ARRAYS = SimpleNamespace(
+    where=np.where, minimum=np.minimum, maximum=np.maximum, clip=_clip_arrays, abs=np.abs,
+    logical_or=np.logical_or, logical_and=np.logical_and, isnan=np.isnan,
+    cos=np.cos, sin=np.sin, tan=np.tan, atan=np.arctan, atan2=np.arctan2,
+    sqrt=np.sqrt, hypot=np.hypot, exp=np.exp,
+)
