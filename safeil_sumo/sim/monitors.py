@@ -12,6 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from safeil_sumo.sim.xp import FLOATS
+
+_TINY = 1e-300  # a divisor's floor on the untaken side of a branch
+
 FLAG_NONE = ""
 FLAG_LANE = "lane_departure"
 FLAG_TTC = "ttc"
@@ -30,28 +34,23 @@ class MonitorConfig:
             raise ValueError("MonitorConfig.ttc_threshold_s must be > 0")
 
 
-def time_to_collision(gap: float, v_ego: float, v_lead: float) -> float:
+def time_to_collision(gap, v_ego, v_lead, xp=FLOATS):
     """TTC [s] = bumper gap [m] / closing speed [m/s]; ``inf`` when not closing.
 
-    A gap <= 0 (overlap) gives 0.
+    A gap <= 0 (overlap) gives 0. Floats, or arrays ``(N,)`` with ``xp=ARRAYS``.
     """
-    if gap <= 0.0:
-        return 0.0
     closing = v_ego - v_lead
-    return gap / closing if closing > 0.0 else math.inf
+    ttc = xp.where(closing > 0.0, gap / xp.maximum(closing, _TINY), math.inf)
+    return xp.where(gap <= 0.0, 0.0, ttc)
 
 
-def lane_departure(
-    min_offset: float, max_offset: float, lane_width: float, margin: float = 0.0
-) -> bool:
+def lane_departure(min_offset, max_offset, lane_width, margin=0.0, xp=FLOATS):
     """True when any part of the footprint lies outside ``±(lane_width/2 + margin)`` [m]."""
     half = 0.5 * lane_width + margin
-    return max_offset > half or min_offset < -half
+    return xp.logical_or(max_offset > half, min_offset < -half)
 
 
-def footprint_offset_range(
-    front_d: float, heading_error: float, length: float, width: float
-) -> tuple[float, float]:
+def footprint_offset_range(front_d, heading_error, length: float, width: float, xp=FLOATS):
     """Smallest and largest lateral offset [m] of the footprint's corners from the lane centre.
 
     ``front_d``: signed offset of the FRONT-bumper centre [m]; ``heading_error``: vehicle yaw
@@ -59,17 +58,17 @@ def footprint_offset_range(
     lies at ``front_d + x sin(e) + y cos(e)``; the corners are x in {0, -length}, y = +-width/2.
     Exact on a straight lane; on a 500 m arc the error over a 4.5 m body is ~2 cm (sagitta).
     """
-    s, c = math.sin(heading_error), math.cos(heading_error)
-    half_w = 0.5 * width * abs(c)
+    s, c = xp.sin(heading_error), xp.cos(heading_error)
+    half_w = 0.5 * width * xp.abs(c)
     rear = -length * s
-    lo = front_d + min(0.0, rear) - half_w
-    hi = front_d + max(0.0, rear) + half_w
+    lo = front_d + xp.minimum(0.0, rear) - half_w
+    hi = front_d + xp.maximum(0.0, rear) + half_w
     return lo, hi
 
 
-def path_completed(s: float, start: float, end: float) -> float:
+def path_completed(s, start: float, end: float, xp=FLOATS):
     """Fraction [0, 1] of the test path ``[start, end]`` [m] covered at arc length ``s``."""
-    return float(min(max((s - start) / (end - start), 0.0), 1.0))
+    return xp.clip((s - start) / (end - start), 0.0, 1.0)
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,7 @@ ROUTE_ID = "r_ego"
 LEADER_ROUTE_ID = "r_leader"  # the route's edges from the leader's first edge (when not the ego's)
 GUI_VIEW_WIDTH_M = 150.0  # sumo-gui's view width around the ego: it and a leader 50 m ahead [m]
 GUI_SCREENSHOT_AT_S = 1.0  # simulation time of LoopConfig.gui_screenshot [s]
+EGO_PLACEMENTS = ("xy", "lane")  # LoopConfig.ego_placement
 
 
 @dataclass(frozen=True)
@@ -90,8 +91,18 @@ class LoopConfig:
     gui: bool = False  # sumo-gui (traci backend only)
     gui_screenshot: Path | None = None  # PNG of sumo-gui's view at GUI_SCREENSHOT_AT_S (gui only)
     ssm_file: Path | None = None  # write SUMO's SSM device output for the ego here
+    # how SUMO is told where the ego is, every step: "xy" moveToXY, the exact pose (front
+    # bumper, heading; ~25 us per call, the loop's largest SUMO cost); "lane" moveTo at the
+    # front bumper's arc length on its lane (~1 us) while the front bumper is inside the lane,
+    # moveToXY when it is not: SUMO then sees an ego inside its lane on the centre line, heading
+    # along it. Our monitors never read the ego back from SUMO, and SUMO's collision check is per
+    # lane and longitudinal, so both give the same flags (measured: docs/performance.md)
+    ego_placement: str = "xy"
 
     def __post_init__(self) -> None:
+        if self.ego_placement not in EGO_PLACEMENTS:
+            raise ValueError(f"ego_placement must be one of {EGO_PLACEMENTS}, got "
+                             f"{self.ego_placement!r}")
         if not 0 < self.step_s <= 0.1:
             raise ValueError(f"step_s must be in (0, 0.1] s, got {self.step_s}")
         if not 0 < self.plan_rate_hz <= 1.0 / self.step_s:
@@ -222,6 +233,8 @@ def run_scenario(
         d_front = vehicle.cog_to_front_bumper_m
         camera = sen.LaneCamera(road, scenario.sensors)
         move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
+        on_lane = loop.ego_placement == "lane"
+        move_to = api.vehicle.moveTo if on_lane else None
         sim_step, colliding_ids = api.simulation.step, api.simulation.getCollidingVehiclesIDList
         integral, prev_error = 0.0, None  # PID memory (ControllerState's fields)
         target = None
@@ -285,7 +298,12 @@ def run_scenario(
             v = math.hypot(vx, vy)
             c_yaw, s_yaw = math.cos(yaw), math.sin(yaw)
             front = (x + d_front * c_yaw, y + d_front * s_yaw)
-            move_to_xy(EGO_ID, "", -1, front[0], front[1], yaw_to_sumo_angle(yaw), 2)
+            # where the front bumper is on the ego lane (O(1) walk from the last segment)
+            s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
+            if on_lane and abs(d) <= half_width:
+                move_to(EGO_ID, *sumo_lane_position(road, s))
+            else:
+                move_to_xy(EGO_ID, "", -1, front[0], front[1], yaw_to_sumo_angle(yaw), 2)
             set_speed(EGO_ID, v)
             if has_leader and leader is not None:
                 set_speed(LEADER_ID, lead_speeds[k] * lead_scale)
@@ -300,8 +318,7 @@ def run_scenario(
                     _traffic_leader(api, road, lead_seg if lead_id else ego_seg, radar_dist,
                                     sizes))
 
-            # monitors on the state at t + dt (O(1) walks along the lane from the last segment)
-            s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
+            # monitors on the state at t + dt
             heading_err = (yaw - lane_heading + math.pi) % (2.0 * math.pi) - math.pi
             d_min, d_max = mon.footprint_offset_range(d, heading_err, length, width)
             departed = mon.lane_departure(d_min, d_max, lane.width, lane_margin)
@@ -362,10 +379,16 @@ def run_scenario(
         except Exception:
             pass
     wall = time.perf_counter() - wall0
-    frame = log.frame()
-    summary = summarize(scenario, frame, end_reason, error, wall, policy.name)
-    summary |= drive_stats(frame, road.path_start_s)
-    summary["leaders_met"] = (len(met) if scenario.traffic is not None
+    return finish(scenario, log.frame(), end_reason, error, wall, policy.name, len(met), cut_ins)
+
+
+def finish(scenario: Scenario, frame: pd.DataFrame, end_reason: str, error: str, wall_s: float,
+           policy_name: str, leaders_met: int = 0, cut_ins: int = 0) -> Rollout:
+    """The rollout of a finished run: its log and the summary (:func:`summarize`, distance
+    and flag rates, leaders and cut-ins met with traffic)."""
+    summary = summarize(scenario, frame, end_reason, error, wall_s, policy_name)
+    summary |= drive_stats(frame, scenario.road.path_start_s)
+    summary["leaders_met"] = (leaders_met if scenario.traffic is not None
                               else int(frame["leader_no"].notna().any()) if len(frame) else 0)
     summary["cut_ins_met"] = cut_ins if scenario.traffic is not None else 0
     summary["traffic"] = scenario.traffic.density if scenario.traffic is not None else ""
@@ -425,6 +448,13 @@ def _depart(road: Road, s: float, who: str) -> tuple[int, str, str, float]:
                          "along the ego lane) and SUMO departs vehicles on edges only: change "
                          "the initial gap by a few metres")
     return p.route_index, str(p.lane_index), f"{(s - p.s0) * p.scale:.3f}", p.scale
+
+
+def sumo_lane_position(road: Road, s: float) -> tuple[str, float]:
+    """SUMO lane id and position on it [m] of arc length ``s`` [m] of the ego lane (clipped to
+    the lane's ends): where ``LoopConfig.ego_placement="lane"`` puts the front bumper."""
+    p = road.piece_at(s)
+    return p.lane_id, min(max((s - p.s0) * p.scale, 0.0), p.sumo_length)
 
 
 def _configure(api: sumo_api.SumoApi, veh_id: str, vehicle: veh.VehicleParams) -> None:
