@@ -12,9 +12,11 @@ class DriftLeft:
     horizon = 5.0
 
     def plan(self, features):
-        v = features[6]
+        # (..., 9) -> (..., 3, 2): a batch of feature rows gives a batch of plans
+        v = np.asarray(features)[..., 6, None]
         t = np.array([5 / 3, 10 / 3, 5.0])
-        return np.stack([v * t, 1.0 * t / 5.0], axis=1)
+        x = v * t
+        return np.stack([x, np.broadcast_to(1.0 * t / 5.0, x.shape)], axis=-1)
 
 
 def blind_cruise() -> AnalyticPlanner:

@@ -153,9 +153,9 @@ class TrackingTarget:
 @dataclass(frozen=True)
 class BatchTarget:
     """N plans prepared for tracking at once (:func:`track_values` with ``xp=ARRAYS``): the
-    fields of N :class:`TrackingTarget` of one horizon, stacked."""
+    fields of N :class:`TrackingTarget`, stacked."""
 
-    horizon_s: float  # T_h [s], shared
+    horizon_s: np.ndarray  # (N,) T_h [s]
     origin_x: np.ndarray  # (N,) [m]
     origin_y: np.ndarray  # (N,) [m]
     yaw: np.ndarray  # (N,) [rad]
@@ -168,9 +168,6 @@ class BatchTarget:
 
     @staticmethod
     def stack(targets: list[TrackingTarget]) -> BatchTarget:
-        horizon = targets[0].horizon_s
-        if any(tg.horizon_s != horizon for tg in targets):
-            raise ValueError("a batch of plans shares one horizon")
         paths = np.stack([tg.path for tg in targets])
 
         def col(name: str) -> np.ndarray:
@@ -178,14 +175,14 @@ class BatchTarget:
 
         cx, cy = col("coeff_x"), col("coeff_y")
         return BatchTarget(
-            horizon, col("origin_x"), col("origin_y"), col("yaw"), col("cos_yaw"),
+            col("horizon_s"), col("origin_x"), col("origin_y"), col("yaw"), col("cos_yaw"),
             col("sin_yaw"), tuple(cx.T), tuple(cy.T), paths[:, :, 0].copy(),
             paths[:, :, 1].copy())
 
     def take(self, keep: np.ndarray) -> BatchTarget:
         """The plans of rows ``keep`` (indices or a boolean mask)."""
         return BatchTarget(
-            self.horizon_s, self.origin_x[keep], self.origin_y[keep], self.yaw[keep],
+            self.horizon_s[keep], self.origin_x[keep], self.origin_y[keep], self.yaw[keep],
             self.cos_yaw[keep], self.sin_yaw[keep], tuple(c[keep] for c in self.coeff_x),
             tuple(c[keep] for c in self.coeff_y), self.path_x[keep], self.path_y[keep])
 
@@ -243,7 +240,7 @@ def lookahead_points(
     return np.where(far, near_x, cross_x), np.where(far, near_y, cross_y)
 
 
-def plan_speed_and_accel(coeff_x, coeff_y, horizon: float, t, xp=FLOATS):
+def plan_speed_and_accel(coeff_x, coeff_y, horizon, t, xp=FLOATS):
     """Speed [m/s] and tangential acceleration [m/s^2] at ``t`` [s] of a plan whose x(t), y(t)
     have power-basis coefficients ``coeff_x``, ``coeff_y`` (4 each) over ``horizon`` [s].
 
@@ -251,7 +248,7 @@ def plan_speed_and_accel(coeff_x, coeff_y, horizon: float, t, xp=FLOATS):
     runs backwards (x velocity < 0 in the plan frame: "stay behind the stopped car") asks for
     a stop: speed 0, no feed-forward (the car does not reverse; reading the speed as the
     velocity's magnitude would make it creep forwards into the car it is told to stay behind).
-    Floats, or with ``xp=ARRAYS`` coefficients and ``t`` of arrays ``(N,)``.
+    Floats, or with ``xp=ARRAYS`` coefficients, ``horizon`` and ``t`` of arrays ``(N,)``.
     """
     cx, cy = coeff_x, coeff_y
     tc = xp.clip(t, 0.0, horizon)

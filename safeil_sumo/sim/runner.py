@@ -522,12 +522,12 @@ def drive_stats(log: pd.DataFrame, path_start_s: float) -> dict:
     return out
 
 
-def _read_leader(api: sumo_api.SumoApi, vehicle: veh.VehicleParams):
+def _read_leader(api: sumo_api.SumoApi, vehicle: veh.VehicleParams, veh_id: str = LEADER_ID):
     """``(rear_xy, speed, yaw, front_xy)`` of the leader, or None once it has left the network."""
     try:
-        fx, fy = api.vehicle.getPosition(LEADER_ID)
-        yaw = sumo_angle_to_yaw(api.vehicle.getAngle(LEADER_ID))
-        v = api.vehicle.getSpeed(LEADER_ID)
+        fx, fy = api.vehicle.getPosition(veh_id)
+        yaw = sumo_angle_to_yaw(api.vehicle.getAngle(veh_id))
+        v = api.vehicle.getSpeed(veh_id)
     except Exception:  # libsumo/traci raise TraCIException for a vehicle that has arrived
         return None
     rear = (fx - vehicle.length_m * math.cos(yaw), fy - vehicle.length_m * math.sin(yaw))

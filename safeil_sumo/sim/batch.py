@@ -1,0 +1,371 @@
+"""N scenarios in ONE SUMO simulation: :func:`run_batch`, the closed loop over arrays.
+
+Each scenario drives its own renamed copy of the track (:mod:`.batch_net`); one
+``simulationStep`` moves all of them. The loop is :func:`safeil_sumo.sim.runner.run_scenario`'s
+sequence of stages, sense -> plan -> track -> plant -> move in SUMO -> step -> monitor, with
+the per-step stages called ONCE for all running scenarios on arrays ``(N,)`` (the same stage
+functions as the scalar loop, with the array namespace :data:`.xp.ARRAYS`) and the planner
+called once per plan step on features ``(N, 9)``. What is per scenario by nature stays per
+scenario: the camera and radar (each scenario's own road and noise generator), the walks
+along each lane, SUMO's per-vehicle commands and reads.
+
+Same answers as ``run_scenario`` (tests/test_batch.py): the same flags, flag times, path
+completed and end reasons, trajectories equal to round-off (numpy's ``cos``/``sin`` may differ
+from libm's by an ulp). SUMO has one ``--seed`` per simulation; the loop draws no random
+number from SUMO (speed mode 0, every speed commanded) and each scenario keeps its own
+``np.random.Generator(scenario.seed)`` for the sensor noise.
+
+Not here (use ``run_scenario``): traffic, sumo-gui, SSM output, kinematic (``pose_at``) egos.
+An exception inside the loop ends every scenario still running with ``end_reason="error"``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from safeil_sumo.features import planner_features
+from safeil_sumo.geometry import rectangle_corners, rectangles_overlap, yaw_to_sumo_angle
+from safeil_sumo.policy import Policy
+from safeil_sumo.sim import controller as ctl
+from safeil_sumo.sim import monitors as mon
+from safeil_sumo.sim import sensors as sen
+from safeil_sumo.sim import sumo_api
+from safeil_sumo.sim import vehicle as veh
+from safeil_sumo.sim.batch_net import batch_net, copy_offset_m, prefixed
+from safeil_sumo.sim.runner import (
+    ApiFactory,
+    LoopConfig,
+    Rollout,
+    Scenario,
+    _centre_xy,
+    _configure,
+    _default_factory,
+    _depart,
+    _Log,
+    _read_leader,
+    finish,
+    sumo_args,
+)
+from safeil_sumo.sim.xp import ARRAYS
+
+# empty space [m] between neighbouring copies of the track: beyond moveToXY's lane search
+# radius, so each ego's search sees its own copy only (coincident copies made every moveToXY
+# search all N copies: 0.2x the scalar loop at N = 32, measured)
+SPACING_M = 1000.0
+
+
+class _Scenario:
+    """What is per scenario in a batch: its road, noise, camera, leader and log."""
+
+    def __init__(self, i: int, scenario: Scenario, policy: Policy, loop: LoopConfig,
+                 vehicle: veh.VehicleParams, dx: float) -> None:
+        self.i, self.scenario, self.policy = i, scenario, policy
+        self.ego, self.leader_id = f"ego_{i}", f"leader_{i}"
+        self.dx = dx  # x offset [m] of this scenario's copy of the track in SUMO
+        road = self.road = scenario.road
+        self.lane = road.lanes[road.ego_lane]
+        self.centre = self.lane.centre
+        self.multi_piece = len(road.ego_pieces) > 1
+        self.rng = np.random.default_rng(scenario.seed)
+        self.camera = sen.LaneCamera(road, scenario.sensors)
+        dt = loop.step_s
+        limits = [t for t in (scenario.max_time_s, loop.max_time_s) if t]
+        max_time = min(limits) if limits else (
+            2.0 * road.path_length / max(scenario.ego_speed_mps, 5.0) + 10.0)
+        self.n_max = int(math.ceil(max_time / dt))
+        self.s_ego0 = road.path_start_s
+        self.s_lead0 = self.s_ego0 + scenario.initial_gap_m + vehicle.length_m
+        start_xy, lane_yaw = self.centre.point_at(self.s_ego0)
+        normal = np.array([-math.sin(float(lane_yaw)), math.cos(float(lane_yaw))])
+        start_xy = start_xy + scenario.ego_lateral_offset_m * normal
+        self.state0 = veh.state_from_front_bumper(
+            float(start_xy[0]), float(start_xy[1]),
+            float(lane_yaw) + scenario.ego_heading_offset_rad, scenario.ego_speed_mps, vehicle)
+        self.has_leader = scenario.leader is not None
+        self.lead_speeds = (scenario.leader.speed_at(np.arange(self.n_max) * dt + dt).tolist()
+                            if self.has_leader else None)
+        self.lead_scale = 1.0
+        self.leader = None  # (rear_xy, v_sumo, yaw, front_xy) as read after the last step
+        self.lead_v = 0.0
+        self.ego_seg = self.centre.segment_index(self.s_ego0)
+        self.lead_seg = self.centre.segment_index(self.s_lead0)
+        self.log = _Log(self.n_max)
+        self.end_reason, self.error = "", ""
+
+    def add(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
+        """Insert the ego and leader on this scenario's copy of the track; place the ego."""
+        sc, road, i = self.scenario, self.road, self.i
+        ego_k, ego_lane, ego_pos, _ = _depart(road, min(self.s_ego0, self.centre.length), "ego")
+        route = f"r_ego_{i}"
+        api.route.add(route, [prefixed(i, e) for e in road.route_edges[ego_k:]])
+        api.vehicle.add(self.ego, route, depart="now", departLane=ego_lane, departPos=ego_pos,
+                        departSpeed=f"{sc.ego_speed_mps:.3f}")
+        _configure(api, self.ego, vehicle)
+        if self.has_leader:
+            lead_k, lead_lane, lead_pos, self.lead_scale = _depart(road, self.s_lead0, "leader")
+            lead_route = route
+            if lead_k != ego_k:  # departPos is per edge: the leader starts on a later edge
+                lead_route = f"r_leader_{i}"
+                api.route.add(lead_route, [prefixed(i, e) for e in road.route_edges[lead_k:]])
+            api.vehicle.add(self.leader_id, lead_route, depart="now", departLane=lead_lane,
+                            departPos=lead_pos,
+                            departSpeed=f"{sc.leader.initial_speed * self.lead_scale:.3f}")
+            _configure(api, self.leader_id, vehicle)
+        x, y = veh.front_bumper(self.state0, vehicle)
+        # before its insertion SUMO takes the edge hint only with a lane index
+        api.vehicle.moveToXY(self.ego, prefixed(i, road.route_edges[ego_k]), int(ego_lane),
+                             x + self.dx, y, yaw_to_sumo_angle(self.state0.yaw), 2)
+        api.vehicle.setSpeed(self.ego, veh.speed(self.state0))
+
+    def read_leader(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
+        """The leader after a step, in the original track's coordinates."""
+        lead = _read_leader(api, vehicle, self.leader_id)
+        if lead is not None and self.dx:
+            (rx, ry), v, yaw, (fx, fy) = lead
+            lead = (rx - self.dx, ry), v, yaw, (fx - self.dx, fy)
+        self.leader = lead
+
+
+def _lane_position(sc: _Scenario, s: float) -> tuple[str, float]:
+    p = sc.road.piece_at(s)
+    return prefixed(sc.i, p.lane_id), min(max((s - p.s0) * p.scale, 0.0), p.sumo_length)
+
+
+def run_batch(
+    scenarios: Sequence[Scenario],
+    policy: Policy | Sequence[Policy],
+    loop: LoopConfig = LoopConfig(),
+    vehicle: veh.VehicleParams = veh.VehicleParams(),
+    controller: ctl.ControllerParams = ctl.ControllerParams(),
+    api_factory: ApiFactory | None = None,
+    on_done: Callable[[int, Rollout], None] | None = None,
+) -> list[Rollout]:
+    """Run ``scenarios`` closed-loop side by side in one SUMO simulation; their rollouts in
+    order. ``policy`` is one planner for all or one per scenario (scenarios sharing a planner
+    object are planned in one call). ``on_done(i, rollout)`` is called as soon as scenario ``i`` ends (a sweep saves it
+    then, so a killed worker loses only the scenarios still running).
+
+    Every scenario must be on the same network and have a scripted leader or none (no
+    traffic); ``loop`` must not ask for sumo-gui or SSM output.
+    """
+    if not scenarios:
+        return []
+    policies = ([policy] * len(scenarios) if hasattr(policy, "plan") else list(policy))
+    if len(policies) != len(scenarios):
+        raise ValueError(f"{len(scenarios)} scenarios but {len(policies)} policies")
+    _check(scenarios, policies, loop)
+    n = len(scenarios)
+    net = scenarios[0].road.net_path
+    on_lane = loop.ego_placement == "lane"
+    offset = copy_offset_m(net, SPACING_M)
+    runs = [_Scenario(i, sc, p, loop, vehicle, i * offset)
+            for i, (sc, p) in enumerate(zip(scenarios, policies))]
+    args = sumo_args(scenarios[0], loop)
+    args[args.index("-n") + 1] = str(batch_net(net, n, offset_m=offset))
+    api = (api_factory or _default_factory(loop))(args)
+    out: list[Rollout | None] = [None] * n
+    wall0 = time.perf_counter()
+    try:
+        for r in runs:
+            r.add(api, vehicle)
+        api.simulation.step()
+        for r in runs:
+            if r.has_leader:
+                r.read_leader(api, vehicle)
+                r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
+        _loop(api, runs, loop, vehicle, controller)
+    except Exception as exc:  # every scenario still running ends with the reason
+        for r in runs:
+            if not r.end_reason:
+                r.end_reason, r.error = "error", f"{type(exc).__name__}: {exc}"
+    finally:
+        try:
+            api.close()
+        except Exception:
+            pass
+    wall = time.perf_counter() - wall0
+    steps_total = max(sum(len(r.log.rows) for r in runs), 1)
+    for r in runs:
+        # the batch's wall time, shared out by steps (what one scenario cost of it)
+        rollout = finish(r.scenario, r.log.frame(), r.end_reason or "timeout", r.error,
+                         wall * len(r.log.rows) / steps_total, r.policy.name)
+        out[r.i] = rollout
+        if on_done is not None:
+            on_done(r.i, rollout)
+    return out
+
+
+def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: LoopConfig) -> None:
+    if any(getattr(p, "pose_at", None) is not None for p in policies):
+        raise ValueError("run_batch does not run kinematic (pose_at) egos: use run_scenario")
+    if loop.gui or loop.ssm_file is not None:
+        raise ValueError("run_batch runs headless without SSM output: use run_scenario")
+    nets = {sc.road.net_path for sc in scenarios}
+    if len(nets) > 1:
+        raise ValueError(f"a batch runs on one network, got {len(nets)}: "
+                         f"{', '.join(sorted(str(p) for p in nets))}")
+    if any(sc.traffic is not None for sc in scenarios):
+        raise ValueError("run_batch runs scripted leaders only (no traffic): use run_scenario")
+
+
+def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
+          vehicle: veh.VehicleParams, controller: ctl.ControllerParams) -> None:
+    """The stages over arrays of the running scenarios, until every one has ended."""
+    dt = loop.step_s
+    plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
+    on_lane = loop.ego_placement == "lane"
+    plant = veh.Plant.of(vehicle, dt)
+    d_front = vehicle.cog_to_front_bumper_m
+    length, width = vehicle.length_m, vehicle.width_m
+    move_to_xy, move_to, set_speed = api.vehicle.moveToXY, api.vehicle.moveTo, api.vehicle.setSpeed
+    sim_step, colliding_ids = api.simulation.step, api.simulation.getCollidingVehiclesIDList
+
+    live = list(runs)  # the running scenarios; row j of every array below is live[j]
+    st = tuple(np.array(col, dtype=float) for col in zip(*(
+        (r.state0.x, r.state0.y, r.state0.yaw, r.state0.vx, r.state0.vy, r.state0.yaw_rate,
+         r.state0.steer, r.state0.drive_force) for r in live)))
+    n = len(live)
+    integral, prev_error = np.zeros(n), np.full(n, np.nan)  # PID memory
+    t_plan = np.zeros(n)
+    feature_log = np.full((n, 8), np.nan)  # c0l..c2r, v_lead, d_lead as logged
+    plan_log = np.full((n, 10), np.nan)  # the plan being tracked: time, pose, control points
+    target = None
+    half_width = np.array([0.5 * r.lane.width for r in live])
+    lane_width = 2.0 * half_width
+    margin = np.array([r.scenario.monitors.lane_margin_m for r in live])
+    ttc_threshold = np.array([r.scenario.monitors.ttc_threshold_s for r in live])
+    path_start = np.array([r.road.path_start_s for r in live])
+    path_end = np.array([r.road.path_end_s for r in live])
+    n_max = np.array([r.n_max for r in live])
+    for k in range(int(n_max.max())):
+        t = k * dt
+        if k % plan_every == 0:  # sense and plan, all scenarios at once
+            x, y, yaw, vx, vy = st[:5]
+            v = np.hypot(vx, vy)
+            fx_, fy_ = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
+            feats = np.empty((n, 9))
+            for j, r in enumerate(live):
+                front_xy = np.array((fx_[j], fy_[j]))
+                left, right, _ = r.camera.lane_lines(front_xy, float(yaw[j]), r.rng)
+                lead = r.leader
+                radar = sen.radar_leader(front_xy, float(yaw[j]), None if lead is None else
+                                         lead[0], 0.0 if lead is None else r.lead_v, left,
+                                         right, r.scenario.sensors, r.rng)
+                v_lead, d_lead = sen.leader_features(radar, float(v[j]), r.scenario.sensors)
+                feats[j] = planner_features(left, right, float(v[j]), v_lead, d_lead)
+            feature_log = feats[:, [0, 1, 2, 3, 4, 5, 7, 8]]
+            plans = np.empty((n, 3, 2))
+            for policy, rows_of in _by_policy(live):  # one call per planner object
+                plans[rows_of] = np.asarray(policy.plan(feats[rows_of]), float).reshape(-1, 3, 2)
+            target = ctl.BatchTarget.stack([
+                ctl.make_target(plans[j], r.policy.horizon, (fx_[j], fy_[j], yaw[j]))
+                for j, r in enumerate(live)])
+            t_plan = np.full(n, t)
+            plan_log = np.column_stack([t_plan, fx_, fy_, yaw, plans.reshape(n, 6)])
+
+        # track and drive, all scenarios at once
+        x, y, yaw, vx, vy, yaw_rate = st[:6]
+        steer_cmd, accel_cmd, integral, prev_error = ctl.track_values(
+            target, t - t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, integral, prev_error,
+            controller, dt, ARRAYS)
+        throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, ARRAYS)
+        st = plant.step(st, steer_cmd, throttle, brake, ARRAYS)
+        x, y, yaw, vx, vy = st[:5]
+        v = np.hypot(vx, vy)
+        front_x, front_y = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
+
+        # where each front bumper is on its lane, then SUMO: move, command the leaders, step
+        s, d, heading = np.empty(n), np.empty(n), np.empty(n)
+        angle = None if on_lane else [yaw_to_sumo_angle(a) for a in yaw.tolist()]
+        fxl, fyl, vl = front_x.tolist(), front_y.tolist(), v.tolist()
+        for j, r in enumerate(live):
+            s[j], d[j], heading[j], r.ego_seg = r.centre.project_near(fxl[j], fyl[j], r.ego_seg)
+            if on_lane and abs(d[j]) <= half_width[j]:
+                move_to(r.ego, *_lane_position(r, s[j]))
+            else:
+                move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j],
+                           yaw_to_sumo_angle(float(yaw[j])) if angle is None else angle[j], 2)
+            set_speed(r.ego, vl[j])
+            if r.has_leader and r.leader is not None:
+                set_speed(r.leader_id, r.lead_speeds[k] * r.lead_scale)
+        sim_step()
+        colliding = set(colliding_ids())
+
+        # the leaders, read per scenario; monitors on the state at t + dt, all at once
+        gap, v_lead_true = np.full(n, np.inf), np.full(n, np.nan)
+        lead_x, lead_y = np.full(n, np.nan), np.full(n, np.nan)
+        hit = np.array([r.ego in colliding for r in live], dtype=bool)
+        for j, r in enumerate(live):
+            if not (r.has_leader and r.leader is not None):
+                continue
+            r.read_leader(api, vehicle)
+            if r.leader is None:
+                continue
+            lead_rear, v_sumo, lead_yaw, lead_front = r.leader
+            lead_x[j], lead_y[j] = lead_rear
+            v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
+            s_rear, _, _, r.lead_seg = r.centre.project_near(lead_rear[0], lead_rear[1],
+                                                             r.lead_seg)
+            if r.multi_piece:  # the next command's scale: the SUMO lane under its front
+                r.lead_scale = r.road.piece_at(s_rear + length).scale
+            gap[j] = s_rear - s[j]
+            if gap[j] < 2.0 * length and not hit[j]:
+                ego_box = rectangle_corners(_centre_xy((fxl[j], fyl[j]), float(yaw[j]), vehicle),
+                                            float(yaw[j]), length, width)
+                lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
+                hit[j] = rectangles_overlap(
+                    ego_box, rectangle_corners(lead_centre, lead_yaw, length, width))
+        heading_err = (yaw - heading + math.pi) % (2.0 * math.pi) - math.pi
+        d_min, d_max = mon.footprint_offset_range(d, heading_err, length, width, ARRAYS)
+        departed = mon.lane_departure(d_min, d_max, lane_width, margin, ARRAYS)
+        has_lead = ~np.isnan(v_lead_true)
+        ttc = np.where(has_lead, mon.time_to_collision(gap, v, v_lead_true, ARRAYS), np.inf)
+        ttc_flag = ttc <= ttc_threshold
+        fraction = mon.path_completed(s, path_start, path_end, ARRAYS)
+        rows = np.column_stack([
+            np.full(n, t + dt), x, y, yaw, v, vy, st[5], st[6], front_x, front_y, steer_cmd,
+            accel_cmd, s, d, d_min, d_max, feature_log, lead_x, lead_y, v_lead_true, gap, ttc,
+            departed, ttc_flag, hit, fraction, plan_log, np.where(has_lead, 0.0, np.nan),
+        ]).tolist()
+        for j, r in enumerate(live):
+            r.log.rows.append(tuple(rows[j]))
+
+        # ends, in run_scenario's order
+        reason = np.select(
+            [s >= path_end, hit, np.abs(d) > half_width + loop.offroad_stop_m,
+             (departed | ttc_flag) & loop.stop_on_flag, k + 1 >= n_max],
+            ["completed", "collision", "off_road", "flag", "timeout"], "")
+        ended = reason != ""
+        if ended.any():
+            for j in np.flatnonzero(ended):
+                r = live[j]
+                r.end_reason = str(reason[j])
+                for vid in (r.ego, r.leader_id) if r.has_leader and r.leader else (r.ego,):
+                    try:
+                        api.vehicle.remove(vid)
+                    except Exception:  # noqa: BLE001  # it has already left the network
+                        pass
+            keep = np.flatnonzero(~ended)
+            live = [live[j] for j in keep]
+            if not live:
+                return
+            n = len(live)
+            st = tuple(col[keep] for col in st)
+            integral, prev_error, t_plan = integral[keep], prev_error[keep], t_plan[keep]
+            feature_log, plan_log = feature_log[keep], plan_log[keep]
+            target = target.take(keep)
+            half_width, lane_width, margin = half_width[keep], lane_width[keep], margin[keep]
+            ttc_threshold, path_start = ttc_threshold[keep], path_start[keep]
+            path_end, n_max = path_end[keep], n_max[keep]
+
+
+def _by_policy(live: list[_Scenario]) -> list[tuple[Policy, list[int]]]:
+    """Each planner object of ``live`` with its rows, in order (planners need not hash)."""
+    rows: dict[int, tuple[Policy, list[int]]] = {}
+    for j, r in enumerate(live):
+        rows.setdefault(id(r.policy), (r.policy, []))[1].append(j)
+    return list(rows.values())

@@ -1,0 +1,139 @@
+"""run_batch (N scenarios in one libsumo simulation) gives run_scenario's answers, one by one.
+
+A mixed batch on curved500: a clean completion, a lane departure then off-road (DriftLeft), a
+collision (blind cruise), an early timeout and a free road, with per-scenario policies (two
+scenarios share one analytic planner object: one batched plan call). Every log must equal the
+scalar run's to round-off, and the summaries must agree (wall times aside).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pandas as pd
+import pytest
+from bad_policies import DriftLeft, blind_cruise
+
+from safeil_sumo.analytic import AnalyticPlanner
+from safeil_sumo.scenarios.catalogue import resolve_net
+from safeil_sumo.scenarios.road import load_road
+from safeil_sumo.scenarios.safety import safety_scenario
+from safeil_sumo.sim.batch import run_batch
+from safeil_sumo.sim.batch_net import batch_net, copies_xml
+from safeil_sumo.sim.leaders import constant, piecewise
+from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+
+pytest.importorskip("libsumo")
+
+WALL_KEYS = ("wall_time_s", "steps_per_s")
+ATOL_M = 1e-6  # the issue's bound on trajectory differences [m]
+
+
+@pytest.fixture(scope="module")
+def road():
+    return load_road(resolve_net("curved500"))
+
+
+def _mixed(road):
+    analytic = AnalyticPlanner()
+    noisy = safety_scenario(road, 3, master_seed=7)
+    noisy = replace(
+        noisy, name="noisy", max_time_s=8.0, ego_lateral_offset_m=0.3, ego_heading_offset_rad=0.01,
+        leader=piecewise([0.0, 2.0, 4.0, 6.0], [28.0, 28.0, 22.0, 30.0]),
+        sensors=replace(noisy.sensors, radar_noise_m=0.3, radar_speed_noise_mps=0.2,
+                        lane_noise_c0_m=0.02, lane_noise_c1=0.002, quantization_m=0.05))
+    return [
+        (replace(safety_scenario(road, 0), name="clean"), analytic),
+        (Scenario("drift", road, constant(30.0), 30.0, 50.0, seed=1), DriftLeft()),
+        (Scenario("blind", road, constant(25.0), 30.0, 50.0, seed=2), blind_cruise()),
+        (noisy, analytic),
+        (Scenario("free", road, None, 25.0, 50.0, seed=4, max_time_s=4.0), AnalyticPlanner()),
+    ]
+
+
+def _largest_difference(batch, scalar) -> float:
+    with np.errstate(invalid="ignore"):  # inf - inf in gap/ttc columns without a leader
+        return max(float(np.nanmax(np.abs(np.where(
+            np.isinf(s.log.to_numpy(float)), 0, b.log.to_numpy(float) - s.log.to_numpy(float)))))
+            for b, s in zip(batch, scalar))
+
+
+def _assert_same(batch, scalar, atol=ATOL_M):
+    """Same rows, flags, flag times (to the step) and end reasons; floats within ``atol``."""
+    for b, s in zip(batch, scalar):
+        name = s.summary["scenario"]
+        assert list(b.log.columns) == list(s.log.columns)
+        assert len(b.log) == len(s.log), name
+        for col in s.log.columns:
+            np.testing.assert_allclose(b.log[col].to_numpy(), s.log[col].to_numpy(),
+                                       rtol=0, atol=atol, err_msg=f"{name}: {col}")
+        for key, value in s.summary.items():
+            if key in WALL_KEYS:
+                continue
+            got = b.summary[key]
+            if isinstance(value, float) and not pd.isna(value) and key != "flag_time_s":
+                assert got == value or abs(got - value) <= atol * max(1.0, abs(value)), (
+                    name, key, got, value)
+            else:
+                assert got == value or (pd.isna(value) and pd.isna(got)), (name, key, got, value)
+
+
+@pytest.mark.parametrize("placement", ["xy", "lane"])
+def test_mixed_batch_equals_scalar_runs(road, placement):
+    cases = _mixed(road)
+    loop = LoopConfig(max_time_s=60.0, ego_placement=placement)
+    scalar = [run_scenario(sc, p, loop) for sc, p in cases]
+    reasons = [r.summary["end_reason"] for r in scalar]
+    # the batch covers every way to end, at different steps
+    assert reasons == ["completed", "off_road", "collision", "timeout", "timeout"]
+    assert scalar[1].summary["flag"] == "lane_departure"
+    assert len({len(r.log) for r in scalar}) == len(scalar)
+    done = []
+    batch = run_batch([sc for sc, _ in cases], [p for _, p in cases], loop,
+                      on_done=lambda i, r: done.append(i))
+    _assert_same(batch, scalar)
+    assert sorted(done) == list(range(len(cases)))
+    print(f"largest difference ({placement}): {_largest_difference(batch, scalar):.3g}")
+
+
+def test_stop_on_flag_and_one_policy(road):
+    """stop_on_flag ends scenarios at their flag step while the others go on; one policy."""
+    planner = blind_cruise()
+    cases = [Scenario(f"lead{v:.0f}", road, constant(v), 30.0, gap, seed=i)
+             for i, (v, gap) in enumerate([(15.0, 50.0), (20.0, 50.0), (31.0, 50.0)])]
+    loop = LoopConfig(max_time_s=6.0, stop_on_flag=True, ego_placement="lane")
+    scalar = [run_scenario(sc, planner, loop) for sc in cases]
+    assert [r.summary["end_reason"] for r in scalar] == ["flag", "flag", "timeout"]
+    _assert_same(run_batch(cases, planner, loop), scalar)
+
+
+def test_placements_agree_on_the_paper_scenarios(road):
+    """moveTo on lane coordinates gives the flags and trajectories of moveToXY (10 scenarios)."""
+    from safeil_sumo import policies
+
+    cases = [safety_scenario(road, i) for i in range(10)]
+    policy = policies.load("bc")  # leaves its lane: the off-lane steps fall back to moveToXY
+    xy = run_batch(cases, policy, LoopConfig(ego_placement="xy"))
+    lane = run_batch(cases, policy, LoopConfig(ego_placement="lane"))
+    _assert_same(lane, xy, atol=0.0)
+
+
+def test_bad_batches_are_refused(road):
+    from safeil_sumo.sim.traffic import Traffic  # noqa: F401  (import check only)
+
+    sc = safety_scenario(road, 0)
+    other = replace(sc, road=load_road(resolve_net("straight")))
+    with pytest.raises(ValueError, match="one network"):
+        run_batch([sc, other], AnalyticPlanner())
+    with pytest.raises(ValueError, match="policies"):
+        run_batch([sc, sc], [AnalyticPlanner()])
+    assert run_batch([], AnalyticPlanner()) == []
+
+
+def test_copies_are_renamed_and_side_by_side(road, tmp_path):
+    text = copies_xml(road.net_path, 2, 3000.0).decode()
+    assert 'id="c0_road"' in text and 'id="c1_road_1"' in text and 'id="road"' not in text
+    assert text.count("<location") == 1
+    assert batch_net(road.net_path, 2, tmp_path, 3000.0) == batch_net(road.net_path, 2, tmp_path,
+                                                                       3000.0)
