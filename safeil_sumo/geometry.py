@@ -198,6 +198,46 @@ class Polyline:
         _, along, d = self._foot(x, y, best)
         return s_at[best] + along, d, heading[best], best
 
+    def project_near_many(self, x: np.ndarray, y: np.ndarray, hint: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`project_near` of N points ``(N,)`` from their hints ``(N,)``: the same walk
+        and arithmetic on arrays; a point near a vertex (two candidate segments) is resolved
+        by :meth:`project_near` itself. Returns ``s, d, heading, segment`` ``(N,)`` each."""
+        xs, ys, tx, ty, seg_len, s_at, heading = self._arrays()
+        last = len(seg_len) - 1
+        i = np.clip(hint, 0, last)
+        prev = np.full(len(i), -1)
+        walking = np.ones(len(i), dtype=bool)
+        for _ in range(last + 1):
+            along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
+            step = np.where((along >= seg_len[i]) & (i < last), i + 1,
+                            np.where((along < 0.0) & (i > 0), i - 1, i))
+            walking &= (step != i) & (step != prev)  # stopped: no step, or back (a bend)
+            if not walking.any():
+                break
+            prev = np.where(walking, i, prev)
+            i = np.where(walking, step, i)
+        along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
+        im, ip = np.maximum(i - 1, 0), np.minimum(i + 1, last)
+        before = (i > 0) & ((along <= 0.0)
+                            | ((x - xs[im]) * tx[im] + (y - ys[im]) * ty[im] <= seg_len[im]))
+        after = (i < last) & ((along >= seg_len[i])
+                              | ((x - xs[ip]) * tx[ip] + (y - ys[ip]) * ty[ip] >= 0.0))
+        s = s_at[i] + along
+        d = tx[i] * (y - ys[i]) - ty[i] * (x - xs[i])
+        head = heading[i]
+        for j in np.flatnonzero(before | after):  # near a vertex: the scalar rule, exactly
+            s[j], d[j], head[j], i[j] = self.project_near(float(x[j]), float(y[j]), int(hint[j]))
+        return s, d, head, i
+
+    def _arrays(self) -> tuple[np.ndarray, ...]:
+        """``_py`` as arrays (built once)."""
+        arrays = self.__dict__.get("_np")
+        if arrays is None:
+            arrays = tuple(np.array(a) for a in self._py)
+            object.__setattr__(self, "_np", arrays)
+        return arrays
+
     def _foot(self, x: float, y: float, i: int) -> tuple[float, float, float]:
         """``(squared distance, clipped along, d)`` of a point to segment ``i``, in
         :meth:`project`'s arithmetic (same rounding, so ties resolve alike; ends extend)."""

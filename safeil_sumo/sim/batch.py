@@ -91,10 +91,8 @@ class _Scenario:
         self.lead_scale = 1.0
         self.leader = None  # (rear_xy, v_sumo, yaw, front_xy) as read after the last step
         self.lead_v = 0.0
-        self.ego_seg = self.centre.segment_index(self.s_ego0)
-        self.lead_seg = self.centre.segment_index(self.s_lead0)
-        self.log = _Log(self.n_max)
         self.end_reason, self.error = "", ""
+        self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this copy
 
     def add(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
         """Insert the ego and leader on this scenario's copy of the track; place the ego."""
@@ -131,8 +129,12 @@ class _Scenario:
 
 
 def _lane_position(sc: _Scenario, s: float) -> tuple[str, float]:
-    p = sc.road.piece_at(s)
-    return prefixed(sc.i, p.lane_id), min(max((s - p.s0) * p.scale, 0.0), p.sumo_length)
+    """:func:`.runner.sumo_lane_position` on the scenario's copy of the track."""
+    p = sc.road.piece_at(s) if sc.multi_piece else sc.road.ego_pieces[0]
+    lane_id = sc.lane_ids.get(p.lane_id)
+    if lane_id is None:
+        lane_id = sc.lane_ids[p.lane_id] = prefixed(sc.i, p.lane_id)
+    return lane_id, min(max((s - p.s0) * p.scale, 0.0), p.sumo_length)
 
 
 def run_batch(
@@ -168,6 +170,7 @@ def run_batch(
     args[args.index("-n") + 1] = str(batch_net(net, n, offset_m=offset))
     api = (api_factory or _default_factory(loop))(args)
     out: list[Rollout | None] = [None] * n
+    blocks: list[tuple[np.ndarray, np.ndarray]] = []  # per step: scenario ids, log rows
     wall0 = time.perf_counter()
     try:
         for r in runs:
@@ -177,7 +180,7 @@ def run_batch(
             if r.has_leader:
                 r.read_leader(api, vehicle)
                 r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
-        _loop(api, runs, loop, vehicle, controller)
+        _loop(api, runs, loop, vehicle, controller, blocks)
     except Exception as exc:  # every scenario still running ends with the reason
         for r in runs:
             if not r.end_reason:
@@ -188,11 +191,15 @@ def run_batch(
         except Exception:
             pass
     wall = time.perf_counter() - wall0
-    steps_total = max(sum(len(r.log.rows) for r in runs), 1)
+    ids = np.concatenate([b[0] for b in blocks]) if blocks else np.zeros(0, int)
+    data = (np.concatenate([b[1] for b in blocks]) if blocks
+            else np.zeros((0, len(_Log.COLUMNS))))
+    del blocks
     for r in runs:
+        rows = data[ids == r.i]
         # the batch's wall time, shared out by steps (what one scenario cost of it)
-        rollout = finish(r.scenario, r.log.frame(), r.end_reason or "timeout", r.error,
-                         wall * len(r.log.rows) / steps_total, r.policy.name)
+        rollout = finish(r.scenario, _Log.to_frame(rows), r.end_reason or "timeout", r.error,
+                         wall * len(rows) / max(len(data), 1), r.policy.name)
         out[r.i] = rollout
         if on_done is not None:
             on_done(r.i, rollout)
@@ -213,8 +220,10 @@ def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: Loop
 
 
 def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
-          vehicle: veh.VehicleParams, controller: ctl.ControllerParams) -> None:
-    """The stages over arrays of the running scenarios, until every one has ended."""
+          vehicle: veh.VehicleParams, controller: ctl.ControllerParams,
+          blocks: list[tuple[np.ndarray, np.ndarray]]) -> None:
+    """The stages over arrays of the running scenarios, until every one has ended; each step
+    appends the scenario ids and log rows ``(n, columns)`` of the running ones to ``blocks``."""
     dt = loop.step_s
     plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
     on_lane = loop.ego_placement == "lane"
@@ -241,29 +250,40 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
     path_start = np.array([r.road.path_start_s for r in live])
     path_end = np.array([r.road.path_end_s for r in live])
     n_max = np.array([r.n_max for r in live])
-    for k in range(int(n_max.max())):
+    horizon = np.array([r.policy.horizon for r in live], dtype=float)
+    ids = np.array([r.i for r in live])  # the scenario of each row
+    lanes = _lanes(live)
+    ego_seg = np.array([r.centre.segment_index(r.s_ego0) for r in live])
+    lead_seg = np.array([r.centre.segment_index(r.s_lead0) for r in live])
+    multi_piece = np.array([r.multi_piece for r in live], dtype=bool)
+    for k in range(int(n_max.max())):  # every scenario ends by its n_max (timeout)
         t = k * dt
         if k % plan_every == 0:  # sense and plan, all scenarios at once
             x, y, yaw, vx, vy = st[:5]
             v = np.hypot(vx, vy)
             fx_, fy_ = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
-            feats = np.empty((n, 9))
+            # the camera: each scenario's lane points, one stacked fit, each scenario's noise
+            pts = [r.camera.lane_points(np.array((fx_[j], fy_[j])), float(yaw[j]))
+                   for j, r in enumerate(live)]
+            fits = sen.polyfit3_batch(np.array([p[i] for p in pts for i in (0, 2)]),
+                                      np.array([p[i] for p in pts for i in (1, 3)]))
+            left, right = fits[0::2], fits[1::2]
+            v_lead, d_lead = np.empty(n), np.empty(n)
             for j, r in enumerate(live):
-                front_xy = np.array((fx_[j], fy_[j]))
-                left, right, _ = r.camera.lane_lines(front_xy, float(yaw[j]), r.rng)
+                sen.add_lane_noise(left[j], right[j], r.scenario.sensors, r.rng)
                 lead = r.leader
-                radar = sen.radar_leader(front_xy, float(yaw[j]), None if lead is None else
-                                         lead[0], 0.0 if lead is None else r.lead_v, left,
-                                         right, r.scenario.sensors, r.rng)
-                v_lead, d_lead = sen.leader_features(radar, float(v[j]), r.scenario.sensors)
-                feats[j] = planner_features(left, right, float(v[j]), v_lead, d_lead)
+                radar = sen.radar_leader(np.array((fx_[j], fy_[j])), float(yaw[j]),
+                                         None if lead is None else lead[0],
+                                         0.0 if lead is None else r.lead_v, left[j], right[j],
+                                         r.scenario.sensors, r.rng)
+                v_lead[j], d_lead[j] = sen.leader_features(radar, float(v[j]),
+                                                           r.scenario.sensors)
+            feats = planner_features(left, right, v, v_lead, d_lead)
             feature_log = feats[:, [0, 1, 2, 3, 4, 5, 7, 8]]
             plans = np.empty((n, 3, 2))
             for policy, rows_of in _by_policy(live):  # one call per planner object
                 plans[rows_of] = np.asarray(policy.plan(feats[rows_of]), float).reshape(-1, 3, 2)
-            target = ctl.BatchTarget.stack([
-                ctl.make_target(plans[j], r.policy.horizon, (fx_[j], fy_[j], yaw[j]))
-                for j, r in enumerate(live)])
+            target = ctl.make_targets(plans, horizon, fx_, fy_, yaw)
             t_plan = np.full(n, t)
             plan_log = np.column_stack([t_plan, fx_, fy_, yaw, plans.reshape(n, 6)])
 
@@ -279,60 +299,57 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
         front_x, front_y = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
 
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
-        s, d, heading = np.empty(n), np.empty(n), np.empty(n)
-        angle = None if on_lane else [yaw_to_sumo_angle(a) for a in yaw.tolist()]
-        fxl, fyl, vl = front_x.tolist(), front_y.tolist(), v.tolist()
+        s, d, heading, ego_seg = _project(lanes, front_x, front_y, ego_seg)
+        inside = (np.abs(d) <= half_width).tolist() if on_lane else [False] * n
+        fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
         for j, r in enumerate(live):
-            s[j], d[j], heading[j], r.ego_seg = r.centre.project_near(fxl[j], fyl[j], r.ego_seg)
-            if on_lane and abs(d[j]) <= half_width[j]:
-                move_to(r.ego, *_lane_position(r, s[j]))
+            if inside[j]:
+                move_to(r.ego, *_lane_position(r, sl[j]))
             else:
-                move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j],
-                           yaw_to_sumo_angle(float(yaw[j])) if angle is None else angle[j], 2)
+                move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j], yaw_to_sumo_angle(float(yaw[j])),
+                           2)
             set_speed(r.ego, vl[j])
-            if r.has_leader and r.leader is not None:
+            if r.leader is not None:
                 set_speed(r.leader_id, r.lead_speeds[k] * r.lead_scale)
         sim_step()
         colliding = set(colliding_ids())
+        hit = np.fromiter((r.ego in colliding for r in live), bool, n)
 
-        # the leaders, read per scenario; monitors on the state at t + dt, all at once
-        gap, v_lead_true = np.full(n, np.inf), np.full(n, np.nan)
-        lead_x, lead_y = np.full(n, np.nan), np.full(n, np.nan)
-        hit = np.array([r.ego in colliding for r in live], dtype=bool)
+        # the leaders, read per scenario and projected at once (NaN: none)
+        lead_x, lead_y, v_lead_true = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
         for j, r in enumerate(live):
-            if not (r.has_leader and r.leader is not None):
-                continue
-            r.read_leader(api, vehicle)
-            if r.leader is None:
-                continue
-            lead_rear, v_sumo, lead_yaw, lead_front = r.leader
-            lead_x[j], lead_y[j] = lead_rear
-            v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
-            s_rear, _, _, r.lead_seg = r.centre.project_near(lead_rear[0], lead_rear[1],
-                                                             r.lead_seg)
+            if r.leader is not None:
+                r.read_leader(api, vehicle)
+                if r.leader is not None:
+                    (lead_x[j], lead_y[j]), v_sumo = r.leader[0], r.leader[1]
+                    v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
+        has_lead = ~np.isnan(v_lead_true)
+        s_rear, _, _, lead_seg = _project(lanes, lead_x, lead_y, lead_seg)
+        gap = np.where(has_lead, s_rear - s, np.inf)
+        for j in np.flatnonzero(has_lead & ((gap < 2.0 * length) | multi_piece)):
+            r = live[j]
             if r.multi_piece:  # the next command's scale: the SUMO lane under its front
-                r.lead_scale = r.road.piece_at(s_rear + length).scale
-            gap[j] = s_rear - s[j]
-            if gap[j] < 2.0 * length and not hit[j]:
+                r.lead_scale = r.road.piece_at(s_rear[j] + length).scale
+            if gap[j] < 2.0 * length and not hit[j]:  # footprints overlap?
+                lead_rear, _, lead_yaw, lead_front = r.leader
                 ego_box = rectangle_corners(_centre_xy((fxl[j], fyl[j]), float(yaw[j]), vehicle),
                                             float(yaw[j]), length, width)
                 lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
                 hit[j] = rectangles_overlap(
                     ego_box, rectangle_corners(lead_centre, lead_yaw, length, width))
+
+        # monitors on the state at t + dt, all at once
         heading_err = (yaw - heading + math.pi) % (2.0 * math.pi) - math.pi
         d_min, d_max = mon.footprint_offset_range(d, heading_err, length, width, ARRAYS)
         departed = mon.lane_departure(d_min, d_max, lane_width, margin, ARRAYS)
-        has_lead = ~np.isnan(v_lead_true)
         ttc = np.where(has_lead, mon.time_to_collision(gap, v, v_lead_true, ARRAYS), np.inf)
         ttc_flag = ttc <= ttc_threshold
         fraction = mon.path_completed(s, path_start, path_end, ARRAYS)
-        rows = np.column_stack([
+        blocks.append((ids, np.column_stack([
             np.full(n, t + dt), x, y, yaw, v, vy, st[5], st[6], front_x, front_y, steer_cmd,
             accel_cmd, s, d, d_min, d_max, feature_log, lead_x, lead_y, v_lead_true, gap, ttc,
             departed, ttc_flag, hit, fraction, plan_log, np.where(has_lead, 0.0, np.nan),
-        ]).tolist()
-        for j, r in enumerate(live):
-            r.log.rows.append(tuple(rows[j]))
+        ])))
 
         # ends, in run_scenario's order
         reason = np.select(
@@ -354,13 +371,39 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             if not live:
                 return
             n = len(live)
+            ids, lanes = ids[keep], _lanes(live)
+            ego_seg, lead_seg, multi_piece = ego_seg[keep], lead_seg[keep], multi_piece[keep]
             st = tuple(col[keep] for col in st)
             integral, prev_error, t_plan = integral[keep], prev_error[keep], t_plan[keep]
             feature_log, plan_log = feature_log[keep], plan_log[keep]
             target = target.take(keep)
             half_width, lane_width, margin = half_width[keep], lane_width[keep], margin[keep]
             ttc_threshold, path_start = ttc_threshold[keep], path_start[keep]
-            path_end, n_max = path_end[keep], n_max[keep]
+            path_end, n_max, horizon = path_end[keep], n_max[keep], horizon[keep]
+
+
+def _lanes(live: list[_Scenario]) -> list[tuple[object, np.ndarray | slice]]:
+    """The ego lane centre polylines of ``live`` with their rows (one group when the
+    scenarios share a road, as a sweep's do)."""
+    groups: dict[int, tuple[object, list[int]]] = {}
+    for j, r in enumerate(live):
+        groups.setdefault(id(r.centre), (r.centre, []))[1].append(j)
+    if len(groups) == 1:
+        return [(live[0].centre, slice(None))]
+    return [(line, np.array(rows)) for line, rows in groups.values()]
+
+
+def _project(lanes: list[tuple[object, np.ndarray | slice]], x: np.ndarray, y: np.ndarray,
+             hint: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``Polyline.project_near_many`` of each row on its own lane: ``s, d, heading, segment``
+    (NaN points give NaN and keep their segment)."""
+    if len(lanes) == 1:
+        return lanes[0][0].project_near_many(x, y, hint)
+    out = (np.empty(len(x)), np.empty(len(x)), np.empty(len(x)), np.empty(len(x), int))
+    for line, rows in lanes:
+        for o, part in zip(out, line.project_near_many(x[rows], y[rows], hint[rows])):
+            o[rows] = part
+    return out
 
 
 def _by_policy(live: list[_Scenario]) -> list[tuple[Policy, list[int]]]:

@@ -152,8 +152,8 @@ class TrackingTarget:
 
 @dataclass(frozen=True)
 class BatchTarget:
-    """N plans prepared for tracking at once (:func:`track_values` with ``xp=ARRAYS``): the
-    fields of N :class:`TrackingTarget`, stacked."""
+    """N plans prepared for tracking at once (:func:`track_values` with ``xp=ARRAYS``): what
+    :func:`make_target` prepares for one plan, as arrays over N (see :func:`make_targets`)."""
 
     horizon_s: np.ndarray  # (N,) T_h [s]
     origin_x: np.ndarray  # (N,) [m]
@@ -165,19 +165,17 @@ class BatchTarget:
     coeff_y: tuple[np.ndarray, ...]  # 4 x (N,)
     path_x: np.ndarray  # (N, M) [m] path vertices in each plan's frame
     path_y: np.ndarray  # (N, M) [m]
+    seg_dx: np.ndarray = field(init=False, repr=False)  # (N, M-1) [m] segment vectors
+    seg_dy: np.ndarray = field(init=False, repr=False)
+    seg_len2: np.ndarray = field(init=False, repr=False)  # (N, M-1) [m^2], floored
 
-    @staticmethod
-    def stack(targets: list[TrackingTarget]) -> BatchTarget:
-        paths = np.stack([tg.path for tg in targets])
-
-        def col(name: str) -> np.ndarray:
-            return np.array([getattr(tg, name) for tg in targets])
-
-        cx, cy = col("coeff_x"), col("coeff_y")
-        return BatchTarget(
-            col("horizon_s"), col("origin_x"), col("origin_y"), col("yaw"), col("cos_yaw"),
-            col("sin_yaw"), tuple(cx.T), tuple(cy.T), paths[:, :, 0].copy(),
-            paths[:, :, 1].copy())
+    def __post_init__(self) -> None:
+        # PathSegments.from_path's arithmetic, once per plan rather than per step
+        dx = np.diff(self.path_x, axis=1)
+        dy = np.diff(self.path_y, axis=1)
+        object.__setattr__(self, "seg_dx", dx)
+        object.__setattr__(self, "seg_dy", dy)
+        object.__setattr__(self, "seg_len2", np.maximum(dx**2 + dy**2, 1e-12))
 
     def take(self, keep: np.ndarray) -> BatchTarget:
         """The plans of rows ``keep`` (indices or a boolean mask)."""
@@ -189,23 +187,69 @@ class BatchTarget:
     def lookahead(self, px: np.ndarray, py: np.ndarray, ld: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
         """:func:`lookahead_points` on these paths."""
-        return lookahead_points(self.path_x, self.path_y, px, py, ld)
+        return lookahead_points(self.path_x, self.path_y, px, py, ld,
+                                (self.seg_dx, self.seg_dy, self.seg_len2))
+
+
+def _units(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """:func:`_unit` of rows ``(N, 2)``."""
+    n = np.hypot(v[:, 0], v[:, 1])[:, None]
+    return np.where(n > 1e-9, v / np.where(n > 1e-9, n, 1.0), fallback)
+
+
+def make_targets(
+    control_points: np.ndarray,
+    horizons: np.ndarray,
+    origin_x: np.ndarray,
+    origin_y: np.ndarray,
+    yaw: np.ndarray,
+    n_samples: int = 51,
+) -> BatchTarget:
+    """:func:`make_target` of N plans ``(N, 3, 2)`` [m] over ``horizons (N,)`` [s], made at the
+    front-bumper poses ``origin_x, origin_y (N,)`` [m], ``yaw (N,)`` [rad]; the same arithmetic
+    on arrays."""
+    cp = np.asarray(control_points, dtype=float).reshape(-1, 3, 2)
+    horizons = np.asarray(horizons, dtype=float)
+    n = len(cp)
+    path = np.empty((n, n_samples + 2, 2))
+    for h in np.unique(horizons):  # the sample basis is per horizon (one, in practice)
+        rows = horizons == h
+        _, basis = _sample_basis(float(h), n_samples)
+        path[rows, 1:-1] = basis @ bspline.full_coefficients(cp[rows])
+    forward = np.broadcast_to(np.array([1.0, 0.0]), (n, 2))
+    t0 = _units(cp[:, 0], forward)
+    t1 = _units(cp[:, 2] - cp[:, 1], _units(cp[:, 2] - cp[:, 0], t0))
+    path[:, 0] = -_BACK_EXTENSION_M * t0
+    path[:, -1] = path[:, -2] + _FRONT_EXTENSION_M * t1
+    coeff = []
+    for axis in (0, 1):
+        p1, p2, p3 = cp[:, 0, axis], cp[:, 1, axis], cp[:, 2, axis]
+        c_tau = (np.zeros(n), 3.0 * p1, -6.0 * p1 + 3.0 * p2, 3.0 * p1 - 3.0 * p2 + p3)
+        coeff.append(tuple(c / horizons**k for k, c in enumerate(c_tau)))
+    yaw = np.asarray(yaw, dtype=float)
+    return BatchTarget(horizons, np.asarray(origin_x, float), np.asarray(origin_y, float), yaw,
+                       np.cos(yaw), np.sin(yaw), coeff[0], coeff[1],
+                       np.ascontiguousarray(path[:, :, 0]), np.ascontiguousarray(path[:, :, 1]))
 
 
 def lookahead_points(
-    vertex_x: np.ndarray, vertex_y: np.ndarray, px: np.ndarray, py: np.ndarray, ld: np.ndarray
+    vertex_x: np.ndarray, vertex_y: np.ndarray, px: np.ndarray, py: np.ndarray, ld: np.ndarray,
+    segments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`lookahead_point` of N points ``px, py (N,)`` on N polylines ``(N, M)`` at
-    distances ``ld (N,)`` [m]: the same arithmetic, the walk replaced by a first-index search."""
+    distances ``ld (N,)`` [m]: the same arithmetic, the walk replaced by a first-index search.
+    ``segments``: the polylines' segment x, y and floored squared lengths ``(N, M-1)`` when
+    already known (:class:`BatchTarget`)."""
     n, m = vertex_x.shape
     rows = np.arange(n)
     dx = vertex_x - px[:, None]
     dy = vertex_y - py[:, None]
     d2 = dx * dx + dy * dy
     i0 = d2.argmin(axis=1)
-    seg_dx = vertex_x[:, 1:] - vertex_x[:, :-1]
-    seg_dy = vertex_y[:, 1:] - vertex_y[:, :-1]
-    seg_len2 = np.maximum(seg_dx**2 + seg_dy**2, 1e-12)
+    if segments is None:
+        seg_dx, seg_dy = np.diff(vertex_x, axis=1), np.diff(vertex_y, axis=1)
+        segments = seg_dx, seg_dy, np.maximum(seg_dx**2 + seg_dy**2, 1e-12)
+    seg_dx, seg_dy, seg_len2 = segments
     best_f2, best_k, best_u = np.full(n, np.inf), np.zeros(n, int), np.zeros(n)
     for k in (i0 - 1, i0):  # the two segments at the closest vertex
         valid = (k >= 0) & (k < m - 1)

@@ -554,8 +554,12 @@ class _Log:
         self.rows: list[tuple] = []  # ``n`` (the most steps) is not needed by a list
 
     def frame(self) -> pd.DataFrame:
-        data = np.array(self.rows, dtype=float).reshape(-1, len(self.COLUMNS))
-        df = pd.DataFrame(data, columns=self.COLUMNS)
+        return self.to_frame(np.array(self.rows, dtype=float).reshape(-1, len(self.COLUMNS)))
+
+    @classmethod
+    def to_frame(cls, data: np.ndarray) -> pd.DataFrame:
+        """The log of rows ``(steps, len(COLUMNS))``."""
+        df = pd.DataFrame(data, columns=cls.COLUMNS)
         for col in ("lane_departure", "ttc_flag", "collision"):
             df[col] = df[col].astype(bool)
         return df

@@ -74,7 +74,7 @@ def _lane_index_at(road: Road, d: float, s: float) -> int:
     return min(max(road.ego_lane + k, lo), hi)
 
 
-def _add_lane_noise(left: np.ndarray, right: np.ndarray, config: SensorConfig,
+def add_lane_noise(left: np.ndarray, right: np.ndarray, config: SensorConfig,
                     rng: np.random.Generator | None) -> None:
     """Seeded camera error on c0, c1, in place; it moves both lines together."""
     if rng is not None and (config.lane_noise_c0_m > 0 or config.lane_noise_c1 > 0):
@@ -95,12 +95,19 @@ def _fit_from(
     boundary: Polyline, s0: float, ego_xy: np.ndarray, ego_yaw: float, config: SensorConfig
 ) -> np.ndarray:
     """The fit of :func:`fit_boundary` from the ego's arc length ``s0`` [m] on the boundary."""
+    return polyfit3(*_ego_points(boundary, s0, ego_xy, ego_yaw, config))
+
+
+def _ego_points(
+    boundary: Polyline, s0: float, ego_xy: np.ndarray, ego_yaw: float, config: SensorConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary's points the camera fits, ``x, y (samples,)`` [m] in the ego frame."""
     pts = boundary.xy_at(s0 + _view_offsets(config.view_range_m, config.view_samples))
     # world_to_ego, unrolled (the same element-wise operations, no stacking)
     c, s = math.cos(ego_yaw), math.sin(ego_yaw)
     d = pts - ego_xy
     dx, dy = d[:, 0], d[:, 1]
-    return polyfit3(c * dx + s * dy, -s * dx + c * dy)
+    return c * dx + s * dy, -s * dx + c * dy
 
 
 @lru_cache(maxsize=8)
@@ -129,6 +136,21 @@ def polyfit3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 _EPS = float(np.finfo(np.float64).eps)
 
 
+def polyfit3_batch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """:func:`polyfit3` of K point sets ``(K, n)`` at once: coefficients ``(K, 4)``.
+
+    The same scaled Vandermonde least squares, solved by a stacked QR instead of LAPACK's SVD
+    solver: equal to :func:`polyfit3` to round-off (tests/test_sensors.py), for full-rank fits
+    (a camera's points spread over its view range).
+    """
+    van = np.stack([np.ones_like(x), x, x * x, x * x * x], axis=-1)  # (K, n, 4)
+    scl = np.sqrt(np.square(van).sum(axis=1))  # (K, 4)
+    scl[scl == 0] = 1
+    q, r = np.linalg.qr(van / scl[:, None, :])
+    c = np.linalg.solve(r, (q.transpose(0, 2, 1) @ y[..., None]))[..., 0]
+    return c / scl
+
+
 def camera_lane_lines(
     road: Road,
     ego_xy: np.ndarray,
@@ -140,7 +162,7 @@ def camera_lane_lines(
     lane = road.lanes[current_lane_index(road, ego_xy)]
     left = fit_boundary(lane.left_boundary, ego_xy, ego_yaw, config)
     right = fit_boundary(lane.right_boundary, ego_xy, ego_yaw, config)
-    _add_lane_noise(left, right, config, rng)
+    add_lane_noise(left, right, config, rng)
     return left, right, lane.index
 
 
@@ -233,5 +255,19 @@ class LaneCamera:
                          ego_xy, ego_yaw, config)
         right = _fit_from(lane.right_boundary, self._project(lane.right_boundary, x, y)[0],
                           ego_xy, ego_yaw, config)
-        _add_lane_noise(left, right, config, rng)
+        add_lane_noise(left, right, config, rng)
         return left, right, lane.index
+
+    def lane_points(self, ego_xy: np.ndarray, ego_yaw: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The points :meth:`lane_lines` fits, in the ego frame [m]: ``(x_left, y_left,
+        x_right, y_right)``, each ``(samples,)`` (a batch fits many at once, then adds the
+        noise with :func:`add_lane_noise`)."""
+        road, config = self.road, self.config
+        x, y = float(ego_xy[0]), float(ego_xy[1])
+        s, d = self._project(road.lanes[road.ego_lane].centre, x, y)
+        lane = road.lanes[_lane_index_at(road, d, s)]
+        return (*_ego_points(lane.left_boundary, self._project(lane.left_boundary, x, y)[0],
+                             ego_xy, ego_yaw, config),
+                *_ego_points(lane.right_boundary, self._project(lane.right_boundary, x, y)[0],
+                             ego_xy, ego_yaw, config))
