@@ -10,8 +10,11 @@ Measures on ``curved500`` (ego + leader, 0.01 s step, monitors on, planner at 10
 - data processing: NGSIM I-80 pairs import + processing pipeline, rows per second;
 - SafeIL training wall time and samples per second on the pipeline's tuples;
 - peak memory (RSS high-water mark) of a closed-loop run in a fresh process;
+- N scenarios side by side in one SUMO simulation (``sim.batch.run_batch``) for N in
+  BATCH_SIZES: ego-steps/s, the ratio to the scalar loop measured in the same run, and the time
+  per ego-step of each stage;
 - a curved500 sweep with 1 and 2 workers (wall time, parallel efficiency, worker peak memory),
-  when :mod:`safeil_sumo.experiments.sweep` is present.
+  one scenario per simulation and batched (``sweep --batch``).
 Prints a table and writes it as JSON (``--out``). ``--quick`` shortens every measurement (CI).
 It asserts nothing about time: numbers are reported, never tested. A part whose input is
 missing (the NGSIM file) is skipped with a note.
@@ -242,11 +245,12 @@ _SWEEP_SCRIPT = _PEAK_KB + """
 import json, sys, time
 from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
 n, workers, out, max_time = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
-specs = [ScenarioSpec(net="curved500", index=i, policy="analytic",
+batch, policy = int(sys.argv[5]), sys.argv[6]
+specs = [ScenarioSpec(net="curved500", index=i, policy=policy,
                       max_time_s=None if max_time == "none" else float(max_time))
          for i in range(n)]
 t0 = time.perf_counter()
-summary = run_sweep(specs, out, workers=workers, progress=False)
+summary = run_sweep(specs, out, workers=workers, progress=False, batch=batch)
 wall = time.perf_counter() - t0
 print(json.dumps({"wall_s": wall, "tasks": len(summary),
                   "self_kb": peak_kb(),
@@ -254,27 +258,71 @@ print(json.dumps({"wall_s": wall, "tasks": len(summary),
 """
 
 
-def sweep_rows(quick: bool, rows: dict, notes: list[str]) -> None:
-    """A curved500 sweep with 1 and 2 workers, each in a fresh process."""
-    if not (REPO / "safeil_sumo" / "experiments" / "sweep.py").is_file():
-        notes.append("skipped the sweep: safeil_sumo/experiments/sweep.py is missing")
-        return
-    n, max_time = (6, "5") if quick else (100, "none")
-    walls = {}
-    for workers in (1, 2):
-        with tempfile.TemporaryDirectory() as tmp:
-            out = subprocess.run(
-                [sys.executable, "-c", _SWEEP_SCRIPT, str(n), str(workers), tmp, max_time],
-                check=True, capture_output=True, text=True, cwd=REPO)
-        res = json.loads(out.stdout.strip().splitlines()[-1])
-        walls[workers] = res["wall_s"]
-        rows[f"sweep{n}_{workers}w_wall_s"] = res["wall_s"]
-        rows[f"sweep{n}_{workers}w_scenarios_per_s"] = n / res["wall_s"]
-        # 1 worker runs in the sweep's own process; 2 workers are forked children
-        # (ru_maxrss of RUSAGE_CHILDREN: the largest child, shared copy-on-write pages included)
-        peak_kb = res["self_kb"] if workers == 1 else res["children_kb"]
-        rows[f"sweep_{workers}w_worker_peak_rss_mb"] = peak_kb / 1024.0
-    rows["sweep_parallel_efficiency_2w"] = walls[1] / (2.0 * walls[2])
+def sweep_rows(quick: bool, policy: str, rows: dict, notes: list[str]) -> None:
+    """curved500 sweeps with 1 and 2 workers, each in a fresh process: one scenario per
+    simulation (100 scenarios) and batched (1,000 scenarios, the sweep's default batch)."""
+    from safeil_sumo.experiments.sweep import DEFAULT_BATCH
+
+    plans = ([("", 6, "5", 1), ("_batched", 6, "5", 3)] if quick
+             else [("", 100, "none", 1), ("_batched", 1000, "none", DEFAULT_BATCH)])
+    for tag, n, max_time, batch in plans:
+        walls = {}
+        for workers in (1, 2):
+            with tempfile.TemporaryDirectory() as tmp:
+                out = subprocess.run(
+                    [sys.executable, "-c", _SWEEP_SCRIPT, str(n), str(workers), tmp, max_time,
+                     str(batch), policy], check=True, capture_output=True, text=True, cwd=REPO)
+            res = json.loads(out.stdout.strip().splitlines()[-1])
+            walls[workers] = res["wall_s"]
+            rows[f"sweep{n}{tag}_{workers}w_wall_s"] = res["wall_s"]
+            rows[f"sweep{n}{tag}_{workers}w_scenarios_per_s"] = n / res["wall_s"]
+            # 1 worker runs in the sweep's own process; 2 workers are forked children
+            # (ru_maxrss of RUSAGE_CHILDREN: the largest child, shared copy-on-write pages
+            # included)
+            peak_kb = res["self_kb"] if workers == 1 else res["children_kb"]
+            rows[f"sweep{tag}_{workers}w_worker_peak_rss_mb"] = peak_kb / 1024.0
+        rows[f"sweep{tag}_parallel_efficiency_2w"] = walls[1] / (2.0 * walls[2])
+    if not quick:
+        rows["sweep_batched_over_one_per_simulation"] = (
+            rows["sweep1000_batched_2w_scenarios_per_s"] / rows["sweep100_2w_scenarios_per_s"])
+
+
+BATCH_SIZES = (1, 8, 32, 128)
+
+
+def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: dict) -> None:
+    """Ego-steps/s of ``run_batch`` (lane placement, the sweeps') for N in BATCH_SIZES and of
+    ``run_scenario`` (today's defaults) one scenario after another on the same scenarios, SUMO
+    start included in both; the batch's time per ego-step per stage (StageClock)."""
+    from safeil_sumo.experiments.sweep import DEFAULT_BATCH
+    from safeil_sumo.sim.batch import StageClock, run_batch
+
+    road = load_road(net)
+    policy = policies.load(policy_name)
+    loop = LoopConfig(max_time_s=sim_s)
+    sizes = (1, 8) if quick else BATCH_SIZES
+    scenarios = [safety_scenario(road, i) for i in range(max(sizes))]
+    t0 = time.perf_counter()
+    steps = sum(run_scenario(sc, policy, loop).summary["steps"] for sc in scenarios[:8])
+    scalar = steps / (time.perf_counter() - t0)
+    rows["scalar_ego_steps_per_s"] = scalar
+    for n in sizes:
+        for placement in ("lane", "xy"):
+            clock = StageClock()
+            t0 = time.perf_counter()
+            steps = sum(r.summary["steps"] for r in run_batch(
+                scenarios[:n], policy, LoopConfig(max_time_s=sim_s, ego_placement=placement),
+                clock=clock))
+            rate = steps / (time.perf_counter() - t0)
+            tag = f"n{n}" if placement == "lane" else f"n{n}_xy"
+            rows[f"batched_ego_steps_per_s_{tag}"] = rate
+            rows[f"batched_over_scalar_{tag}"] = rate / scalar
+            if placement == "lane":
+                for stage, us in clock.us_per_ego_step().items():
+                    rows[f"batched_{tag}_{stage}_us_per_ego_step"] = us
+    n = DEFAULT_BATCH if DEFAULT_BATCH in sizes else max(sizes)
+    rows["batched_ego_steps_per_s"] = rows[f"batched_ego_steps_per_s_n{n}"]
+    rows["batched_over_scalar"] = rows[f"batched_over_scalar_n{n}"]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -309,10 +357,11 @@ def main(argv: list[str] | None = None) -> int:
                                      / rows["closed_loop_libsumo_steps_per_s"])
     rows["libsumo_over_traci"] = (rows["closed_loop_libsumo_steps_per_s"]
                                   / rows["closed_loop_traci_steps_per_s"])
+    batched_rows(net, policy, sim_s, args.quick, rows)
     if not args.no_extras:
         data_and_training(args.quick, rows, notes, calls)
         rows["closed_loop_peak_rss_mb"] = closed_loop_peak_rss_mb(policy, sim_s)
-        sweep_rows(args.quick, rows, notes)
+        sweep_rows(args.quick, policy, rows, notes)
 
     report = {
         "machine": {"cpus": _cpus(), "cpu": _cpu_model(), "platform": platform.platform(),

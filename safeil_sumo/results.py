@@ -38,7 +38,7 @@ import pandas as pd
 
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.stats import breakdown
-from safeil_sumo.experiments.sweep import ScenarioSpec, comparable, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, comparable, run_sweep
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED_DATA = REPO / "data" / "synthetic" / "tuples.parquet"
@@ -67,7 +67,7 @@ SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "lea
 
 def _sweep(specs: list[ScenarioSpec], work: Path, name: str, workers: int) -> pd.DataFrame:
     print(f"[{name}] {len(specs)} tasks", flush=True)
-    df = run_sweep(specs, work / name, workers=workers, progress=True)
+    df = run_sweep(specs, work / name, workers=workers, progress=True, batch=DEFAULT_BATCH)
     failed = df[df["status"] != "ok"] if "status" in df else df.iloc[:0]
     if len(failed):
         print(f"[{name}] {len(failed)} task(s) failed, e.g. {failed['error'].iloc[0]}")

@@ -36,7 +36,7 @@ from safeil_sumo.cli_args import (
     nonnegative_int,
 )
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
-from safeil_sumo.experiments.sweep import LEADER_KINDS, ScenarioSpec, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, LEADER_KINDS, ScenarioSpec, run_sweep
 
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
 
@@ -126,6 +126,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="run policies without (off), with (on) or both ways (default off)")
     p.add_argument("--workers", type=int, default=1,
                    help="local worker processes, one simulation each (default 1: in-process)")
+    p.add_argument("--batch", type=int, default=DEFAULT_BATCH, metavar="N",
+                   help=f"run up to N scenarios side by side in one SUMO simulation per worker "
+                        f"(same net, planner and loop settings; traffic drives run alone); "
+                        f"1: one simulation per scenario (default {DEFAULT_BATCH})")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:port) to run the tasks on")
     p.add_argument("--task-timeout", type=finite_float, default=None,
@@ -144,6 +148,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--scenarios must be >= 1")
     if args.workers < 1:
         p.error("--workers must be >= 1")
+    if args.batch < 1:
+        p.error("--batch must be >= 1")
     if args.scheduler is not None and args.workers != 1:
         p.error("use either --workers (local processes) or --scheduler (a Dask cluster)")
     if args.scheduler is not None and "://" not in args.scheduler:
@@ -223,7 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run_sweep(specs, args.out, workers=args.workers, scheduler=args.scheduler,
                             progress=not args.no_progress, retry_failed=args.retry_failed,
-                            task_timeout_s=args.task_timeout,
+                            task_timeout_s=args.task_timeout, batch=args.batch,
                             manifest_extra={"arguments": args.resolved_argv})
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished tasks are saved in {args.out / 'tasks'}; "

@@ -212,7 +212,11 @@ def test_dask_cluster_gives_the_sequential_results(tmp_path):
                                   dashboard_address=None) as cluster:
         dask_out = run_sweep(specs, tmp_path / "dask", scheduler=cluster.scheduler_address,
                              progress=False)
+        dask_batched = run_sweep(specs, tmp_path / "dask_batched", progress=False, batch=2,
+                                 scheduler=cluster.scheduler_address)
     pd.testing.assert_frame_equal(comparable(seq), comparable(dask_out))
+    pd.testing.assert_frame_equal(comparable(seq), comparable(dask_batched), check_exact=False,
+                                  rtol=1e-9, atol=1e-9)
     assert len(list((tmp_path / "dask" / "tasks").glob("*.json"))) == 4
 
 
@@ -240,3 +244,41 @@ def test_cli_grid_breakdown_and_bad_arguments(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         sweep_main(["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"])
     assert exc.value.code == 2
+
+
+# -- batches: many scenarios per SUMO simulation --------------------------------------------------
+
+def test_batches_group_shareable_specs_in_order():
+    from safeil_sumo.experiments.sweep import batch_key, batches
+
+    specs = (short_specs(5) + short_specs(2, policy="bc")
+             + [ScenarioSpec(index=9, net="n74", from_km=0.0, to_km=1.0, traffic="light")])
+    units = batches(specs, 2)
+    assert [len(u) for u in units] == [2, 2, 1, 2, 1]
+    assert [s for u in units for s in u] == specs  # every spec once, grouped in order
+    assert {batch_key(s) for s in units[0] + units[1] + units[2]} == {batch_key(specs[0])}
+    assert batch_key(specs[-1]) is None  # traffic: SUMO's vehicles are per simulation
+    with pytest.raises(ValueError, match="batch size"):
+        batches(specs, 0)
+
+
+def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):
+    """The same records with --batch 3 on 2 workers as one scenario per simulation, a spec
+    that cannot be built failing alone inside its batch."""
+    specs = short_specs(7, initial_gap_m=(30, 80), radar_noise_m=0.5)
+    specs[2] = ScenarioSpec(index=2, **(SHORT | {"policy": str(tmp_path / "nope.safetensors")}))
+    one = run_sweep(specs, tmp_path / "one", workers=1, progress=False)
+    batched = run_sweep(specs, tmp_path / "batched", workers=2, progress=False, batch=3)
+    assert list(batched["status"]) == ["ok", "ok", "failed"] + ["ok"] * 4
+    assert batched.loc[2, "error"].startswith("PolicyError: unknown policy")
+    ok = one["status"] == "ok"
+    pd.testing.assert_frame_equal(comparable(one[ok]), comparable(batched[ok]), check_exact=False,
+                                  rtol=1e-9, atol=1e-9)
+
+
+def test_killed_worker_loses_only_its_batch(tmp_path):
+    specs = short_specs(5)
+    counter = Counting(tmp_path / "runs.log", kill_id=task_id(specs[1]))
+    out = run_sweep(specs, tmp_path / "out", workers=2, task_fn=counter, progress=False, batch=2)
+    assert list(out["status"]) == ["failed", "failed", "ok", "ok", "ok"]
+    assert out.loc[:1, "error"].str.contains("WorkerDied").all()

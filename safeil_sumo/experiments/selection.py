@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, run_sweep
 
 VALIDATION_SEED = 7919  # master seed of the battery (the reported tests use 0)
 FAMILIES = ("paper", "approach", "braking", "cut_in")
@@ -71,7 +71,7 @@ def evaluate(policies: Sequence[str], out_dir: str | Path, per_family: int = 3,
              workers: int = 2, progress: bool = True) -> pd.DataFrame:
     """Run the battery for each policy; one score row per policy, best first."""
     specs = [s for p in policies for s in battery(p, per_family)]
-    summary = run_sweep(specs, out_dir, workers=workers, progress=progress)
+    summary = run_sweep(specs, out_dir, workers=workers, progress=progress, batch=DEFAULT_BATCH)
     rows = []
     for p in policies:
         sc = score(summary[summary["policy"] == p])

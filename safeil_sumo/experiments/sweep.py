@@ -299,11 +299,20 @@ def build_scenario(spec: ScenarioSpec, road):
     )
 
 
-def _load_policy(spec: ScenarioSpec):
+_SHARED_POLICIES: dict[str, Any] = {}
+
+
+def _load_policy(spec: ScenarioSpec, shared: bool = False):
     from safeil_sumo import policies
 
-    # loaded fresh for every task: no state (e.g. filter counters) leaks between tasks
-    policy = policies.load(spec.policy)
+    # loaded fresh for every task: no state (e.g. filter counters) leaks between tasks; a
+    # batch shares the (stateless) planner itself
+    if shared:
+        if spec.policy not in _SHARED_POLICIES:
+            _SHARED_POLICIES[spec.policy] = policies.load(spec.policy)
+        policy = _SHARED_POLICIES[spec.policy]
+    else:
+        policy = policies.load(spec.policy)
     if spec.safety_filter:
         from safeil_sumo.safety_filter import SafetyFiltered  # lazily: optional component
 
@@ -325,20 +334,98 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
     """
     wall0 = time.perf_counter()
     try:
-        from safeil_sumo.sim.runner import LoopConfig, run_scenario
+        from safeil_sumo.sim.runner import run_scenario
 
-        road = _road(spec.net, spec.route, spec.from_km, spec.to_km)
-        scenario = build_scenario(spec, road)
-        policy = _load_policy(spec)
-        loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag)
+        road, scenario, policy, loop = _task_parts(spec)
         rollout = run_scenario(scenario, policy, loop)
-        summary = dict(rollout.summary)
-        if len(rollout.log):  # how it responded to its leader (the leader-response suite's)
-            from safeil_sumo.experiments.suite import response_metrics
-
-            summary.update({f"resp_{k}": v for k, v in response_metrics(rollout.log).items()})
     except Exception as exc:  # noqa: BLE001 - a record, never an exception: the sweep goes on
         return failed_record(spec, f"{type(exc).__name__}: {exc}")
+    return _record(spec, road, scenario, policy, rollout, time.perf_counter() - wall0)
+
+
+def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
+    """The records of ``specs`` run side by side in ONE SUMO simulation (``sim.batch``), in
+    order; one spec is :func:`run_task`. Never raises: a spec that cannot be built, or a batch
+    that fails, gives failed records. Specs of a batch share their network and loop settings
+    (:func:`batch_key`)."""
+    if len(specs) == 1:
+        return [run_task(specs[0])]
+    wall0 = time.perf_counter()
+    records: list[dict[str, Any] | None] = [None] * len(specs)
+    parts = []
+    for k, spec in enumerate(specs):
+        try:
+            parts.append((k, *_task_parts(spec, shared=True)))
+        except Exception as exc:  # noqa: BLE001 - a record, never an exception
+            records[k] = failed_record(spec, f"{type(exc).__name__}: {exc}")
+    if parts:
+        from dataclasses import replace
+
+        from safeil_sumo.sim.batch import run_batch
+
+        loop = replace(parts[0][4], ego_placement=BATCH_EGO_PLACEMENT)
+        try:
+            rollouts = run_batch([p[2] for p in parts], [p[3] for p in parts], loop)
+        except Exception as exc:  # noqa: BLE001
+            rollouts = [exc] * len(parts)
+        wall = (time.perf_counter() - wall0) / len(specs)
+        for (k, road, scenario, policy, _), rollout in zip(parts, rollouts):
+            records[k] = (failed_record(specs[k], f"{type(rollout).__name__}: {rollout}")
+                          if isinstance(rollout, Exception) else
+                          _record(specs[k], road, scenario, policy, rollout, wall))
+    return records
+
+
+# scenarios per SUMO simulation in sweeps by default (``sweep --batch``): measured on curved500,
+# docs/performance.md
+DEFAULT_BATCH = 32
+
+# how a batch places its egos in SUMO: moveTo on lane coordinates (~25x cheaper than moveToXY;
+# the same flags and trajectories, see LoopConfig.ego_placement and docs/performance.md)
+BATCH_EGO_PLACEMENT = "lane"
+
+
+def batch_key(spec: ScenarioSpec) -> tuple | None:
+    """Specs with equal keys can share a batch; None: this one runs alone (traffic: SUMO's
+    own vehicles are per simulation)."""
+    if spec.traffic:
+        return None
+    return (spec.net, spec.route, spec.from_km, spec.to_km, spec.policy, spec.safety_filter,
+            spec.plan_rate_hz, spec.stop_on_flag)
+
+
+def batches(specs: Sequence[ScenarioSpec], size: int) -> list[tuple[ScenarioSpec, ...]]:
+    """``specs`` grouped into batches of at most ``size`` sharing a :func:`batch_key`, in
+    order of their first spec."""
+    if size < 1:
+        raise ValueError(f"batch size must be >= 1, got {size}")
+    groups: dict[Any, list[ScenarioSpec]] = {}
+    for k, spec in enumerate(specs):
+        key = batch_key(spec)
+        groups.setdefault(key if key is not None else ("alone", k), []).append(spec)
+    return [tuple(g[i:i + size]) for g in groups.values() for i in range(0, len(g), size)]
+
+
+def _task_parts(spec: ScenarioSpec, shared: bool = False):
+    """``(road, scenario, policy, loop)`` of a task. ``shared``: planners of the same name are
+    one object (batched plan calls; a safety filter still gets its own wrapper per task)."""
+    from safeil_sumo.sim.runner import LoopConfig
+
+    road = _road(spec.net, spec.route, spec.from_km, spec.to_km)
+    scenario = build_scenario(spec, road)
+    policy = _load_policy(spec, shared)
+    loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag)
+    return road, scenario, policy, loop
+
+
+def _record(spec: ScenarioSpec, road, scenario, policy, rollout, wall_s: float
+            ) -> dict[str, Any]:
+    """The flat record of a finished task."""
+    summary = dict(rollout.summary)
+    if len(rollout.log):  # how it responded to its leader (the leader-response suite's)
+        from safeil_sumo.experiments.suite import response_metrics
+
+        summary.update({f"resp_{k}": v for k, v in response_metrics(rollout.log).items()})
     failed = summary.get("end_reason") == "error"
     record = {"task_id": task_id(spec), "status": STATUS_FAILED if failed else STATUS_OK,
               **spec_fields(spec)}
@@ -351,7 +438,7 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
     if spec.safety_filter:
         record["filter_interventions"] = int(getattr(policy, "interventions", 0))
         record["filter_intervention_rate"] = float(getattr(policy, "intervention_rate", 0.0))
-    record["task_wall_time_s"] = time.perf_counter() - wall0
+    record["task_wall_time_s"] = wall_s
     return record
 
 
@@ -369,11 +456,25 @@ def _safe_call(task_fn: TaskFn, spec: ScenarioSpec) -> dict[str, Any]:
 _PROCESS_LOCK = threading.Lock()
 
 
-def _run_exclusive(task_fn: TaskFn, spec: ScenarioSpec) -> dict[str, Any]:
+Unit = tuple[ScenarioSpec, ...]  # what a worker runs at once: one task, or a batch of them
+
+
+def _run_unit(task_fn: TaskFn, unit: Unit) -> list[dict[str, Any]]:
+    """The records of a unit: a batch in one simulation (:func:`run_tasks`) for the default
+    task function, else ``task_fn`` per spec. Never raises."""
+    if task_fn is run_task and len(unit) > 1:
+        try:
+            return run_tasks(unit)
+        except Exception as exc:  # noqa: BLE001 - any error becomes failed records
+            return [failed_record(s, f"{type(exc).__name__}: {exc}") for s in unit]
+    return [_safe_call(task_fn, s) for s in unit]
+
+
+def _run_exclusive(task_fn: TaskFn, unit: Unit) -> list[dict[str, Any]]:
     # libsumo holds ONE simulation per process: a Dask worker with several threads must not
     # run two tasks at once in the same process
     with _PROCESS_LOCK:
-        return _safe_call(task_fn, spec)
+        return _run_unit(task_fn, unit)
 
 
 # -- result files --------------------------------------------------------------------------------
@@ -410,6 +511,7 @@ def run_sweep(
     task_fn: TaskFn = run_task,
     task_timeout_s: float | None = None,
     manifest_extra: dict[str, Any] | None = None,
+    batch: int = 1,
 ) -> pd.DataFrame:
     """Run every spec that has no result file yet; return the summary of all specs, in order.
 
@@ -418,6 +520,9 @@ def run_sweep(
     ``kill -9``, or ``task_timeout_s`` [s] exceeded) has its task recorded as failed and is
     replaced. ``scheduler="tcp://host:port"``: tasks go to that Dask cluster. Failed records count
     as done unless ``retry_failed``. ``task_fn`` (default :func:`run_task`) is a seam for tests.
+    ``batch`` > 1: tasks that can share a simulation (:func:`batch_key`) run up to ``batch`` at
+    a time in one SUMO simulation (:func:`run_tasks`); a worker that dies costs its batch, and
+    ``task_timeout_s`` is per batch then.
 
     Writes ``tasks/<task_id>.json`` per task as it finishes, then ``summary.csv``,
     ``summary.json`` and ``manifest.json``.
@@ -433,15 +538,17 @@ def run_sweep(
     if todo and scheduler is None and workers > 1:
         _prepare_nets(todo)
 
+    units = batches(todo, batch) if batch > 1 else [(s,) for s in todo]
     bar = tqdm(total=len(todo), desc="sweep", unit="task", disable=not progress or None,
                initial=0, dynamic_ncols=True)
     failed = 0
 
-    def save(spec: ScenarioSpec, record: dict[str, Any]) -> None:
+    def save(unit: Unit, records: list[dict[str, Any]]) -> None:
         nonlocal failed
-        outputs.write_json(tdir / f"{task_id(spec)}.json", record)
-        failed += record.get("status") != STATUS_OK
-        bar.update(1)
+        for spec, record in zip(unit, records, strict=True):
+            outputs.write_json(tdir / f"{task_id(spec)}.json", record)
+            failed += record.get("status") != STATUS_OK
+        bar.update(len(unit))
         if failed:
             bar.set_postfix(failed=failed)
 
@@ -449,12 +556,12 @@ def run_sweep(
         if not todo:
             pass
         elif scheduler is not None:
-            _run_dask(todo, scheduler, task_fn, save)
+            _run_dask(units, scheduler, task_fn, save)
         elif workers == 1:
-            for spec in todo:
-                save(spec, _safe_call(task_fn, spec))
+            for unit in units:
+                save(unit, _run_unit(task_fn, unit))
         else:
-            _run_local(todo, min(workers, len(todo)), task_fn, save, task_timeout_s)
+            _run_local(units, min(workers, len(units)), task_fn, save, task_timeout_s)
     finally:
         bar.close()
 
@@ -462,7 +569,7 @@ def run_sweep(
     with atomic_path(out_dir / "summary.csv") as tmp:  # a Ctrl-C here keeps the old summary
         summary.to_csv(tmp, index=False)
     outputs.write_json(out_dir / "summary.json", summary.to_dict(orient="records"))
-    config = {"tasks": len(specs), "run_now": len(todo), "workers": workers,
+    config = {"tasks": len(specs), "run_now": len(todo), "workers": workers, "batch": batch,
               "scheduler": scheduler, "retry_failed": retry_failed,
               "specs": [s.to_json() for s in specs], **(manifest_extra or {})}
     from safeil_sumo.scenarios.safety import scenario_seed
@@ -512,17 +619,17 @@ def _die_with_parent() -> None:
 
 
 def _worker_main(conn: Connection, task_fn: TaskFn) -> None:
-    """A worker: receive a spec, run it, send the record back; ``None`` ends the worker."""
+    """A worker: receive a unit, run it, send its records back; ``None`` ends the worker."""
     _die_with_parent()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     while True:
         try:
-            spec = conn.recv()
+            unit = conn.recv()
         except EOFError:
             return
-        if spec is None:
+        if unit is None:
             return
-        conn.send(_safe_call(task_fn, spec))
+        conn.send(_run_unit(task_fn, unit))
 
 
 class _Worker:
@@ -531,12 +638,12 @@ class _Worker:
         self.process = ctx.Process(target=_worker_main, args=(child, task_fn), daemon=True)
         self.process.start()
         child.close()
-        self.spec: ScenarioSpec | None = None
+        self.spec: Unit | None = None  # the unit it runs
         self.started = 0.0
 
-    def give(self, spec: ScenarioSpec) -> None:
-        self.spec, self.started = spec, time.monotonic()
-        self.conn.send(spec)
+    def give(self, unit: Unit) -> None:
+        self.spec, self.started = unit, time.monotonic()
+        self.conn.send(unit)
 
     def stop(self) -> None:
         try:
@@ -559,11 +666,11 @@ def _mp_context():
 
 
 def _run_local(
-    todo: list[ScenarioSpec], workers: int, task_fn: TaskFn,
-    save: Callable[[ScenarioSpec, dict], None], task_timeout_s: float | None,
+    todo: list[Unit], workers: int, task_fn: TaskFn,
+    save: Callable[[Unit, list], None], task_timeout_s: float | None,
 ) -> None:
-    """Own worker processes, one task each at a time: the parent always knows which task a
-    worker runs, so a dead worker costs exactly that task (recorded failed) and is replaced."""
+    """Own worker processes, one unit each at a time: the parent always knows which unit a
+    worker runs, so a dead worker costs exactly that unit (recorded failed) and is replaced."""
     ctx = _mp_context()
     queue = list(reversed(todo))  # pop() from the end keeps task order
     pool: list[_Worker] = []
@@ -615,8 +722,9 @@ def _run_local(
             w.kill()
 
 
-def _poll(w: _Worker, ready: set, task_timeout_s: float | None) -> dict[str, Any] | None:
-    """The record of a busy worker's task if it is over (result, death or timeout), else None."""
+def _poll(w: _Worker, ready: set, task_timeout_s: float | None) -> list[dict[str, Any]] | None:
+    """The records of a busy worker's unit if it is over (result, death or timeout), else
+    None."""
     if w.conn in ready or w.process.sentinel in ready:
         try:
             if w.conn.poll():
@@ -624,21 +732,22 @@ def _poll(w: _Worker, ready: set, task_timeout_s: float | None) -> dict[str, Any
         except (EOFError, OSError):
             pass
         if not w.process.is_alive():
-            return failed_record(w.spec, f"WorkerDied: worker process died (exit code "
-                                         f"{w.process.exitcode}) while running the task")
+            return [failed_record(s, f"WorkerDied: worker process died (exit code "
+                                     f"{w.process.exitcode}) while running the task")
+                    for s in w.spec]
     if task_timeout_s is not None and time.monotonic() - w.started > task_timeout_s:
         w.process.kill()
         w.process.join(timeout=5)
-        return failed_record(w.spec, f"TaskTimeout: no result after {task_timeout_s:g} s; "
-                                     "worker killed")
+        return [failed_record(s, f"TaskTimeout: no result after {task_timeout_s:g} s; "
+                                 "worker killed") for s in w.spec]
     return None
 
 
 # -- Dask ----------------------------------------------------------------------------------------
 
 def _run_dask(
-    todo: list[ScenarioSpec], address: str, task_fn: TaskFn,
-    save: Callable[[ScenarioSpec, dict], None],
+    todo: list[Unit], address: str, task_fn: TaskFn,
+    save: Callable[[Unit, list], None],
 ) -> None:
     from dask.distributed import Client, as_completed
 
@@ -650,10 +759,10 @@ def _run_dask(
             for future in as_completed(futures):
                 spec = spec_of[future.key]
                 try:
-                    record = future.result()
+                    records = future.result()
                 except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker after repeated worker deaths
-                    record = failed_record(spec, f"{type(exc).__name__}: {exc}")
-                save(spec, record)
+                    records = [failed_record(s, f"{type(exc).__name__}: {exc}") for s in spec]
+                save(spec, records)
         finally:
             client.cancel([f for f in futures if not f.done()])
     finally:
@@ -675,6 +784,17 @@ def load_specs(path: str | Path) -> list[ScenarioSpec]:
 
 
 __all__ = [
-    "ScenarioSpec", "build_scenario", "collect", "comparable", "leader_profile", "load_specs",
-    "run_sweep", "run_task", "spec_fields", "task_id",
+    "DEFAULT_BATCH",
+    "ScenarioSpec",
+    "batches",
+    "build_scenario",
+    "collect",
+    "comparable",
+    "leader_profile",
+    "load_specs",
+    "run_sweep",
+    "run_task",
+    "run_tasks",
+    "spec_fields",
+    "task_id",
 ]

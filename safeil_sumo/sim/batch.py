@@ -58,6 +58,32 @@ from safeil_sumo.sim.xp import ARRAYS
 SPACING_M = 1000.0
 
 
+class StageClock:
+    """Wall time [s] per stage of a batched run, summed over its steps (pass one to
+    :func:`run_batch`; the bench reports it per ego-step)."""
+
+    STAGES = ("sense", "plan", "track", "plant", "project", "sumo_move", "sumo_step",
+              "sumo_read", "monitor")
+
+    def __init__(self) -> None:
+        self.seconds = dict.fromkeys(self.STAGES, 0.0)
+        self.ego_steps = 0
+        self._t = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        """Book the time since the last lap to ``stage``."""
+        now = time.perf_counter()
+        self.seconds[stage] += now - self._t
+        self._t = now
+
+    def us_per_ego_step(self) -> dict[str, float]:
+        return {k: 1e6 * v / max(self.ego_steps, 1) for k, v in self.seconds.items()}
+
+
+def _no_lap(stage: str) -> None:
+    pass
+
+
 class _Scenario:
     """What is per scenario in a batch: its road, noise, camera, leader and log."""
 
@@ -145,11 +171,12 @@ def run_batch(
     controller: ctl.ControllerParams = ctl.ControllerParams(),
     api_factory: ApiFactory | None = None,
     on_done: Callable[[int, Rollout], None] | None = None,
+    clock: StageClock | None = None,
 ) -> list[Rollout]:
     """Run ``scenarios`` closed-loop side by side in one SUMO simulation; their rollouts in
     order. ``policy`` is one planner for all or one per scenario (scenarios sharing a planner
     object are planned in one call). ``on_done(i, rollout)`` is called as soon as scenario ``i`` ends (a sweep saves it
-    then, so a killed worker loses only the scenarios still running).
+    then). ``clock``: filled with the time per stage.
 
     Every scenario must be on the same network and have a scripted leader or none (no
     traffic); ``loop`` must not ask for sumo-gui or SSM output.
@@ -162,7 +189,6 @@ def run_batch(
     _check(scenarios, policies, loop)
     n = len(scenarios)
     net = scenarios[0].road.net_path
-    on_lane = loop.ego_placement == "lane"
     offset = copy_offset_m(net, SPACING_M)
     runs = [_Scenario(i, sc, p, loop, vehicle, i * offset)
             for i, (sc, p) in enumerate(zip(scenarios, policies))]
@@ -180,7 +206,7 @@ def run_batch(
             if r.has_leader:
                 r.read_leader(api, vehicle)
                 r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
-        _loop(api, runs, loop, vehicle, controller, blocks)
+        _loop(api, runs, loop, vehicle, controller, blocks, clock)
     except Exception as exc:  # every scenario still running ends with the reason
         for r in runs:
             if not r.end_reason:
@@ -221,7 +247,8 @@ def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: Loop
 
 def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
           vehicle: veh.VehicleParams, controller: ctl.ControllerParams,
-          blocks: list[tuple[np.ndarray, np.ndarray]]) -> None:
+          blocks: list[tuple[np.ndarray, np.ndarray]], clock: StageClock | None = None
+          ) -> None:
     """The stages over arrays of the running scenarios, until every one has ended; each step
     appends the scenario ids and log rows ``(n, columns)`` of the running ones to ``blocks``."""
     dt = loop.step_s
@@ -256,7 +283,11 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
     ego_seg = np.array([r.centre.segment_index(r.s_ego0) for r in live])
     lead_seg = np.array([r.centre.segment_index(r.s_lead0) for r in live])
     multi_piece = np.array([r.multi_piece for r in live], dtype=bool)
-    for k in range(int(n_max.max())):  # every scenario ends by its n_max (timeout)
+    lap = clock.lap if clock is not None else _no_lap
+    for k in range(n_max.max()):  # every scenario ends by its n_max (timeout)
+        lap("monitor")  # the end checks of the step before
+        if clock is not None:
+            clock.ego_steps += n
         t = k * dt
         if k % plan_every == 0:  # sense and plan, all scenarios at once
             x, y, yaw, vx, vy = st[:5]
@@ -280,12 +311,14 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
                                                            r.scenario.sensors)
             feats = planner_features(left, right, v, v_lead, d_lead)
             feature_log = feats[:, [0, 1, 2, 3, 4, 5, 7, 8]]
+            lap("sense")
             plans = np.empty((n, 3, 2))
             for policy, rows_of in _by_policy(live):  # one call per planner object
                 plans[rows_of] = np.asarray(policy.plan(feats[rows_of]), float).reshape(-1, 3, 2)
             target = ctl.make_targets(plans, horizon, fx_, fy_, yaw)
             t_plan = np.full(n, t)
             plan_log = np.column_stack([t_plan, fx_, fy_, yaw, plans.reshape(n, 6)])
+            lap("plan")
 
         # track and drive, all scenarios at once
         x, y, yaw, vx, vy, yaw_rate = st[:6]
@@ -293,13 +326,16 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             target, t - t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, integral, prev_error,
             controller, dt, ARRAYS)
         throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, ARRAYS)
+        lap("track")
         st = plant.step(st, steer_cmd, throttle, brake, ARRAYS)
         x, y, yaw, vx, vy = st[:5]
         v = np.hypot(vx, vy)
         front_x, front_y = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
+        lap("plant")
 
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
         s, d, heading, ego_seg = _project(lanes, front_x, front_y, ego_seg)
+        lap("project")
         inside = (np.abs(d) <= half_width).tolist() if on_lane else [False] * n
         fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
         for j, r in enumerate(live):
@@ -311,9 +347,11 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             set_speed(r.ego, vl[j])
             if r.leader is not None:
                 set_speed(r.leader_id, r.lead_speeds[k] * r.lead_scale)
+        lap("sumo_move")
         sim_step()
         colliding = set(colliding_ids())
         hit = np.fromiter((r.ego in colliding for r in live), bool, n)
+        lap("sumo_step")
 
         # the leaders, read per scenario and projected at once (NaN: none)
         lead_x, lead_y, v_lead_true = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
@@ -324,6 +362,7 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
                     (lead_x[j], lead_y[j]), v_sumo = r.leader[0], r.leader[1]
                     v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
         has_lead = ~np.isnan(v_lead_true)
+        lap("sumo_read")
         s_rear, _, _, lead_seg = _project(lanes, lead_x, lead_y, lead_seg)
         gap = np.where(has_lead, s_rear - s, np.inf)
         for j in np.flatnonzero(has_lead & ((gap < 2.0 * length) | multi_piece)):
@@ -338,6 +377,7 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
                 hit[j] = rectangles_overlap(
                     ego_box, rectangle_corners(lead_centre, lead_yaw, length, width))
 
+        lap("project")
         # monitors on the state at t + dt, all at once
         heading_err = (yaw - heading + math.pi) % (2.0 * math.pi) - math.pi
         d_min, d_max = mon.footprint_offset_range(d, heading_err, length, width, ARRAYS)

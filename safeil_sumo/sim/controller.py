@@ -26,13 +26,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from safeil_sumo import bspline
-from safeil_sumo.sim.xp import ARRAYS, FLOATS
 from safeil_sumo.sim.vehicle import (
     VehicleParams,
     VehicleState,
     _resistance,
     available_drive_force,
 )
+from safeil_sumo.sim.xp import FLOATS
 
 # how far the sampled path is extended beyond its ends along the end tangents [m]
 _BACK_EXTENSION_M = 50.0

@@ -37,7 +37,7 @@ def _and(a, b):
 
 
 def _isnan(value):
-    return value != value
+    return math.isnan(value)
 
 
 FLOATS = SimpleNamespace(
