@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from safeil_sumo import policies
 from safeil_sumo.experiments.replay import ReplayConfig
-from safeil_sumo.experiments.sweep import ScenarioSpec, build_scenario, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, build_scenario, run_sweep
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
@@ -104,13 +104,14 @@ def run(net: str = "curved500", policy: str | Policy = "safeil", scenarios: int 
 
 
 def sweep(policies_: Sequence[str], out: str | Path, scenarios: int = 10, nets: Sequence[str] =
-          ("curved500",), seed: int = 0, workers: int = 1, **spec: object) -> pd.DataFrame:
+          ("curved500",), seed: int = 0, workers: int = 1, batch: int = DEFAULT_BATCH,
+          **spec: object) -> pd.DataFrame:
     """A resumable sweep (nets x policies x scenarios; ``spec``: ScenarioSpec fields) written to
     ``out``; returns its summary (one row per task). Policies are names or paths (they travel to
-    worker processes)."""
+    worker processes); up to ``batch`` scenarios share one SUMO simulation (1: one each)."""
     specs = [ScenarioSpec(net=n, index=i, master_seed=seed, policy=p, **spec)
              for n in nets for p in policies_ for i in range(scenarios)]
-    return run_sweep(specs, out, workers=workers, progress=False)
+    return run_sweep(specs, out, workers=workers, progress=False, batch=batch)
 
 
 def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path,

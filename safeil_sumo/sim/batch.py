@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from functools import partial
 
 import numpy as np
 
@@ -42,12 +43,15 @@ from safeil_sumo.sim.runner import (
     Rollout,
     Scenario,
     _centre_xy,
-    _configure,
     _default_factory,
-    _depart,
     _Log,
     _read_leader,
     finish,
+    initial_state,
+    insert_vehicles,
+    leader_speeds,
+    max_steps,
+    start_positions,
     sumo_args,
 )
 from safeil_sumo.sim.xp import ARRAYS
@@ -98,22 +102,11 @@ class _Scenario:
         self.multi_piece = len(road.ego_pieces) > 1
         self.rng = np.random.default_rng(scenario.seed)
         self.camera = sen.LaneCamera(road, scenario.sensors)
-        dt = loop.step_s
-        limits = [t for t in (scenario.max_time_s, loop.max_time_s) if t]
-        max_time = min(limits) if limits else (
-            2.0 * road.path_length / max(scenario.ego_speed_mps, 5.0) + 10.0)
-        self.n_max = int(math.ceil(max_time / dt))
-        self.s_ego0 = road.path_start_s
-        self.s_lead0 = self.s_ego0 + scenario.initial_gap_m + vehicle.length_m
-        start_xy, lane_yaw = self.centre.point_at(self.s_ego0)
-        normal = np.array([-math.sin(float(lane_yaw)), math.cos(float(lane_yaw))])
-        start_xy = start_xy + scenario.ego_lateral_offset_m * normal
-        self.state0 = veh.state_from_front_bumper(
-            float(start_xy[0]), float(start_xy[1]),
-            float(lane_yaw) + scenario.ego_heading_offset_rad, scenario.ego_speed_mps, vehicle)
+        self.n_max = max_steps(scenario, loop)
+        self.s_ego0, self.s_lead0 = start_positions(scenario, vehicle)
+        self.state0 = initial_state(scenario, vehicle)
         self.has_leader = scenario.leader is not None
-        self.lead_speeds = (scenario.leader.speed_at(np.arange(self.n_max) * dt + dt).tolist()
-                            if self.has_leader else None)
+        self.lead_speeds = leader_speeds(scenario, self.n_max, loop.step_s)
         self.lead_scale = 1.0
         self.leader = None  # (rear_xy, v_sumo, yaw, front_xy) as read after the last step
         self.lead_v = 0.0
@@ -122,23 +115,9 @@ class _Scenario:
 
     def add(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
         """Insert the ego and leader on this scenario's copy of the track; place the ego."""
-        sc, road, i = self.scenario, self.road, self.i
-        ego_k, ego_lane, ego_pos, _ = _depart(road, min(self.s_ego0, self.centre.length), "ego")
-        route = f"r_ego_{i}"
-        api.route.add(route, [prefixed(i, e) for e in road.route_edges[ego_k:]])
-        api.vehicle.add(self.ego, route, depart="now", departLane=ego_lane, departPos=ego_pos,
-                        departSpeed=f"{sc.ego_speed_mps:.3f}")
-        _configure(api, self.ego, vehicle)
-        if self.has_leader:
-            lead_k, lead_lane, lead_pos, self.lead_scale = _depart(road, self.s_lead0, "leader")
-            lead_route = route
-            if lead_k != ego_k:  # departPos is per edge: the leader starts on a later edge
-                lead_route = f"r_leader_{i}"
-                api.route.add(lead_route, [prefixed(i, e) for e in road.route_edges[lead_k:]])
-            api.vehicle.add(self.leader_id, lead_route, depart="now", departLane=lead_lane,
-                            departPos=lead_pos,
-                            departSpeed=f"{sc.leader.initial_speed * self.lead_scale:.3f}")
-            _configure(api, self.leader_id, vehicle)
+        road, i = self.road, self.i
+        ego_k, ego_lane, _, self.lead_scale = insert_vehicles(
+            api, self.scenario, vehicle, self.ego, self.leader_id, partial(prefixed, i), f"_{i}")
         x, y = veh.front_bumper(self.state0, vehicle)
         # before its insertion SUMO takes the edge hint only with a lane index
         api.vehicle.moveToXY(self.ego, prefixed(i, road.route_edges[ego_k]), int(ego_lane),

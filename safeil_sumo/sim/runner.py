@@ -175,21 +175,10 @@ def run_scenario(
     rng = np.random.default_rng(scenario.seed)
     dt = loop.step_s
     plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
-    limits = [t for t in (scenario.max_time_s, loop.max_time_s) if t]
-    max_time = min(limits) if limits else (
-        2.0 * road.path_length / max(scenario.ego_speed_mps, 5.0) + 10.0)
-    n_max = int(math.ceil(max_time / dt))
-
-    # initial states: ego front bumper at the path start, leader ahead by the gap
-    s_ego0 = road.path_start_s
-    start_xy, lane_yaw = centre.point_at(s_ego0)
-    normal = np.array([-math.sin(float(lane_yaw)), math.cos(float(lane_yaw))])
-    start_xy = start_xy + scenario.ego_lateral_offset_m * normal
-    state = veh.state_from_front_bumper(
-        float(start_xy[0]), float(start_xy[1]),
-        float(lane_yaw) + scenario.ego_heading_offset_rad, scenario.ego_speed_mps, vehicle,
-    ) if pose_at is None else veh.state_from_front_bumper(*pose_at(0.0), vehicle)
-    s_leader_front0 = s_ego0 + scenario.initial_gap_m + vehicle.length_m
+    n_max = max_steps(scenario, loop)
+    s_ego0, s_leader_front0 = start_positions(scenario, vehicle)
+    state = (initial_state(scenario, vehicle) if pose_at is None
+             else veh.state_from_front_bumper(*pose_at(0.0), vehicle))
 
     factory = api_factory or _default_factory(loop)
     api = factory(sumo_args(scenario, loop))
@@ -198,22 +187,8 @@ def run_scenario(
     error = ""
     wall0 = time.perf_counter()
     try:
-        ego_k, ego_lane, ego_pos, _ = _depart(road, min(s_ego0, centre.length), "ego")
-        api.route.add(ROUTE_ID, list(road.route_edges[ego_k:]))
-        api.vehicle.add(EGO_ID, ROUTE_ID, depart="now", departLane=ego_lane,
-                        departPos=ego_pos, departSpeed=f"{scenario.ego_speed_mps:.3f}")
-        _configure(api, EGO_ID, vehicle)
+        ego_k, _, ego_pos, lead_scale = insert_vehicles(api, scenario, vehicle)
         has_leader = scenario.leader is not None
-        if has_leader:
-            lead_k, lead_lane, lead_pos, lead_scale = _depart(road, s_leader_front0, "leader")
-            lead_route = ROUTE_ID
-            if lead_k != ego_k:  # departPos is per edge: the leader starts on a later edge
-                lead_route = LEADER_ROUTE_ID
-                api.route.add(lead_route, list(road.route_edges[lead_k:]))
-            api.vehicle.add(LEADER_ID, lead_route, depart="now", departLane=lead_lane,
-                            departPos=lead_pos,
-                            departSpeed=f"{scenario.leader.initial_speed * lead_scale:.3f}")
-            _configure(api, LEADER_ID, vehicle)
         traffic = scenario.traffic
         if traffic is not None:
             trf.prefill(api, traffic, road.route_edges[ego_k], float(ego_pos),
@@ -253,9 +228,7 @@ def run_scenario(
         if traffic is not None:
             lead_id, leader, lead_v, lead_len, lead_wid, _, lead_seg0 = _traffic_leader(
                 api, road, centre.segment_index(s_ego0), radar_dist, sizes)
-        # the leader's commanded speed of every step, in one vectorised call (same values)
-        lead_speeds = (scenario.leader.speed_at(np.arange(n_max) * dt + dt).tolist()
-                       if has_leader else None)
+        lead_speeds = leader_speeds(scenario, n_max, dt)
         ego_seg = centre.segment_index(s_ego0)
         lead_seg = centre.segment_index(s_leader_front0) if traffic is None else lead_seg0
         half_width = 0.5 * lane.width
@@ -455,6 +428,75 @@ def sumo_lane_position(road: Road, s: float) -> tuple[str, float]:
     the lane's ends): where ``LoopConfig.ego_placement="lane"`` puts the front bumper."""
     p = road.piece_at(s)
     return p.lane_id, min(max((s - p.s0) * p.scale, 0.0), p.sumo_length)
+
+
+def max_steps(scenario: Scenario, loop: LoopConfig) -> int:
+    """Steps of a run that does not end earlier: the shorter duration of the scenario and the
+    loop, default 2x the path at the initial speed + 10 s."""
+    limits = [t for t in (scenario.max_time_s, loop.max_time_s) if t]
+    road = scenario.road
+    max_time = min(limits) if limits else (
+        2.0 * road.path_length / max(scenario.ego_speed_mps, 5.0) + 10.0)
+    return int(math.ceil(max_time / loop.step_s))
+
+
+def leader_speeds(scenario: Scenario, n_max: int, dt: float) -> list[float] | None:
+    """The scripted leader's commanded speed [m/s] of every step (at its end time), in one
+    vectorised call; None without a scripted leader."""
+    if scenario.leader is None:
+        return None
+    return scenario.leader.speed_at(np.arange(n_max) * dt + dt).tolist()
+
+
+def start_positions(scenario: Scenario, vehicle: veh.VehicleParams) -> tuple[float, float]:
+    """Arc lengths [m] along the ego lane of the ego's front bumper (the path start) and the
+    leader's front bumper (ahead by the gap and a car length)."""
+    s_ego0 = scenario.road.path_start_s
+    return s_ego0, s_ego0 + scenario.initial_gap_m + vehicle.length_m
+
+
+def initial_state(scenario: Scenario, vehicle: veh.VehicleParams) -> veh.VehicleState:
+    """The ego at the path start, offset and turned as the scenario says, at its speed."""
+    centre = scenario.road.lanes[scenario.road.ego_lane].centre
+    start_xy, lane_yaw = centre.point_at(scenario.road.path_start_s)
+    normal = np.array([-math.sin(float(lane_yaw)), math.cos(float(lane_yaw))])
+    start_xy = start_xy + scenario.ego_lateral_offset_m * normal
+    return veh.state_from_front_bumper(
+        float(start_xy[0]), float(start_xy[1]),
+        float(lane_yaw) + scenario.ego_heading_offset_rad, scenario.ego_speed_mps, vehicle)
+
+
+def insert_vehicles(api: sumo_api.SumoApi, scenario: Scenario, vehicle: veh.VehicleParams,
+                    ego_id: str = EGO_ID, leader_id: str = LEADER_ID,
+                    rename: Callable[[str], str] = str, tag: str = ""
+                    ) -> tuple[int, str, str, float]:
+    """Add the ego and the scripted leader (if any) to SUMO at the scenario's start, on the
+    edges ``rename(edge)`` (a batch's copy of the track), with routes named ``...{tag}``.
+
+    Returns ``(index of the ego's first edge in the route, its departLane, its departPos, the
+    leader's SUMO speed scale)``.
+    """
+    road = scenario.road
+    s_ego0, s_lead0 = start_positions(scenario, vehicle)
+    centre = road.lanes[road.ego_lane].centre
+    ego_k, ego_lane, ego_pos, _ = _depart(road, min(s_ego0, centre.length), "ego")
+    route = ROUTE_ID + tag
+    api.route.add(route, [rename(e) for e in road.route_edges[ego_k:]])
+    api.vehicle.add(ego_id, route, depart="now", departLane=ego_lane, departPos=ego_pos,
+                    departSpeed=f"{scenario.ego_speed_mps:.3f}")
+    _configure(api, ego_id, vehicle)
+    lead_scale = 1.0
+    if scenario.leader is not None:
+        lead_k, lead_lane, lead_pos, lead_scale = _depart(road, s_lead0, "leader")
+        lead_route = route
+        if lead_k != ego_k:  # departPos is per edge: the leader starts on a later edge
+            lead_route = LEADER_ROUTE_ID + tag
+            api.route.add(lead_route, [rename(e) for e in road.route_edges[lead_k:]])
+        api.vehicle.add(leader_id, lead_route, depart="now", departLane=lead_lane,
+                        departPos=lead_pos,
+                        departSpeed=f"{scenario.leader.initial_speed * lead_scale:.3f}")
+        _configure(api, leader_id, vehicle)
+    return ego_k, ego_lane, ego_pos, lead_scale
 
 
 def _configure(api: sumo_api.SumoApi, veh_id: str, vehicle: veh.VehicleParams) -> None:
