@@ -112,14 +112,24 @@ def test_stop_on_flag_and_one_policy(road):
 
 
 def test_placements_agree_on_the_paper_scenarios(road):
-    """moveTo on lane coordinates gives the flags and trajectories of moveToXY (10 scenarios)."""
+    """moveTo on lane coordinates gives the flags and trajectories of moveToXY: 10 paper
+    scenarios of BC (it leaves its lane: the off-lane steps fall back to moveToXY) and blind
+    cruises into slower leaders (SUMO's collision check at the same step: moveTo's position is
+    where the step starts, so the step's own advance is taken off)."""
     from safeil_sumo import policies
 
     cases = [safety_scenario(road, i) for i in range(10)]
-    policy = policies.load("bc")  # leaves its lane: the off-lane steps fall back to moveToXY
+    policy = policies.load("bc")
     xy = run_batch(cases, policy, LoopConfig(ego_placement="xy"))
     lane = run_batch(cases, policy, LoopConfig(ego_placement="lane"))
     _assert_same(lane, xy, atol=0.0)
+    crashes = [Scenario(f"crash{v:.0f}", road, constant(v), 30.0, 20.0, seed=i)
+               for i, v in enumerate((10.0, 20.0, 26.0))]
+    blind = blind_cruise()
+    xy = [run_scenario(sc, blind, LoopConfig(ego_placement="xy")) for sc in crashes]
+    assert [r.summary["end_reason"] for r in xy] == ["collision"] * 3
+    _assert_same([run_scenario(sc, blind, LoopConfig(ego_placement="lane")) for sc in crashes],
+                 xy, atol=0.0)
 
 
 def test_bad_batches_are_refused(road):

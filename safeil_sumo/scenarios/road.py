@@ -100,8 +100,11 @@ class Road:
 
     def piece_at(self, s: float) -> RoutePiece:
         """The SUMO lane under arc length ``s`` [m] of the ego lane (clipped to the ends)."""
-        i = bisect.bisect_right(self._piece_ends, s)
-        return self.ego_pieces[min(i, len(self.ego_pieces) - 1)]
+        return self.ego_pieces[self.piece_index_at(s)]
+
+    def piece_index_at(self, s: float) -> int:
+        """Index in ``ego_pieces`` of :meth:`piece_at`."""
+        return min(bisect.bisect_right(self._piece_ends, s), len(self.ego_pieces) - 1)
 
     def lanes_at(self, s: float) -> tuple[int, int]:
         """Lowest and highest lane index offered at arc length ``s`` [m] of the ego lane (a

@@ -53,6 +53,7 @@ from safeil_sumo.sim.runner import (
     max_steps,
     start_positions,
     sumo_args,
+    sumo_lane_position,
 )
 from safeil_sumo.sim.xp import ARRAYS
 
@@ -133,13 +134,13 @@ class _Scenario:
         self.leader = lead
 
 
-def _lane_position(sc: _Scenario, s: float) -> tuple[str, float]:
+def _lane_position(sc: _Scenario, s: float, advance_m: float) -> tuple[str, float]:
     """:func:`.runner.sumo_lane_position` on the scenario's copy of the track."""
-    p = sc.road.piece_at(s) if sc.multi_piece else sc.road.ego_pieces[0]
-    lane_id = sc.lane_ids.get(p.lane_id)
-    if lane_id is None:
-        lane_id = sc.lane_ids[p.lane_id] = prefixed(sc.i, p.lane_id)
-    return lane_id, min(max((s - p.s0) * p.scale, 0.0), p.sumo_length)
+    lane, pos = sumo_lane_position(sc.road, s, advance_m)
+    copy = sc.lane_ids.get(lane)
+    if copy is None:
+        copy = sc.lane_ids[lane] = prefixed(sc.i, lane)
+    return copy, pos
 
 
 def run_batch(
@@ -319,7 +320,7 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
         fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
         for j, r in enumerate(live):
             if inside[j]:
-                move_to(r.ego, *_lane_position(r, sl[j]))
+                move_to(r.ego, *_lane_position(r, sl[j], vl[j] * dt))
             else:
                 move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j], yaw_to_sumo_angle(float(yaw[j])),
                            2)

@@ -274,7 +274,7 @@ def run_scenario(
             # where the front bumper is on the ego lane (O(1) walk from the last segment)
             s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
             if on_lane and abs(d) <= half_width:
-                move_to(EGO_ID, *sumo_lane_position(road, s))
+                move_to(EGO_ID, *sumo_lane_position(road, s, v * dt))
             else:
                 move_to_xy(EGO_ID, "", -1, front[0], front[1], yaw_to_sumo_angle(yaw), 2)
             set_speed(EGO_ID, v)
@@ -423,11 +423,18 @@ def _depart(road: Road, s: float, who: str) -> tuple[int, str, str, float]:
     return p.route_index, str(p.lane_index), f"{(s - p.s0) * p.scale:.3f}", p.scale
 
 
-def sumo_lane_position(road: Road, s: float) -> tuple[str, float]:
-    """SUMO lane id and position on it [m] of arc length ``s`` [m] of the ego lane (clipped to
-    the lane's ends): where ``LoopConfig.ego_placement="lane"`` puts the front bumper."""
-    p = road.piece_at(s)
-    return p.lane_id, min(max((s - p.s0) * p.scale, 0.0), p.sumo_length)
+def sumo_lane_position(road: Road, s: float, advance_m: float = 0.0) -> tuple[str, float]:
+    """Where ``LoopConfig.ego_placement="lane"`` puts the front bumper with ``moveTo``: the SUMO
+    lane and position [m] on it from which SUMO's step, moving the ego ``advance_m`` [m] along
+    its lane (speed x step: ``moveTo`` places, then the step drives on, unlike ``moveToXY``),
+    ends at arc length ``s`` [m] of the ego lane. Clipped to the route's ends."""
+    k = road.piece_index_at(s)
+    p = road.ego_pieces[k]
+    pos = (s - p.s0) * p.scale - advance_m
+    if pos < 0.0 and k > 0:  # the step crosses into this lane from the one before
+        p = road.ego_pieces[k - 1]
+        pos += p.sumo_length
+    return p.lane_id, min(max(pos, 0.0), p.sumo_length)
 
 
 def max_steps(scenario: Scenario, loop: LoopConfig) -> int:
