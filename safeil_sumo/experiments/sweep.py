@@ -317,11 +317,14 @@ def failed_record(spec: ScenarioSpec, error: str) -> dict[str, Any]:
             **spec_fields(spec)}
 
 
-def run_task(spec: ScenarioSpec) -> dict[str, Any]:
+def run_task(spec: ScenarioSpec,
+             extras: Callable[[ScenarioSpec, Any], dict] | None = None) -> dict[str, Any]:
     """Run one task closed-loop; returns a flat record (summary + spec fields). Never raises.
 
     ``status`` is ``"ok"``, or ``"failed"`` with ``error="Type: message"`` when the task could
-    not be built or the loop ended with an exception.
+    not be built or the loop ended with an exception. ``extras(spec, rollout)`` (a module-level
+    function, e.g. via ``functools.partial(run_task, extras=f)`` as a sweep's ``task_fn``) adds
+    JSON-able fields computed from the per-step log, which is not kept otherwise.
     """
     wall0 = time.perf_counter()
     try:
@@ -337,6 +340,8 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
             from safeil_sumo.experiments.suite import response_metrics
 
             summary.update({f"resp_{k}": v for k, v in response_metrics(rollout.log).items()})
+        if extras is not None:
+            summary.update(extras(spec, rollout))
     except Exception as exc:  # noqa: BLE001 - a record, never an exception: the sweep goes on
         return failed_record(spec, f"{type(exc).__name__}: {exc}")
     failed = summary.get("end_reason") == "error"
@@ -345,8 +350,10 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
     summary["policy_name"] = summary.pop("policy")  # e.g. "safeil+filter"; spec keeps "safeil"
     summary["net_name"] = summary.pop("net")
     record.update(summary)
-    record["leader_speed0_mps"] = scenario.leader.initial_speed  # the draw (braking: pre-brake)
-    record["leader_label"] = scenario.leader.label
+    # the draw (braking: pre-brake); with traffic there is no scripted leader
+    scripted = scenario.leader
+    record["leader_speed0_mps"] = scripted.initial_speed if scripted is not None else math.nan
+    record["leader_label"] = scripted.label if scripted is not None else "traffic"
     record["radius_m"] = road.meta.get("radius_m", math.nan)
     if spec.safety_filter:
         record["filter_interventions"] = int(getattr(policy, "interventions", 0))
