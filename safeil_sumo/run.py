@@ -3,7 +3,8 @@
 Runs N scenarios (leader at a constant random speed in [25, 32] m/s ahead of the ego) with one
 policy, prints a summary table and writes a results folder:
 ``steps.parquet`` (per-step log), ``summary.csv`` / ``summary.json`` (per scenario),
-``manifest.json`` (config, seeds, git commit, versions), PNG plots, and with ``--animate``
+``manifest.json`` (config, seeds, git commit, versions), PNG plots (on n74 also
+``flag_map.png``: the stretch with the flag locations), and with ``--animate``
 ``animation_<scenario>.mp4`` (or ``.gif``, see :mod:`safeil_sumo.animate`).
 """
 
@@ -185,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
             plots.plot_trajectories(road, steps, tmp / "trajectory.png", vehicle.width_m)
             plots.plot_speed_gap(steps, tmp / "speed_gap.png")
             plots.plot_ttc(steps, tmp / "ttc.png", scenarios[0].monitors.ttc_threshold_s)
+            if args.net == "n74":  # long drives: where on the route each flag started
+                plots.plot_flag_map(road, steps, tmp / "flag_map.png")
 
     print(format_table(summaries))
     done = int(summaries["completed"].sum())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import matplotlib
@@ -92,13 +93,16 @@ FLAG_STYLE = {  # kind -> (marker, colour, label) on route maps
 }
 
 
-def draw_flag_map(ax, route_xy: np.ndarray, events: pd.DataFrame, title: str) -> None:
-    """The route (``(N, 2)`` [m], x-y) in grey, a tick every 5 km along it, and flag events
-    (columns ``kind``, ``x``, ``y`` [m]) marked by kind; equal aspect."""
+def draw_flag_map(ax, route_xy: np.ndarray, events: pd.DataFrame, title: str,
+                  km_at_start: float = 0.0, tick_km: float = 5.0) -> None:
+    """The route (``(N, 2)`` [m], x-y) in grey, labelled every ``tick_km`` [km] (its first
+    point is at ``km_at_start`` [km]), and flag events (columns ``kind``, ``x``, ``y`` [m])
+    marked by kind; equal aspect."""
     ax.plot(route_xy[:, 0] / 1000.0, route_xy[:, 1] / 1000.0, color="0.6", lw=1.5, zorder=1)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route_xy, axis=0), axis=1))])
-    for km in np.arange(0.0, s[-1] / 1000.0, 5.0):  # a tick every 5 km along the route
-        i = int(np.searchsorted(s, 1000.0 * km))
+    first = math.ceil(km_at_start / tick_km) * tick_km
+    for km in np.arange(first, km_at_start + s[-1] / 1000.0, tick_km):
+        i = min(int(np.searchsorted(s, 1000.0 * (km - km_at_start))), len(s) - 1)
         ax.plot(*(route_xy[i] / 1000.0), "o", color="0.3", ms=3, zorder=2)
         ax.annotate(f"{km:g}", route_xy[i] / 1000.0, fontsize=7, color="0.3",
                     xytext=(3, 3), textcoords="offset points")
@@ -121,8 +125,11 @@ def plot_flag_map(road: Road, logs: pd.DataFrame, path: Path) -> None:
     events = pd.DataFrame([e for _, g in _groups(logs) for e in flag_events(g)],
                           columns=["kind", "t_s", "x", "y", "s_m"])
     fig, ax = plt.subplots(figsize=(8, 6))
+    lo, hi = road.meta.get("stretch_km") or (0.0, road.path_end_s / 1000.0)
+    km0 = lo - road.path_start_s / 1000.0  # the km post of the lane's first point
     draw_flag_map(ax, road.lanes[road.ego_lane].centre.points, events,
-                  f"{road.net_path.name}: ego lane and flag locations")
+                  f"{road.net_path.name}, km {lo:g}-{hi:g}: ego lane (ticks: km) and where "
+                  "each flag started", km0, 1.0 if hi - lo <= 12.0 else 5.0)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
