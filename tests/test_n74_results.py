@@ -233,3 +233,10 @@ def test_run_on_n74_writes_the_flag_map(tmp_path, capsys):
         capsys.readouterr().err
     assert (out / "flag_map.png").stat().st_size > 10_000
     assert (out / "trajectory.png").is_file()
+
+
+def test_median_difference_without_samples_is_nan():
+    empty = [np.zeros(0)]
+    assert all(math.isnan(v) for v in nd.median_difference_ci(empty, [np.ones(3)], seed=0))
+    d, _, _ = nd.median_difference_ci([np.zeros(0), np.full(3, 2.0)], [np.ones(3)], seed=0)
+    assert d == 1.0

@@ -135,6 +135,8 @@ def median_difference_ci(groups_a: Sequence[np.ndarray], groups_b: Sequence[np.n
     percentile bootstrap interval that resamples whole GROUPS (drives, recordings) with
     replacement — samples of one drive are strongly correlated, so resampling samples would
     give far too narrow intervals. Seeded."""
+    groups_a = [g for g in groups_a if len(g)]  # a drive that never followed adds nothing
+    groups_b = [g for g in groups_b if len(g)]
     if not groups_a or not groups_b:
         return math.nan, math.nan, math.nan
     rng = np.random.default_rng(seed)
