@@ -450,7 +450,7 @@ def _pct(rate: float, low: float | None = None, high: float | None = None) -> st
     return text + (f" [{100 * low:.3g}, {100 * high:.3g}]" if low is not None else "")
 
 
-def _n74_readme(n74: dict, wall_s: float | None) -> list[str]:
+def _n74_readme(n74: dict) -> list[str]:
     d = n74["design"]
     stretches = ", ".join(f"{a:g}-{b:g}" for a, b in d["stretches_km"])
     rows = []
@@ -470,16 +470,17 @@ def _n74_readme(n74: dict, wall_s: float | None) -> list[str]:
         tg.append(row)
     return [
         "## N74 drives: flags per 100 km and time gaps among traffic", "",
-        f"`python -m safeil_sumo.results --only n74` ({d['drives']} drives, "
-        f"{d.get('drives_core_s', math.nan) / 60:.0f} core-minutes of driving"
-        + (f"; last run {wall_s:.0f} s on 2 workers" if wall_s else "")
-        + "): every planner drives the "
+        (f"`python -m safeil_sumo.results --only n74` ({d['drives']} drives; their wall times "
+        f"sum to {d.get('drives_core_s', math.nan) / 60:.0f} min, half that on 2 workers): "
+        "every planner drives the "
         f"stretches {stretches} km of the n74 road (direction A, right lane) with the same "
         f"{d['seeds_per_stretch']} seeds each, among SUMO's `{d['traffic']}` traffic (main road "
         "and on-ramps; the leader is whichever vehicle is ahead in the ego lane; the ego never "
-        "changes lane). A flag event is a run of flagged steps of one kind; per 100 km with its "
+        "changes lane). A drive ends early at a collision or with the ego 6 m off its lane; its "
+        "km count up to there. A flag event is a run of flagged steps of one kind; per 100 km "
+        "with its "
         "exact Poisson (Garwood) 95 % interval over the total km, event count in brackets. "
-        "Per drive: `n74_drives.csv`; every flag with its place: `n74_flags.csv`.", "",
+        "Per drive: `n74_drives.csv`; every flag with its place: `n74_flags.csv`."), "",
         _md_table(rows, {"planner": "planner", "done": "drives completed", "km": "km",
                          "ttc": "TTC ≤ 1 s /100 km [95 % CI] (n)",
                          "lane_departure": "lane departures /100 km",
@@ -698,10 +699,17 @@ def write_readme(out: Path, facts: dict) -> None:
                                    "path": "mean path", "gap": "replay gap RMSE [m]"}),
                   "", "![efficiency](sample_efficiency.png)", ""]
     if facts.get("n74"):
-        lines += _n74_readme(facts["n74"], facts.get("section_wall_s", {}).get("n74"))
+        lines += _n74_readme(facts["n74"])
     walls = facts.get("section_wall_s", {})
+    commits = facts.get("section_git_commit", {})
+
+    def at(k: str) -> str:  # a section last run at another commit than the whole
+        c = commits.get(k)
+        return f" (commit `{c[:10]}`)" if c and c != facts.get("git_commit") else ""
+
     lines += ["Wall time per section on 2 cores (the last time each ran; a resumed sweep is "
-              "faster): " + ", ".join(f"{k} {v:.0f} s" for k, v in walls.items()) + ".", ""]
+              "faster): " + ", ".join(f"{k} {v:.0f} s{at(k)}" for k, v in walls.items()) + ".",
+              ""]
     tmp = out / ".README.md.tmp"
     tmp.write_text("\n".join(lines))
     tmp.replace(out / "README.md")
@@ -1008,7 +1016,13 @@ def main(argv: list[str] | None = None) -> int:
     previous = args.out / "facts.json"
     merged = json.loads(previous.read_text()) if previous.is_file() else {}
     merged.setdefault("section_wall_s", {}).update(walls)
-    merged.update({k: v for k, v in facts.items() if k != "section_wall_s"})
+    merged.setdefault("section_git_commit", {}).update({k: facts["git_commit"] for k in walls})
+    # a run of some sections keeps the run-wide args/commit of the full run (the other sections'
+    # text reads them); its own commit is in section_git_commit
+    partial = set(args.only) != set(SECTIONS) and "args" in merged
+    run_wide = {"args", "git_commit", "versions", "wall_time_s"} if partial else set()
+    merged.update({k: v for k, v in facts.items()
+                   if k != "section_wall_s" and k not in run_wide})
     outputs.write_json(previous, merged)
     write_readme(args.out, json.loads(previous.read_text()))
     print(f"results in {args.out} ({facts['wall_time_s']:.0f} s)")
