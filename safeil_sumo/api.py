@@ -51,15 +51,17 @@ def load_policy(policy: str | Policy) -> Policy:
 
 
 def road(net: str = "curved500", route: Sequence[str] = (), from_km: float | None = None,
-         to_km: float | None = None) -> Road:
+         to_km: float | None = None, lane: str | int | None = None) -> Road:
     """The road of a catalogue name (``curved500``, ``straight``, ``curved<R>``) or a
     ``.net.xml`` path, read once per process; on a multi-edge net, along ``route`` (SUMO edge
     ids in driving order, see :func:`safeil_sumo.scenarios.route.load_route`); ``n74``: the
     stretch of direction A between the kilometre posts ``from_km`` and ``to_km`` (default: all
-    of it, see :func:`safeil_sumo.scenarios.n74.stretch_road`)."""
+    of it, see :func:`safeil_sumo.scenarios.n74.stretch_road`). ``lane``: the ego's lane,
+    ``right``/``left`` on n74, a SUMO lane index of the first edge on a ``.net.xml`` (default:
+    the middle lane)."""
     from safeil_sumo.experiments.sweep import _road
 
-    return _road(net, tuple(route), from_km, to_km)
+    return _road(net, tuple(route), from_km, to_km, "" if lane is None else str(lane))
 
 
 def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: object) -> Scenario:
@@ -68,7 +70,7 @@ def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: obje
     ``leader_profile="ngsim"``, ``leader_speed_range_mps=(20, 25)``, ``initial_gap_m=30``,
     ``route=("E0", "E1")``, ...)."""
     sc = ScenarioSpec(net=net, index=index, master_seed=seed, **spec)
-    return build_scenario(sc, road(net, sc.route, sc.from_km, sc.to_km))
+    return build_scenario(sc, road(net, sc.route, sc.from_km, sc.to_km, sc.lane))
 
 
 def build_scenarios(net: str = "curved500", count: int = 10, seed: int = 0,

@@ -69,3 +69,35 @@ def add_n74_options(parser: argparse.ArgumentParser) -> None:
                              "scaled x0.5 light, x1 default, x2 dense, seeded by the scenario "
                              "seed; the ego's leader is whichever vehicle is ahead in its lane "
                              "(no scripted leader). Default none")
+
+
+N74_LANES = ("right", "left")  # --lane with --net n74: the main lanes of direction A
+
+
+def add_lane_option(parser: argparse.ArgumentParser) -> None:
+    """``--lane``, shared by ``run`` and ``sweep``; check it with :func:`lane_for_net`."""
+    parser.add_argument(
+        "--lane", default=None, metavar="LANE",
+        help="the ego's lane: with --net n74 the main lane, right (default) or left; with a "
+             ".net.xml path the SUMO lane index (0 = rightmost) on the first edge of --route "
+             "(or of the net's one edge); default: the middle lane")
+
+
+def lane_for_net(net: str, lane: str | None) -> str:
+    """``--lane`` checked against ``--net``: ``""`` (the default lane), ``right``/``left`` (n74)
+    or a SUMO lane index as text (a ``.net.xml``). Raises ``ValueError`` with a one-line reason;
+    whether the index exists on the first edge is checked when the net is read."""
+    if lane is None:
+        return ""
+    if net == "n74":
+        if lane not in N74_LANES:
+            raise ValueError(f"--lane with --net n74 is right or left (its main lanes), got "
+                             f"{lane!r}")
+        return lane
+    if not net.endswith(".xml"):
+        raise ValueError(f"--lane needs --net n74 or a .net.xml path; the {net} track is built "
+                         "around its middle lane")
+    if not lane.isdigit():
+        raise ValueError(f"--lane with a .net.xml is a SUMO lane index >= 0 on the first edge, "
+                         f"got {lane!r}")
+    return str(int(lane))

@@ -43,6 +43,8 @@ from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, comparabl
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED_DATA = REPO / "data" / "synthetic" / "tuples.parquet"
 SHIPPED_SAFEIL = REPO / "safeil_sumo" / "models" / "safeil.json"
+SYNTHETIC_DRIVES = REPO / "data" / "synthetic" / "drives.parquet"  # the recorded n74 humans
+QUICK_STRETCH_KM = (4.0, 5.0)  # the n74 section's --quick drive (one per planner)
 
 # The paper's Fig. "Safety Performance" (path completed before the first flag, scenarios 1..10)
 PAPER_SAFEIL = (1, 1, 1, 0.243652537072041, 1, 0.251206141365427, 0.286587934750144, 1, 1, 1)
@@ -62,7 +64,7 @@ COLORS = {"safeil": "tab:green", "safeil_paper": "tab:olive", "bc": "tab:red",
           "analytic": "tab:gray", "idm": "tab:blue"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
-            "humanlike", "ablation", "instrument")
+            "humanlike", "ablation", "instrument", "n74")
 
 
 def _sweep(specs: list[ScenarioSpec], work: Path, name: str, workers: int) -> pd.DataFrame:
@@ -448,6 +450,59 @@ def _pct(rate: float, low: float | None = None, high: float | None = None) -> st
     return text + (f" [{100 * low:.3g}, {100 * high:.3g}]" if low is not None else "")
 
 
+def _n74_readme(n74: dict) -> list[str]:
+    d = n74["design"]
+    stretches = ", ".join(f"{a:g}-{b:g}" for a, b in d["stretches_km"])
+    rows = []
+    for r in n74["rates"]:
+        row = dict(r, planner=LABELS.get(r["policy"], r["policy"]), done=(
+            f"{r['completed_drives']}/{r['drives']}"))
+        for kind in ("ttc", "lane_departure", "collision"):
+            row[kind] = (f"{r[f'{kind}_per_100km']:.3g} [{r[f'{kind}_lo']:.3g}, "
+                         f"{r[f'{kind}_hi']:.3g}] ({r[f'{kind}_events']})")
+        rows.append(row)
+    tg = []
+    for r in n74["time_gap"]:
+        row = dict(r, planner=LABELS.get(r["who"], r["who"]))
+        if isinstance(r.get("median_diff_s"), float) and not math.isnan(r["median_diff_s"]):
+            row["diff"] = (f"{r['median_diff_s']:+.2f} [{r['median_diff_lo_s']:+.2f}, "
+                           f"{r['median_diff_hi_s']:+.2f}]")
+        tg.append(row)
+    return [
+        "## N74 drives: flags per 100 km and time gaps among traffic", "",
+        (f"`python -m safeil_sumo.results --only n74` ({d['drives']} drives; their wall times "
+        f"sum to {d.get('drives_core_s', math.nan) / 60:.0f} min, half that on 2 workers): "
+        "every planner drives the "
+        f"stretches {stretches} km of the n74 road (direction A, right lane) with the same "
+        f"{d['seeds_per_stretch']} seeds each, among SUMO's `{d['traffic']}` traffic (main road "
+        "and on-ramps; the leader is whichever vehicle is ahead in the ego lane; the ego never "
+        "changes lane). A drive ends early at a collision or with the ego 6 m off its lane; its "
+        "km count up to there. A flag event is a run of flagged steps of one kind; per 100 km "
+        "with its "
+        "exact Poisson (Garwood) 95 % interval over the total km, event count in brackets. "
+        "Per drive: `n74_drives.csv`; every flag with its place: `n74_flags.csv`."), "",
+        _md_table(rows, {"planner": "planner", "done": "drives completed", "km": "km",
+                         "ttc": "TTC ≤ 1 s /100 km [95 % CI] (n)",
+                         "lane_departure": "lane departures /100 km",
+                         "collision": "collisions /100 km", "min_ttc_s": "min TTC [s]",
+                         "leaders_met": "leaders met", "cut_ins_met": "cut-ins met"}),
+        "", "![n74 flag map](n74_flag_map.png)", "",
+        ("**Time gaps against the recorded synthetic humans.** Time gap = bumper gap / ego "
+        f"speed, at {d['time_gap_rate_hz']:g} Hz while following (leader within "
+        f"{d['follow_max_gap_m']:g} m, ego faster than {d['follow_min_speed_mps']:g} m/s), on "
+        "the planners' drives and on the synthetic human drives of `data/synthetic/drives.parquet` "
+        "(same road, same traffic flows; the humans also change lanes). KS: the largest gap "
+        "between the two ECDFs (no p-value: samples of one drive are correlated); median "
+        "difference planner − humans with a 95 % bootstrap interval that resamples whole "
+         "drives and recordings (seeded)."), "",
+        _md_table(tg, {"planner": "who", "groups": "drives", "samples": "samples",
+                       "q05_s": "p5 [s]", "q25_s": "p25 [s]", "q50_s": "median [s]",
+                       "q75_s": "p75 [s]", "q95_s": "p95 [s]",
+                       "share_below_1s": "share < 1 s", "ks_to_humans": "KS to humans",
+                       "diff": "median − humans [95 % CI] [s]"}),
+        "", "![n74 time gaps](n74_time_gap.png)", ""]
+
+
 def write_readme(out: Path, facts: dict) -> None:
     """``results/README.md``: our numbers beside the paper's, from ``facts.json``."""
     args = facts.get("args", {})
@@ -643,9 +698,18 @@ def write_readme(out: Path, facts: dict) -> None:
                                    "tuples": "tuples", "seeds": "seeds", "rate": "completed",
                                    "path": "mean path", "gap": "replay gap RMSE [m]"}),
                   "", "![efficiency](sample_efficiency.png)", ""]
+    if facts.get("n74"):
+        lines += _n74_readme(facts["n74"])
     walls = facts.get("section_wall_s", {})
+    commits = facts.get("section_git_commit", {})
+
+    def at(k: str) -> str:  # a section last run at another commit than the whole
+        c = commits.get(k)
+        return f" (commit `{c[:10]}`)" if c and c != facts.get("git_commit") else ""
+
     lines += ["Wall time per section on 2 cores (the last time each ran; a resumed sweep is "
-              "faster): " + ", ".join(f"{k} {v:.0f} s" for k, v in walls.items()) + ".", ""]
+              "faster): " + ", ".join(f"{k} {v:.0f} s{at(k)}" for k, v in walls.items()) + ".",
+              ""]
     tmp = out / ".README.md.tmp"
     tmp.write_text("\n".join(lines))
     tmp.replace(out / "README.md")
@@ -768,6 +832,107 @@ def instrument(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     return rows
 
 
+def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> dict:
+    """The planners' seeded drives on the n74 road among SUMO's traffic: flag rates per 100 km
+    with exact Poisson intervals, time gaps against the synthetic humans of the same road, and a
+    map of where the flags happened (:mod:`safeil_sumo.experiments.n74_drives`)."""
+    from safeil_sumo import api
+    from safeil_sumo.experiments import n74_drives as nd
+    from safeil_sumo.experiments.plots import draw_flag_map
+    from safeil_sumo.experiments.sweep import run_sweep
+
+    # --quick: 1 km of each planner (a smoke test of the section)
+    stretches, per = ((QUICK_STRETCH_KM,), 1) if quick else (nd.STRETCHES_KM,
+                                                              nd.SEEDS_PER_STRETCH)
+    specs = nd.drive_specs(nd.PLANNERS, seed, stretches, per)
+    print(f"[n74] {len(specs)} drives", flush=True)
+    df = run_sweep(specs, work / "n74", workers=workers, progress=True, task_fn=nd.drive_task)
+    failed = df[df["status"] != "ok"]
+    if len(failed):
+        print(f"[n74] {len(failed)} drive(s) failed, e.g. {failed['error'].iloc[0]}")
+    ok = df[df["status"] == "ok"].reset_index(drop=True)
+    cols = ["policy", "index", "from_km", "to_km", "km_driven", "end_reason", "ttc_events",
+            "lane_departure_events", "collision_events", "min_ttc_s", "min_gap_m",
+            "max_abs_lateral_offset_m", "leaders_met", "cut_ins_met"]
+    _save_csv(ok[cols], out / "n74_drives.csv")
+    rates = nd.rates(ok)
+    _save_csv(rates, out / "n74_rates.csv")
+
+    # flag locations, with the kilometre post of each (linear along the stretch's ego lane)
+    starts = {(a, b): api.road("n74", [], a, b).path_start_s for a, b in stretches}
+    events = pd.DataFrame(
+        [dict(e, policy=r["policy"], index=r["index"],
+              km_post=r["from_km"] + (e["s_m"] - starts[(r["from_km"], r["to_km"])]) / 1000.0)
+         for _, r in ok.iterrows() for e in r["flag_events"]],
+        columns=["policy", "index", "kind", "t_s", "km_post", "x", "y", "s_m"])
+    _save_csv(events.drop(columns="s_m"), out / "n74_flags.csv")
+    route = api.road("n74").lanes[api.road("n74").ego_lane].centre.points
+    ncols = min(len(nd.PLANNERS), 2)
+    nrows = math.ceil(len(nd.PLANNERS) / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(6 * ncols, 4.5 * nrows), squeeze=False)
+    for ax, p in zip(axes.flat, nd.PLANNERS, strict=False):
+        r = rates[rates["policy"] == p].iloc[0]
+        draw_flag_map(ax, route, events[events["policy"] == p],
+                      f"{LABELS[p]}: {r['km']:.0f} km in {r['drives']} drives")
+    fig.suptitle("n74, direction A, right lane, default traffic: where the flags started "
+                 "(ticks: km along the lane)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(out / "n74_flag_map.png", dpi=110)
+    plt.close(fig)
+
+    # time gaps: each drive / recording is one group (its samples are correlated)
+    groups = {p: [np.asarray(g, float) for g in ok.loc[ok["policy"] == p, "time_gaps_s"]]
+              for p in nd.PLANNERS}
+    try:
+        humans = nd.human_time_gaps(pd.read_parquet(
+            SYNTHETIC_DRIVES, columns=["recording_id", "lead_x", "v_x", "lane_index"]))
+    except (OSError, ValueError) as exc:  # no dataset built: the planners' gaps alone
+        print(f"[n74] no synthetic drives to compare the time gaps with ({exc}); build them "
+              "with python training/build_synthetic_dataset.py")
+        humans = pd.DataFrame({"recording_id": [], "lane_index": [], "time_gap_s": []})
+    human_groups = [g["time_gap_s"].to_numpy() for _, g in humans.groupby("recording_id")]
+    table = nd.compare_time_gaps(groups, human_groups, seed)
+    right = humans[humans["lane_index"] == 0]
+    extra = nd.compare_time_gaps(
+        {}, [g["time_gap_s"].to_numpy() for _, g in right.groupby("recording_id")], seed)
+    table = pd.concat([table, extra.assign(who=f"{nd.HUMANS} (right lane only)")],
+                      ignore_index=True)
+    _save_csv(table, out / "n74_time_gap.csv")
+    fig, (ax_e, ax_h) = plt.subplots(1, 2, figsize=(12, 4.5))
+    bins = np.linspace(0.0, 4.0, 81)
+    series = [(LABELS[p], np.concatenate(g) if g else np.zeros(0), COLORS[p])
+              for p, g in groups.items()]
+    series.append((f"{nd.HUMANS} ({len(human_groups)} drives)",
+                   humans["time_gap_s"].to_numpy(), "black"))
+    for label, values, color in series:
+        v = np.sort(values)
+        ax_e.step(v, np.arange(1, len(v) + 1) / max(len(v), 1), where="post", color=color,
+                  label=label, lw=2.0 if color == "black" else 1.3)
+        if len(values):
+            ax_h.hist(np.clip(values, 0, 4.0), bins=bins, density=True, histtype="step",
+                      color=color, lw=2.0 if color == "black" else 1.3, label=label)
+    ax_e.set_xlim(0, 4.0)
+    ax_e.set_xlabel("time gap = bumper gap / ego speed [s] (while following)")
+    ax_e.set_ylabel("ECDF")
+    ax_e.legend(fontsize=8)
+    ax_h.set_xlabel("time gap [s] (clipped at 4 s)")
+    ax_h.set_ylabel("density [1/s]")
+    ax_e.set_title("n74 drives vs the recorded synthetic humans, same road and traffic",
+                   fontsize=9)
+    fig.tight_layout()
+    fig.savefig(out / "n74_time_gap.png", dpi=110)
+    plt.close(fig)
+    design = {"planners": list(nd.PLANNERS), "stretches_km": [list(s) for s in stretches],
+              "seeds_per_stretch": per, "traffic": nd.TRAFFIC,
+              "master_seed": seed, "drives": len(specs), "failed": len(failed),
+              "time_gap_rate_hz": nd.TIME_GAP_RATE_HZ, "follow_max_gap_m": nd.FOLLOW_MAX_GAP_M,
+              "follow_min_speed_mps": nd.FOLLOW_MIN_SPEED_MPS,
+              # one core's time of every drive (stable across resumes, unlike the wall time)
+              "drives_core_s": round(float(ok["task_wall_time_s"].sum()), 1)}
+    return {"design": design, "rates": rates.to_dict(orient="records"),
+            "time_gap": table.to_dict(orient="records"), "flags": len(events)}
+
+
 def ablation(out: Path, workers: int) -> list[dict]:
     """``training/leader_following_ablation.py`` (checkpoints cached in ``data/ablation``)."""
     import subprocess
@@ -844,11 +1009,20 @@ def main(argv: list[str] | None = None) -> int:
     if "instrument" in args.only:
         facts["instrument"] = timed("instrument", instrument, args.out, args.work, args.workers,
                                     args.seed)
+    if "n74" in args.only:
+        facts["n74"] = timed("n74", n74, args.out, args.work, args.workers, args.seed,
+                             args.quick)
     facts["wall_time_s"] = time.perf_counter() - t0
     previous = args.out / "facts.json"
     merged = json.loads(previous.read_text()) if previous.is_file() else {}
     merged.setdefault("section_wall_s", {}).update(walls)
-    merged.update({k: v for k, v in facts.items() if k != "section_wall_s"})
+    merged.setdefault("section_git_commit", {}).update({k: facts["git_commit"] for k in walls})
+    # a run of some sections keeps the run-wide args/commit of the full run (the other sections'
+    # text reads them); its own commit is in section_git_commit
+    partial = set(args.only) != set(SECTIONS) and "args" in merged
+    run_wide = {"args", "git_commit", "versions", "wall_time_s"} if partial else set()
+    merged.update({k: v for k, v in facts.items()
+                   if k != "section_wall_s" and k not in run_wide})
     outputs.write_json(previous, merged)
     write_readme(args.out, json.loads(previous.read_text()))
     print(f"results in {args.out} ({facts['wall_time_s']:.0f} s)")

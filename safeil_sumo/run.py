@@ -3,7 +3,8 @@
 Runs N scenarios (leader at a constant random speed in [25, 32] m/s ahead of the ego) with one
 policy, prints a summary table and writes a results folder:
 ``steps.parquet`` (per-step log), ``summary.csv`` / ``summary.json`` (per scenario),
-``manifest.json`` (config, seeds, git commit, versions), PNG plots, and with ``--animate``
+``manifest.json`` (config, seeds, git commit, versions), PNG plots (on n74 also
+``flag_map.png``: the stretch with the flag locations), and with ``--animate``
 ``animation_<scenario>.mp4`` (or ``.gif``, see :mod:`safeil_sumo.animate`).
 """
 
@@ -21,10 +22,12 @@ from tqdm import tqdm
 
 from safeil_sumo import animate, api, policies
 from safeil_sumo.cli_args import (
+    add_lane_option,
     add_leader_options,
     add_n74_options,
     add_route_option,
     finite_float,
+    lane_for_net,
     nonnegative_int,
 )
 from safeil_sumo.experiments import outputs, plots
@@ -47,6 +50,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "with on-ramps; see --from-km/--to-km) or a .net.xml path")
     add_route_option(p)
     add_n74_options(p)
+    add_lane_option(p)
     p.add_argument("--policy", default=None,
                    help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
                         "IDM model .json "
@@ -92,6 +96,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.net == "n74" and args.route:
         p.error("--net n74 drives a stretch of --from-km/--to-km; --route needs a .net.xml path "
                 "(e.g. sumo_scenarios/n74/n74.net.xml)")
+    try:
+        args.lane = lane_for_net(args.net, args.lane)
+    except ValueError as exc:
+        p.error(str(exc))
     if args.gui_screenshot is not None and not args.gui:
         p.error("--gui-screenshot needs --gui")
     if args.gui:
@@ -108,6 +116,8 @@ def _stretch(args: argparse.Namespace) -> dict:
     out = {k: v for k, v in (("from_km", args.from_km), ("to_km", args.to_km)) if v is not None}
     if args.traffic != "none":
         out["traffic"] = args.traffic
+    if args.lane:
+        out["lane"] = args.lane
     return out
 
 
@@ -127,7 +137,7 @@ def format_table(summaries: pd.DataFrame) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        road = api.road(args.net, args.route, args.from_km, args.to_km)
+        road = api.road(args.net, args.route, args.from_km, args.to_km, args.lane)
         policy = policies.load(args.policy)
     except (NetworkError, policies.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -165,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     summaries, steps = result.summary, result.log
 
     config = {
-        "net": str(road.net_path), "route": list(args.route),
+        "net": str(road.net_path), "route": list(args.route), "lane": args.lane or None,
         "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
         "scenarios": args.scenarios,
         "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
@@ -185,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
             plots.plot_trajectories(road, steps, tmp / "trajectory.png", vehicle.width_m)
             plots.plot_speed_gap(steps, tmp / "speed_gap.png")
             plots.plot_ttc(steps, tmp / "ttc.png", scenarios[0].monitors.ttc_threshold_s)
+            if args.net == "n74":  # long drives: where on the route each flag started
+                plots.plot_flag_map(road, steps, tmp / "flag_map.png")
 
     print(format_table(summaries))
     done = int(summaries["completed"].sum())

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
+    add_lane_option,
     add_leader_options,
     add_n74_options,
     add_route_option,
@@ -88,6 +89,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="curved500, straight, curved<R> (e.g. curved300) or .net.xml paths")
     add_route_option(p)
     add_n74_options(p)
+    add_lane_option(p)
     p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
                    help="safeil, safeil_paper, bc, analytic, idm, .safetensors checkpoints or IDM "
                         "model .json files (default: safeil bc)")
@@ -161,9 +163,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.quick and args.suite is None:
         p.error("--quick needs --suite")
     if (args.route or args.from_km is not None or args.to_km is not None
-            or args.traffic != "none") and args.suite is not None:
-        p.error("--route, --from-km/--to-km and --traffic do not apply to --suite (the suite "
-                "has its own nets)")
+            or args.traffic != "none" or args.lane is not None) and args.suite is not None:
+        p.error("--route, --from-km/--to-km, --traffic and --lane do not apply to --suite (the "
+                "suite has its own nets)")
     if args.out.exists() and not args.out.is_dir():
         p.error(f"--out {args.out} exists and is not a folder")
     return args
@@ -186,7 +188,7 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
             plan_rate_hz=args.plan_rate, max_time_s=args.max_time,
             stop_on_flag=args.stop_on_flag, leader_profile=args.leader_profile or "",
             route=tuple(args.route), from_km=args.from_km, to_km=args.to_km,
-            traffic=args.traffic,
+            traffic=args.traffic, lane=args.lane or "",
         )
         for net, policy, filt, index in itertools.product(
             args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
@@ -195,7 +197,7 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
 
 def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = (),
                  route: tuple[str, ...] = (), from_km: float | None = None,
-                 to_km: float | None = None) -> None:
+                 to_km: float | None = None, lane: str = "") -> None:
     """Resolve every net (building curved<R> once; along ``route`` or the n74 stretch if given),
     load every policy
     and recorded-leader library before any task runs.
@@ -211,7 +213,7 @@ def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()
     from safeil_sumo.experiments.sweep import _road
 
     for net in dict.fromkeys(nets):
-        _road(net, route, from_km, to_km)
+        _road(net, route, from_km, to_km, lane)
     for name in dict.fromkeys(policies_):
         policies.load(name)
 
@@ -222,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         specs = build_specs(args)
         check_inputs(sorted({s.net for s in specs}), args.policies,
                      sorted({s.leader_profile for s in specs if s.leader_profile}),
-                     tuple(args.route), args.from_km, args.to_km)
+                     tuple(args.route), args.from_km, args.to_km, args.lane or "")
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

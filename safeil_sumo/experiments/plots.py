@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import matplotlib
@@ -80,6 +81,55 @@ def plot_ttc(logs: pd.DataFrame, path: Path, threshold_s: float) -> None:
     ax.set_ylabel(f"TTC [s] (clipped at {TTC_CLIP_S:g}; not closing = top)")
     if len(_groups(logs)) <= 12:
         ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+FLAG_STYLE = {  # kind -> (marker, colour, label) on route maps
+    "ttc": ("^", "tab:orange", "TTC <= 1 s"),
+    "lane_departure": ("x", "tab:blue", "lane departure"),
+    "collision": ("*", "tab:red", "collision"),
+}
+
+
+def draw_flag_map(ax, route_xy: np.ndarray, events: pd.DataFrame, title: str,
+                  km_at_start: float = 0.0, tick_km: float = 5.0) -> None:
+    """The route (``(N, 2)`` [m], x-y) in grey, labelled every ``tick_km`` [km] (its first
+    point is at ``km_at_start`` [km]), and flag events (columns ``kind``, ``x``, ``y`` [m])
+    marked by kind; equal aspect."""
+    ax.plot(route_xy[:, 0] / 1000.0, route_xy[:, 1] / 1000.0, color="0.6", lw=1.5, zorder=1)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(route_xy, axis=0), axis=1))])
+    first = math.ceil(km_at_start / tick_km) * tick_km
+    for km in np.arange(first, km_at_start + s[-1] / 1000.0, tick_km):
+        i = min(int(np.searchsorted(s, 1000.0 * (km - km_at_start))), len(s) - 1)
+        ax.plot(*(route_xy[i] / 1000.0), "o", color="0.3", ms=3, zorder=2)
+        ax.annotate(f"{km:g}", route_xy[i] / 1000.0, fontsize=7, color="0.3",
+                    xytext=(3, 3), textcoords="offset points")
+    for kind, (marker, color, label) in FLAG_STYLE.items():
+        sub = events[events["kind"] == kind]
+        ax.scatter(sub["x"] / 1000.0, sub["y"] / 1000.0, marker=marker, color=color, s=40,
+                   zorder=3, label=f"{label} ({len(sub)})")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [km]")
+    ax.set_ylabel("y [km]")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, loc="best")
+
+
+def plot_flag_map(road: Road, logs: pd.DataFrame, path: Path) -> None:
+    """The ego lane of ``road`` and where each flag event of the runs started (see
+    :func:`safeil_sumo.experiments.n74_drives.flag_events`)."""
+    from safeil_sumo.experiments.n74_drives import flag_events
+
+    events = pd.DataFrame([e for _, g in _groups(logs) for e in flag_events(g)],
+                          columns=["kind", "t_s", "x", "y", "s_m"])
+    fig, ax = plt.subplots(figsize=(8, 6))
+    lo, hi = road.meta.get("stretch_km") or (0.0, road.path_end_s / 1000.0)
+    km0 = lo - road.path_start_s / 1000.0  # the km post of the lane's first point
+    draw_flag_map(ax, road.lanes[road.ego_lane].centre.points, events,
+                  f"{road.net_path.name}, km {lo:g}-{hi:g}: ego lane (ticks: km) and where "
+                  "each flag started", km0, 1.0 if hi - lo <= 12.0 else 5.0)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

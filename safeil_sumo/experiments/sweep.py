@@ -80,6 +80,10 @@ class ScenarioSpec:
     # :data:`safeil_sumo.sim.traffic.DENSITIES`; it replaces the scripted leader. Left out of the
     # JSON when ""
     traffic: str = ""
+    # the ego's lane: "" (the net's default), "right"/"left" on n74, a SUMO lane index of the
+    # first edge (as text) on a .net.xml (:func:`safeil_sumo.cli_args.lane_for_net`); left out
+    # of the JSON when ""
+    lane: str = ""
 
     def __post_init__(self) -> None:
         # normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same
@@ -108,6 +112,7 @@ class ScenarioSpec:
             if getattr(self, name) is not None:
                 set_(self, name, float(getattr(self, name)))
         set_(self, "traffic", "" if self.traffic in ("", "none", None) else str(self.traffic))
+        set_(self, "lane", "" if self.lane in ("", None) else str(self.lane))
 
         if self.index < 0 or self.master_seed < 0:
             raise ValueError(f"scenario index and master seed must be >= 0, got {self.index}, "
@@ -152,6 +157,10 @@ class ScenarioSpec:
                 raise ValueError("--traffic needs --net n74 (the net with traffic route files)")
         if self.max_time_s is not None and not self.max_time_s > 0:
             raise ValueError(f"max time must be > 0 s, got {self.max_time_s}")
+        if self.lane:
+            from safeil_sumo.cli_args import lane_for_net
+
+            lane_for_net(self.net, self.lane)
 
     @property
     def gap_range_m(self) -> tuple[float, float]:
@@ -172,6 +181,8 @@ class ScenarioSpec:
                 del out[name]
         if not out["traffic"]:
             del out["traffic"]
+        if not out["lane"]:
+            del out["lane"]
         return out
 
     @classmethod
@@ -223,24 +234,35 @@ _ROADS: dict[tuple, Any] = {}  # per-process cache: (net, route) -> Road (geomet
 
 
 def _road(net: str, route: tuple[str, ...] = (), from_km: float | None = None,
-          to_km: float | None = None):
+          to_km: float | None = None, lane: str = ""):
     """The road of ``net`` (a catalogue name or ``.net.xml`` path), along ``route`` if given;
-    ``n74`` without a route: its stretch ``from_km``-``to_km`` (default the whole carriageway)."""
+    ``n74`` without a route: its stretch ``from_km``-``to_km`` (default the whole carriageway).
+    ``lane`` (see :attr:`ScenarioSpec.lane`): ``right``/``left`` on n74, a SUMO lane index of
+    the first edge on a ``.net.xml``."""
     from safeil_sumo.scenarios.catalogue import resolve_net
     from safeil_sumo.scenarios.road import NetworkError, load_road
     from safeil_sumo.scenarios.route import load_route
 
-    key = (net, tuple(route), from_km, to_km)
+    key = (net, tuple(route), from_km, to_km, lane or "")
     if key not in _ROADS:
+        if lane:
+            from safeil_sumo.cli_args import lane_for_net
+
+            try:
+                lane = lane_for_net(net, lane)
+            except ValueError as exc:
+                raise NetworkError(str(exc)) from None
         if net == "n74" and not route:
             from safeil_sumo.scenarios.n74 import stretch_road
 
-            _ROADS[key] = stretch_road(from_km or 0.0, to_km)
+            _ROADS[key] = stretch_road(from_km or 0.0, to_km, lane=lane or "right")
         elif from_km is not None or to_km is not None:
             raise NetworkError("--from-km/--to-km apply to --net n74 (without --route) only")
         else:
             path = resolve_net(net)
-            _ROADS[key] = load_route(path, route) if route else load_road(path)
+            index = int(lane) if lane else None
+            _ROADS[key] = (load_route(path, route, index) if route
+                           else load_road(path, ego_lane=index))
     return _ROADS[key]
 
 
@@ -326,11 +348,14 @@ def failed_record(spec: ScenarioSpec, error: str) -> dict[str, Any]:
             **spec_fields(spec)}
 
 
-def run_task(spec: ScenarioSpec) -> dict[str, Any]:
+def run_task(spec: ScenarioSpec,
+             extras: Callable[[ScenarioSpec, Any], dict] | None = None) -> dict[str, Any]:
     """Run one task closed-loop; returns a flat record (summary + spec fields). Never raises.
 
     ``status`` is ``"ok"``, or ``"failed"`` with ``error="Type: message"`` when the task could
-    not be built or the loop ended with an exception.
+    not be built or the loop ended with an exception. ``extras(spec, rollout)`` (a module-level
+    function, e.g. via ``functools.partial(run_task, extras=f)`` as a sweep's ``task_fn``) adds
+    JSON-able fields computed from the per-step log, which is not kept otherwise.
     """
     wall0 = time.perf_counter()
     try:
@@ -338,9 +363,10 @@ def run_task(spec: ScenarioSpec) -> dict[str, Any]:
 
         road, scenario, policy, loop = _task_parts(spec)
         rollout = run_scenario(scenario, policy, loop)
+        added = extras(spec, rollout) if extras is not None else {}
     except Exception as exc:  # noqa: BLE001 - a record, never an exception: the sweep goes on
         return failed_record(spec, f"{type(exc).__name__}: {exc}")
-    return _record(spec, road, scenario, policy, rollout, time.perf_counter() - wall0)
+    return _record(spec, road, scenario, policy, rollout, time.perf_counter() - wall0, added)
 
 
 def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
@@ -390,8 +416,8 @@ def batch_key(spec: ScenarioSpec) -> tuple | None:
     own vehicles are per simulation)."""
     if spec.traffic:
         return None
-    return (spec.net, spec.route, spec.from_km, spec.to_km, spec.policy, spec.safety_filter,
-            spec.plan_rate_hz, spec.stop_on_flag)
+    return (spec.net, spec.route, spec.from_km, spec.to_km, spec.lane, spec.policy,
+            spec.safety_filter, spec.plan_rate_hz, spec.stop_on_flag)
 
 
 def batches(specs: Sequence[ScenarioSpec], size: int) -> list[tuple[ScenarioSpec, ...]]:
@@ -411,29 +437,32 @@ def _task_parts(spec: ScenarioSpec, shared: bool = False):
     one object (batched plan calls; a safety filter still gets its own wrapper per task)."""
     from safeil_sumo.sim.runner import LoopConfig
 
-    road = _road(spec.net, spec.route, spec.from_km, spec.to_km)
+    road = _road(spec.net, spec.route, spec.from_km, spec.to_km, spec.lane)
     scenario = build_scenario(spec, road)
     policy = _load_policy(spec, shared)
     loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag)
     return road, scenario, policy, loop
 
 
-def _record(spec: ScenarioSpec, road, scenario, policy, rollout, wall_s: float
-            ) -> dict[str, Any]:
-    """The flat record of a finished task."""
+def _record(spec: ScenarioSpec, road, scenario, policy, rollout, wall_s: float,
+            extras: dict | None = None) -> dict[str, Any]:
+    """The flat record of a finished task (``extras``: more fields, see :func:`run_task`)."""
     summary = dict(rollout.summary)
     if len(rollout.log):  # how it responded to its leader (the leader-response suite's)
         from safeil_sumo.experiments.suite import response_metrics
 
         summary.update({f"resp_{k}": v for k, v in response_metrics(rollout.log).items()})
+    summary.update(extras or {})
     failed = summary.get("end_reason") == "error"
     record = {"task_id": task_id(spec), "status": STATUS_FAILED if failed else STATUS_OK,
               **spec_fields(spec)}
     summary["policy_name"] = summary.pop("policy")  # e.g. "safeil+filter"; spec keeps "safeil"
     summary["net_name"] = summary.pop("net")
     record.update(summary)
-    record["leader_speed0_mps"] = scenario.leader.initial_speed  # the draw (braking: pre-brake)
-    record["leader_label"] = scenario.leader.label
+    # the draw (braking: pre-brake); with traffic there is no scripted leader
+    scripted = scenario.leader
+    record["leader_speed0_mps"] = scripted.initial_speed if scripted is not None else math.nan
+    record["leader_label"] = scripted.label if scripted is not None else "traffic"
     record["radius_m"] = road.meta.get("radius_m", math.nan)
     if spec.safety_filter:
         record["filter_interventions"] = int(getattr(policy, "interventions", 0))

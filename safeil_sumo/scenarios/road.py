@@ -213,7 +213,8 @@ def load_road(
     if not 0 <= ego_lane < len(lanes):
         raise NetworkError(
             f"{net_path}: the scenario needs lane index {ego_lane} but edge "
-            f"{edge.get('id')!r} has {len(lanes)} lane(s)"
+            f"{edge.get('id')!r} has {len(lanes)} lane(s) (indices 0..{len(lanes) - 1}, "
+            "0 = rightmost)"
         )
     ego_len = lanes[ego_lane].centre.length
     start = float(meta.get("path_start_s", 0.0))

@@ -171,8 +171,13 @@ def load_route(net_path: str | Path, edges: Sequence[str], ego_lane: int | None 
     if ego_lane is None:
         ego_lane = len(first) // 2
     if not 0 <= ego_lane < len(first):
+        later = next((e for e in edges[1:] if ego_lane < len(net.edge_lanes[e])), None)
+        hint = (f"; lane {ego_lane} appears only on the later edge {later!r} (e.g. an "
+                f"acceleration lane): start the route there (--route {later} ...) to drive it"
+                if later is not None and ego_lane >= 0 else "")
         raise NetworkError(f"{net_path}: the scenario needs lane index {ego_lane} but edge "
-                           f"{edges[0]!r} has {len(first)} lane(s)")
+                           f"{edges[0]!r} has {len(first)} lane(s) (the route's first edge; "
+                           f"indices 0..{len(first) - 1}, 0 = rightmost){hint}")
 
     # the ego lane's SUMO lanes, edge by edge; ego_index[k] = its SUMO lane index on edges[k]
     ego_index = [ego_lane]
