@@ -260,6 +260,8 @@ def test_batches_group_shareable_specs_in_order():
     assert batch_key(specs[-1]) is None  # traffic: SUMO's vehicles are per simulation
     with pytest.raises(ValueError, match="batch size"):
         batches(specs, 0)
+    # every worker gets a batch: 5 shareable specs on 2 workers -> 3 + 2
+    assert [len(u) for u in batches(specs[:5], 32, workers=2)] == [3, 2]
 
 
 def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):

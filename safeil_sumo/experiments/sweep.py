@@ -390,15 +390,19 @@ def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
         from safeil_sumo.sim.batch import run_batch
 
         loop = replace(parts[0][4], ego_placement=BATCH_EGO_PLACEMENT)
+        wall = (time.perf_counter() - wall0) / len(specs)  # building, per task
+
+        def record(i: int, rollout) -> None:  # as each scenario ends: its log is freed then
+            k, road, scenario, policy, _ = parts[i]
+            records[k] = _record(specs[k], road, scenario, policy, rollout,
+                                 wall + rollout.summary["wall_time_s"])
+
         try:
-            rollouts = run_batch([p[2] for p in parts], [p[3] for p in parts], loop)
+            run_batch([p[2] for p in parts], [p[3] for p in parts], loop, on_done=record,
+                      keep_logs=False)
         except Exception as exc:  # noqa: BLE001
-            rollouts = [exc] * len(parts)
-        wall = (time.perf_counter() - wall0) / len(specs)
-        for (k, road, scenario, policy, _), rollout in zip(parts, rollouts):
-            records[k] = (failed_record(specs[k], f"{type(rollout).__name__}: {rollout}")
-                          if isinstance(rollout, Exception) else
-                          _record(specs[k], road, scenario, policy, rollout, wall))
+            for k, *_ in parts:
+                records[k] = failed_record(specs[k], f"{type(exc).__name__}: {exc}")
     return records
 
 
@@ -420,16 +424,22 @@ def batch_key(spec: ScenarioSpec) -> tuple | None:
             spec.safety_filter, spec.plan_rate_hz, spec.stop_on_flag)
 
 
-def batches(specs: Sequence[ScenarioSpec], size: int) -> list[tuple[ScenarioSpec, ...]]:
-    """``specs`` grouped into batches of at most ``size`` sharing a :func:`batch_key`, in
-    order of their first spec."""
+def batches(specs: Sequence[ScenarioSpec], size: int, workers: int = 1
+            ) -> list[tuple[ScenarioSpec, ...]]:
+    """``specs`` grouped into batches sharing a :func:`batch_key`, in order of their first
+    spec: at most ``size`` each, and small enough that a group gives each of ``workers`` a
+    batch (10 specs on 2 workers: two batches of 5, not one of 10)."""
     if size < 1:
         raise ValueError(f"batch size must be >= 1, got {size}")
     groups: dict[Any, list[ScenarioSpec]] = {}
     for k, spec in enumerate(specs):
         key = batch_key(spec)
         groups.setdefault(key if key is not None else ("alone", k), []).append(spec)
-    return [tuple(g[i:i + size]) for g in groups.values() for i in range(0, len(g), size)]
+    out = []
+    for g in groups.values():
+        n = min(size, -(-len(g) // max(workers, 1)))
+        out += [tuple(g[i:i + n]) for i in range(0, len(g), n)]
+    return out
 
 
 def _task_parts(spec: ScenarioSpec, shared: bool = False):
@@ -567,7 +577,7 @@ def run_sweep(
     if todo and scheduler is None and workers > 1:
         _prepare_nets(todo)
 
-    units = batches(todo, batch) if batch > 1 else [(s,) for s in todo]
+    units = batches(todo, batch, workers) if batch > 1 else [(s,) for s in todo]
     bar = tqdm(total=len(todo), desc="sweep", unit="task", disable=not progress or None,
                initial=0, dynamic_ncols=True)
     failed = 0

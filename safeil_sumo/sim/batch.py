@@ -112,6 +112,9 @@ class _Scenario:
         self.leader = None  # (rear_xy, v_sumo, yaw, front_xy) as read after the last step
         self.lead_v = 0.0
         self.end_reason, self.error = "", ""
+        self.rows = np.empty((self.n_max, len(_Log.COLUMNS)))  # the log, row k = step k
+        self.steps = 0  # rows filled
+        self.rollout: Rollout | None = None
         self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this copy
 
     def add(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
@@ -152,11 +155,14 @@ def run_batch(
     api_factory: ApiFactory | None = None,
     on_done: Callable[[int, Rollout], None] | None = None,
     clock: StageClock | None = None,
+    keep_logs: bool = True,
 ) -> list[Rollout]:
     """Run ``scenarios`` closed-loop side by side in one SUMO simulation; their rollouts in
     order. ``policy`` is one planner for all or one per scenario (scenarios sharing a planner
     object are planned in one call). ``on_done(i, rollout)`` is called as soon as scenario ``i`` ends (a sweep saves it
-    then). ``clock``: filled with the time per stage.
+    then). ``clock``: filled with the time per stage. ``keep_logs=False``: the returned
+    rollouts have empty logs (each log is freed once ``on_done`` has seen it: a sweep's memory
+    is then the running scenarios' logs only).
 
     Every scenario must be on the same network and have a scripted leader or none (no
     traffic); ``loop`` must not ask for sumo-gui or SSM output.
@@ -175,9 +181,20 @@ def run_batch(
     args = sumo_args(scenarios[0], loop)
     args[args.index("-n") + 1] = str(batch_net(net, n, offset_m=offset))
     api = (api_factory or _default_factory(loop))(args)
-    out: list[Rollout | None] = [None] * n
-    blocks: list[tuple[np.ndarray, np.ndarray]] = []  # per step: scenario ids, log rows
     wall0 = time.perf_counter()
+
+    def done(r: _Scenario) -> None:
+        """The rollout of a scenario that has ended; its log buffer is freed."""
+        # the batch's wall time so far, shared out by steps (what one scenario cost of it)
+        steps_all = max(sum(q.steps for q in runs), 1)
+        wall = (time.perf_counter() - wall0) * r.steps / steps_all
+        log = _Log.to_frame(r.rows[:r.steps].copy())
+        rollout = finish(r.scenario, log, r.end_reason or "timeout", r.error, wall, r.policy.name)
+        r.rows = None
+        if on_done is not None:
+            on_done(r.i, rollout)
+        r.rollout = rollout if keep_logs else Rollout(rollout.log.iloc[:0], rollout.summary)
+
     try:
         for r in runs:
             r.add(api, vehicle)
@@ -186,7 +203,7 @@ def run_batch(
             if r.has_leader:
                 r.read_leader(api, vehicle)
                 r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
-        _loop(api, runs, loop, vehicle, controller, blocks, clock)
+        _loop(api, runs, loop, vehicle, controller, done, clock)
     except Exception as exc:  # every scenario still running ends with the reason
         for r in runs:
             if not r.end_reason:
@@ -196,20 +213,10 @@ def run_batch(
             api.close()
         except Exception:
             pass
-    wall = time.perf_counter() - wall0
-    ids = np.concatenate([b[0] for b in blocks]) if blocks else np.zeros(0, int)
-    data = (np.concatenate([b[1] for b in blocks]) if blocks
-            else np.zeros((0, len(_Log.COLUMNS))))
-    del blocks
     for r in runs:
-        rows = data[ids == r.i]
-        # the batch's wall time, shared out by steps (what one scenario cost of it)
-        rollout = finish(r.scenario, _Log.to_frame(rows), r.end_reason or "timeout", r.error,
-                         wall * len(rows) / max(len(data), 1), r.policy.name)
-        out[r.i] = rollout
-        if on_done is not None:
-            on_done(r.i, rollout)
-    return out
+        if r.rollout is None:  # the loop failed before it ended
+            done(r)
+    return [r.rollout for r in runs]
 
 
 def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: LoopConfig) -> None:
@@ -227,10 +234,9 @@ def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: Loop
 
 def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
           vehicle: veh.VehicleParams, controller: ctl.ControllerParams,
-          blocks: list[tuple[np.ndarray, np.ndarray]], clock: StageClock | None = None
-          ) -> None:
+          done: Callable[[_Scenario], None], clock: StageClock | None = None) -> None:
     """The stages over arrays of the running scenarios, until every one has ended; each step
-    appends the scenario ids and log rows ``(n, columns)`` of the running ones to ``blocks``."""
+    each step writes the log row of every running scenario; ``done(scenario)`` as one ends."""
     dt = loop.step_s
     plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
     on_lane = loop.ego_placement == "lane"
@@ -258,7 +264,6 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
     path_end = np.array([r.road.path_end_s for r in live])
     n_max = np.array([r.n_max for r in live])
     horizon = np.array([r.policy.horizon for r in live], dtype=float)
-    ids = np.array([r.i for r in live])  # the scenario of each row
     lanes = _lanes(live)
     ego_seg = np.array([r.centre.segment_index(r.s_ego0) for r in live])
     lead_seg = np.array([r.centre.segment_index(r.s_lead0) for r in live])
@@ -365,11 +370,14 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
         ttc = np.where(has_lead, mon.time_to_collision(gap, v, v_lead_true, ARRAYS), np.inf)
         ttc_flag = ttc <= ttc_threshold
         fraction = mon.path_completed(s, path_start, path_end, ARRAYS)
-        blocks.append((ids, np.column_stack([
+        rows = np.column_stack([
             np.full(n, t + dt), x, y, yaw, v, vy, st[5], st[6], front_x, front_y, steer_cmd,
             accel_cmd, s, d, d_min, d_max, feature_log, lead_x, lead_y, v_lead_true, gap, ttc,
             departed, ttc_flag, hit, fraction, plan_log, np.where(has_lead, 0.0, np.nan),
-        ])))
+        ])
+        for j, r in enumerate(live):
+            r.rows[k] = rows[j]
+            r.steps = k + 1
 
         # ends, in run_scenario's order
         reason = np.select(
@@ -386,12 +394,13 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
                         api.vehicle.remove(vid)
                     except Exception:  # noqa: BLE001  # it has already left the network
                         pass
+                done(r)
             keep = np.flatnonzero(~ended)
             live = [live[j] for j in keep]
             if not live:
                 return
             n = len(live)
-            ids, lanes = ids[keep], _lanes(live)
+            lanes = _lanes(live)
             ego_seg, lead_seg, multi_piece = ego_seg[keep], lead_seg[keep], multi_piece[keep]
             st = tuple(col[keep] for col in st)
             integral, prev_error, t_plan = integral[keep], prev_error[keep], t_plan[keep]
