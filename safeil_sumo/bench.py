@@ -287,7 +287,7 @@ def sweep_rows(quick: bool, policy: str, rows: dict, notes: list[str]) -> None:
             rows["sweep1000_batched_2w_scenarios_per_s"] / rows["sweep100_2w_scenarios_per_s"])
 
 
-BATCH_SIZES = (1, 8, 32, 128)
+BATCH_SIZES = (1, 8, 32, 64, 128)
 
 
 def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: dict) -> None:

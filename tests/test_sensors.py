@@ -71,3 +71,30 @@ def test_radar_noise_is_seeded_and_quantized():
 def test_bad_sensor_config():
     with pytest.raises(ValueError):
         sen.SensorConfig(radar_noise_m=-1.0)
+
+
+def test_batched_camera_fit_equals_the_scalar_one():
+    """polyfit3_batch (a stacked QR) equals polyfit3 (LAPACK's SVD solver) to round-off, and
+    ego_points_many equals the camera's points of each car, on seeded random lane views."""
+    from safeil_sumo.geometry import Polyline
+    from safeil_sumo.sim.sensors import _ego_points, ego_points_many, polyfit3, polyfit3_batch
+
+    rng = np.random.default_rng(3)
+    k = 50
+    x = np.sort(rng.uniform(0.0, 60.0, (k, 16)), axis=1)
+    y = (rng.normal(0, 2, (k, 1)) + rng.normal(0, 0.05, (k, 1)) * x
+         + rng.normal(0, 1e-3, (k, 1)) * x**2 + rng.normal(0, 1e-5, (k, 1)) * x**3)
+    one_by_one = np.array([polyfit3(x[i], y[i]) for i in range(k)])
+    np.testing.assert_allclose(polyfit3_batch(x, y), one_by_one, rtol=1e-9, atol=1e-12)
+
+    arc = np.linspace(0.0, 0.6, 40)
+    line = Polyline(np.column_stack([500.0 * np.sin(arc), 500.0 * (1 - np.cos(arc))]))
+    s0, ex, ey = rng.uniform(0, 200, 5), rng.uniform(0, 200, 5), rng.normal(0, 2, 5)
+    yaw = rng.normal(0, 0.1, 5)
+    config = sen.SensorConfig()
+    offsets = np.linspace(0.0, config.view_range_m, config.view_samples)
+    bx, by = ego_points_many(line, s0, ex, ey, yaw, offsets)
+    for i in range(5):
+        sx, sy = _ego_points(line, s0[i], np.array([ex[i], ey[i]]), yaw[i], config)
+        np.testing.assert_allclose(bx[i], sx, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(by[i], sy, rtol=0, atol=1e-9)

@@ -408,7 +408,7 @@ def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
 
 # scenarios per SUMO simulation in sweeps by default (``sweep --batch``): measured on curved500,
 # docs/performance.md
-DEFAULT_BATCH = 32
+DEFAULT_BATCH = 64
 
 # how a batch places its egos in SUMO: moveTo on lane coordinates (~25x cheaper than moveToXY;
 # the same flags and trajectories, see LoopConfig.ego_placement and docs/performance.md)

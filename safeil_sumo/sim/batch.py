@@ -278,12 +278,9 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             x, y, yaw, vx, vy = st[:5]
             v = np.hypot(vx, vy)
             fx_, fy_ = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
-            # the camera: each scenario's lane points, one stacked fit, each scenario's noise
-            pts = [r.camera.lane_points(np.array((fx_[j], fy_[j])), float(yaw[j]))
-                   for j, r in enumerate(live)]
-            fits = sen.polyfit3_batch(np.array([p[i] for p in pts for i in (0, 2)]),
-                                      np.array([p[i] for p in pts for i in (1, 3)]))
-            left, right = fits[0::2], fits[1::2]
+            # the camera: each scenario's lines, sampled per line and fitted all at once, then
+            # each scenario's noise
+            left, right = _camera_fits(live, fx_, fy_, yaw)
             v_lead, d_lead = np.empty(n), np.empty(n)
             for j, r in enumerate(live):
                 sen.add_lane_noise(left[j], right[j], r.scenario.sensors, r.rng)
@@ -409,6 +406,39 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             half_width, lane_width, margin = half_width[keep], lane_width[keep], margin[keep]
             ttc_threshold, path_start = ttc_threshold[keep], path_start[keep]
             path_end, n_max, horizon = path_end[keep], n_max[keep], horizon[keep]
+
+
+def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's left and right line fits ``(n, 4)`` (before noise) of every scenario."""
+    n = len(live)
+    xl, yl = x.tolist(), y.tolist()
+    groups: dict[tuple[int, int], tuple] = {}  # (line, offsets) -> (line, offsets, rows, s0)
+    for j, r in enumerate(live):
+        left, s_left, right, s_right = r.camera.lane_stations(xl[j], yl[j])
+        offsets = sen._view_offsets(r.scenario.sensors.view_range_m,
+                                    r.scenario.sensors.view_samples)
+        for row, line, s0 in ((2 * j, left, s_left), (2 * j + 1, right, s_right)):
+            g = groups.setdefault((id(line), id(offsets)), (line, offsets, [], []))
+            g[2].append(row)
+            g[3].append(s0)
+    samples = max(len(g[1]) for g in groups.values())
+    if any(len(g[1]) != samples for g in groups.values()):  # mixed camera settings: one by one
+        return _camera_fits_one_by_one(live, x, y, yaw)
+    px, py = np.empty((2 * n, samples)), np.empty((2 * n, samples))
+    for line, offsets, rows, s0 in groups.values():
+        rows = np.array(rows)
+        cars = rows // 2
+        px[rows], py[rows] = sen.ego_points_many(line, np.array(s0), x[cars], y[cars], yaw[cars],
+                                                 offsets)
+    fits = sen.polyfit3_batch(px, py)
+    return fits[0::2], fits[1::2]
+
+
+def _camera_fits_one_by_one(live, x, y, yaw):
+    fits = [r.camera.lane_lines(np.array((x[j], y[j])), float(yaw[j]))[:2]
+            for j, r in enumerate(live)]
+    return np.array([f[0] for f in fits]), np.array([f[1] for f in fits])
 
 
 def _lanes(live: list[_Scenario]) -> list[tuple[object, np.ndarray | slice]]:

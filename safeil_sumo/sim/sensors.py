@@ -258,16 +258,22 @@ class LaneCamera:
         add_lane_noise(left, right, config, rng)
         return left, right, lane.index
 
-    def lane_points(self, ego_xy: np.ndarray, ego_yaw: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The points :meth:`lane_lines` fits, in the ego frame [m]: ``(x_left, y_left,
-        x_right, y_right)``, each ``(samples,)`` (a batch fits many at once, then adds the
-        noise with :func:`add_lane_noise`)."""
-        road, config = self.road, self.config
-        x, y = float(ego_xy[0]), float(ego_xy[1])
+    def lane_stations(self, x: float, y: float) -> tuple[Polyline, float, Polyline, float]:
+        """The lines :meth:`lane_lines` fits and the ego's arc length on each: ``(left line,
+        s_left [m], right line, s_right [m])`` (a batch samples and fits many at once with
+        :func:`ego_points_many` and :func:`polyfit3_batch`)."""
+        road = self.road
         s, d = self._project(road.lanes[road.ego_lane].centre, x, y)
         lane = road.lanes[_lane_index_at(road, d, s)]
-        return (*_ego_points(lane.left_boundary, self._project(lane.left_boundary, x, y)[0],
-                             ego_xy, ego_yaw, config),
-                *_ego_points(lane.right_boundary, self._project(lane.right_boundary, x, y)[0],
-                             ego_xy, ego_yaw, config))
+        left, right = lane.left_boundary, lane.right_boundary
+        return left, self._project(left, x, y)[0], right, self._project(right, x, y)[0]
+
+
+def ego_points_many(line: Polyline, s0: np.ndarray, ego_x: np.ndarray, ego_y: np.ndarray,
+                    ego_yaw: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_ego_points` of K cars on one line at once: the line's points at arc lengths
+    ``s0 (K,)`` [m] + ``offsets (samples,)`` [m], in each car's frame, ``x, y (K, samples)``."""
+    pts = line.xy_at(s0[:, None] + offsets)
+    c, s = np.cos(ego_yaw)[:, None], np.sin(ego_yaw)[:, None]
+    dx, dy = pts[..., 0] - ego_x[:, None], pts[..., 1] - ego_y[:, None]
+    return c * dx + s * dy, -s * dx + c * dy
