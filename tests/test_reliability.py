@@ -568,12 +568,13 @@ def _task_files(out: Path) -> dict[str, str]:
     return {p.name: p.read_text() for p in (out / "tasks").glob("*.json")}
 
 
-@pytest.mark.parametrize("workers", ["1", "2"])
-def test_sigint_keeps_finished_results_and_rerun_completes_the_rest(workers, tmp_path):
+@pytest.mark.parametrize(("workers", "batch"), [("1", "1"), ("2", "1"), ("2", "3")])
+def test_sigint_keeps_finished_results_and_rerun_completes_the_rest(workers, batch, tmp_path):
+    """Batched (3 per simulation), a batch's records are saved when it ends."""
     out = tmp_path / "sweep"
     args = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policies",
             "analytic", "--scenarios", "12", "--max-time", "4", "--workers", workers,
-            "--no-progress", "--out", str(out)]
+            "--batch", batch, "--no-progress", "--out", str(out)]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while len(list((out / "tasks").glob("*.json"))) < 2 and time.monotonic() < deadline:
