@@ -266,3 +266,28 @@ def test_integrator_does_not_wind_up_under_power_saturation():
         speeds.append(s.vx)
     assert max(speeds) - 35.0 < 0.3
     assert abs(speeds[-1] - 35.0) < 0.05
+
+
+def test_batched_plans_and_lookahead_equal_the_scalar_ones():
+    """make_targets and lookahead_points (the batch's tracker) are bit-identical to make_target
+    and lookahead_point on seeded random plans, degenerate ones included, two horizons mixed."""
+    from safeil_sumo.sim.controller import lookahead_point, make_target, make_targets
+
+    rng = np.random.default_rng(1)
+    n = 64
+    cps = np.cumsum(rng.normal([10.0, 0.0], [8.0, 2.0], size=(n, 3, 2)), axis=1)
+    cps[:5] = rng.normal(0.0, 1e-11, (5, 3, 2))  # a plan that stays put: tangent fallbacks
+    cps[5, 2] = cps[5, 1]
+    horizons = np.where(rng.random(n) < 0.5, 3.0, 5.0)
+    ox, oy, yaw = rng.normal(0.0, 100.0, (3, n))
+    batch = make_targets(cps, horizons, ox, oy, yaw)
+    px, py, ld = rng.normal(0, 10, n), rng.normal(0, 5, n), rng.uniform(5.0, 40.0, n)
+    gx, gy = batch.lookahead(px, py, ld)
+    for i in range(n):
+        one = make_target(cps[i], horizons[i], (ox[i], oy[i], yaw[i]))
+        assert np.array_equal(one.path[:, 0], batch.path_x[i])
+        assert np.array_equal(one.path[:, 1], batch.path_y[i])
+        assert one.coeff_x == tuple(c[i] for c in batch.coeff_x)
+        assert one.coeff_y == tuple(c[i] for c in batch.coeff_y)
+        assert lookahead_point(one.segments, float(px[i]), float(py[i]), float(ld[i])) == (
+            gx[i], gy[i])

@@ -100,3 +100,22 @@ def test_project_near_extends_the_ends():
     assert line.project_near(-2.0, -1.0, 1)[:2] == (-2.0, -1.0)
     s, d, heading, i = line.project_near(10.0, 13.0, 0)
     assert (s, d, i) == (23.0, 0.0, 1) and heading == pytest.approx(math.pi / 2)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread=st.sampled_from([0.1, 3.0, 20.0]))
+def test_project_near_many_equals_project_near(seed, spread):
+    """The batch's projection gives project_near's (s, d, heading, segment) exactly, points
+    near vertices and bends included (a curve and a polyline with right-angle bends)."""
+    rng = np.random.default_rng(seed)
+    arc = np.linspace(0.0, 1.0, 54)
+    lines = [Polyline(np.column_stack([500.0 * np.sin(arc), 500.0 * (1 - np.cos(arc))])),
+             Polyline(np.array([[0, 0], [10, 0], [10, 10], [0, 10], [0, 20.0]]))]
+    for line in lines:
+        s0 = rng.uniform(-20.0, line.length + 20.0, 30)
+        xy = line.point_at(s0)[0] + rng.normal(0.0, spread, (30, 2))
+        hint = np.array([line.segment_index(float(s)) for s in s0]) + rng.integers(-2, 3, 30)
+        many = line.project_near_many(xy[:, 0], xy[:, 1], hint)
+        for j in range(30):
+            one = line.project_near(float(xy[j, 0]), float(xy[j, 1]), int(hint[j]))
+            assert tuple(float(m[j]) for m in many) == tuple(float(o) for o in one)

@@ -52,3 +52,9 @@ def test_first_flag_picks_earliest_and_names_it():
     assert flag.path_fraction == pytest.approx(0.2)
     none = mon.first_flag(t, frac, col, col, col)
     assert none.reason == "" and none.path_fraction == pytest.approx(0.4)
+
+
+def test_event_starts_hand_computed():
+    assert mon.event_starts([False, True, True, False, True]).tolist() == [1, 4]
+    assert mon.event_starts([True, True, False]).tolist() == [0]
+    assert mon.event_starts([]).tolist() == []

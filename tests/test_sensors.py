@@ -92,8 +92,7 @@ def test_batched_camera_fit_equals_the_scalar_one():
     s0, ex, ey = rng.uniform(0, 200, 5), rng.uniform(0, 200, 5), rng.normal(0, 2, 5)
     yaw = rng.normal(0, 0.1, 5)
     config = sen.SensorConfig()
-    offsets = np.linspace(0.0, config.view_range_m, config.view_samples)
-    bx, by = ego_points_many(line, s0, ex, ey, yaw, offsets)
+    bx, by = ego_points_many(line, s0, ex, ey, yaw, config)
     for i in range(5):
         sx, sy = _ego_points(line, s0[i], np.array([ex[i], ey[i]]), yaw[i], config)
         np.testing.assert_allclose(bx[i], sx, rtol=0, atol=1e-9)

@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 
 from safeil_sumo.experiments.sweep import ScenarioSpec, run_task
+from safeil_sumo.sim.monitors import event_starts
 
 PLANNERS = ("safeil", "bc", "analytic", "idm")
 # Three stretches covering direction A (km posts of n74.json, 29.2 km), each driven with
@@ -108,9 +109,7 @@ def flag_events(log: pd.DataFrame) -> list[dict]:
     ``kind``, ``t_s`` [s], ``x``, ``y`` [m] (front bumper), ``s_m`` [m] (along the ego lane)."""
     out = []
     for kind, col, _ in FLAG_KINDS:
-        flags = log[col].to_numpy(bool)
-        starts = np.flatnonzero(flags & ~np.concatenate([[False], flags[:-1]]))
-        for i in starts:
+        for i in event_starts(log[col].to_numpy(bool)):
             row = log.iloc[int(i)]
             out.append({"kind": kind, "t_s": float(row["t"]), "x": float(row["front_x"]),
                         "y": float(row["front_y"]), "s_m": float(row["s"])})

@@ -24,12 +24,13 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
 
 from safeil_sumo.features import planner_features
-from safeil_sumo.geometry import rectangle_corners, rectangles_overlap, yaw_to_sumo_angle
+from safeil_sumo.geometry import yaw_to_sumo_angle
 from safeil_sumo.policy import Policy
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import monitors as mon
@@ -42,11 +43,11 @@ from safeil_sumo.sim.runner import (
     LoopConfig,
     Rollout,
     Scenario,
-    _centre_xy,
     _default_factory,
     _Log,
     _read_leader,
     finish,
+    footprints_overlap,
     initial_state,
     insert_vehicles,
     leader_speeds,
@@ -235,8 +236,8 @@ def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: Loop
 def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
           vehicle: veh.VehicleParams, controller: ctl.ControllerParams,
           done: Callable[[_Scenario], None], clock: StageClock | None = None) -> None:
-    """The stages over arrays of the running scenarios, until every one has ended; each step
-    each step writes the log row of every running scenario; ``done(scenario)`` as one ends."""
+    """The stages over arrays of the running scenarios, until every one has ended: each step
+    writes the log row of every running scenario; ``done(scenario)`` as one ends."""
     dt = loop.step_s
     plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
     on_lane = loop.ego_placement == "lane"
@@ -256,20 +257,11 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
     feature_log = np.full((n, 8), np.nan)  # c0l..c2r, v_lead, d_lead as logged
     plan_log = np.full((n, 10), np.nan)  # the plan being tracked: time, pose, control points
     target = None
-    half_width = np.array([0.5 * r.lane.width for r in live])
-    lane_width = 2.0 * half_width
-    margin = np.array([r.scenario.monitors.lane_margin_m for r in live])
-    ttc_threshold = np.array([r.scenario.monitors.ttc_threshold_s for r in live])
-    path_start = np.array([r.road.path_start_s for r in live])
-    path_end = np.array([r.road.path_end_s for r in live])
-    n_max = np.array([r.n_max for r in live])
-    horizon = np.array([r.policy.horizon for r in live], dtype=float)
-    lanes = _lanes(live)
+    c = _Fixed.of(live)
     ego_seg = np.array([r.centre.segment_index(r.s_ego0) for r in live])
     lead_seg = np.array([r.centre.segment_index(r.s_lead0) for r in live])
-    multi_piece = np.array([r.multi_piece for r in live], dtype=bool)
     lap = clock.lap if clock is not None else _no_lap
-    for k in range(n_max.max()):  # every scenario ends by its n_max (timeout)
+    for k in range(c.n_max.max()):  # every scenario ends by its n_max (timeout)
         lap("monitor")  # the end checks of the step before
         if clock is not None:
             clock.ego_steps += n
@@ -295,9 +287,9 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             feature_log = feats[:, [0, 1, 2, 3, 4, 5, 7, 8]]
             lap("sense")
             plans = np.empty((n, 3, 2))
-            for policy, rows_of in _by_policy(live):  # one call per planner object
+            for policy, rows_of in c.planners:  # one call per planner object
                 plans[rows_of] = np.asarray(policy.plan(feats[rows_of]), float).reshape(-1, 3, 2)
-            target = ctl.make_targets(plans, horizon, fx_, fy_, yaw)
+            target = ctl.make_targets(plans, c.horizon, fx_, fy_, yaw)
             t_plan = np.full(n, t)
             plan_log = np.column_stack([t_plan, fx_, fy_, yaw, plans.reshape(n, 6)])
             lap("plan")
@@ -316,9 +308,9 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
         lap("plant")
 
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
-        s, d, heading, ego_seg = _project(lanes, front_x, front_y, ego_seg)
+        s, d, heading, ego_seg = _project(c.lanes, front_x, front_y, ego_seg)
         lap("project")
-        inside = (np.abs(d) <= half_width).tolist() if on_lane else [False] * n
+        inside = (np.abs(d) <= 0.5 * c.lane_width).tolist() if on_lane else [False] * n
         fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
         for j, r in enumerate(live):
             if inside[j]:
@@ -345,28 +337,24 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
                     v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
         has_lead = ~np.isnan(v_lead_true)
         lap("sumo_read")
-        s_rear, _, _, lead_seg = _project(lanes, lead_x, lead_y, lead_seg)
+        s_rear, _, _, lead_seg = _project(c.lanes, lead_x, lead_y, lead_seg)
         gap = np.where(has_lead, s_rear - s, np.inf)
-        for j in np.flatnonzero(has_lead & ((gap < 2.0 * length) | multi_piece)):
+        for j in np.flatnonzero(has_lead & ((gap < 2.0 * length) | c.multi_piece)):
             r = live[j]
             if r.multi_piece:  # the next command's scale: the SUMO lane under its front
                 r.lead_scale = r.road.piece_at(s_rear[j] + length).scale
-            if gap[j] < 2.0 * length and not hit[j]:  # footprints overlap?
-                lead_rear, _, lead_yaw, lead_front = r.leader
-                ego_box = rectangle_corners(_centre_xy((fxl[j], fyl[j]), float(yaw[j]), vehicle),
-                                            float(yaw[j]), length, width)
-                lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
-                hit[j] = rectangles_overlap(
-                    ego_box, rectangle_corners(lead_centre, lead_yaw, length, width))
+            if gap[j] < 2.0 * length and not hit[j]:
+                hit[j] = footprints_overlap((fxl[j], fyl[j]), float(yaw[j]), vehicle, r.leader,
+                                            length, width)
 
         lap("project")
         # monitors on the state at t + dt, all at once
         heading_err = (yaw - heading + math.pi) % (2.0 * math.pi) - math.pi
         d_min, d_max = mon.footprint_offset_range(d, heading_err, length, width, ARRAYS)
-        departed = mon.lane_departure(d_min, d_max, lane_width, margin, ARRAYS)
+        departed = mon.lane_departure(d_min, d_max, c.lane_width, c.margin, ARRAYS)
         ttc = np.where(has_lead, mon.time_to_collision(gap, v, v_lead_true, ARRAYS), np.inf)
-        ttc_flag = ttc <= ttc_threshold
-        fraction = mon.path_completed(s, path_start, path_end, ARRAYS)
+        ttc_flag = ttc <= c.ttc_threshold
+        fraction = mon.path_completed(s, c.path_start, c.path_end, ARRAYS)
         rows = np.column_stack([
             np.full(n, t + dt), x, y, yaw, v, vy, st[5], st[6], front_x, front_y, steer_cmd,
             accel_cmd, s, d, d_min, d_max, feature_log, lead_x, lead_y, v_lead_true, gap, ttc,
@@ -378,8 +366,8 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
 
         # ends, in run_scenario's order
         reason = np.select(
-            [s >= path_end, hit, np.abs(d) > half_width + loop.offroad_stop_m,
-             (departed | ttc_flag) & loop.stop_on_flag, k + 1 >= n_max],
+            [s >= c.path_end, hit, np.abs(d) > 0.5 * c.lane_width + loop.offroad_stop_m,
+             (departed | ttc_flag) & loop.stop_on_flag, k + 1 >= c.n_max],
             ["completed", "collision", "off_road", "flag", "timeout"], "")
         ended = reason != ""
         if ended.any():
@@ -396,60 +384,75 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             live = [live[j] for j in keep]
             if not live:
                 return
-            n = len(live)
-            lanes = _lanes(live)
-            ego_seg, lead_seg, multi_piece = ego_seg[keep], lead_seg[keep], multi_piece[keep]
+            n, c = len(live), _Fixed.of(live)
             st = tuple(col[keep] for col in st)
             integral, prev_error, t_plan = integral[keep], prev_error[keep], t_plan[keep]
+            ego_seg, lead_seg = ego_seg[keep], lead_seg[keep]
             feature_log, plan_log = feature_log[keep], plan_log[keep]
             target = target.take(keep)
-            half_width, lane_width, margin = half_width[keep], lane_width[keep], margin[keep]
-            ttc_threshold, path_start = ttc_threshold[keep], path_start[keep]
-            path_end, n_max, horizon = path_end[keep], n_max[keep], horizon[keep]
 
 
 def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The camera's left and right line fits ``(n, 4)`` (before noise) of every scenario."""
-    n = len(live)
+    """The camera's left and right line fits ``(n, 4)`` (before noise) of every scenario: the
+    lines each camera sees, then one sampling and one stacked fit per (line, camera setting)."""
+    fits = np.empty((2 * len(live), 4))  # row 2j: scenario j's left line, 2j + 1: its right
     xl, yl = x.tolist(), y.tolist()
-    groups: dict[tuple[int, int], tuple] = {}  # (line, offsets) -> (line, offsets, rows, s0)
+    groups: dict[tuple[int, int], tuple] = {}  # -> (line, camera setting, rows, arc lengths)
     for j, r in enumerate(live):
         left, s_left, right, s_right = r.camera.lane_stations(xl[j], yl[j])
-        offsets = sen._view_offsets(r.scenario.sensors.view_range_m,
-                                    r.scenario.sensors.view_samples)
+        config = r.scenario.sensors
         for row, line, s0 in ((2 * j, left, s_left), (2 * j + 1, right, s_right)):
-            g = groups.setdefault((id(line), id(offsets)), (line, offsets, [], []))
+            key = (id(line), config.view_range_m, config.view_samples)  # what sampling reads
+            g = groups.setdefault(key, (line, config, [], []))
             g[2].append(row)
             g[3].append(s0)
-    samples = max(len(g[1]) for g in groups.values())
-    if any(len(g[1]) != samples for g in groups.values()):  # mixed camera settings: one by one
-        return _camera_fits_one_by_one(live, x, y, yaw)
-    px, py = np.empty((2 * n, samples)), np.empty((2 * n, samples))
-    for line, offsets, rows, s0 in groups.values():
-        rows = np.array(rows)
-        cars = rows // 2
-        px[rows], py[rows] = sen.ego_points_many(line, np.array(s0), x[cars], y[cars], yaw[cars],
-                                                 offsets)
-    fits = sen.polyfit3_batch(px, py)
+    for line, config, rows, s0 in groups.values():
+        cars = np.array(rows) // 2
+        fits[rows] = sen.polyfit3_batch(*sen.ego_points_many(
+            line, np.array(s0), x[cars], y[cars], yaw[cars], config))
     return fits[0::2], fits[1::2]
 
 
-def _camera_fits_one_by_one(live, x, y, yaw):
-    fits = [r.camera.lane_lines(np.array((x[j], y[j])), float(yaw[j]))[:2]
-            for j, r in enumerate(live)]
-    return np.array([f[0] for f in fits]), np.array([f[1] for f in fits])
-
-
-def _lanes(live: list[_Scenario]) -> list[tuple[object, np.ndarray | slice]]:
-    """The ego lane centre polylines of ``live`` with their rows (one group when the
-    scenarios share a road, as a sweep's do)."""
+def _groups(items: list, key: Callable) -> list[tuple[object, np.ndarray | slice]]:
+    """``(object, rows)`` for each distinct ``key(item)`` object (compared by identity: lanes
+    and planners need not hash), in order; one group's rows are ``slice(None)``."""
     groups: dict[int, tuple[object, list[int]]] = {}
-    for j, r in enumerate(live):
-        groups.setdefault(id(r.centre), (r.centre, []))[1].append(j)
+    for j, item in enumerate(items):
+        obj = key(item)
+        groups.setdefault(id(obj), (obj, []))[1].append(j)
     if len(groups) == 1:
-        return [(live[0].centre, slice(None))]
-    return [(line, np.array(rows)) for line, rows in groups.values()]
+        return [(next(iter(groups.values()))[0], slice(None))]
+    return [(obj, np.array(rows)) for obj, rows in groups.values()]
+
+
+@dataclass(frozen=True)
+class _Fixed:
+    """What stays fixed during a run, over the running scenarios (rebuilt when one ends)."""
+
+    lane_width: np.ndarray  # (n,) [m]
+    margin: np.ndarray  # (n,) lane monitor tolerance [m]
+    ttc_threshold: np.ndarray  # (n,) [s]
+    path_start: np.ndarray  # (n,) [m]
+    path_end: np.ndarray  # (n,) [m]
+    n_max: np.ndarray  # (n,) steps
+    horizon: np.ndarray  # (n,) plan horizon [s]
+    multi_piece: np.ndarray  # (n,) bool: a route of several SUMO lanes
+    lanes: list  # (ego lane centre polyline, rows)
+    planners: list  # (planner, rows): one plan call each
+
+    @staticmethod
+    def of(live: list[_Scenario]) -> _Fixed:
+        def col(get, dtype=float) -> np.ndarray:
+            return np.array([get(r) for r in live], dtype=dtype)
+
+        return _Fixed(
+            col(lambda r: r.lane.width), col(lambda r: r.scenario.monitors.lane_margin_m),
+            col(lambda r: r.scenario.monitors.ttc_threshold_s),
+            col(lambda r: r.road.path_start_s), col(lambda r: r.road.path_end_s),
+            col(lambda r: r.n_max, int), col(lambda r: r.policy.horizon),
+            col(lambda r: r.multi_piece, bool), _groups(live, lambda r: r.centre),
+            _groups(live, lambda r: r.policy))
 
 
 def _project(lanes: list[tuple[object, np.ndarray | slice]], x: np.ndarray, y: np.ndarray,
@@ -463,11 +466,3 @@ def _project(lanes: list[tuple[object, np.ndarray | slice]], x: np.ndarray, y: n
         for o, part in zip(out, line.project_near_many(x[rows], y[rows], hint[rows])):
             o[rows] = part
     return out
-
-
-def _by_policy(live: list[_Scenario]) -> list[tuple[Policy, list[int]]]:
-    """Each planner object of ``live`` with its rows, in order (planners need not hash)."""
-    rows: dict[int, tuple[Policy, list[int]]] = {}
-    for j, r in enumerate(live):
-        rows.setdefault(id(r.policy), (r.policy, []))[1].append(j)
-    return list(rows.values())

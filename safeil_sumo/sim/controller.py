@@ -187,8 +187,8 @@ class BatchTarget:
     def lookahead(self, px: np.ndarray, py: np.ndarray, ld: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
         """:func:`lookahead_points` on these paths."""
-        return lookahead_points(self.path_x, self.path_y, px, py, ld,
-                                (self.seg_dx, self.seg_dy, self.seg_len2))
+        return lookahead_points(self.path_x, self.path_y, self.seg_dx, self.seg_dy,
+                                self.seg_len2, px, py, ld)
 
 
 def _units(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -233,23 +233,18 @@ def make_targets(
 
 
 def lookahead_points(
-    vertex_x: np.ndarray, vertex_y: np.ndarray, px: np.ndarray, py: np.ndarray, ld: np.ndarray,
-    segments: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    vertex_x: np.ndarray, vertex_y: np.ndarray, seg_dx: np.ndarray, seg_dy: np.ndarray,
+    seg_len2: np.ndarray, px: np.ndarray, py: np.ndarray, ld: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`lookahead_point` of N points ``px, py (N,)`` on N polylines ``(N, M)`` at
-    distances ``ld (N,)`` [m]: the same arithmetic, the walk replaced by a first-index search.
-    ``segments``: the polylines' segment x, y and floored squared lengths ``(N, M-1)`` when
-    already known (:class:`BatchTarget`)."""
+    """:func:`lookahead_point` of N points ``px, py (N,)`` on N polylines ``(N, M)`` (with
+    their segment x, y and floored squared lengths ``(N, M-1)``, see :class:`BatchTarget`) at
+    distances ``ld (N,)`` [m]: the same arithmetic, the walk replaced by a first-index search."""
     n, m = vertex_x.shape
     rows = np.arange(n)
     dx = vertex_x - px[:, None]
     dy = vertex_y - py[:, None]
     d2 = dx * dx + dy * dy
     i0 = d2.argmin(axis=1)
-    if segments is None:
-        seg_dx, seg_dy = np.diff(vertex_x, axis=1), np.diff(vertex_y, axis=1)
-        segments = seg_dx, seg_dy, np.maximum(seg_dx**2 + seg_dy**2, 1e-12)
-    seg_dx, seg_dy, seg_len2 = segments
     best_f2, best_k, best_u = np.full(n, np.inf), np.zeros(n, int), np.zeros(n)
     for k in (i0 - 1, i0):  # the two segments at the closest vertex
         valid = (k >= 0) & (k < m - 1)

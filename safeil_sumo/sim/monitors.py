@@ -66,6 +66,12 @@ def footprint_offset_range(front_d, heading_error, length: float, width: float, 
     return lo, hi
 
 
+def event_starts(flags: np.ndarray) -> np.ndarray:
+    """Indices where a run of flagged steps begins (an event), of a boolean series ``(n,)``."""
+    flags = np.asarray(flags, dtype=bool)
+    return np.flatnonzero(flags & ~np.concatenate([[False], flags[:-1]]))
+
+
 def path_completed(s, start: float, end: float, xp=FLOATS):
     """Fraction [0, 1] of the test path ``[start, end]`` [m] covered at arc length ``s``."""
     return xp.clip((s - start) / (end - start), 0.0, 1.0)

@@ -298,7 +298,7 @@ def run_scenario(
             gap, ttc, v_lead_true = math.inf, math.inf, math.nan
             lx = ly = math.nan
             if leader is not None:
-                (lead_rear, v_lead_sumo, lead_yaw, lead_front) = leader
+                lead_rear, v_lead_sumo = leader[:2]
                 lx, ly = lead_rear
                 if traffic is None:
                     v_lead_true = lead_v = v_lead_sumo / lead_scale
@@ -316,11 +316,8 @@ def run_scenario(
                     last_id, last_gap = lead_id, gap
                 ttc = mon.time_to_collision(gap, v, v_lead_true)
                 if gap < 2.0 * length and not colliding:
-                    ego_box = rectangle_corners(
-                        _centre_xy(front, yaw, vehicle), yaw, length, width)
-                    lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
-                    lead_box = rectangle_corners(lead_centre, lead_yaw, lead_len, lead_wid)
-                    colliding = rectangles_overlap(ego_box, lead_box)
+                    colliding = footprints_overlap(front, yaw, vehicle, leader, lead_len,
+                                                   lead_wid)
             ttc_flag = ttc <= ttc_threshold
             fraction = mon.path_completed(s, road.path_start_s, road.path_end_s)
             log.rows.append((
@@ -528,9 +525,17 @@ def _kinematic_state(pose: tuple[float, float, float, float], vehicle: veh.Vehic
     return (s.x, s.y, s.yaw, s.vx, s.vy, s.yaw_rate, s.steer, s.drive_force)
 
 
-def _centre_xy(front: tuple[float, float], yaw: float, vehicle: veh.VehicleParams) -> np.ndarray:
+def footprints_overlap(front: tuple[float, float], yaw: float, vehicle: veh.VehicleParams,
+                       leader: tuple, lead_length: float, lead_width: float) -> bool:
+    """Whether the ego (front bumper ``front`` [m], heading ``yaw`` [rad]) overlaps the leader
+    ``(rear_xy, speed, yaw, front_xy)`` of footprint ``lead_length`` x ``lead_width`` [m]."""
     half = 0.5 * vehicle.length_m
-    return np.array([front[0] - half * math.cos(yaw), front[1] - half * math.sin(yaw)])
+    centre = np.array([front[0] - half * math.cos(yaw), front[1] - half * math.sin(yaw)])
+    lead_rear, _, lead_yaw, lead_front = leader
+    lead_centre = 0.5 * (np.asarray(lead_rear) + np.asarray(lead_front))
+    return rectangles_overlap(
+        rectangle_corners(centre, yaw, vehicle.length_m, vehicle.width_m),
+        rectangle_corners(lead_centre, lead_yaw, lead_length, lead_width))
 
 
 def _traffic_leader(api: sumo_api.SumoApi, road: Road, hint: int, dist: float,
@@ -564,8 +569,7 @@ def drive_stats(log: pd.DataFrame, path_start_s: float) -> dict:
     out: dict = {"km_driven": km}
     for col, kind in (("ttc_flag", "ttc"), ("lane_departure", "lane_departure"),
                       ("collision", "collision")):
-        flags = log[col].to_numpy(bool) if n else np.zeros(0, bool)
-        events = int(np.count_nonzero(flags[1:] & ~flags[:-1]) + (flags[:1].sum() if n else 0))
+        events = len(mon.event_starts(log[col].to_numpy(bool)))
         out[f"{kind}_events"] = events
         out[f"{kind}_per_100km"] = 100.0 * events / km if km > 0 else math.nan
     return out

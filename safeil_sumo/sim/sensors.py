@@ -270,10 +270,11 @@ class LaneCamera:
 
 
 def ego_points_many(line: Polyline, s0: np.ndarray, ego_x: np.ndarray, ego_y: np.ndarray,
-                    ego_yaw: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_ego_points` of K cars on one line at once: the line's points at arc lengths
-    ``s0 (K,)`` [m] + ``offsets (samples,)`` [m], in each car's frame, ``x, y (K, samples)``."""
-    pts = line.xy_at(s0[:, None] + offsets)
+                    ego_yaw: np.ndarray, config: SensorConfig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_ego_points` of K cars with one camera setting on one line at once: the line's
+    points from arc lengths ``s0 (K,)`` [m] over the view range, in each car's frame,
+    ``x, y (K, samples)``."""
+    pts = line.xy_at(s0[:, None] + _view_offsets(config.view_range_m, config.view_samples))
     c, s = np.cos(ego_yaw)[:, None], np.sin(ego_yaw)[:, None]
     dx, dy = pts[..., 0] - ego_x[:, None], pts[..., 1] - ego_y[:, None]
     return c * dx + s * dy, -s * dx + c * dy
