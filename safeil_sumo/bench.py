@@ -13,6 +13,8 @@ Measures on ``curved500`` (ego + leader, 0.01 s step, monitors on, planner at 10
 - N scenarios side by side in one SUMO simulation (``sim.batch.run_batch``) for N in
   BATCH_SIZES: ego-steps/s, the ratio to the scalar loop measured in the same run, and the time
   per ego-step of each stage;
+- the loop on the multi-edge n74 road against one edge (µs per step) and a 10 km n74 drive's
+  wall time, with a scripted leader and among SUMO's default traffic;
 - a curved500 sweep with 1 and 2 workers (wall time, parallel efficiency, worker peak memory),
   one scenario per simulation and batched (``sweep --batch``).
 Prints a table and writes it as JSON (``--out``). ``--quick`` shortens every measurement (CI).
@@ -287,6 +289,34 @@ def sweep_rows(quick: bool, policy: str, rows: dict, notes: list[str]) -> None:
             rows["sweep1000_batched_2w_scenarios_per_s"] / rows["sweep100_2w_scenarios_per_s"])
 
 
+def multi_edge_rows(policy: str, quick: bool, rows: dict) -> None:
+    """The loop on a multi-edge route (the n74 road: junctions, internal lanes, ramps) against
+    one edge (curved500), µs per step of the loop alone; the wall time of a 10 km n74 drive
+    (task start included) with a scripted 30 m/s leader and, full runs only, among SUMO's
+    default traffic."""
+    from safeil_sumo.experiments.sweep import ScenarioSpec, run_task
+
+    def task(**kw) -> tuple[float, dict]:
+        t0 = time.perf_counter()
+        record = run_task(ScenarioSpec(policy=policy, **kw))
+        if record["status"] != "ok":
+            raise RuntimeError(f"bench drive {kw} failed: {record.get('error')}")
+        return time.perf_counter() - t0, record
+
+    km = 1.0 if quick else 10.0
+    _, single = task(net="curved500", max_time_s=5.0 if quick else 30.0)
+    wall, multi = task(net="n74", from_km=4.0, to_km=4.0 + km, ego_speed_mps=30.0,
+                       leader_speed_range_mps=(30.0, 30.0))
+    rows["single_edge_loop_us_per_step"] = 1e6 / single["steps_per_s"]
+    rows["multi_edge_loop_us_per_step"] = 1e6 / multi["steps_per_s"]
+    rows["multi_edge_over_single_edge"] = (rows["multi_edge_loop_us_per_step"]
+                                           / rows["single_edge_loop_us_per_step"])
+    rows[f"n74_{km:.0f}km_drive_wall_s"] = wall
+    if not quick:
+        wall, _ = task(net="n74", from_km=4.0, to_km=4.0 + km, traffic="default")
+        rows[f"n74_{km:.0f}km_drive_traffic_wall_s"] = wall
+
+
 BATCH_SIZES = (1, 8, 32, 64, 128)
 
 
@@ -358,6 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     rows["libsumo_over_traci"] = (rows["closed_loop_libsumo_steps_per_s"]
                                   / rows["closed_loop_traci_steps_per_s"])
     batched_rows(net, policy, sim_s, args.quick, rows)
+    multi_edge_rows(policy, args.quick, rows)
     if not args.no_extras:
         data_and_training(args.quick, rows, notes, calls)
         rows["closed_loop_peak_rss_mb"] = closed_loop_peak_rss_mb(policy, sim_s)

@@ -111,6 +111,27 @@ def test_stop_on_flag_and_one_policy(road):
     _assert_same(run_batch(cases, planner, loop), scalar)
 
 
+def test_summary_columns_give_the_same_summaries(road):
+    """A batch that logs only SUMMARY_COLUMNS (the sweeps') summarises exactly as a full log,
+    and a sweep's record (the leader-response metrics) reads nothing else."""
+    from safeil_sumo.experiments.suite import response_metrics
+    from safeil_sumo.sim.runner import SUMMARY_COLUMNS
+
+    cases = _mixed(road)
+    loop = LoopConfig(max_time_s=10.0, ego_placement="lane")
+    full = run_batch([sc for sc, _ in cases], [p for _, p in cases], loop)
+    lean = run_batch([sc for sc, _ in cases], [p for _, p in cases], loop,
+                     log_columns=SUMMARY_COLUMNS)
+    for f, s in zip(full, lean):
+        assert list(s.log.columns) == list(SUMMARY_COLUMNS)
+        pd.testing.assert_frame_equal(s.log, f.log[list(SUMMARY_COLUMNS)])
+        assert ({k: v for k, v in s.summary.items() if k not in WALL_KEYS}
+                == {k: v for k, v in f.summary.items() if k not in WALL_KEYS})
+        assert response_metrics(s.log) == response_metrics(f.log)
+    with pytest.raises(ValueError, match="unknown log column"):
+        run_batch(cases[0][:1], cases[0][1], loop, log_columns=("t", "speed"))
+
+
 def test_placements_agree_on_the_paper_scenarios(road):
     """moveTo on lane coordinates gives the flags and trajectories of moveToXY: 10 paper
     scenarios of BC (it leaves its lane: the off-lane steps fall back to moveToXY) and blind

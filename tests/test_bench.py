@@ -16,5 +16,6 @@ def test_bench_quick_runs_and_writes_every_figure(tmp_path):
                 "closed_loop_traci_steps_per_s", "scalar_ego_steps_per_s",
                 "batched_ego_steps_per_s", "batched_over_scalar", "batched_ego_steps_per_s_n8_xy",
                 "batched_n8_sumo_move_us_per_ego_step", "batched_n8_sense_us_per_ego_step",
-                "sweep6_batched_2w_wall_s", "sweep_batched_parallel_efficiency_2w"):
+                "sweep6_batched_2w_wall_s", "sweep_batched_parallel_efficiency_2w",
+                "multi_edge_over_single_edge", "n74_1km_drive_wall_s"):
         assert key in results and math.isfinite(results[key]) and results[key] > 0

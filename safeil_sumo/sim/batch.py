@@ -94,7 +94,7 @@ class _Scenario:
     """What is per scenario in a batch: its road, noise, camera, leader and log."""
 
     def __init__(self, i: int, scenario: Scenario, policy: Policy, loop: LoopConfig,
-                 vehicle: veh.VehicleParams, dx: float) -> None:
+                 vehicle: veh.VehicleParams, dx: float, log_width: int) -> None:
         self.i, self.scenario, self.policy = i, scenario, policy
         self.ego, self.leader_id = f"ego_{i}", f"leader_{i}"
         self.dx = dx  # x offset [m] of this scenario's copy of the track in SUMO
@@ -110,10 +110,11 @@ class _Scenario:
         self.has_leader = scenario.leader is not None
         self.lead_speeds = leader_speeds(scenario, self.n_max, loop.step_s)
         self.lead_scale = 1.0
+        self.lead_cmd = math.nan  # the leader's last speed command to SUMO [m/s]
         self.leader = None  # (rear_xy, v_sumo, yaw, front_xy) as read after the last step
         self.lead_v = 0.0
         self.end_reason, self.error = "", ""
-        self.rows = np.empty((self.n_max, len(_Log.COLUMNS)))  # the log, row k = step k
+        self.rows = np.empty((self.n_max, log_width))  # the log, row k = step k
         self.steps = 0  # rows filled
         self.rollout: Rollout | None = None
         self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this copy
@@ -157,13 +158,15 @@ def run_batch(
     on_done: Callable[[int, Rollout], None] | None = None,
     clock: StageClock | None = None,
     keep_logs: bool = True,
+    log_columns: Sequence[str] | None = None,
 ) -> list[Rollout]:
     """Run ``scenarios`` closed-loop side by side in one SUMO simulation; their rollouts in
     order. ``policy`` is one planner for all or one per scenario (scenarios sharing a planner
     object are planned in one call). ``on_done(i, rollout)`` is called as soon as scenario ``i`` ends (a sweep saves it
     then). ``clock``: filled with the time per stage. ``keep_logs=False``: the returned
     rollouts have empty logs (each log is freed once ``on_done`` has seen it: a sweep's memory
-    is then the running scenarios' logs only).
+    is then the running scenarios' logs only). ``log_columns``: log only these columns (e.g.
+    ``runner.SUMMARY_COLUMNS``, all a summary needs: a quarter of the memory per scenario).
 
     Every scenario must be on the same network and have a scripted leader or none (no
     traffic); ``loop`` must not ask for sumo-gui or SSM output.
@@ -175,9 +178,14 @@ def run_batch(
         raise ValueError(f"{len(scenarios)} scenarios but {len(policies)} policies")
     _check(scenarios, policies, loop)
     n = len(scenarios)
+    columns = tuple(log_columns) if log_columns is not None else _Log.COLUMNS
+    unknown = sorted(set(columns) - set(_Log.COLUMNS))
+    if unknown:
+        raise ValueError(f"unknown log column(s) {unknown}; the log has {', '.join(_Log.COLUMNS)}")
+    col_idx = None if columns == _Log.COLUMNS else np.array([_Log.COLUMNS.index(c) for c in columns])
     net = scenarios[0].road.net_path
     offset = copy_offset_m(net, SPACING_M)
-    runs = [_Scenario(i, sc, p, loop, vehicle, i * offset)
+    runs = [_Scenario(i, sc, p, loop, vehicle, i * offset, len(columns))
             for i, (sc, p) in enumerate(zip(scenarios, policies))]
     args = sumo_args(scenarios[0], loop)
     args[args.index("-n") + 1] = str(batch_net(net, n, offset_m=offset))
@@ -189,7 +197,7 @@ def run_batch(
         # the batch's wall time so far, shared out by steps (what one scenario cost of it)
         steps_all = max(sum(q.steps for q in runs), 1)
         wall = (time.perf_counter() - wall0) * r.steps / steps_all
-        log = _Log.to_frame(r.rows[:r.steps].copy())
+        log = _Log.to_frame(r.rows[:r.steps].copy(), columns)
         rollout = finish(r.scenario, log, r.end_reason or "timeout", r.error, wall, r.policy.name)
         r.rows = None
         if on_done is not None:
@@ -204,7 +212,7 @@ def run_batch(
             if r.has_leader:
                 r.read_leader(api, vehicle)
                 r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
-        _loop(api, runs, loop, vehicle, controller, done, clock)
+        _loop(api, runs, loop, vehicle, controller, done, clock, col_idx)
     except Exception as exc:  # every scenario still running ends with the reason
         for r in runs:
             if not r.end_reason:
@@ -235,9 +243,11 @@ def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: Loop
 
 def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
           vehicle: veh.VehicleParams, controller: ctl.ControllerParams,
-          done: Callable[[_Scenario], None], clock: StageClock | None = None) -> None:
+          done: Callable[[_Scenario], None], clock: StageClock | None = None,
+          col_idx: np.ndarray | None = None) -> None:
     """The stages over arrays of the running scenarios, until every one has ended: each step
-    writes the log row of every running scenario; ``done(scenario)`` as one ends."""
+    writes the log row (its columns ``col_idx``; None: all) of every running scenario;
+    ``done(scenario)`` as one ends."""
     dt = loop.step_s
     plan_every = max(int(round(1.0 / (loop.plan_rate_hz * dt))), 1)
     on_lane = loop.ego_placement == "lane"
@@ -320,7 +330,10 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
                            2)
             set_speed(r.ego, vl[j])
             if r.leader is not None:
-                set_speed(r.leader_id, r.lead_speeds[k] * r.lead_scale)
+                v_cmd = r.lead_speeds[k] * r.lead_scale
+                if v_cmd != r.lead_cmd:  # SUMO keeps a commanded speed until the next command
+                    set_speed(r.leader_id, v_cmd)
+                    r.lead_cmd = v_cmd
         lap("sumo_move")
         sim_step()
         colliding = set(colliding_ids())
@@ -360,6 +373,8 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
             accel_cmd, s, d, d_min, d_max, feature_log, lead_x, lead_y, v_lead_true, gap, ttc,
             departed, ttc_flag, hit, fraction, plan_log, np.where(has_lead, 0.0, np.nan),
         ])
+        if col_idx is not None:
+            rows = rows[:, col_idx]
         for j, r in enumerate(live):
             r.rows[k] = rows[j]
             r.steps = k + 1

@@ -587,6 +587,12 @@ def _read_leader(api: sumo_api.SumoApi, vehicle: veh.VehicleParams, veh_id: str 
     return rear, v, yaw, (fx, fy)
 
 
+# the log columns a summary (summarize, drive_stats, leaders met) and a sweep's record (the
+# leader-response metrics) read: a log of these columns only gives the same record
+SUMMARY_COLUMNS = ("t", "v", "s", "d", "leader_v", "gap", "ttc", "lane_departure", "ttc_flag",
+                   "collision", "path_fraction", "leader_no")
+
+
 class _Log:
     """Per-step rows as tuples of floats (a list append per step), one array at the end."""
 
@@ -610,9 +616,10 @@ class _Log:
         return self.to_frame(np.array(self.rows, dtype=float).reshape(-1, len(self.COLUMNS)))
 
     @classmethod
-    def to_frame(cls, data: np.ndarray) -> pd.DataFrame:
-        """The log of rows ``(steps, len(COLUMNS))``."""
-        df = pd.DataFrame(data, columns=cls.COLUMNS)
+    def to_frame(cls, data: np.ndarray, columns: Sequence[str] | None = None) -> pd.DataFrame:
+        """The log of rows ``(steps, len(columns))`` (default: all of COLUMNS)."""
+        df = pd.DataFrame(data, columns=list(columns or cls.COLUMNS))
         for col in ("lane_departure", "ttc_flag", "collision"):
-            df[col] = df[col].astype(bool)
+            if col in df:
+                df[col] = df[col].astype(bool)
         return df
