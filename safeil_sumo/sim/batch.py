@@ -1,7 +1,8 @@
 """N scenarios in ONE SUMO simulation: :func:`run_batch`, the closed loop over arrays.
 
-Each scenario drives its own renamed copy of the track (:mod:`.batch_net`); one
-``simulationStep`` moves all of them. The loop is :func:`safeil_sumo.sim.runner.run_scenario`'s
+Each scenario drives its own renamed copy of its track (:mod:`.batch_net`: scenarios may be
+on different networks, each copy shifted along x by its ``dx``); one ``simulationStep`` moves
+all of them. The loop is :func:`safeil_sumo.sim.runner.run_scenario`'s
 sequence of stages, sense -> plan -> track -> plant -> move in SUMO -> step -> monitor, with
 the per-step stages called ONCE for all running scenarios on arrays ``(N,)`` (the same stage
 functions as the scalar loop, with the array namespace :data:`.xp.ARRAYS`) and the planner
@@ -26,6 +27,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 
@@ -37,7 +39,7 @@ from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
-from safeil_sumo.sim.batch_net import batch_net, copy_offset_m, prefixed
+from safeil_sumo.sim.batch_net import mixed_batch_net, prefixed
 from safeil_sumo.sim.runner import (
     ApiFactory,
     LoopConfig,
@@ -157,16 +159,20 @@ def run_batch(
     on_done: Callable[[int, Rollout], None] | None = None,
     clock: StageClock | None = None,
     keep_logs: bool = True,
+    net_dir: Path | None = None,
 ) -> list[Rollout]:
     """Run ``scenarios`` closed-loop side by side in one SUMO simulation; their rollouts in
     order. ``policy`` is one planner for all or one per scenario (scenarios sharing a planner
     object are planned in one call). ``on_done(i, rollout)`` is called as soon as scenario ``i`` ends (a sweep saves it
     then). ``clock``: filled with the time per stage. ``keep_logs=False``: the returned
     rollouts have empty logs (each log is freed once ``on_done`` has seen it: a sweep's memory
-    is then the running scenarios' logs only).
+    is then the running scenarios' logs only). ``net_dir``: where the batch's net is written
+    (default: the shared cache of :mod:`.batch_net`).
 
-    Every scenario must be on the same network and have a scripted leader or none (no
-    traffic); ``loop`` must not ask for sumo-gui or SSM output.
+    Scenarios may be on different networks (each on its own copy of its net); every one must
+    have a scripted leader or none (no traffic) and a planner that is no kinematic (``pose_at``)
+    ego; ``loop`` must not ask for sumo-gui or SSM output. SUMO's ``--seed`` is the first
+    scenario's.
     """
     if not scenarios:
         return []
@@ -174,13 +180,11 @@ def run_batch(
     if len(policies) != len(scenarios):
         raise ValueError(f"{len(scenarios)} scenarios but {len(policies)} policies")
     _check(scenarios, policies, loop)
-    n = len(scenarios)
-    net = scenarios[0].road.net_path
-    offset = copy_offset_m(net, SPACING_M)
-    runs = [_Scenario(i, sc, p, loop, vehicle, i * offset)
-            for i, (sc, p) in enumerate(zip(scenarios, policies))]
+    net, shifts = mixed_batch_net([sc.road.net_path for sc in scenarios], SPACING_M, net_dir)
+    runs = [_Scenario(i, sc, p, loop, vehicle, dx)
+            for i, (sc, p, dx) in enumerate(zip(scenarios, policies, shifts))]
     args = sumo_args(scenarios[0], loop)
-    args[args.index("-n") + 1] = str(batch_net(net, n, offset_m=offset))
+    args[args.index("-n") + 1] = str(net)
     api = (api_factory or _default_factory(loop))(args)
     wall0 = time.perf_counter()
 
@@ -225,10 +229,6 @@ def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: Loop
         raise ValueError("run_batch does not run kinematic (pose_at) egos: use run_scenario")
     if loop.gui or loop.ssm_file is not None:
         raise ValueError("run_batch runs headless without SSM output: use run_scenario")
-    nets = {sc.road.net_path for sc in scenarios}
-    if len(nets) > 1:
-        raise ValueError(f"a batch runs on one network, got {len(nets)}: "
-                         f"{', '.join(sorted(str(p) for p in nets))}")
     if any(sc.traffic is not None for sc in scenarios):
         raise ValueError("run_batch runs scripted leaders only (no traffic): use run_scenario")
 
