@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from safeil_sumo.features import planner_features
-from safeil_sumo.geometry import yaw_to_sumo_angle
+from safeil_sumo.geometry import PolylineStack, yaw_to_sumo_angle
 from safeil_sumo.policy import Policy
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import monitors as mon
@@ -458,11 +458,20 @@ class _Fixed:
 def _project(lanes: list[tuple[object, np.ndarray | slice]], x: np.ndarray, y: np.ndarray,
              hint: np.ndarray) -> tuple[np.ndarray, ...]:
     """``Polyline.project_near_many`` of each row on its own lane: ``s, d, heading, segment``
-    (NaN points give NaN and keep their segment)."""
+    (NaN points give NaN and keep their segment). Several lanes (scenarios on different roads)
+    are walked at once on their stack (:class:`~safeil_sumo.geometry.PolylineStack`)."""
     if len(lanes) == 1:
         return lanes[0][0].project_near_many(x, y, hint)
-    out = (np.empty(len(x)), np.empty(len(x)), np.empty(len(x)), np.empty(len(x), int))
-    for line, rows in lanes:
-        for o, part in zip(out, line.project_near_many(x[rows], y[rows], hint[rows])):
-            o[rows] = part
-    return out
+    return _stack(lanes, len(x)).project_near_many(x, y, hint)
+
+
+_STACK: list = [None, None]  # (the lanes list, its stack): one stack per _Fixed
+
+
+def _stack(lanes: list[tuple[object, np.ndarray | slice]], n: int) -> PolylineStack:
+    if _STACK[0] is not lanes:  # the list is kept alive here, so its identity is its own
+        line_of = np.empty(n, dtype=int)
+        for k, (_, rows) in enumerate(lanes):
+            line_of[rows] = k
+        _STACK[:] = [lanes, PolylineStack([line for line, _ in lanes], line_of)]
+    return _STACK[1]
