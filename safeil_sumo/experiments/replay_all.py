@@ -4,7 +4,10 @@ One *task* is one window of one maneuver (rebuilt once in SUMO) driven by every 
 metrics (one row per policy, :func:`safeil_sumo.experiments.replay.compare`) and the time-gap
 histograms of the human and each policy are written at once and atomically to
 ``<out>/tasks/<task>.json``, so an interrupted run resumes (done windows are skipped). Windows
-run in ``workers`` processes (one libsumo each).
+run in ``workers`` processes (one libsumo each), up to ``batch`` windows of a worker's unit side
+by side in ONE SUMO simulation (:func:`run_windows`: each window on its own copy of its net,
+every (window, planner) run in one ``run_batch``; the same records as one simulation per run,
+floats to round-off); each window's record is written as its runs end.
 
 Windows (``mode``):
 - ``paper``: the paper's 11 s from the start of each maneuver;

@@ -407,10 +407,20 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
             g = groups.setdefault(key, (line, config, [], []))
             g[2].append(row)
             g[3].append(s0)
+    # sampled per group, fitted in one stacked fit per number of samples (scenarios on many
+    # roads have many groups; a fit is per point set, the same alone or stacked)
+    points: dict[int, list[tuple[list[int], np.ndarray, np.ndarray]]] = {}
     for line, config, rows, s0 in groups.values():
         cars = np.array(rows) // 2
-        fits[rows] = sen.polyfit3_batch(*sen.ego_points_many(
-            line, np.array(s0), x[cars], y[cars], yaw[cars], config))
+        px, py = sen.ego_points_many(line, np.array(s0), x[cars], y[cars], yaw[cars], config)
+        points.setdefault(px.shape[1], []).append((rows, px, py))
+    for parts in points.values():
+        if len(parts) == 1:
+            rows, px, py = parts[0]
+        else:
+            rows = [row for part in parts for row in part[0]]
+            px, py = np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts])
+        fits[rows] = sen.polyfit3_batch(px, py)
     return fits[0::2], fits[1::2]
 
 
