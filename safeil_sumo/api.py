@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from safeil_sumo import policies
 from safeil_sumo.experiments.replay import ReplayConfig
+from safeil_sumo.experiments.replay_all import DEFAULT_BATCH as REPLAY_BATCH
 from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, build_scenario, run_sweep
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
@@ -120,13 +121,14 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
            maneuvers: str | Sequence[str] = "all", windows: str = "sliding",
            workers: int = 1, duration_s: float = 11.0, stride_s: float = 20.0,
            config: ReplayConfig | None = None, progress: bool = False,
-           name: str | None = None, manifest: dict | None = None
+           name: str | None = None, manifest: dict | None = None, batch: int = REPLAY_BATCH
            ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Replay every window of ``maneuvers`` (``"all"`` or ids) of ``source`` (``openacc``,
     ``ngsim``, a drive file, or an already processed maneuvers frame) with each policy (names or
     paths, ``recorded`` for the human's own path): ``(per-window table, per-policy
     aggregate)``, both also written to ``out`` with the plots; resumable. ``name`` titles the
-    plots and messages (default: the source)."""
+    plots and messages (default: the source). Up to ``batch`` windows of a worker task run side
+    by side in one SUMO simulation (1: one simulation per run; the same records)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay_all as ra
     from safeil_sumo.replay import load_source
@@ -143,7 +145,7 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
                                 "window")
     config = config or ReplayConfig()
     records = ra.replay_all(rows, wins, list(policies_), Path(out), config, workers,
-                            progress=progress)
+                            progress=progress, batch=batch)
     return ra.write(Path(out), records, manifest or {"source": name, "policies": list(policies_),
                                                      "windows_mode": windows},
                     seed=config.seed, title=name)

@@ -203,32 +203,8 @@ class Polyline:
         """:meth:`project_near` of N points ``(N,)`` from their hints ``(N,)``: the same walk
         and arithmetic on arrays; a point near a vertex (two candidate segments) is resolved
         by :meth:`project_near` itself. Returns ``s, d, heading, segment`` ``(N,)`` each."""
-        xs, ys, tx, ty, seg_len, s_at, heading = self._arrays()
-        last = len(seg_len) - 1
-        i = np.clip(hint, 0, last)
-        prev = np.full(len(i), -1)
-        walking = np.ones(len(i), dtype=bool)
-        for _ in range(last + 1):
-            along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
-            step = np.where((along >= seg_len[i]) & (i < last), i + 1,
-                            np.where((along < 0.0) & (i > 0), i - 1, i))
-            walking &= (step != i) & (step != prev)  # stopped: no step, or back (a bend)
-            if not walking.any():
-                break
-            prev = np.where(walking, i, prev)
-            i = np.where(walking, step, i)
-        along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
-        im, ip = np.maximum(i - 1, 0), np.minimum(i + 1, last)
-        before = (i > 0) & ((along <= 0.0)
-                            | ((x - xs[im]) * tx[im] + (y - ys[im]) * ty[im] <= seg_len[im]))
-        after = (i < last) & ((along >= seg_len[i])
-                              | ((x - xs[ip]) * tx[ip] + (y - ys[ip]) * ty[ip] >= 0.0))
-        s = s_at[i] + along
-        d = tx[i] * (y - ys[i]) - ty[i] * (x - xs[i])
-        head = heading[i]
-        for j in np.flatnonzero(before | after):  # near a vertex: the scalar rule, exactly
-            s[j], d[j], head[j], i[j] = self.project_near(float(x[j]), float(y[j]), int(hint[j]))
-        return s, d, head, i
+        return _walk_many(self._arrays(), 0, len(self._py[4]) - 1, x, y, hint,
+                          lambda j, xj, yj, hj: self.project_near(xj, yj, hj))
 
     def _arrays(self) -> tuple[np.ndarray, ...]:
         """``_py`` as arrays (built once)."""
@@ -281,3 +257,67 @@ class Polyline:
     def offset(self, d: float) -> Polyline:
         """The parallel polyline at lateral offset ``d`` [m] (positive = left)."""
         return Polyline(offset_polyline(self.points, d))
+
+
+class PolylineStack:
+    """Several polylines' segments in one set of arrays: :meth:`project_near_many` projects
+    each of N points on ITS OWN polyline in one walk (the batched loop's scenarios on different
+    roads), with :meth:`Polyline.project_near_many`'s arithmetic, row by row."""
+
+    def __init__(self, lines: list[Polyline], line_of: np.ndarray) -> None:
+        """``line_of`` ``(N,)``: index into ``lines`` of each row's polyline."""
+        # per line: vertex arrays (x, y, s) of n + 1, segment arrays of n, padded to n + 1 (the
+        # pad is never read: a walk stays within segments 0..n-1), so one offset fits both
+        arrays = []
+        for line in lines:
+            xs, ys, tx, ty, seg_len, s_at, heading = line._arrays()
+            arrays.append((xs, ys, *(np.append(a, np.nan) for a in (tx, ty, seg_len)), s_at,
+                           np.append(heading, np.nan)))
+        counts = np.array([len(a[0]) for a in arrays])  # vertices
+        first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        self.lines, self.line_of = lines, np.asarray(line_of)
+        self.arrays = tuple(np.concatenate(parts) for parts in zip(*arrays))
+        self.first = first[self.line_of]  # (N,) each row's first vertex in the stack
+        self.last = counts[self.line_of] - 2  # (N,) each row's last segment, on its own line
+
+    def project_near_many(self, x: np.ndarray, y: np.ndarray, hint: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``s, d, heading, segment`` ``(N,)`` of each point on its polyline (segments are
+        each polyline's own indices; ``hint`` likewise)."""
+        lines, line_of = self.lines, self.line_of
+        return _walk_many(self.arrays, self.first, self.last, x, y, hint,
+                          lambda j, xj, yj, hj: lines[line_of[j]].project_near(xj, yj, hj))
+
+
+def _walk_many(arrays: tuple[np.ndarray, ...], first: np.ndarray | int, last: np.ndarray | int,
+               x: np.ndarray, y: np.ndarray, hint: np.ndarray, near) -> tuple[np.ndarray, ...]:
+    """:meth:`Polyline.project_near_many`'s walk on segment arrays holding each row's polyline
+    at segments ``first .. first + last`` (``i`` below: the index within it); ``near(j, x, y,
+    hint)`` resolves row ``j`` near a vertex."""
+    xs, ys, tx, ty, seg_len, s_at, heading = arrays
+    i = np.clip(hint, 0, last)
+    prev = np.full(len(i), -1)
+    walking = np.ones(len(i), dtype=bool)
+    for _ in range(int(np.max(last)) + 1):
+        g = first + i
+        along = (x - xs[g]) * tx[g] + (y - ys[g]) * ty[g]
+        step = np.where((along >= seg_len[g]) & (i < last), i + 1,
+                        np.where((along < 0.0) & (i > 0), i - 1, i))
+        walking &= (step != i) & (step != prev)  # stopped: no step, or back (a bend)
+        if not walking.any():
+            break
+        prev = np.where(walking, i, prev)
+        i = np.where(walking, step, i)
+    g = first + i
+    along = (x - xs[g]) * tx[g] + (y - ys[g]) * ty[g]
+    gm, gp = first + np.maximum(i - 1, 0), first + np.minimum(i + 1, last)
+    before = (i > 0) & ((along <= 0.0)
+                        | ((x - xs[gm]) * tx[gm] + (y - ys[gm]) * ty[gm] <= seg_len[gm]))
+    after = (i < last) & ((along >= seg_len[g])
+                          | ((x - xs[gp]) * tx[gp] + (y - ys[gp]) * ty[gp] >= 0.0))
+    s = s_at[g] + along
+    d = tx[g] * (y - ys[g]) - ty[g] * (x - xs[g])
+    head = heading[g]
+    for j in np.flatnonzero(before | after):  # near a vertex: the scalar rule, exactly
+        s[j], d[j], head[j], i[j] = near(j, float(x[j]), float(y[j]), int(hint[j]))
+    return s, d, head, i

@@ -75,6 +75,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="sliding windows: seconds between window starts (default 20)")
     p.add_argument("--workers", type=int, default=1,
                    help="with --maneuver all/list: worker processes (default 1)")
+    p.add_argument("--batch", type=int, default=ra.DEFAULT_BATCH,
+                   help="with --maneuver all/list: windows run side by side in one SUMO "
+                        f"simulation per worker task (default {ra.DEFAULT_BATCH}; 1: one "
+                        "simulation per run; the same results)")
     p.add_argument("--held-out-of", type=Path, default=None, metavar="CHECKPOINT_JSON",
                    help="with --maneuver all: only the maneuvers this checkpoint held out of "
                         "training (its metrics.val_maneuvers)")
@@ -101,8 +105,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--duration and --start must be >= 0")
     if not 0 < args.rate <= 100 or not 0 < args.plan_rate <= 100:
         p.error("--rate and --plan-rate must be in (0, 100] Hz")
-    if args.stride <= 0 or args.workers < 1:
-        p.error("--stride must be > 0 s and --workers >= 1")
+    if args.stride <= 0 or args.workers < 1 or args.batch < 1:
+        p.error("--stride must be > 0 s, --workers >= 1 and --batch >= 1")
     args.many = args.maneuver == "all" or "," in args.maneuver
     if args.held_out_of is not None and args.maneuver != "all":
         p.error("--held-out-of needs --maneuver all")
@@ -133,7 +137,9 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
         args.duration or rp.PAPER_DURATION_S, args.stride, config, progress=True,
         name=str(args.source), manifest={"source": args.source, "policies": args.policies,
                   "windows_mode": args.windows, "stride_s": args.stride,
-                  "duration_s": args.duration, "maneuvers": only or "all"})
+                  "duration_s": args.duration, "maneuvers": only or "all",
+                  "batch": args.batch},
+        batch=args.batch)
     failed = table.drop_duplicates(["maneuver_id", "start_s"])
     failed = failed[failed["status"] != "ok"]
     n_windows = len(table.drop_duplicates(["maneuver_id", "start_s"]))

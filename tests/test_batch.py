@@ -20,7 +20,13 @@ from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.batch import run_batch
-from safeil_sumo.sim.batch_net import batch_net, copies_xml
+from safeil_sumo.sim.batch_net import (
+    batch_net,
+    copies_xml,
+    copy_offset_m,
+    mixed_batch_net,
+    mixed_copies_xml,
+)
 from safeil_sumo.sim.leaders import constant, piecewise
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
 
@@ -154,12 +160,13 @@ def test_placements_agree_on_the_paper_scenarios(road):
 
 
 def test_bad_batches_are_refused(road):
-    from safeil_sumo.sim.traffic import Traffic  # noqa: F401  (import check only)
+    from safeil_sumo.sim.recorded_ego import RecordedPath
 
     sc = safety_scenario(road, 0)
-    other = replace(sc, road=load_road(resolve_net("straight")))
-    with pytest.raises(ValueError, match="one network"):
-        run_batch([sc, other], AnalyticPlanner())
+    kinematic = RecordedPath(np.array([0.0, 1.0]), np.array([[0.0, 0.0], [30.0, 0.0]]),
+                             np.zeros(2), np.full(2, 30.0))
+    with pytest.raises(ValueError, match="kinematic"):
+        run_batch([sc, sc], [AnalyticPlanner(), kinematic])
     with pytest.raises(ValueError, match="policies"):
         run_batch([sc, sc], [AnalyticPlanner()])
     assert run_batch([], AnalyticPlanner()) == []
@@ -171,3 +178,61 @@ def test_copies_are_renamed_and_side_by_side(road, tmp_path):
     assert text.count("<location") == 1
     assert batch_net(road.net_path, 2, tmp_path, 3000.0) == batch_net(road.net_path, 2, tmp_path,
                                                                        3000.0)
+
+
+@pytest.mark.parametrize("placement", ["xy", "lane"])
+def test_batch_of_different_nets_equals_runs_on_each_net(road, placement):
+    """Scenarios on curved500 and on straight (one repeated) in one simulation: each copy of
+    its own net, side by side; every log equals the run on that net alone."""
+    straight = load_road(resolve_net("straight"))
+    analytic = AnalyticPlanner()
+    cases = [
+        (replace(safety_scenario(straight, 0), name="straight0", max_time_s=8.0), analytic),
+        (replace(safety_scenario(road, 1), name="curved1", max_time_s=10.0), analytic),
+        (Scenario("drift", straight, constant(30.0), 30.0, 50.0, seed=1, max_time_s=10.0),
+         DriftLeft()),
+    ]
+    loop = LoopConfig(ego_placement=placement)
+    scalar = [run_scenario(sc, p, loop) for sc, p in cases]
+    assert scalar[2].summary["flag"] == "lane_departure"
+    batch = run_batch([sc for sc, _ in cases], [p for _, p in cases], loop)
+    _assert_same(batch, scalar)
+
+
+def test_mixed_batch_net_places_copies_apart_and_unions_the_location(road, tmp_path):
+    straight = resolve_net("straight")
+    nets = [straight, road.net_path, straight]
+    path, shifts = mixed_batch_net(nets, 1000.0, tmp_path)
+    # straight is 2000 m long, curved500 530 m wide: neighbours >= 1000 m apart
+    assert shifts == [0.0, 3000.0, 4530.0]
+    text = path.read_text()
+    assert 'id="c0_road"' in text and 'id="c1_road"' in text and 'id="c2_road_1"' in text
+    assert text.count("<location") == 1
+    assert 'convBoundary="0.000,0.000,6530.000,1435.511"' in text
+    assert mixed_batch_net(nets, 1000.0, tmp_path) == (path, shifts)  # cached
+    # copies of one net: batch_net's file, as the sweep has always built it
+    offset = copy_offset_m(straight, 1000.0)
+    assert mixed_batch_net([straight] * 3, 1000.0, tmp_path) == (
+        batch_net(straight, 3, tmp_path, offset), [0, offset, 2 * offset])
+    assert mixed_copies_xml([straight] * 3, [0, offset, 2 * offset]) == copies_xml(straight, 3,
+                                                                                  offset)
+
+
+def _with_type(src, dst, type_xml: str):
+    """A copy of the net ``src`` with ``type_xml`` added after its ``<location>``."""
+    text = src.read_text()
+    end = text.index(">", text.index("<location")) + 1
+    dst.write_text(text[:end] + "\n    " + type_xml + text[end:])
+    return dst
+
+
+def test_mixed_nets_union_types_and_refuse_conflicts(road, tmp_path):
+    straight = resolve_net("straight")
+    fast = _with_type(straight, tmp_path / "fast.net.xml", '<type id="hw" speed="33.33"/>')
+    same = _with_type(road.net_path, tmp_path / "same.net.xml", '<type id="hw" speed="33.33"/>')
+    other = _with_type(road.net_path, tmp_path / "other.net.xml", '<type id="lo" speed="20"/>')
+    slow = _with_type(road.net_path, tmp_path / "slow.net.xml", '<type id="hw" speed="20.00"/>')
+    text = mixed_copies_xml([fast, same, other], [0.0, 3000.0, 4530.0]).decode()
+    assert text.count('<type id="hw"') == 1 and text.count('<type id="lo"') == 1
+    with pytest.raises(ValueError, match=r"<type id='hw'> of .*slow.net.xml differs"):
+        mixed_copies_xml([fast, slow], [0.0, 3000.0])

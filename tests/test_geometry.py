@@ -119,3 +119,30 @@ def test_project_near_many_equals_project_near(seed, spread):
         for j in range(30):
             one = line.project_near(float(xy[j, 0]), float(xy[j, 1]), int(hint[j]))
             assert tuple(float(m[j]) for m in many) == tuple(float(o) for o in one)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), spread=st.sampled_from([0.1, 3.0, 20.0]))
+def test_polyline_stack_equals_each_polyline(seed, spread):
+    """Points on different polylines walked at once (the batch on several roads) give each
+    polyline's own project_near_many exactly, NaN points (no leader) included."""
+    from safeil_sumo.geometry import PolylineStack
+
+    rng = np.random.default_rng(seed)
+    arc = np.linspace(0.0, 1.0, 54)
+    lines = [Polyline(np.column_stack([500.0 * np.sin(arc), 500.0 * (1 - np.cos(arc))])),
+             Polyline(np.array([[0, 0], [10, 0], [10, 10], [0, 10], [0, 20.0]])),
+             Polyline(np.array([[-30.0, 1.0], [400.0, 2.0]]))]
+    line_of = rng.integers(0, len(lines), 40)
+    s0 = np.array([rng.uniform(-20.0, lines[k].length + 20.0) for k in line_of])
+    xy = np.array([lines[k].point_at(s)[0] for k, s in zip(line_of, s0)])
+    xy += rng.normal(0.0, spread, xy.shape)
+    xy[::7] = np.nan
+    hint = np.array([lines[k].segment_index(float(s)) for k, s in zip(line_of, s0)])
+    hint += rng.integers(-2, 3, len(hint))
+    stacked = PolylineStack(lines, line_of).project_near_many(xy[:, 0], xy[:, 1], hint)
+    for k, line in enumerate(lines):
+        rows = np.flatnonzero(line_of == k)
+        own = line.project_near_many(xy[rows, 0], xy[rows, 1], hint[rows])
+        for got, want in zip(stacked, own):
+            np.testing.assert_array_equal(got[rows], want)

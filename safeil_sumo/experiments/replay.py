@@ -302,12 +302,27 @@ def compare(human: pd.DataFrame, policy: pd.DataFrame) -> dict:
     return row
 
 
-def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_dir: Path,
-                    config: ReplayConfig = ReplayConfig(), maneuver_id: str | None = None
-                    ) -> ReplayResult:
-    """Rebuild the maneuver in SUMO (net written to ``out_dir/net``), run every policy
-    closed-loop and compare with the human. ``drive_rows``: one maneuver's rows (schema columns,
-    sorted by time, all with a leader), e.g. from :func:`select_maneuver`.
+@dataclass(frozen=True)
+class ReplayPrep:
+    """A maneuver ready to be driven (:func:`prepare_replay`): its checked rows, rebuilt net,
+    road and local frame, the human trace (:func:`human_trace`), the closed-loop scenario and
+    the recording's own first flag (:func:`human_flag`)."""
+
+    maneuver_id: str
+    rows: pd.DataFrame
+    net: Path
+    road: Road
+    frame: rr.LocalFrame
+    human: pd.DataFrame
+    scenario: Scenario
+    human_flag: mon.FirstFlag
+
+
+def prepare_replay(drive_rows: pd.DataFrame, out_dir: Path,
+                   config: ReplayConfig = ReplayConfig(), maneuver_id: str | None = None
+                   ) -> ReplayPrep:
+    """Rebuild the maneuver in SUMO (net written to ``out_dir/net``) and set up its scenario
+    and human trace; the first half of :func:`replay_maneuver`.
 
     Raises :class:`ReplayError` for unusable rows; SUMO/netconvert errors propagate.
     """
@@ -322,15 +337,27 @@ def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_d
     scenario = replay_scenario(rows, road, frame, name, config.seed,
                                human["leader_v"].to_numpy(float),
                                mon.MonitorConfig(lane_margin_m=config.lane_margin_m))
-    own = human_flag(human, scenario.monitors)
-    rollouts: dict[str, Rollout] = {}
+    return ReplayPrep(maneuver_id, rows, net, road, frame, human, scenario,
+                      human_flag(human, scenario.monitors))
+
+
+def replay_policy(prep: ReplayPrep, policy: Policy) -> Policy:
+    """The planner that drives ``prep``'s replay: ``policy``, or for the ``recorded``
+    pseudo-planner the human's own path in this replay's frame."""
+    if isinstance(policy, RecordedPath):
+        return recorded_path(prep.rows, prep.frame)
+    return policy
+
+
+def compare_replay(prep: ReplayPrep, rollouts: dict[str, Rollout],
+                   config: ReplayConfig = ReplayConfig()) -> ReplayResult:
+    """Each policy's rollout against the human: the second half of :func:`replay_maneuver`
+    (``rollouts``: label -> rollout of ``prep.scenario``, in the policies' order)."""
+    rows, road, human, scenario, own = (prep.rows, prep.road, prep.human, prep.scenario,
+                                        prep.human_flag)
     compared: dict[str, pd.DataFrame] = {}
     table = []
-    for label, policy in policies.items():
-        if isinstance(policy, RecordedPath):  # the human's own path, in this replay's frame
-            policy = recorded_path(rows, frame)
-        rollout = run_scenario(scenario, policy, config.loop, config.vehicle)
-        rollouts[label] = rollout
+    for label, rollout in rollouts.items():
         trace = policy_trace(rollout.log, human)
         compared[label] = trace
         sm = rollout.summary
@@ -340,7 +367,7 @@ def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_d
                       "human_flag": own.reason, "human_flag_time_s": own.time_s})
     t = rows["time"].to_numpy(float)
     info = {
-        "maneuver_id": maneuver_id,
+        "maneuver_id": prep.maneuver_id,
         "duration_s": float(t[-1] - t[0]),
         "samples": len(rows),
         "rate_hz": float((len(t) - 1) / (t[-1] - t[0])),
@@ -357,11 +384,27 @@ def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_d
         "max_abs_leader_drift_uncorrected_m": float(np.nanmax(np.abs(hm.leader_drift(
             t, human["gap"].to_numpy(), human["s"].to_numpy(), rr.leader_speed(rows))))),
         "road_shape_points": int(road.meta.get("shape_points", 0)),
-        "net": str(net),
+        "net": str(prep.net),
         "config": asdict(config),
     }
-    return ReplayResult(maneuver_id, road, frame, scenario, human, rollouts, compared,
-                        pd.DataFrame(table), info)
+    return ReplayResult(prep.maneuver_id, road, prep.frame, scenario, human, dict(rollouts),
+                        compared, pd.DataFrame(table), info)
+
+
+def replay_maneuver(drive_rows: pd.DataFrame, policies: dict[str, Policy], out_dir: Path,
+                    config: ReplayConfig = ReplayConfig(), maneuver_id: str | None = None
+                    ) -> ReplayResult:
+    """Rebuild the maneuver in SUMO (net written to ``out_dir/net``), run every policy
+    closed-loop and compare with the human. ``drive_rows``: one maneuver's rows (schema columns,
+    sorted by time, all with a leader), e.g. from :func:`select_maneuver`.
+
+    Raises :class:`ReplayError` for unusable rows; SUMO/netconvert errors propagate.
+    """
+    prep = prepare_replay(drive_rows, out_dir, config, maneuver_id)
+    rollouts = {label: run_scenario(prep.scenario, replay_policy(prep, policy), config.loop,
+                                    config.vehicle)
+                for label, policy in policies.items()}
+    return compare_replay(prep, rollouts, config)
 
 
 # ------------------------------------------------------------------------------------ outputs

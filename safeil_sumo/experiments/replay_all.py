@@ -4,7 +4,10 @@ One *task* is one window of one maneuver (rebuilt once in SUMO) driven by every 
 metrics (one row per policy, :func:`safeil_sumo.experiments.replay.compare`) and the time-gap
 histograms of the human and each policy are written at once and atomically to
 ``<out>/tasks/<task>.json``, so an interrupted run resumes (done windows are skipped). Windows
-run in ``workers`` processes (one libsumo each).
+run in ``workers`` processes (one libsumo each), up to ``batch`` windows of a worker's unit side
+by side in ONE SUMO simulation (:func:`run_windows`: each window on its own copy of its net,
+every (window, planner) run in one ``run_batch``; the same records as one simulation per run,
+floats to round-off); each window's record is written as its runs end.
 
 Windows (``mode``):
 - ``paper``: the paper's 11 s from the start of each maneuver;
@@ -26,7 +29,8 @@ import math
 import multiprocessing as mp
 import re
 import tempfile
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import matplotlib
@@ -40,6 +44,7 @@ from tqdm import tqdm
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import replay as rp
+from safeil_sumo.experiments.sweep import BATCH_EGO_PLACEMENT, even_units
 
 WINDOW_MODES = ("paper", "sliding", "whole")
 HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
@@ -47,6 +52,9 @@ BOOTSTRAP_SAMPLES = 2000
 # the replay's own reconstruction error per window (replay.ReplayResult.info)
 INSTRUMENT_KEYS = ("max_abs_lane_rebuild_error_m", "max_abs_leader_drift_m",
                    "max_abs_leader_drift_uncorrected_m")
+# windows per worker task run side by side in one SUMO simulation (``replay --batch``):
+# measured on OpenACC, docs/performance.md ("Batched replays")
+DEFAULT_BATCH = 32
 
 
 @dataclass(frozen=True)
@@ -97,19 +105,20 @@ def _headway_hist(values: np.ndarray) -> list[int]:
     return np.histogram(v[np.isfinite(v)], bins=HEADWAY_BINS)[0].tolist()
 
 
-def run_window(window: Window, maneuvers: pd.DataFrame, policies: dict, config: rp.ReplayConfig
-               ) -> dict:
-    """Replay one window with every policy: a JSON-able record (never raises)."""
-    try:
-        rows = maneuvers[maneuvers["maneuver_id"] == window.maneuver_id].reset_index(drop=True)
-        rows = rp.window(rows, window.start_s, window.duration_s)
-        with tempfile.TemporaryDirectory() as tmp:
-            res = rp.replay_maneuver(rows, policies, Path(tmp), config,
-                                     maneuver_id=window.maneuver_id)
-    except Exception as exc:  # noqa: BLE001 - a record, never an exception: the run goes on
-        return {"task_id": window.task_id, "maneuver_id": window.maneuver_id,
-                "start_s": window.start_s, "status": "failed",
-                "error": f"{type(exc).__name__}: {exc}"}
+def _window_rows(window: Window, maneuvers: pd.DataFrame) -> pd.DataFrame:
+    rows = maneuvers[maneuvers["maneuver_id"] == window.maneuver_id].reset_index(drop=True)
+    return rp.window(rows, window.start_s, window.duration_s)
+
+
+def _failed(window: Window, exc: Exception) -> dict:
+    """The record of a window that could not be replayed."""
+    return {"task_id": window.task_id, "maneuver_id": window.maneuver_id,
+            "start_s": window.start_s, "status": "failed",
+            "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _record(window: Window, res: rp.ReplayResult) -> dict:
+    """The JSON-able record of a replayed window."""
     metrics = res.metrics.replace({np.nan: None}).to_dict(orient="records")
     return {
         "task_id": window.task_id, "maneuver_id": window.maneuver_id,
@@ -123,27 +132,125 @@ def run_window(window: Window, maneuvers: pd.DataFrame, policies: dict, config: 
     }
 
 
+def run_window(window: Window, maneuvers: pd.DataFrame, policies: dict, config: rp.ReplayConfig
+               ) -> dict:
+    """Replay one window with every policy: a JSON-able record (never raises)."""
+    try:
+        rows = _window_rows(window, maneuvers)
+        with tempfile.TemporaryDirectory() as tmp:
+            res = rp.replay_maneuver(rows, policies, Path(tmp), config,
+                                     maneuver_id=window.maneuver_id)
+    except Exception as exc:  # noqa: BLE001 - a record, never an exception: the run goes on
+        return _failed(window, exc)
+    return _record(window, res)
+
+
+def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
+                config: rp.ReplayConfig, on_record: Callable[[dict], None] | None = None
+                ) -> list[dict]:
+    """Replay ``wins`` side by side: every (window, planner) run in ONE SUMO simulation
+    (:func:`safeil_sumo.sim.batch.run_batch`, each window on its own copy of its net), the
+    kinematic ``recorded`` runs each on ``run_scenario``. The records (window order) are
+    :func:`run_window`'s; ``on_record(record)`` is called as each window's runs have ended. One
+    window is :func:`run_window`. Never raises: a window that cannot be prepared, or a batch
+    that fails, gives failed records.
+    """
+    from safeil_sumo.sim.batch import run_batch
+    from safeil_sumo.sim.runner import run_scenario
+
+    if len(wins) == 1:  # today's path: one simulation per run
+        records = [run_window(wins[0], maneuvers, policies, config)]
+        if on_record is not None:
+            on_record(records[0])
+        return records
+    records: list[dict | None] = [None] * len(wins)
+    preps: dict[int, rp.ReplayPrep] = {}
+    rollouts: dict[int, dict] = {}  # window -> label -> rollout, until the window's record
+    batched: list[tuple[int, str, object]] = []  # (window, label, planner) of the batch
+
+    def settle(k: int, rec: dict | None = None) -> None:
+        """Window ``k``'s record (``rec``, else its comparison once all its runs ended)."""
+        if rec is None:
+            if len(rollouts[k]) < len(policies):
+                return
+            try:
+                rec = _record(wins[k], rp.compare_replay(
+                    preps[k], {label: rollouts[k][label] for label in policies}, config))
+            except Exception as exc:  # noqa: BLE001 - a record: the batch goes on
+                rec = _failed(wins[k], exc)
+        rollouts.pop(k, None)  # its logs are freed
+        records[k] = rec
+        if on_record is not None:
+            on_record(rec)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, w in enumerate(wins):
+            try:
+                preps[k] = rp.prepare_replay(_window_rows(w, maneuvers), Path(tmp) / str(k),
+                                             config, w.maneuver_id)
+                rollouts[k] = {}
+                for label, policy in policies.items():
+                    planner = rp.replay_policy(preps[k], policy)
+                    if getattr(planner, "pose_at", None) is not None:  # kinematic: alone
+                        rollouts[k][label] = run_scenario(preps[k].scenario, planner,
+                                                          config.loop, config.vehicle)
+                    else:
+                        batched.append((k, label, planner))
+            except Exception as exc:  # noqa: BLE001 - a record, never an exception
+                batched = [b for b in batched if b[0] != k]
+                settle(k, _failed(w, exc))
+                continue
+            settle(k)  # a window of kinematic runs only is done
+
+        def done(i: int, rollout) -> None:
+            k, label, _ = batched[i]
+            rollouts[k][label] = rollout
+            settle(k)
+
+        if batched:
+            try:
+                run_batch([preps[k].scenario for k, _, _ in batched], [p for *_, p in batched],
+                          replace(config.loop, ego_placement=BATCH_EGO_PLACEMENT),
+                          config.vehicle, on_done=done, keep_logs=False, net_dir=Path(tmp))
+            except Exception as exc:  # noqa: BLE001 - failed records, never an exception
+                for k in sorted(rollouts):
+                    settle(k, _failed(wins[k], exc))
+    return records
+
+
 _STATE: dict = {}
 
 
-def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig) -> None:
+def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig,
+          tasks: Path, tag: str) -> None:
     from safeil_sumo import policies as pol
     from safeil_sumo.experiments.sweep import _die_with_parent
 
     _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
 
-    _STATE.update(maneuvers=maneuvers, config=config,
+    _STATE.update(maneuvers=maneuvers, config=config, tasks=tasks, tag=tag,
                   policies={name: pol.load_for_replay(name) for name in policy_names})
 
 
-def _work(window: Window) -> dict:
-    return run_window(window, _STATE["maneuvers"], _STATE["policies"], _STATE["config"])
+def _task_path(tasks: Path, task_id: str, tag: str) -> Path:
+    return tasks / f"{task_id}-{tag}.json"
+
+
+def _save(record: dict) -> None:
+    """Write a window's record as soon as it is there (a resumed run skips it)."""
+    outputs.write_json(_task_path(_STATE["tasks"], record["task_id"], _STATE["tag"]), record)
+
+
+def _work(unit: tuple[Window, ...]) -> list[dict]:
+    return run_windows(unit, _STATE["maneuvers"], _STATE["policies"], _STATE["config"], _save)
 
 
 def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[str],
                out_dir: Path, config: rp.ReplayConfig | None = None, workers: int = 1,
-               progress: bool = True) -> list[dict]:
-    """Run every window not done yet in ``out_dir/tasks``; return all records (window order)."""
+               progress: bool = True, batch: int = DEFAULT_BATCH) -> list[dict]:
+    """Run every window not done yet in ``out_dir/tasks``; return all records (window order).
+    ``batch`` > 1: up to ``batch`` windows per worker task run side by side in one SUMO
+    simulation (:func:`run_windows`; the same records); 1: one simulation per run."""
     config = config or rp.ReplayConfig()
     # a window's result holds every policy: its file name carries the policies and the config,
     # so a rerun with other policies or settings never reuses a stale result
@@ -152,25 +259,23 @@ def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[s
     tasks.mkdir(parents=True, exist_ok=True)
 
     def path(w: Window) -> Path:
-        return tasks / f"{w.task_id}-{tag}.json"
+        return _task_path(tasks, w.task_id, tag)
 
     todo = [w for w in wins if not path(w).is_file()]
+    todo_units = even_units(todo, batch, workers)
     bar = tqdm(total=len(todo), desc="replay", unit="window", disable=not progress or None)
+    init_args = (maneuvers, policy_names, config, tasks, tag)
     try:
-        if workers <= 1 or len(todo) <= 1:
-            _init(maneuvers, policy_names, config)
-            results = map(_work, todo)
-            for w, rec in zip(todo, results, strict=True):
-                outputs.write_json(path(w), rec)
-                bar.update(1)
+        if workers <= 1 or len(todo_units) <= 1:
+            _init(*init_args)
+            for unit in todo_units:
+                bar.update(len(_work(unit)))
         else:
             ctx = mp.get_context("fork")
-            with ctx.Pool(workers, initializer=_init,
-                          initargs=(maneuvers, policy_names, config)) as pool:
-                by_id = {w.task_id: w for w in todo}
-                for rec in pool.imap_unordered(_work, todo):
-                    outputs.write_json(path(by_id[rec["task_id"]]), rec)
-                    bar.update(1)
+            with ctx.Pool(min(workers, len(todo_units)), initializer=_init,
+                          initargs=init_args) as pool:
+                for recs in pool.imap_unordered(_work, todo_units):
+                    bar.update(len(recs))
     finally:
         bar.close()
     return [json.loads(path(w).read_text()) for w in wins if path(w).is_file()]

@@ -430,18 +430,33 @@ def batch_key(spec: ScenarioSpec) -> tuple | None:
 def batches(specs: Sequence[ScenarioSpec], size: int, workers: int = 1
             ) -> list[tuple[ScenarioSpec, ...]]:
     """``specs`` grouped into batches sharing a :func:`batch_key`, in order of their first
-    spec: at most ``size`` each, and small enough that a group gives each of ``workers`` a
-    batch (10 specs on 2 workers: two batches of 5, not one of 10)."""
+    spec, each group in :func:`even_units` (10 specs on 2 workers: two batches of 5, not one
+    of 10)."""
     if size < 1:
         raise ValueError(f"batch size must be >= 1, got {size}")
     groups: dict[Any, list[ScenarioSpec]] = {}
     for k, spec in enumerate(specs):
         key = batch_key(spec)
         groups.setdefault(key if key is not None else ("alone", k), []).append(spec)
-    out = []
-    for g in groups.values():
-        n = min(size, -(-len(g) // max(workers, 1)))
-        out += [tuple(g[i:i + n]) for i in range(0, len(g), n)]
+    return [unit for g in groups.values() for unit in even_units(g, size, workers)]
+
+
+def even_units(items: Sequence, size: int, workers: int = 1) -> list[tuple]:
+    """``items`` in order, in units of at most ``size``: as even as can be and, where there are
+    enough, a multiple of ``workers`` many (140 items of size 64 on 2 workers: 4 of 35, not
+    64 + 64 + 12, where one worker would run the 12 alone)."""
+    if size < 1:
+        raise ValueError(f"batch size must be >= 1, got {size}")
+    if not items:
+        return []
+    k = -(-len(items) // size)  # units needed
+    k = min(-(-k // max(workers, 1)) * max(workers, 1), len(items))
+    n, extra = divmod(len(items), k)
+    out, i = [], 0
+    for j in range(k):
+        m = n + (j < extra)
+        out.append(tuple(items[i:i + m]))
+        i += m
     return out
 
 
@@ -831,6 +846,7 @@ __all__ = [
     "batches",
     "build_scenario",
     "collect",
+    "even_units",
     "comparable",
     "leader_profile",
     "load_specs",

@@ -1,7 +1,8 @@
 """N scenarios in ONE SUMO simulation: :func:`run_batch`, the closed loop over arrays.
 
-Each scenario drives its own renamed copy of the track (:mod:`.batch_net`); one
-``simulationStep`` moves all of them. The loop is :func:`safeil_sumo.sim.runner.run_scenario`'s
+Each scenario drives its own renamed copy of its track (:mod:`.batch_net`: scenarios may be
+on different networks, each copy shifted along x by its ``dx``); one ``simulationStep`` moves
+all of them. The loop is :func:`safeil_sumo.sim.runner.run_scenario`'s
 sequence of stages, sense -> plan -> track -> plant -> move in SUMO -> step -> monitor, with
 the per-step stages called ONCE for all running scenarios on arrays ``(N,)`` (the same stage
 functions as the scalar loop, with the array namespace :data:`.xp.ARRAYS`) and the planner
@@ -26,18 +27,19 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 
 from safeil_sumo.features import planner_features
-from safeil_sumo.geometry import yaw_to_sumo_angle
+from safeil_sumo.geometry import Polyline, PolylineStack, yaw_to_sumo_angle
 from safeil_sumo.policy import Policy
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
-from safeil_sumo.sim.batch_net import batch_net, copy_offset_m, prefixed
+from safeil_sumo.sim.batch_net import mixed_batch_net, prefixed
 from safeil_sumo.sim.runner import (
     ApiFactory,
     LoopConfig,
@@ -159,6 +161,7 @@ def run_batch(
     clock: StageClock | None = None,
     keep_logs: bool = True,
     log_columns: Sequence[str] | None = None,
+    net_dir: Path | None = None,
 ) -> list[Rollout]:
     """Run ``scenarios`` closed-loop side by side in one SUMO simulation; their rollouts in
     order. ``policy`` is one planner for all or one per scenario (scenarios sharing a planner
@@ -167,9 +170,13 @@ def run_batch(
     rollouts have empty logs (each log is freed once ``on_done`` has seen it: a sweep's memory
     is then the running scenarios' logs only). ``log_columns``: log only these columns (e.g.
     ``runner.SUMMARY_COLUMNS``, all a summary needs: a quarter of the memory per scenario).
+    ``net_dir``: where the batch's net is written (default: the shared cache of
+    :mod:`.batch_net`).
 
-    Every scenario must be on the same network and have a scripted leader or none (no
-    traffic); ``loop`` must not ask for sumo-gui or SSM output.
+    Scenarios may be on different networks (each on its own copy of its net); every one must
+    have a scripted leader or none (no traffic) and a planner that is no kinematic (``pose_at``)
+    ego; ``loop`` must not ask for sumo-gui or SSM output. SUMO's ``--seed`` is the first
+    scenario's.
     """
     if not scenarios:
         return []
@@ -177,18 +184,16 @@ def run_batch(
     if len(policies) != len(scenarios):
         raise ValueError(f"{len(scenarios)} scenarios but {len(policies)} policies")
     _check(scenarios, policies, loop)
-    n = len(scenarios)
     columns = tuple(log_columns) if log_columns is not None else _Log.COLUMNS
     unknown = sorted(set(columns) - set(_Log.COLUMNS))
     if unknown:
         raise ValueError(f"unknown log column(s) {unknown}; the log has {', '.join(_Log.COLUMNS)}")
     col_idx = None if columns == _Log.COLUMNS else np.array([_Log.COLUMNS.index(c) for c in columns])
-    net = scenarios[0].road.net_path
-    offset = copy_offset_m(net, SPACING_M)
-    runs = [_Scenario(i, sc, p, loop, vehicle, i * offset, len(columns))
-            for i, (sc, p) in enumerate(zip(scenarios, policies))]
+    net, shifts = mixed_batch_net([sc.road.net_path for sc in scenarios], SPACING_M, net_dir)
+    runs = [_Scenario(i, sc, p, loop, vehicle, dx, len(columns))
+            for i, (sc, p, dx) in enumerate(zip(scenarios, policies, shifts))]
     args = sumo_args(scenarios[0], loop)
-    args[args.index("-n") + 1] = str(batch_net(net, n, offset_m=offset))
+    args[args.index("-n") + 1] = str(net)
     api = (api_factory or _default_factory(loop))(args)
     wall0 = time.perf_counter()
 
@@ -233,10 +238,6 @@ def _check(scenarios: Sequence[Scenario], policies: Sequence[Policy], loop: Loop
         raise ValueError("run_batch does not run kinematic (pose_at) egos: use run_scenario")
     if loop.gui or loop.ssm_file is not None:
         raise ValueError("run_batch runs headless without SSM output: use run_scenario")
-    nets = {sc.road.net_path for sc in scenarios}
-    if len(nets) > 1:
-        raise ValueError(f"a batch runs on one network, got {len(nets)}: "
-                         f"{', '.join(sorted(str(p) for p in nets))}")
     if any(sc.traffic is not None for sc in scenarios):
         raise ValueError("run_batch runs scripted leaders only (no traffic): use run_scenario")
 
@@ -318,7 +319,7 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
         lap("plant")
 
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
-        s, d, heading, ego_seg = _project(c.lanes, front_x, front_y, ego_seg)
+        s, d, heading, ego_seg = c.lanes.project_near_many(front_x, front_y, ego_seg)
         lap("project")
         inside = (np.abs(d) <= 0.5 * c.lane_width).tolist() if on_lane else [False] * n
         fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
@@ -350,7 +351,7 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
                     v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
         has_lead = ~np.isnan(v_lead_true)
         lap("sumo_read")
-        s_rear, _, _, lead_seg = _project(c.lanes, lead_x, lead_y, lead_seg)
+        s_rear, _, _, lead_seg = c.lanes.project_near_many(lead_x, lead_y, lead_seg)
         gap = np.where(has_lead, s_rear - s, np.inf)
         for j in np.flatnonzero(has_lead & ((gap < 2.0 * length) | c.multi_piece)):
             r = live[j]
@@ -422,10 +423,20 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
             g = groups.setdefault(key, (line, config, [], []))
             g[2].append(row)
             g[3].append(s0)
+    # sampled per group, fitted in one stacked fit per number of samples (scenarios on many
+    # roads have many groups; a fit is per point set, the same alone or stacked)
+    points: dict[int, list[tuple[list[int], np.ndarray, np.ndarray]]] = {}
     for line, config, rows, s0 in groups.values():
         cars = np.array(rows) // 2
-        fits[rows] = sen.polyfit3_batch(*sen.ego_points_many(
-            line, np.array(s0), x[cars], y[cars], yaw[cars], config))
+        px, py = sen.ego_points_many(line, np.array(s0), x[cars], y[cars], yaw[cars], config)
+        points.setdefault(px.shape[1], []).append((rows, px, py))
+    for parts in points.values():
+        if len(parts) == 1:
+            rows, px, py = parts[0]
+        else:
+            rows = [row for part in parts for row in part[0]]
+            px, py = np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts])
+        fits[rows] = sen.polyfit3_batch(px, py)
     return fits[0::2], fits[1::2]
 
 
@@ -453,7 +464,9 @@ class _Fixed:
     n_max: np.ndarray  # (n,) steps
     horizon: np.ndarray  # (n,) plan horizon [s]
     multi_piece: np.ndarray  # (n,) bool: a route of several SUMO lanes
-    lanes: list  # (ego lane centre polyline, rows)
+    # each row's ego lane centre: the one polyline, or several (scenarios on different
+    # roads) walked at once on their stack; NaN points give NaN and keep their segment
+    lanes: Polyline | PolylineStack
     planners: list  # (planner, rows): one plan call each
 
     @staticmethod
@@ -466,18 +479,16 @@ class _Fixed:
             col(lambda r: r.scenario.monitors.ttc_threshold_s),
             col(lambda r: r.road.path_start_s), col(lambda r: r.road.path_end_s),
             col(lambda r: r.n_max, int), col(lambda r: r.policy.horizon),
-            col(lambda r: r.multi_piece, bool), _groups(live, lambda r: r.centre),
+            col(lambda r: r.multi_piece, bool), _lanes(live),
             _groups(live, lambda r: r.policy))
 
 
-def _project(lanes: list[tuple[object, np.ndarray | slice]], x: np.ndarray, y: np.ndarray,
-             hint: np.ndarray) -> tuple[np.ndarray, ...]:
-    """``Polyline.project_near_many`` of each row on its own lane: ``s, d, heading, segment``
-    (NaN points give NaN and keep their segment)."""
-    if len(lanes) == 1:
-        return lanes[0][0].project_near_many(x, y, hint)
-    out = (np.empty(len(x)), np.empty(len(x)), np.empty(len(x)), np.empty(len(x), int))
-    for line, rows in lanes:
-        for o, part in zip(out, line.project_near_many(x[rows], y[rows], hint[rows])):
-            o[rows] = part
-    return out
+def _lanes(live: list[_Scenario]) -> Polyline | PolylineStack:
+    """What projects each running scenario's points on its own ego lane centre."""
+    groups = _groups(live, lambda r: r.centre)
+    if len(groups) == 1:
+        return groups[0][0]
+    line_of = np.empty(len(live), dtype=int)
+    for k, (_, rows) in enumerate(groups):
+        line_of[rows] = k
+    return PolylineStack([line for line, _ in groups], line_of)
