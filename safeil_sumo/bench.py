@@ -317,7 +317,7 @@ def multi_edge_rows(policy: str, quick: bool, rows: dict) -> None:
         rows[f"n74_{km:.0f}km_drive_traffic_wall_s"] = wall
 
 
-BATCH_SIZES = (1, 8, 32, 64, 128)
+BATCH_SIZES = (1, 8, 32, 64, 128, 256)
 
 
 def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: dict) -> None:

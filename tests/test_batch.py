@@ -138,6 +138,28 @@ def test_summary_columns_give_the_same_summaries(road):
         run_batch(cases[0][:1], cases[0][1], loop, log_columns=("t", "speed"))
 
 
+def test_the_loop_runs_on_one_blas_thread(road):
+    """Planner calls inside a batch see one BLAS thread (a sweep runs a worker per core), and
+    the limit is lifted after the batch."""
+    from threadpoolctl import threadpool_info
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    seen = []
+
+    class Watching(AnalyticPlanner):
+        def plan(self, features):
+            seen.append(blas_threads())
+            return super().plan(features)
+
+    before = blas_threads()
+    run_batch([safety_scenario(road, i) for i in range(2)], Watching(),
+              LoopConfig(max_time_s=0.5))
+    assert seen and all(threads == [1] * len(before) for threads in seen)
+    assert blas_threads() == before
+
+
 def test_placements_agree_on_the_paper_scenarios(road):
     """moveTo on lane coordinates gives the flags and trajectories of moveToXY: 10 paper
     scenarios of BC (it leaves its lane: the off-lane steps fall back to moveToXY) and blind

@@ -409,9 +409,10 @@ def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
     return records
 
 
-# scenarios per SUMO simulation in sweeps by default (``sweep --batch``): measured on curved500,
-# docs/performance.md
-DEFAULT_BATCH = 64
+# scenarios per SUMO simulation in sweeps by default (``sweep --batch``): measured on curved500
+# (docs/performance.md): 1,000 scenarios on 2 workers in 37 s at 256, 42 s at 128, 52 s at 64;
+# memory grows with it (a scenario's summary log, ~0.4 MB per 40 s, stays until it ends)
+DEFAULT_BATCH = 256
 
 # how a batch places its egos in SUMO: moveTo on lane coordinates (~25x cheaper than moveToXY;
 # the same flags and trajectories, see LoopConfig.ego_placement and docs/performance.md)

@@ -30,6 +30,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from safeil_sumo.features import planner_features
 from safeil_sumo.geometry import Polyline, PolylineStack, yaw_to_sumo_angle
@@ -217,7 +218,10 @@ def run_batch(
             if r.has_leader:
                 r.read_leader(api, vehicle)
                 r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
-        _loop(api, runs, loop, vehicle, controller, done, clock, col_idx)
+        # one BLAS thread: the batch's matrices are small, and a sweep already runs one worker
+        # per core (OpenBLAS's own threads made 2 workers at batch 256 run 2.1x slower)
+        with threadpool_limits(limits=1, user_api="blas"):
+            _loop(api, runs, loop, vehicle, controller, done, clock, col_idx)
     except Exception as exc:  # every scenario still running ends with the reason
         for r in runs:
             if not r.end_reason:
