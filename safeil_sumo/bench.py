@@ -3,7 +3,7 @@
 Measures on ``curved500`` (ego + leader, 0.01 s step, monitors on, planner at 10 Hz):
 - bare SUMO stepping of the same scenario (both cars on SUMO's own car-following, no Python
   control) — the floor the closed loop cannot go below;
-- SUMO's share of a closed-loop step: the loop's own libsumo calls (moveToXY, setSpeed, step,
+- SUMO's share of a closed-loop step: the loop's own libsumo calls (ego placement, setSpeed, step,
   leader reads) replayed along a recorded run, no Python maths;
 - our closed loop over libsumo, and the same runner over traci (socket);
 - planner inference per call: the analytic planner, and a small MLP trained here, numpy vs torch;
@@ -48,6 +48,7 @@ from safeil_sumo.sim.runner import (
     _configure,
     run_scenario,
     sumo_args,
+    sumo_lane_position,
 )
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -94,15 +95,18 @@ def closed_loop_steps_per_s(net: str, policy_name: str, max_time_s: float,
 
 def sumo_share_us_per_step(net: str, sim_s: float) -> tuple[float, float]:
     """The closed loop's libsumo calls alone, replayed along a recorded run: ``(us per step,
-    of which moveToXY us)``. The rest of a closed-loop step is our Python."""
+    of which placing the ego)``, placed as the loop does (``moveTo`` on its lane while inside
+    it, else ``moveToXY``). The rest of a closed-loop step is our Python."""
     from safeil_sumo.analytic import AnalyticPlanner
     from safeil_sumo.geometry import yaw_to_sumo_angle
 
     road = load_road(net)
     sc = safety_scenario(road, 0)
     log = run_scenario(sc, AnalyticPlanner(), LoopConfig(max_time_s=sim_s)).log
+    half_width = 0.5 * road.lanes[road.ego_lane].width
     traj = list(zip(log["front_x"].tolist(), log["front_y"].tolist(),
-                    [yaw_to_sumo_angle(y) for y in log["yaw"].tolist()], log["v"].tolist()))
+                    [yaw_to_sumo_angle(y) for y in log["yaw"].tolist()], log["v"].tolist(),
+                    log["s"].tolist(), (log["d"].abs() <= half_width).tolist()))
     api = sumo_api.start(sumo_args(sc, LoopConfig()))
     try:
         _add_two_cars(api, road)
@@ -112,9 +116,12 @@ def sumo_share_us_per_step(net: str, sim_s: float) -> tuple[float, float]:
         vm, sim = api.vehicle, api.simulation
         move = 0.0
         t0 = time.perf_counter()
-        for x, y, angle, v in traj:
+        for x, y, angle, v, s, inside in traj:
             a = time.perf_counter()
-            vm.moveToXY(EGO_ID, "", -1, x, y, angle, 2)
+            if inside:
+                vm.moveTo(EGO_ID, *sumo_lane_position(road, s, v * 0.01))
+            else:
+                vm.moveToXY(EGO_ID, "", -1, x, y, angle, 2)
             move += time.perf_counter() - a
             vm.setSpeed(EGO_ID, v)
             vm.setSpeed(LEADER_ID, 28.0)
@@ -376,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
     rows["closed_loop_traci_steps_per_s"], _ = closed_loop_steps_per_s(
         net, policy, sim_s / 5, backend="traci")
     rows["closed_loop_us_per_step"] = 1e6 / rows["closed_loop_libsumo_steps_per_s"]
-    rows["sumo_share_us_per_step"], rows["sumo_moveToXY_us_per_step"] = (
+    rows["sumo_share_us_per_step"], rows["sumo_ego_placement_us_per_step"] = (
         sumo_share_us_per_step(net, sim_s))
     rows["python_us_per_step"] = rows["closed_loop_us_per_step"] - rows["sumo_share_us_per_step"]
     rows["planner_us_per_call"] = planner_us_per_call(policy, calls)

@@ -172,15 +172,35 @@ def two_edge_net(tmp_path_factory):
     return work / "t.net.xml"
 
 
-def _run(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
-    from safeil_sumo.analytic import AnalyticPlanner
+def _scenario(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
     from safeil_sumo.sim.leaders import constant
-    from safeil_sumo.sim.runner import Scenario, run_scenario
+    from safeil_sumo.sim.runner import Scenario
 
     road = load_route(net, ["E0", "E1"], lane)
-    scenario = Scenario("route", road, constant(leader_speed), ego_speed_mps=30.0,
-                        initial_gap_m=gap)
-    return road, run_scenario(scenario, AnalyticPlanner())
+    return Scenario("route", road, constant(leader_speed), ego_speed_mps=30.0,
+                    initial_gap_m=gap)
+
+
+def _run(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
+    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.sim.runner import run_scenario
+
+    scenario = _scenario(net, lane, gap, leader_speed)
+    return scenario.road, run_scenario(scenario, AnalyticPlanner())
+
+
+def test_a_batch_drives_the_route_to_its_end_like_run_scenario(two_edge_net) -> None:
+    """Across the junction and up to the route's end, where SUMO would let an ego that its
+    own step carries past the end arrive: both loops place it with moveToXY there."""
+    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.sim.batch import run_batch
+
+    _, scalar = _run(two_edge_net, lane=1)
+    (batch,) = run_batch([_scenario(two_edge_net, 1)], AnalyticPlanner())
+    assert scalar.summary["end_reason"] == batch.summary["end_reason"] == "completed"
+    assert len(batch.log) == len(scalar.log)
+    for col in ("s", "d", "gap", "leader_x"):
+        np.testing.assert_allclose(batch.log[col], scalar.log[col], rtol=0, atol=1e-6)
 
 
 def test_the_analytic_planner_drives_across_the_junction(two_edge_net) -> None:

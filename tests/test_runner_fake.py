@@ -89,7 +89,7 @@ class FakeSumo:
         self.closed = True
 
 
-def run_fake(road, **kw):
+def run_fake(road, placement="xy", **kw):
     made = []
 
     def factory(args):
@@ -97,7 +97,9 @@ def run_fake(road, **kw):
         return made[0]
 
     sc = Scenario("fake", road, constant(28.0), 30.0, 50.0, seed=3)
-    rollout = run_scenario(sc, AnalyticPlanner(), LoopConfig(max_time_s=60.0),
+    # the fake moves the ego where moveToXY puts it (it has no lane coordinates for moveTo)
+    rollout = run_scenario(sc, AnalyticPlanner(),
+                           LoopConfig(max_time_s=60.0, ego_placement=placement),
                            api_factory=factory)
     return rollout, made[0]
 
@@ -131,3 +133,12 @@ def test_sumo_failure_mid_run_keeps_the_log(straight_road):
     assert "simulated SUMO crash" in rollout.summary["error"]
     assert len(rollout.log) == 199 and fake.closed
     assert math.isfinite(rollout.log["x"].iloc[-1]) and np.all(np.isfinite(rollout.log["t"]))
+
+
+def test_an_error_before_the_loop_ends_the_run_with_its_reason(straight_road):
+    """A seam without moveTo under the lane placement: the run ends with the error, SUMO
+    closed (not a crash of the runner)."""
+    rollout, fake = run_fake(straight_road, placement="lane")
+    assert rollout.summary["end_reason"] == "error"
+    assert "moveTo" in rollout.summary["error"] and fake.closed
+    assert rollout.summary["leaders_met"] == 0

@@ -325,7 +325,8 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
         s, d, heading, ego_seg = c.lanes.project_near_many(front_x, front_y, ego_seg)
         lap("project")
-        inside = (np.abs(d) <= 0.5 * c.lane_width).tolist() if on_lane else [False] * n
+        inside = ((np.abs(d) <= 0.5 * c.lane_width) & (s + v * dt < c.route_end)).tolist() \
+            if on_lane else [False] * n  # as run_scenario: inside, short of the route's end
         fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
         for j, r in enumerate(live):
             if inside[j]:
@@ -465,6 +466,7 @@ class _Fixed:
     ttc_threshold: np.ndarray  # (n,) [s]
     path_start: np.ndarray  # (n,) [m]
     path_end: np.ndarray  # (n,) [m]
+    route_end: np.ndarray  # (n,) the end of SUMO's route along the ego lane [m]
     n_max: np.ndarray  # (n,) steps
     horizon: np.ndarray  # (n,) plan horizon [s]
     multi_piece: np.ndarray  # (n,) bool: a route of several SUMO lanes
@@ -482,6 +484,7 @@ class _Fixed:
             col(lambda r: r.lane.width), col(lambda r: r.scenario.monitors.lane_margin_m),
             col(lambda r: r.scenario.monitors.ttc_threshold_s),
             col(lambda r: r.road.path_start_s), col(lambda r: r.road.path_end_s),
+            col(lambda r: r.road.ego_pieces[-1].s1),
             col(lambda r: r.n_max, int), col(lambda r: r.policy.horizon),
             col(lambda r: r.multi_piece, bool), _lanes(live),
             _groups(live, lambda r: r.policy))

@@ -1,7 +1,8 @@
 """The closed loop: SUMO scenario + sensors + policy + tracking controller + vehicle plant + monitors.
 
 Every step (``step_s``, 0.01 s by default): the controller tracks the current plan, our vehicle
-plant advances the ego, the ego is moved in SUMO with ``moveToXY(keepRoute=2)`` + ``setSpeed``,
+plant advances the ego, the ego is moved in SUMO (``moveTo`` on its lane while the front bumper
+is inside it, else ``moveToXY(keepRoute=2)``: ``LoopConfig.ego_placement``) + ``setSpeed``,
 the leader gets its profile speed, SUMO steps, and the monitors log TTC, lane departure and
 collisions. At ``plan_rate_hz`` the camera and radar are read and the policy re-plans.
 The runner receives the SUMO API (libsumo, traci or a fake) through :mod:`sumo_api`.
@@ -96,8 +97,10 @@ class LoopConfig:
     # front bumper's arc length on its lane (~1 us) while the front bumper is inside the lane,
     # moveToXY when it is not: SUMO then sees an ego inside its lane on the centre line, heading
     # along it. Our monitors never read the ego back from SUMO, and SUMO's collision check is per
-    # lane and longitudinal, so both give the same flags (measured: docs/performance.md)
-    ego_placement: str = "xy"
+    # lane and longitudinal, so both give the same logs with a scripted leader (tested); among
+    # traffic, SUMO's vehicles react to the ego's SUMO position, so logs differ by millimetres.
+    # sumo-gui always gets "xy" (it shows the true pose)
+    ego_placement: str = "lane"
 
     def __post_init__(self) -> None:
         if self.ego_placement not in EGO_PLACEMENTS:
@@ -185,6 +188,7 @@ def run_scenario(
     log = _Log(n_max)
     end_reason = "timeout"
     error = ""
+    met, cut_ins = {}, 0  # traffic: the leaders met (ids, in order) and the cut-ins among them
     wall0 = time.perf_counter()
     try:
         ego_k, _, ego_pos, lead_scale = insert_vehicles(api, scenario, vehicle)
@@ -208,7 +212,7 @@ def run_scenario(
         d_front = vehicle.cog_to_front_bumper_m
         camera = sen.LaneCamera(road, scenario.sensors)
         move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
-        on_lane = loop.ego_placement == "lane"
+        on_lane = loop.ego_placement == "lane" and not loop.gui
         move_to = api.vehicle.moveTo if on_lane else None
         sim_step, colliding_ids = api.simulation.step, api.simulation.getCollidingVehiclesIDList
         integral, prev_error = 0.0, None  # PID memory (ControllerState's fields)
@@ -221,8 +225,8 @@ def run_scenario(
         # the leader's true speed [m/s]: SUMO's, in the units of the lane it was commanded on
         lead_v = leader[1] / lead_scale if leader is not None else 0.0
         lead_len, lead_wid = vehicle.length_m, vehicle.width_m  # the leader's footprint [m]
-        # traffic: the leader is whichever SUMO vehicle getLeader names (met: ids in order)
-        lead_id, met, cut_ins, last_id, last_gap = "", {}, 0, "", math.inf
+        # traffic: the leader is whichever SUMO vehicle getLeader names
+        lead_id, last_id, last_gap = "", "", math.inf
         radar_dist = scenario.sensors.radar_range_m + 50.0
         sizes: dict[str, tuple[float, float]] = {}
         if traffic is not None:
@@ -232,6 +236,7 @@ def run_scenario(
         ego_seg = centre.segment_index(s_ego0)
         lead_seg = centre.segment_index(s_leader_front0) if traffic is None else lead_seg0
         half_width = 0.5 * lane.width
+        route_end = road.ego_pieces[-1].s1  # [m] along the ego lane: where SUMO's route ends
         lane_margin, ttc_threshold = scenario.monitors.lane_margin_m, scenario.monitors.ttc_threshold_s
         length, width = vehicle.length_m, vehicle.width_m
         for k in range(n_max):
@@ -273,7 +278,9 @@ def run_scenario(
             front = (x + d_front * c_yaw, y + d_front * s_yaw)
             # where the front bumper is on the ego lane (O(1) walk from the last segment)
             s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
-            if on_lane and abs(d) <= half_width:
+            # moveTo while inside the lane, short of the route's end: SUMO lets a vehicle that
+            # would drive past its route's end arrive (and leave), moveToXY keeps it
+            if on_lane and abs(d) <= half_width and s + v * dt < route_end:
                 move_to(EGO_ID, *sumo_lane_position(road, s, v * dt))
             else:
                 move_to_xy(EGO_ID, "", -1, front[0], front[1], yaw_to_sumo_angle(yaw), 2)
