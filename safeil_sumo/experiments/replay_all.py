@@ -30,7 +30,7 @@ import multiprocessing as mp
 import re
 import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -44,7 +44,7 @@ from tqdm import tqdm
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import replay as rp
-from safeil_sumo.experiments.sweep import BATCH_EGO_PLACEMENT, even_units
+from safeil_sumo.experiments.sweep import even_units
 
 WINDOW_MODES = ("paper", "sliding", "whole")
 HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
@@ -210,8 +210,7 @@ def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
         if batched:
             try:
                 run_batch([preps[k].scenario for k, _, _ in batched], [p for *_, p in batched],
-                          replace(config.loop, ego_placement=BATCH_EGO_PLACEMENT),
-                          config.vehicle, on_done=done, keep_logs=False, net_dir=Path(tmp))
+                          config.loop, config.vehicle, on_done=done, keep_logs=False, net_dir=Path(tmp))
             except Exception as exc:  # noqa: BLE001 - failed records, never an exception
                 for k in sorted(rollouts):
                     settle(k, _failed(wins[k], exc))

@@ -385,12 +385,10 @@ def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
         except Exception as exc:  # noqa: BLE001 - a record, never an exception
             records[k] = failed_record(spec, f"{type(exc).__name__}: {exc}")
     if parts:
-        from dataclasses import replace
-
         from safeil_sumo.sim.batch import run_batch
         from safeil_sumo.sim.runner import SUMMARY_COLUMNS
 
-        loop = replace(parts[0][4], ego_placement=BATCH_EGO_PLACEMENT)
+        loop = parts[0][4]  # the specs of a batch share their loop settings (batch_key)
         wall = (time.perf_counter() - wall0) / len(specs)  # building, per task
 
         def record(i: int, rollout) -> None:  # as each scenario ends: its log is freed then
@@ -413,10 +411,6 @@ def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
 # (docs/performance.md): 1,000 scenarios on 2 workers in 37 s at 256, 42 s at 128, 52 s at 64;
 # memory grows with it (a scenario's summary log, ~0.4 MB per 40 s, stays until it ends)
 DEFAULT_BATCH = 256
-
-# how a batch places its egos in SUMO: moveTo on lane coordinates (~25x cheaper than moveToXY;
-# the same flags and trajectories, see LoopConfig.ego_placement and docs/performance.md)
-BATCH_EGO_PLACEMENT = "lane"
 
 
 def batch_key(spec: ScenarioSpec) -> tuple | None:
@@ -696,11 +690,11 @@ class _Worker:
         self.process = ctx.Process(target=_worker_main, args=(child, task_fn), daemon=True)
         self.process.start()
         child.close()
-        self.spec: Unit | None = None  # the unit it runs
+        self.unit: Unit | None = None  # the unit it runs
         self.started = 0.0
 
     def give(self, unit: Unit) -> None:
-        self.spec, self.started = unit, time.monotonic()
+        self.unit, self.started = unit, time.monotonic()
         self.conn.send(unit)
 
     def stop(self) -> None:
@@ -735,12 +729,12 @@ def _run_local(
 
     def assign(w: _Worker) -> None:
         while queue:
-            spec = queue.pop()
+            unit = queue.pop()
             try:
-                w.give(spec)
+                w.give(unit)
                 return
             except OSError:  # died while idle: replace it and give it the same task
-                queue.append(spec)
+                queue.append(unit)
                 pool.remove(w)
                 w.kill()
                 w = _Worker(ctx, task_fn)
@@ -753,16 +747,16 @@ def _run_local(
             pool.append(first[-1])
         for w in first:  # assign() may replace a worker in pool, so iterate a separate list
             assign(w)
-        while any(w.spec is not None for w in pool):
-            busy = [w for w in pool if w.spec is not None]
+        while any(w.unit is not None for w in pool):
+            busy = [w for w in pool if w.unit is not None]
             ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
                              timeout=1.0))
             for w in busy:
-                record = _poll(w, ready, task_timeout_s)
-                if record is None:
+                records = _poll(w, ready, task_timeout_s)
+                if records is None:
                     continue
-                save(w.spec, record)
-                w.spec = None
+                save(w.unit, records)
+                w.unit = None
                 if not w.process.is_alive():
                     pool.remove(w)
                     w.kill()
@@ -792,12 +786,12 @@ def _poll(w: _Worker, ready: set, task_timeout_s: float | None) -> list[dict[str
         if not w.process.is_alive():
             return [failed_record(s, f"WorkerDied: worker process died (exit code "
                                      f"{w.process.exitcode}) while running the task")
-                    for s in w.spec]
+                    for s in w.unit]
     if task_timeout_s is not None and time.monotonic() - w.started > task_timeout_s:
         w.process.kill()
         w.process.join(timeout=5)
         return [failed_record(s, f"TaskTimeout: no result after {task_timeout_s:g} s; "
-                                 "worker killed") for s in w.spec]
+                                 "worker killed") for s in w.unit]
     return None
 
 
@@ -812,15 +806,15 @@ def _run_dask(
     client = Client(address)  # only the address the user gave
     try:
         futures = client.map(partial(_run_exclusive, task_fn), todo, pure=False)
-        spec_of = {f.key: s for f, s in zip(futures, todo)}
+        unit_of = {f.key: u for f, u in zip(futures, todo)}
         try:
             for future in as_completed(futures):
-                spec = spec_of[future.key]
+                unit = unit_of[future.key]
                 try:
                     records = future.result()
                 except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker after repeated worker deaths
-                    records = [failed_record(s, f"{type(exc).__name__}: {exc}") for s in spec]
-                save(spec, records)
+                    records = [failed_record(s, f"{type(exc).__name__}: {exc}") for s in unit]
+                save(unit, records)
         finally:
             client.cancel([f for f in futures if not f.done()])
     finally:

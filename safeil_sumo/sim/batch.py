@@ -53,8 +53,10 @@ from safeil_sumo.sim.runner import (
     footprints_overlap,
     initial_state,
     insert_vehicles,
+    lane_placeable,
     leader_speeds,
     max_steps,
+    place_ego,
     start_positions,
     sumo_args,
     sumo_lane_position,
@@ -127,11 +129,8 @@ class _Scenario:
         road, i = self.road, self.i
         ego_k, ego_lane, _, self.lead_scale = insert_vehicles(
             api, self.scenario, vehicle, self.ego, self.leader_id, partial(prefixed, i), f"_{i}")
-        x, y = veh.front_bumper(self.state0, vehicle)
-        # before its insertion SUMO takes the edge hint only with a lane index
-        api.vehicle.moveToXY(self.ego, prefixed(i, road.route_edges[ego_k]), int(ego_lane),
-                             x + self.dx, y, yaw_to_sumo_angle(self.state0.yaw), 2)
-        api.vehicle.setSpeed(self.ego, veh.speed(self.state0))
+        place_ego(api, self.state0, vehicle, self.ego, self.dx,
+                  prefixed(i, road.route_edges[ego_k]), int(ego_lane))
 
     def read_leader(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
         """The leader after a step, in the original track's coordinates."""
@@ -325,8 +324,8 @@ def _loop(api: sumo_api.SumoApi, runs: list[_Scenario], loop: LoopConfig,
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
         s, d, heading, ego_seg = c.lanes.project_near_many(front_x, front_y, ego_seg)
         lap("project")
-        inside = ((np.abs(d) <= 0.5 * c.lane_width) & (s + v * dt < c.route_end)).tolist() \
-            if on_lane else [False] * n  # as run_scenario: inside, short of the route's end
+        inside = (lane_placeable(d, s, v * dt, 0.5 * c.lane_width, c.route_end).tolist()
+                  if on_lane else [False] * n)
         fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
         for j, r in enumerate(live):
             if inside[j]:
@@ -421,9 +420,10 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
     xl, yl = x.tolist(), y.tolist()
     groups: dict[tuple[int, int], tuple] = {}  # -> (line, camera setting, rows, arc lengths)
     for j, r in enumerate(live):
-        left, s_left, right, s_right = r.camera.lane_stations(xl[j], yl[j])
+        lane, s_left, s_right = r.camera.lane_stations(xl[j], yl[j])
         config = r.scenario.sensors
-        for row, line, s0 in ((2 * j, left, s_left), (2 * j + 1, right, s_right)):
+        for row, line, s0 in ((2 * j, lane.left_boundary, s_left),
+                              (2 * j + 1, lane.right_boundary, s_right)):
             key = (id(line), config.view_range_m, config.view_samples)  # what sampling reads
             g = groups.setdefault(key, (line, config, [], []))
             g[2].append(row)

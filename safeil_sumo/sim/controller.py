@@ -29,8 +29,8 @@ from safeil_sumo import bspline
 from safeil_sumo.sim.vehicle import (
     VehicleParams,
     VehicleState,
-    _resistance,
     available_drive_force,
+    resistance_force,
 )
 from safeil_sumo.sim.xp import FLOATS
 
@@ -520,7 +520,7 @@ def track_values(
     lo, hi = params.accel_min_mps2, params.accel_max_mps2
     # the integrator also stops where the powertrain saturates (power limit at high speed)
     hi_plant = (available_drive_force(v, vehicle, xp)
-                - xp.where(v <= 0.0, 0.0, _resistance(v, vehicle))) / vehicle.mass_kg
+                - resistance_force(v, vehicle, xp)) / vehicle.mass_kg
     windup = xp.logical_or(xp.logical_and(accel > xp.minimum(hi, hi_plant), error > 0.0),
                            xp.logical_and(accel < lo, error < 0.0))
     integral = where(windup, integral0, integral)  # anti-windup: stop integrating into it

@@ -197,7 +197,7 @@ def run_scenario(
         if traffic is not None:
             trf.prefill(api, traffic, road.route_edges[ego_k], float(ego_pos),
                         road.route_edges[-1], np.random.default_rng([scenario.seed, 1]))
-        _move_ego(api, state, vehicle)
+        place_ego(api, state, vehicle)
         api.simulation.step()
         if loop.gui:  # the ego exists only after the first step
             sumo_api.track_in_gui(api, EGO_ID, GUI_VIEW_WIDTH_M)
@@ -233,6 +233,7 @@ def run_scenario(
             lead_id, leader, lead_v, lead_len, lead_wid, _, lead_seg0 = _traffic_leader(
                 api, road, centre.segment_index(s_ego0), radar_dist, sizes)
         lead_speeds = leader_speeds(scenario, n_max, dt)
+        lead_cmd = math.nan  # the leader's last speed command to SUMO [m/s]
         ego_seg = centre.segment_index(s_ego0)
         lead_seg = centre.segment_index(s_leader_front0) if traffic is None else lead_seg0
         half_width = 0.5 * lane.width
@@ -278,15 +279,14 @@ def run_scenario(
             front = (x + d_front * c_yaw, y + d_front * s_yaw)
             # where the front bumper is on the ego lane (O(1) walk from the last segment)
             s, d, lane_heading, ego_seg = centre.project_near(front[0], front[1], ego_seg)
-            # moveTo while inside the lane, short of the route's end: SUMO lets a vehicle that
-            # would drive past its route's end arrive (and leave), moveToXY keeps it
-            if on_lane and abs(d) <= half_width and s + v * dt < route_end:
+            if on_lane and lane_placeable(d, s, v * dt, half_width, route_end):
                 move_to(EGO_ID, *sumo_lane_position(road, s, v * dt))
             else:
                 move_to_xy(EGO_ID, "", -1, front[0], front[1], yaw_to_sumo_angle(yaw), 2)
             set_speed(EGO_ID, v)
-            if has_leader and leader is not None:
-                set_speed(LEADER_ID, lead_speeds[k] * lead_scale)
+            if has_leader and leader is not None and lead_speeds[k] * lead_scale != lead_cmd:
+                lead_cmd = lead_speeds[k] * lead_scale  # SUMO keeps it until the next command
+                set_speed(LEADER_ID, lead_cmd)
             if k == shot_k:  # sumo-gui saves it during this step
                 sumo_api.gui_screenshot(api, loop.gui_screenshot)
             sim_step()
@@ -427,6 +427,14 @@ def _depart(road: Road, s: float, who: str) -> tuple[int, str, str, float]:
     return p.route_index, str(p.lane_index), f"{(s - p.s0) * p.scale:.3f}", p.scale
 
 
+def lane_placeable(d, s, advance_m, half_width, route_end):
+    """Whether ``LoopConfig.ego_placement="lane"`` may place the ego with ``moveTo``: its front
+    bumper inside its lane (``|d| <= half_width`` [m]) and SUMO's step of ``advance_m`` [m]
+    short of the route's end ``route_end`` [m along the ego lane] (SUMO lets a vehicle driven
+    past its route's end arrive and leave; ``moveToXY`` keeps it). Floats, or arrays ``(N,)``."""
+    return (abs(d) <= half_width) & (s + advance_m < route_end)
+
+
 def sumo_lane_position(road: Road, s: float, advance_m: float = 0.0) -> tuple[str, float]:
     """Where ``LoopConfig.ego_placement="lane"`` puts the front bumper with ``moveTo``: the SUMO
     lane and position [m] on it from which SUMO's step, moving the ego ``advance_m`` [m] along
@@ -518,10 +526,14 @@ def _configure(api: sumo_api.SumoApi, veh_id: str, vehicle: veh.VehicleParams) -
     api.vehicle.setWidth(veh_id, vehicle.width_m)
 
 
-def _move_ego(api: sumo_api.SumoApi, state: veh.VehicleState, vehicle: veh.VehicleParams) -> None:
+def place_ego(api: sumo_api.SumoApi, state: veh.VehicleState, vehicle: veh.VehicleParams,
+              ego_id: str = EGO_ID, dx: float = 0.0, edge: str = "", lane: int = -1) -> None:
+    """Put the ego at ``state`` in SUMO (its pose and speed; ``dx`` [m]: a batch copy's shift
+    along x; ``edge``, ``lane``: a hint, which SUMO takes before the ego's insertion only
+    with a lane index)."""
     x, y = veh.front_bumper(state, vehicle)
-    api.vehicle.moveToXY(EGO_ID, "", -1, x, y, yaw_to_sumo_angle(state.yaw), 2)
-    api.vehicle.setSpeed(EGO_ID, veh.speed(state))
+    api.vehicle.moveToXY(ego_id, edge, lane, x + dx, y, yaw_to_sumo_angle(state.yaw), 2)
+    api.vehicle.setSpeed(ego_id, veh.speed(state))
 
 
 def _kinematic_state(pose: tuple[float, float, float, float], vehicle: veh.VehicleParams

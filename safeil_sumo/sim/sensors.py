@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 
 from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios.road import Road
+from safeil_sumo.scenarios.road import Lane, Road
 
 
 @dataclass(frozen=True)
@@ -247,26 +247,22 @@ class LaneCamera:
         self, ego_xy: np.ndarray, ego_yaw: float, rng: np.random.Generator | None = None
     ) -> tuple[np.ndarray, np.ndarray, int]:
         """Like :func:`camera_lane_lines` (same arguments, same result)."""
-        road, config = self.road, self.config
-        x, y = float(ego_xy[0]), float(ego_xy[1])
-        s, d = self._project(road.lanes[road.ego_lane].centre, x, y)
-        lane = road.lanes[_lane_index_at(road, d, s)]
-        left = _fit_from(lane.left_boundary, self._project(lane.left_boundary, x, y)[0],
-                         ego_xy, ego_yaw, config)
-        right = _fit_from(lane.right_boundary, self._project(lane.right_boundary, x, y)[0],
-                          ego_xy, ego_yaw, config)
+        config = self.config
+        lane, s_left, s_right = self.lane_stations(float(ego_xy[0]), float(ego_xy[1]))
+        left = _fit_from(lane.left_boundary, s_left, ego_xy, ego_yaw, config)
+        right = _fit_from(lane.right_boundary, s_right, ego_xy, ego_yaw, config)
         add_lane_noise(left, right, config, rng)
         return left, right, lane.index
 
-    def lane_stations(self, x: float, y: float) -> tuple[Polyline, float, Polyline, float]:
-        """The lines :meth:`lane_lines` fits and the ego's arc length on each: ``(left line,
-        s_left [m], right line, s_right [m])`` (a batch samples and fits many at once with
+    def lane_stations(self, x: float, y: float) -> tuple[Lane, float, float]:
+        """The lane whose lines :meth:`lane_lines` fits and the ego's arc length [m] on its
+        left and right boundary (a batch samples and fits many at once with
         :func:`ego_points_many` and :func:`polyfit3_batch`)."""
         road = self.road
         s, d = self._project(road.lanes[road.ego_lane].centre, x, y)
         lane = road.lanes[_lane_index_at(road, d, s)]
-        left, right = lane.left_boundary, lane.right_boundary
-        return left, self._project(left, x, y)[0], right, self._project(right, x, y)[0]
+        return (lane, self._project(lane.left_boundary, x, y)[0],
+                self._project(lane.right_boundary, x, y)[0])
 
 
 def ego_points_many(line: Polyline, s0: np.ndarray, ego_x: np.ndarray, ego_y: np.ndarray,

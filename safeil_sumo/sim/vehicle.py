@@ -124,17 +124,12 @@ def speed(state: VehicleState) -> float:
     return math.hypot(state.vx, state.vy)
 
 
-def resistance_force(vx: float, params: VehicleParams) -> float:
-    """Drag + rolling resistance [N] opposing motion at ``vx`` [m/s] (0 at standstill)."""
-    if vx <= 0.0:
-        return 0.0
-    return _resistance(vx, params)
-
-
-def _resistance(vx, params: VehicleParams):
-    """Drag + rolling resistance [N] at ``vx`` > 0 [m/s] (a float or an array)."""
+def resistance_force(vx, params: VehicleParams, xp=FLOATS):
+    """Drag + rolling resistance [N] opposing motion at ``vx`` [m/s] (0 at standstill; a
+    float, or an array with ``xp=ARRAYS``)."""
     drag = 0.5 * params.air_density_kgm3 * params.drag_coefficient * params.frontal_area_m2
-    return drag * vx * vx + params.rolling_resistance * params.mass_kg * GRAVITY
+    return xp.where(vx <= 0.0, 0.0,
+                    drag * vx * vx + params.rolling_resistance * params.mass_kg * GRAVITY)
 
 
 def available_drive_force(vx, params: VehicleParams, xp=FLOATS):
@@ -157,7 +152,7 @@ def pedals_from_accel(
 def pedals_from_accel_vx(accel_cmd, vx, params: VehicleParams, xp=FLOATS):
     """:func:`pedals_from_accel` from the longitudinal speed ``vx`` [m/s] alone (floats, or
     arrays ``(N,)`` with ``xp=ARRAYS``)."""
-    force = params.mass_kg * accel_cmd + xp.where(vx <= 0.0, 0.0, _resistance(vx, params))
+    force = params.mass_kg * accel_cmd + resistance_force(vx, params, xp)
     throttle = xp.where(force > 0.0,
                         xp.minimum(force / available_drive_force(vx, params, xp), 1.0), 0.0)
     brake = xp.where(force < 0.0, xp.minimum(-force / params.max_brake_force_n, 1.0), 0.0)
