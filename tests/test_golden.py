@@ -1,17 +1,35 @@
-"""Golden closed-loop logs: every speed-up of the loop must leave the results bit-identical.
+"""Golden closed-loop logs: a change of the loop's numbers must be deliberate, on every machine.
 
-Each scenario runs a short real libsumo closed loop on curved500 and hashes its per-step log:
-SHA-256 over the column names and the float64 bytes of every column, in log order. The expected
-hashes were computed from the loop BEFORE the performance work (issue 6); a change of a hash
-means a change of the numbers, which is allowed only in its own commit that says why and shows
-the largest difference of the logs (round-off level). ``python tests/test_golden.py`` prints the
-current hashes (the values for EXPECTED).
+Each scenario runs a short real libsumo closed loop on curved500 and compares its per-step log
+with a stored reference, ``tests/golden/<name>.npz``:
+
+- the discrete outcomes exactly: row count, end reason, and every step's lane-departure, TTC and
+  collision flags (so the step of each flag);
+- the continuous columns within tolerances that hold across machines: float64 results are not
+  bit-identical across CPUs (SIMD code paths: AVX-512 vs AVX2) nor across numpy / OpenBLAS
+  releases. Measured: the same logs on this project's AVX-512 machine and with numpy's AVX-512
+  groups and OpenBLAS's AVX-512 kernels switched off differ by at most 3e-13 (ttc) and 6e-14 m
+  (positions); the tolerances below (1e-6 m, 1e-6 m/s, ...) leave six orders of margin and
+  still catch any change of the loop's behaviour.
+
+Bit-identity is what can be promised on ONE machine with one set of library versions:
+``test_same_run_twice_is_bit_identical`` runs each scenario in this process and again in a new
+process and demands equal SHA-256 hashes of the logs.
+
+A change of the references is allowed only in its own commit that says why and shows the
+largest difference. ``python tests/test_golden.py --write`` rewrites them;
+``python tests/test_golden.py --hashes`` prints this machine's log hashes as JSON.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
+import os
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -22,6 +40,8 @@ from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.leaders import constant, piecewise
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+
+GOLDEN_DIR = Path(__file__).parent / "golden"
 
 
 def _noisy_analytic(road):
@@ -61,27 +81,36 @@ SCENARIOS = {
     "free_road": _free_road,
 }
 
-# (sha256 of the log, rows, end_reason), computed from the loop before the speed-ups
-EXPECTED = {
-    "noisy_analytic": (
-        "40bf8ef1cd4590b66ef55603f8323fa44d8c39361ad214f7d2056f4cccafa4c0", 800, "timeout"),
-    "drift_left": (
-        "0cbae1dfcfdaf45a31edc5c08faf32e6bfed4395c0f6d22df30e3bcb758230f4", 343, "off_road"),
-    "blind_collision": (
-        "dbc3b4d35ea70ca90a2b40c3af5f23a60f9d511275e029041dfc489bf7640f1f", 999, "collision"),
-    "free_road": (
-        "4c0c831e4904dbf48afff0f5273c59949730b5ff56bfb5d22c0a0ae550cc32db", 400, "timeout"),
+# (rows, end_reason) of each reference, also stored in its file: read here so that a rewrite of
+# the references cannot silently change the outcome of a scenario
+EXPECTED_OUTCOME = {
+    "noisy_analytic": (800, "timeout"),
+    "drift_left": (343, "off_road"),
+    "blind_collision": (999, "collision"),
+    "free_road": (400, "timeout"),
 }
 
-
-# the columns the hashes were computed over; columns added to the log later (the plan being
-# tracked, for animations) are logged values, not new numbers of the loop
-GOLDEN_COLUMNS = (
-    "t", "x", "y", "yaw", "v", "vy", "yaw_rate", "steer", "front_x", "front_y", "steer_cmd",
-    "accel_cmd", "s", "d", "d_min", "d_max", "c0l", "c1l", "c2l", "c0r", "c1r", "c2r",
-    "v_lead_sensed", "d_lead_sensed", "leader_x", "leader_y", "leader_v", "gap", "ttc",
-    "lane_departure", "ttc_flag", "collision", "path_fraction",
-)
+# discrete columns: equal at every step
+FLAG_COLUMNS = ("lane_departure", "ttc_flag", "collision")
+# continuous columns and their absolute tolerance across machines (units in the comments);
+# a relative tolerance of 1e-9 is added for the large values (x ~ 1e3 m, ttc up to 1e3 s)
+CONTINUOUS_ATOL = {
+    "t": 1e-9,  # s
+    "x": 1e-6, "y": 1e-6, "front_x": 1e-6, "front_y": 1e-6,  # m
+    "yaw": 1e-8, "steer": 1e-8, "steer_cmd": 1e-8,  # rad
+    "yaw_rate": 1e-8,  # rad/s
+    "v": 1e-6, "vy": 1e-6,  # m/s
+    "accel_cmd": 1e-6,  # m/s^2
+    "s": 1e-6, "d": 1e-6, "d_min": 1e-6, "d_max": 1e-6,  # m
+    "c0l": 1e-6, "c0r": 1e-6,  # m
+    "c1l": 1e-8, "c1r": 1e-8,  # -
+    "c2l": 1e-10, "c2r": 1e-10,  # 1/m
+    "v_lead_sensed": 1e-6, "leader_v": 1e-6,  # m/s
+    "d_lead_sensed": 1e-6, "leader_x": 1e-6, "leader_y": 1e-6, "gap": 1e-6,  # m
+    "ttc": 1e-6,  # s
+    "path_fraction": 1e-9,  # -
+}
+GOLDEN_COLUMNS = tuple(CONTINUOUS_ATOL) + FLAG_COLUMNS
 
 
 def log_hash(log: pd.DataFrame) -> str:
@@ -98,23 +127,104 @@ def run_golden(name: str, road):
     return run_scenario(sc, policy, loop)
 
 
+def write_reference(name: str, result) -> Path:
+    """Store one scenario's golden columns, row count and end reason (float64, compressed)."""
+    GOLDEN_DIR.mkdir(exist_ok=True)
+    path = GOLDEN_DIR / f"{name}.npz"
+    cols = {c: result.log[c].to_numpy(dtype=np.float64) for c in GOLDEN_COLUMNS}
+    np.savez_compressed(path, rows=len(result.log), end_reason=result.summary["end_reason"],
+                        **cols)
+    return path
+
+
+def compare_with_reference(log: pd.DataFrame, end_reason: str, ref) -> list[str]:
+    """Every difference between a log and a stored reference beyond the tolerances, as text."""
+    problems = []
+    if (int(ref["rows"]), str(ref["end_reason"])) != (len(log), end_reason):
+        want = (int(ref["rows"]), str(ref["end_reason"]))
+        return [f"outcome {(len(log), end_reason)} != reference {want}"]
+    for col in FLAG_COLUMNS:
+        got, want = log[col].to_numpy(dtype=np.float64), ref[col]
+        if not np.array_equal(got, want):
+            steps = np.flatnonzero(got != want)
+            problems.append(f"{col}: differs at {len(steps)} steps, first {steps[0]}")
+    for col, atol in CONTINUOUS_ATOL.items():
+        got, want = log[col].to_numpy(dtype=np.float64), ref[col]
+        if not np.array_equal(np.isfinite(got), np.isfinite(want)) or not np.array_equal(
+                got[~np.isfinite(got)], want[~np.isfinite(want)], equal_nan=True):
+            problems.append(f"{col}: non-finite values (inf/nan) at other steps")
+            continue
+        fin = np.isfinite(want)
+        err = np.abs(got[fin] - want[fin])
+        bad = err > atol + 1e-9 * np.abs(want[fin])
+        if bad.any():
+            problems.append(f"{col}: {int(bad.sum())} steps beyond {atol:g}, "
+                            f"largest difference {err.max():.3g}")
+    return problems
+
+
 @pytest.mark.parametrize("name", list(SCENARIOS))
-def test_closed_loop_log_is_bit_identical(name, curved500):
+def test_closed_loop_log_matches_reference(name, curved500):
     r = run_golden(name, curved500)
     assert r.summary["end_reason"] != "error", r.summary["error"]
-    digest, rows, end_reason = EXPECTED[name]
-    assert (r.summary["end_reason"], len(r.log)) == (end_reason, rows)
-    assert log_hash(r.log) == digest
+    assert (len(r.log), r.summary["end_reason"]) == EXPECTED_OUTCOME[name]
+    with np.load(GOLDEN_DIR / f"{name}.npz") as ref:
+        problems = compare_with_reference(r.log, r.summary["end_reason"], ref)
+    assert not problems, "\n".join(problems)
 
 
-if __name__ == "__main__":  # print the current values of EXPECTED
+def test_reference_comparison_catches_small_changes(curved500):
+    """The comparison is not vacuous: a 1e-5 m shift of x, one flag step moved, or a changed
+    end reason each fail it; round-off (1e-12) passes."""
+    r = run_golden("blind_collision", curved500)
+    with np.load(GOLDEN_DIR / "blind_collision.npz") as f:
+        ref = {k: f[k] for k in f.files}
+    log = r.log.copy()
+    assert compare_with_reference(log, "collision", ref) == []
+    log["x"] = log["x"] + 1e-12
+    assert compare_with_reference(log, "collision", ref) == []
+    log["x"] = log["x"] + 1e-5
+    assert any(p.startswith("x:") for p in compare_with_reference(log, "collision", ref))
+    log = r.log.copy()
+    flag = log["ttc_flag"].to_numpy(dtype=np.float64)
+    flag[np.flatnonzero(flag > 0)[0]] = 0.0  # the TTC flag one step later
+    log["ttc_flag"] = flag
+    assert any(p.startswith("ttc_flag:") for p in compare_with_reference(log, "collision", ref))
+    assert compare_with_reference(r.log, "timeout", ref)
+
+
+def _hashes(road) -> dict[str, str]:
+    return {name: log_hash(run_golden(name, road).log) for name in SCENARIOS}
+
+
+def test_same_run_twice_is_bit_identical(curved500):
+    """Determinism on one machine: the same scenarios in this process and in a fresh process
+    give logs equal bit for bit (no state leaks between runs, no unseeded draw)."""
+    here = _hashes(curved500)
+    assert _hashes(curved500) == here
+    import safeil_sumo
+
+    # the child imports the same package as this process (a checkout may shadow an install)
+    root = str(Path(safeil_sumo.__file__).parent.parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    out = subprocess.run([sys.executable, __file__, "--hashes"], capture_output=True, text=True,
+                         check=True, env=env)
+    assert json.loads(out.stdout.strip().splitlines()[-1]) == here
+
+
+if __name__ == "__main__":  # --write: rewrite the references; --hashes: print the log hashes
     from safeil_sumo.scenarios.catalogue import resolve_net
     from safeil_sumo.scenarios.road import load_road
 
     road = load_road(resolve_net("curved500"))
-    for name in SCENARIOS:
-        r = run_golden(name, road)
-        print(f'    "{name}": ("{log_hash(r.log)}", {len(r.log)}, "{r.summary["end_reason"]}"),')
+    if "--hashes" in sys.argv:
+        print(json.dumps(_hashes(road)))
+    elif "--write" in sys.argv:
+        for name in SCENARIOS:
+            r = run_golden(name, road)
+            print(write_reference(name, r), len(r.log), r.summary["end_reason"])
+    else:
+        sys.exit("usage: python tests/test_golden.py --write | --hashes")
 
 
 def test_lane_camera_equals_the_reference_camera(curved500):
