@@ -1,0 +1,214 @@
+"""Closed-loop training signal: the planner rolled out behind recorded leaders, differentiably.
+
+Open-loop imitation scores one 5 s plan per state; it cannot see a gap that drifts away over a
+minute because each plan regulates the gap a little too weakly. Here the planner drives a
+differentiable model of the longitudinal loop for tens of seconds behind the recorded leader of
+a human maneuver, and the loss compares the gap and speed it produces with the human's.
+
+The model of the loop (torch, batch of episodes, step ``dt_s``) mirrors the SUMO closed loop's
+longitudinal path (:mod:`safeil_sumo.sim.controller`, :mod:`safeil_sumo.sim.vehicle`):
+
+- every step the network plans from the features (the episode's lane lines, ego speed, the
+  recorded leader's speed and the simulated gap);
+- the tracker commands ``a_cmd = ff * a_ref + kp * (v_ref - v) + ki * integral`` with ``v_ref`` and ``a_ref``
+  the plan's speed and acceleration (x only: straight-lane longitudinal), clipped to the
+  controller's limits;
+- the plant follows ``a_cmd`` with a first-order lag (drive 0.3 s, brake 0.15 s), speed >= 0.
+
+Episodes are windows of the recorded maneuvers resampled to ``dt_s``; the leader keeps its
+recorded position (the ego's recorded path plus the recorded gap), so the gap the planner keeps
+is what is scored. Pure functions on tensors; :func:`rollout` is the only loop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.features import FEATURE_NAMES
+
+V_X, V_LEAD, D_LEAD = (FEATURE_NAMES.index(n) for n in ("v_x", "v_lead", "d_lead"))
+
+
+@dataclass(frozen=True)
+class LoopModel:
+    """The differentiable loop's settings (defaults: the SUMO loop's controller and plant).
+
+    dt_s: step and planning period [s]; kp: speed gain [1/s]; ki [1/s^2], integral_limit_m [m],
+    integral_band_mps [m/s]: the PID's integral (integrated near the reference only); accel_ff: feed-forward gain [-];
+    accel_preview_s: where the plan's acceleration is read [s]; accel_min/max_mps2: command
+    limits [m/s^2]; drive_lag_s / brake_lag_s: plant time constants [s].
+    """
+
+    dt_s: float = 0.1
+    kp: float = 1.5
+    ki: float = 0.1
+    integral_limit_m: float = 5.0
+    integral_band_mps: float = 1.0
+    accel_ff: float = 1.0
+    accel_preview_s: float = 0.2
+    accel_min_mps2: float = -8.0
+    accel_max_mps2: float = 3.0
+    drive_lag_s: float = 0.3
+    brake_lag_s: float = 0.15
+
+
+@dataclass(frozen=True)
+class Episodes:
+    """B recorded windows of T steps of ``dt_s`` [s]. All tensors float32.
+
+    lanes: (B, 6) lane-line features (c0l, c1l, c2l, c0r, c1r, c2r) at the window start;
+    v_human, gap_human, v_lead, s_lead: (B, T) [m/s, m, m/s, m] the human's speed and bumper
+    gap, the leader's speed and position (ego start = 0); maneuver_id: (B,) str.
+    """
+
+    lanes: torch.Tensor
+    v_human: torch.Tensor
+    gap_human: torch.Tensor
+    v_lead: torch.Tensor
+    s_lead: torch.Tensor
+    maneuver_id: np.ndarray
+    dt_s: float
+
+    def __len__(self) -> int:
+        return len(self.lanes)
+
+    def take(self, idx) -> Episodes:
+        return Episodes(self.lanes[idx], self.v_human[idx], self.gap_human[idx],
+                        self.v_lead[idx], self.s_lead[idx], self.maneuver_id[np.asarray(idx)],
+                        self.dt_s)
+
+
+def episodes_from_tuples(tuples: Tuples, window_s: float, stride_s: float, dt_s: float = 0.1,
+                         maneuvers: set[str] | None = None) -> Episodes:
+    """Windows of ``window_s`` [s] every ``stride_s`` [s] of each maneuver's tuples (the states'
+    ego speed, leader speed and gap), resampled to ``dt_s``; ``maneuvers``: only these ids.
+
+    The ego's recorded path is the integral of its speed; the leader's position is that path plus
+    the recorded gap. A maneuver shorter than the window gives no episode.
+    """
+    feats, mids, times = tuples.features, tuples.maneuver_id, tuples.t
+    n_steps = round(window_s / dt_s)
+    out: dict[str, list] = {k: [] for k in ("lanes", "v", "gap", "vl", "sl", "id")}
+    for mid in np.unique(mids):
+        if maneuvers is not None and mid not in maneuvers:
+            continue
+        rows = np.flatnonzero(mids == mid)
+        rows = rows[np.argsort(times[rows])]
+        t = times[rows] - times[rows[0]]
+        if t[-1] < window_s:
+            continue
+        f = feats[rows]
+        grid = np.arange(0.0, t[-1] + 1e-9, dt_s)
+        v = np.interp(grid, t, f[:, V_X])
+        gap = np.interp(grid, t, f[:, D_LEAD])
+        v_lead = np.interp(grid, t, f[:, V_LEAD])
+        s_ego = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * dt_s)])
+        s_lead = s_ego + gap
+        lane_rows = np.searchsorted(t, grid)
+        for k0 in range(0, len(grid) - n_steps, max(1, round(stride_s / dt_s))):
+            sl = slice(k0, k0 + n_steps)
+            out["lanes"].append(f[min(lane_rows[k0], len(f) - 1), :6])
+            out["v"].append(v[sl])
+            out["gap"].append(gap[sl])
+            out["vl"].append(v_lead[sl])
+            out["sl"].append(s_lead[sl] - s_ego[k0])
+            out["id"].append(mid)
+    if not out["v"]:
+        raise ValueError(f"no maneuver is {window_s} s long")
+
+    def tensor(key: str) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(out[key]), dtype=torch.float32)
+
+    return Episodes(tensor("lanes"), tensor("v"), tensor("gap"), tensor("vl"), tensor("sl"),
+                    np.asarray(out["id"]), dt_s)
+
+
+def plan_speed_accel(control_points: torch.Tensor, horizon: float, t: float,
+                     preview: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The plan's x speed at ``t`` and x acceleration at ``t + preview`` [s] (cubic Bezier with
+    the ego at its origin); ``control_points (N, 3, 2)`` [m]. As the SUMO controller's
+    ``plan_speed_and_accel`` on x: backward plans mean stop, no acceleration past the horizon."""
+    x1, x2, x3 = control_points[:, 0, 0], control_points[:, 1, 0], control_points[:, 2, 0]
+
+    def derivs(tau: float) -> tuple[torch.Tensor, torch.Tensor]:
+        u = 1.0 - tau
+        dx = 3.0 * (u * u * x1 + 2.0 * u * tau * (x2 - x1) + tau * tau * (x3 - x2))  # X0 = 0
+        ddx = 6.0 * (u * (x2 - 2.0 * x1) + tau * (x3 - 2.0 * x2 + x1))
+        return dx / horizon, ddx / horizon**2
+
+    v_ref, _ = derivs(min(max(t / horizon, 0.0), 1.0))
+    _, a_ref = derivs(min(max((t + preview) / horizon, 0.0), 1.0))
+    if t + preview > horizon:  # past the horizon the plan continues at its final speed
+        a_ref = torch.zeros_like(a_ref)
+    backwards = v_ref < 0.0
+    return torch.where(backwards, 0.0, v_ref), torch.where(backwards, 0.0, a_ref)
+
+
+def rollout(model: torch.nn.Module, ep: Episodes, loop: LoopModel = LoopModel(),
+            horizon: float = 5.0) -> dict[str, torch.Tensor]:
+    """Drive every episode with ``model`` (features ``(N, 9)`` -> control points ``(N, 3, 2)``).
+
+    Returns (B, T) tensors ``gap`` [m], ``v`` [m/s], ``accel`` [m/s^2] and the plans' leader
+    margins ``lead_margin`` (B, T, 3) [m] (leader's predicted position minus each control point's
+    x, as the paper's barrier). Step k holds the state at ``k dt`` (step 0: the recorded start).
+    """
+    b, n = ep.v_human.shape
+    dt = ep.dt_s
+    v = ep.v_human[:, 0]
+    s = torch.zeros(b)
+    a = torch.zeros(b)
+    integral = torch.zeros(b)
+    times = torch.arange(1, 4, dtype=torch.float32) * (horizon / 3.0)
+    drive_k, brake_k = 1.0 - np.exp(-dt / loop.drive_lag_s), 1.0 - np.exp(-dt / loop.brake_lag_s)
+    gaps, speeds, accels, margins = [], [], [], []
+    for k in range(n):
+        gap = ep.s_lead[:, k] - s
+        feats = torch.cat([ep.lanes, torch.stack([v, ep.v_lead[:, k], gap], dim=1)], dim=1)
+        cp = model(feats)
+        margins.append(gap[:, None] + ep.v_lead[:, k, None] * times - cp[..., 0])
+        gaps.append(gap)
+        speeds.append(v)
+        accels.append(a)
+        v_ref, a_ref = plan_speed_accel(cp, horizon, 0.5 * dt, loop.accel_preview_s)
+        error = v_ref - v
+        integral = torch.where(error.abs() < loop.integral_band_mps,
+                               torch.clamp(integral + error * dt, -loop.integral_limit_m,
+                                           loop.integral_limit_m), integral)
+        a_cmd = torch.clamp(loop.accel_ff * a_ref + loop.kp * error + loop.ki * integral,
+                            loop.accel_min_mps2, loop.accel_max_mps2)
+        a = a + torch.where(a_cmd >= a, drive_k, brake_k) * (a_cmd - a)
+        v_next = torch.clamp(v + a * dt, min=0.0)
+        s = s + 0.5 * (v + v_next) * dt
+        v = v_next
+    return {"gap": torch.stack(gaps, 1), "v": torch.stack(speeds, 1),
+            "accel": torch.stack(accels, 1), "lead_margin": torch.stack(margins, 1)}
+
+
+@dataclass(frozen=True)
+class ClosedLoopTerms:
+    """Named terms of the closed-loop loss (each a scalar tensor)."""
+
+    gap: torch.Tensor  # mean squared gap error to the human [m^2]
+    speed: torch.Tensor  # mean squared speed error [m^2/s^2]
+    barrier: torch.Tensor  # the paper's leader barrier on the plans of the visited states
+    total: torch.Tensor
+
+    def as_floats(self) -> dict[str, float]:
+        return {k: float(getattr(self, k).detach()) for k in ("gap", "speed", "barrier", "total")}
+
+
+def closed_loop_loss(out: dict[str, torch.Tensor], ep: Episodes, speed_weight: float = 1.0,
+                     barrier_k: float = 1000.0, barrier_weight: float = 0.01,
+                     gap_scale_m: float = 1.0) -> ClosedLoopTerms:
+    """Gap and speed errors to the human over the rollout, plus the leader barrier
+    ``K softplus(-margin)`` on the plans of the states the rollout visits."""
+    gap = ((out["gap"] - ep.gap_human) / gap_scale_m).pow(2).mean()
+    speed = (out["v"] - ep.v_human).pow(2).mean()
+    barrier = barrier_k * F.softplus(-out["lead_margin"]).sum(-1).mean()
+    total = gap + speed_weight * speed + barrier_weight * barrier
+    return ClosedLoopTerms(gap, speed, barrier, total)

@@ -1,0 +1,142 @@
+"""The differentiable longitudinal loop used for closed-loop training (learn/closed_loop.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safeil_sumo.learn.closed_loop import (
+    Episodes,
+    LoopModel,
+    closed_loop_loss,
+    episodes_from_tuples,
+    plan_speed_accel,
+    rollout,
+)
+from safeil_sumo.sim.controller import make_target, plan_speed_and_accel
+
+STRAIGHT = [1.75, 0.0, 0.0, -1.75, 0.0, 0.0]
+
+
+class ConstantAccelPlanner(torch.nn.Module):
+    """Plans x(t) = v t + a t^2 / 2 from the features' ego speed (a torch 'planner')."""
+
+    def __init__(self, accel: float = 0.0, horizon: float = 5.0) -> None:
+        super().__init__()
+        self.accel, self.horizon = accel, horizon
+
+    def forward(self, f: torch.Tensor) -> torch.Tensor:
+        t = torch.arange(1, 4, dtype=f.dtype) * self.horizon / 3.0
+        v = f[:, 6, None]
+        # the Bezier control points of x(t) = v t + a t^2 / 2 over [0, T]
+        h = self.horizon
+        x1 = v * h / 3.0
+        x2 = 2.0 * v * h / 3.0 + self.accel * h * h / 6.0
+        x3 = v * h + self.accel * h * h / 2.0
+        x = torch.cat([x1, x2, x3], dim=1)
+        return torch.stack([x, torch.zeros_like(t).expand_as(x)], dim=-1)
+
+
+def _episode(v0: float, v_lead: float, gap0: float, steps: int, dt: float = 0.1) -> Episodes:
+    t = np.arange(steps) * dt
+    s_lead = torch.tensor(gap0 + v_lead * t, dtype=torch.float32)[None]
+    return Episodes(torch.tensor([STRAIGHT]), torch.full((1, steps), v0),
+                    torch.full((1, steps), gap0), torch.full((1, steps), v_lead), s_lead,
+                    np.array(["m"]), dt)
+
+
+@settings(max_examples=60, deadline=None)
+@given(cp=st.lists(st.floats(-5.0, 200.0), min_size=3, max_size=3),
+       t=st.floats(0.0, 4.5), horizon=st.floats(3.0, 8.0))
+def test_plan_speed_and_accel_equal_the_controllers(cp, t, horizon):
+    """The torch plan derivatives are the SUMO controller's (power-basis form), x only."""
+    points = np.array([[cp[0], 0.0], [cp[1], 0.0], [cp[2], 0.0]])
+    target = make_target(points, horizon, (0.0, 0.0, 0.0))
+    v_ref, _ = plan_speed_and_accel(target.coeff_x, target.coeff_y, horizon, t)
+    _, a_ref = plan_speed_and_accel(target.coeff_x, target.coeff_y, horizon, t + 0.2)
+    v, a = plan_speed_accel(torch.tensor(points[None], dtype=torch.float64), horizon, t, 0.2)
+    assert float(v[0]) == pytest.approx(v_ref, abs=1e-9)
+    if v_ref > 0:  # backward plans stop: no feed-forward in either
+        assert float(a[0]) == pytest.approx(a_ref, abs=1e-9)
+
+
+def test_constant_speed_plan_behind_an_equal_speed_leader_keeps_the_gap():
+    out = rollout(ConstantAccelPlanner(), _episode(25.0, 25.0, 40.0, 300))
+    np.testing.assert_allclose(out["gap"].numpy(), 40.0, atol=1e-3)
+    np.testing.assert_allclose(out["v"].numpy(), 25.0, atol=1e-4)
+
+
+def test_plant_lag_and_limits():
+    """A plan accelerating at 2 m/s^2: the command is 2 (feed-forward) and the plant reaches it
+    with the drive lag: 1 - exp(-t / 0.3 s) after t; speed follows within the limits."""
+    out = rollout(ConstantAccelPlanner(accel=2.0), _episode(20.0, 20.0, 1000.0, 31),
+                  LoopModel(ki=0.0))
+    a = out["accel"][0].numpy()
+    # after 1 s (10 steps) the lag has covered 1 - exp(-1/0.3) = 96.4 % of a step; the plan's
+    # speed error adds a little P term on top
+    assert a[10] == pytest.approx(2.0, rel=0.1)
+    # 3 s at <= 3 m/s^2: speed within [20 + 2*2.5, 20 + 3*3]
+    assert 24.0 < float(out["v"][0, -1]) < 29.0
+    hard = rollout(ConstantAccelPlanner(accel=-20.0), _episode(20.0, 20.0, 1000.0, 50))
+    assert float(hard["accel"][0].min()) >= -8.0 - 1e-6  # the controller's braking limit
+    assert float(hard["v"][0].min()) >= 0.0
+
+
+def test_loss_terms_are_hand_computed():
+    ep = _episode(25.0, 25.0, 40.0, 4)
+    out = {"gap": ep.gap_human + 2.0, "v": ep.v_human - 1.0,
+           "lead_margin": torch.full((1, 4, 3), 50.0)}
+    terms = closed_loop_loss(out, ep, speed_weight=3.0, barrier_weight=0.0)
+    assert float(terms.gap) == pytest.approx(4.0)
+    assert float(terms.speed) == pytest.approx(1.0)
+    assert float(terms.total) == pytest.approx(7.0)
+    out["lead_margin"] = torch.full((1, 4, 3), -1.0)  # every control point 1 m past the leader
+    terms = closed_loop_loss(out, ep, barrier_k=1000.0, barrier_weight=1.0)
+    assert float(terms.barrier) == pytest.approx(3 * 1000.0 * np.log1p(np.e), rel=1e-6)
+
+
+def test_gradient_reaches_the_planner_through_the_loop():
+    """The gap error at the end of the rollout depends on the plan: d loss / d accel != 0, and
+    its sign says 'accelerate' when the ego falls behind the human's gap."""
+    accel = torch.tensor(0.0, requires_grad=True)
+
+    class P(ConstantAccelPlanner):
+        def forward(self, f):
+            h = self.horizon
+            v = f[:, 6, None]
+            x = torch.cat([v * h / 3.0, 2.0 * v * h / 3.0 + accel * h * h / 6.0,
+                           v * h + accel * h * h / 2.0], dim=1)
+            return torch.stack([x, torch.zeros_like(x)], dim=-1)
+
+    ep = _episode(25.0, 27.0, 30.0, 100)  # leader pulls away; the human keeps 30 m
+    terms = closed_loop_loss(rollout(P(), ep), ep, barrier_weight=0.0)
+    terms.total.backward()
+    assert accel.grad is not None and float(accel.grad) < 0.0
+
+
+def test_episodes_from_tuples_rebuild_the_recorded_gap():
+    """Windows of a maneuver: the leader's position minus the ego's recorded path is the
+    recorded gap; a too-short maneuver gives none."""
+    from safeil_sumo.data.tuples import Tuples
+
+    n = 81  # 20 s at 4 Hz
+    t = np.arange(n) / 4.0
+    v = 20.0 + 0.1 * t
+    gap = 30.0 + np.sin(t)
+    feats = np.zeros((n, 9))
+    feats[:, :6] = STRAIGHT
+    feats[:, 6], feats[:, 7], feats[:, 8] = v, v + np.cos(t), gap
+    tup = Tuples(feats, np.zeros((n, 3, 2)), np.zeros((n, 20, 2)), np.array(["a"] * n),
+                 np.array(["s"] * n), t, 5.0, 4.0)
+    eps = episodes_from_tuples(tup, window_s=10.0, stride_s=5.0)
+    assert len(eps) == 3  # starts at 0, 5 and 10 s (the last ends at 19.9 s)
+    grid = np.arange(100) * 0.1
+    s_ego = 20.0 * grid + 0.05 * grid**2
+    np.testing.assert_allclose(eps.s_lead[0].numpy() - s_ego, np.interp(grid, t, gap), atol=2e-3)
+    np.testing.assert_allclose(eps.gap_human[1].numpy(), np.interp(grid + 5.0, t, gap),
+                               atol=1e-5)
+    with pytest.raises(ValueError, match="no maneuver"):
+        episodes_from_tuples(tup, window_s=30.0, stride_s=5.0)

@@ -1,0 +1,112 @@
+"""Closed-loop fine-tuning of a SafeIL checkpoint behind recorded human leaders.
+
+    python training/closed_loop_finetune.py --init safeil_sumo/models/safeil.safetensors \
+        --data data/openacc_tuples.parquet data/ngsim_tuples.parquet --out data/models/safeil_cl
+
+The planner drives the differentiable longitudinal loop of :mod:`safeil_sumo.learn.closed_loop`
+for ``--window`` seconds behind the recorded leaders of the training maneuvers (the checkpoint's
+held-out maneuvers are left out) and learns to keep the human's gap and speed. Kept from the
+initial checkpoint's recipe, in the same loss: the barrier and gap-monotonicity penalty on
+states drawn across the operating envelope; the lateral outputs (y control points, i.e. lane
+keeping, learned from the lane data) are held to the initial model's on the data and envelope
+states, so only the longitudinal plan is re-learned. Deterministic for a seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.learn.checkpoint import held_out_maneuvers, load_model, save_checkpoint
+from safeil_sumo.learn.closed_loop import closed_loop_loss, episodes_from_tuples, rollout
+from safeil_sumo.learn.envelope import sample_states
+from safeil_sumo.learn.losses import envelope_barrier_terms
+from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--init", type=Path, default=Path("safeil_sumo/models/safeil.safetensors"))
+    ap.add_argument("--data", type=Path, nargs="+", required=True, help="tuple Parquet files")
+    ap.add_argument("--out", type=Path, required=True, help="checkpoint prefix")
+    ap.add_argument("--window", type=float, default=40.0, help="rollout length [s]")
+    ap.add_argument("--stride", type=float, default=10.0, help="between window starts [s]")
+    ap.add_argument("--iters", type=int, default=300)
+    ap.add_argument("--batch", type=int, default=64, help="episodes per iteration")
+    ap.add_argument("--lr", type=float, default=3e-4)
+    ap.add_argument("--speed-weight", type=float, default=4.0)
+    ap.add_argument("--lateral-weight", type=float, default=100.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(1)
+    model, meta = load_model(args.init)
+    frozen, _ = load_model(args.init)
+    for p in frozen.parameters():
+        p.requires_grad_(False)
+    cfg = TrainConfig.from_dict(meta["train_config"])
+    horizon = float(meta["horizon_s"])
+    held = set(held_out_maneuvers(args.init))
+    tuples = Tuples.concat([Tuples.load(p) for p in args.data])
+    train_ids = {m for m in np.unique(tuples.maneuver_id) if m not in held}
+    eps = episodes_from_tuples(tuples, args.window, args.stride, maneuvers=train_ids)
+    print(f"{len(eps)} episodes of {args.window:g} s from {len(set(eps.maneuver_id))} "
+          f"training maneuvers ({len(held)} held out)")
+    feats = torch.as_tensor(tuples.features, dtype=torch.float32)
+    rng = np.random.default_rng([args.seed, 3])
+    gen = torch.Generator().manual_seed(args.seed)
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    start = time.perf_counter()
+    bar = tqdm(range(args.iters), disable=args.no_progress, desc="closed loop")
+    log = []
+    for it in bar:
+        idx = torch.randperm(len(eps), generator=gen)[: args.batch]
+        ep = eps.take(idx.numpy())
+        model.train()
+        terms = closed_loop_loss(rollout(model, ep, horizon=horizon), ep,
+                                 speed_weight=args.speed_weight, barrier_k=cfg.barrier_k,
+                                 barrier_weight=cfg.envelope_weight)
+        env = torch.as_tensor(sample_states(cfg.envelope_batch, rng), dtype=torch.float32)
+        env_term = sum(envelope_barrier_terms(env, model(env), horizon, cfg.barrier))
+        mono = gap_monotone_penalty(model, env, margin_m=cfg.monotone_margin_m)
+        data_rows = torch.randint(len(feats), (512,), generator=gen)
+        anchor = torch.cat([feats[data_rows], env])
+        lateral = (model(anchor)[..., 1] - frozen(anchor)[..., 1]).pow(2).mean()
+        loss = (terms.total + cfg.envelope_weight * env_term + cfg.monotone_weight * mono
+                + args.lateral_weight * lateral)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        opt.step()
+        row = {**terms.as_floats(), "envelope": float(env_term.detach()),
+               "monotone": float(mono.detach()),
+               "lateral": float(lateral.detach()), "loss": float(loss.detach())}
+        log.append(row)
+        bar.set_postfix(gap=f"{row['gap']:.1f}", v=f"{row['speed']:.2f}",
+                        lat=f"{row['lateral']:.2g}", refresh=False)
+    model.eval()
+    seconds = time.perf_counter() - start
+    metrics = {**meta.get("metrics", {}), "closed_loop": {
+        "init": str(args.init), "window_s": args.window, "stride_s": args.stride,
+        "iters": args.iters, "batch": args.batch, "lr": args.lr,
+        "speed_weight": args.speed_weight, "lateral_weight": args.lateral_weight,
+        "seed": args.seed, "episodes": len(eps), "seconds": seconds,
+        "final": log[-1], "first": log[0]}}
+    save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,
+                    train_config=meta["train_config"], data_fingerprint=meta.get(
+                        "data_fingerprint"), metrics=metrics)
+    print(f"{seconds:.0f} s; first {log[0]['gap']:.1f} m^2 gap, last {log[-1]['gap']:.1f}; "
+          f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
