@@ -10,6 +10,11 @@ initial checkpoint's recipe, in the same loss: the barrier and gap-monotonicity 
 states drawn across the operating envelope; the lateral outputs (y control points, i.e. lane
 keeping, learned from the lane data) are held to the initial model's on the data and envelope
 states, so only the longitudinal plan is re-learned. Deterministic for a seed.
+
+``--style``: the planner gets the driver's preferred time gap as a 10th input
+(:mod:`safeil_sumo.learn.style`; its first-layer weights start at zero), estimated per maneuver
+from the data; envelope states draw it across the trained range, and the checkpoint stores the
+training maneuvers' median as the default setting.
 """
 
 from __future__ import annotations
@@ -24,9 +29,17 @@ from tqdm.auto import tqdm
 
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import held_out_maneuvers, load_model, save_checkpoint
-from safeil_sumo.learn.closed_loop import closed_loop_loss, episodes_from_tuples, rollout
+from safeil_sumo.learn.closed_loop import (
+    D_LEAD,
+    V_X,
+    closed_loop_loss,
+    episodes_from_tuples,
+    rollout,
+)
 from safeil_sumo.learn.envelope import sample_states
 from safeil_sumo.learn.losses import envelope_barrier_terms
+from safeil_sumo.learn.model import with_style_input
+from safeil_sumo.learn.style import TIME_GAP_RANGE_S, maneuver_time_gaps
 from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
 
 
@@ -42,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=3e-4)
     ap.add_argument("--speed-weight", type=float, default=4.0)
     ap.add_argument("--lateral-weight", type=float, default=100.0)
+    ap.add_argument("--style", action="store_true",
+                    help="add the driver's preferred time gap as an input (learn/style.py)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
@@ -61,6 +76,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{len(eps)} episodes of {args.window:g} s from {len(set(eps.maneuver_id))} "
           f"training maneuvers ({len(held)} held out)")
     feats = torch.as_tensor(tuples.features, dtype=torch.float32)
+    style_default = None
+    if args.style:
+        tg = maneuver_time_gaps(tuples.features[:, D_LEAD], tuples.features[:, V_X],
+                                tuples.maneuver_id, fallback_s=np.nan)
+        train_rows = np.isin(tuples.maneuver_id, list(train_ids)) & np.isfinite(tg)
+        per_maneuver = dict(zip(tuples.maneuver_id[train_rows], tg[train_rows], strict=True))
+        median = float(np.median(list(per_maneuver.values())))
+        tg = np.where(np.isfinite(tg), tg, median)
+        style_default = {"time_gap_s": median}
+        model = with_style_input(model, median, float(np.std(list(per_maneuver.values()))))
+        eps = eps.with_style({m: per_maneuver.get(m, median) for m in set(eps.maneuver_id)})
+        feats = torch.cat([feats, torch.as_tensor(tg, dtype=torch.float32)[:, None]], dim=1)
+        print(f"style: time gap per training maneuver, median {median:.2f} s, quartiles "
+              f"{np.quantile(list(per_maneuver.values()), [0.25, 0.75]).round(2).tolist()} s")
     rng = np.random.default_rng([args.seed, 3])
     gen = torch.Generator().manual_seed(args.seed)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
@@ -75,11 +104,14 @@ def main(argv: list[str] | None = None) -> int:
                                  speed_weight=args.speed_weight, barrier_k=cfg.barrier_k,
                                  barrier_weight=cfg.envelope_weight)
         env = torch.as_tensor(sample_states(cfg.envelope_batch, rng), dtype=torch.float32)
+        if args.style:
+            env = torch.cat([env, torch.as_tensor(rng.uniform(*TIME_GAP_RANGE_S, (len(env), 1)),
+                                                  dtype=torch.float32)], dim=1)
         env_term = sum(envelope_barrier_terms(env, model(env), horizon, cfg.barrier))
         mono = gap_monotone_penalty(model, env, margin_m=cfg.monotone_margin_m)
         data_rows = torch.randint(len(feats), (512,), generator=gen)
         anchor = torch.cat([feats[data_rows], env])
-        lateral = (model(anchor)[..., 1] - frozen(anchor)[..., 1]).pow(2).mean()
+        lateral = (model(anchor)[..., 1] - frozen(anchor[:, :9])[..., 1]).pow(2).mean()
         loss = (terms.total + cfg.envelope_weight * env_term + cfg.monotone_weight * mono
                 + args.lateral_weight * lateral)
         opt.zero_grad(set_to_none=True)
@@ -98,11 +130,11 @@ def main(argv: list[str] | None = None) -> int:
         "init": str(args.init), "window_s": args.window, "stride_s": args.stride,
         "iters": args.iters, "batch": args.batch, "lr": args.lr,
         "speed_weight": args.speed_weight, "lateral_weight": args.lateral_weight,
-        "seed": args.seed, "episodes": len(eps), "seconds": seconds,
+        "seed": args.seed, "episodes": len(eps), "seconds": seconds, "style": args.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,
                     train_config=meta["train_config"], data_fingerprint=meta.get(
-                        "data_fingerprint"), metrics=metrics)
+                        "data_fingerprint"), metrics=metrics, style_default=style_default)
     print(f"{seconds:.0f} s; first {log[0]['gap']:.1f} m^2 gap, last {log[-1]['gap']:.1f}; "
           f"wrote {args.out}")
     return 0

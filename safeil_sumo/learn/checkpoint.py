@@ -110,12 +110,14 @@ def save_checkpoint(
     data_fingerprint: str | None = None,
     metrics: dict | None = None,
     history: Any = None,
+    style_default: dict | None = None,
 ) -> tuple[Path, Path]:
     """Write ``<prefix>.safetensors`` and ``<prefix>.json``; returns both paths.
 
     ``name``: policy name (e.g. "safeil" or "bc"); ``horizon`` [s] of the plans;
     ``train_config``: a TrainConfig (or dict); ``history``: a TrainHistory, stored as a summary
-    plus the per-epoch logs.
+    plus the per-epoch logs; ``style_default``: the style inputs' default settings of a
+    style-conditioned model (e.g. ``{"time_gap_s": 1.4}``, the humans' median).
     """
     import torch
     from safetensors.numpy import save as st_save
@@ -132,7 +134,7 @@ def save_checkpoint(
         "format_version": FORMAT_VERSION,
         "name": name,
         "architecture": model.architecture,
-        "feature_names": list(FEATURE_NAMES),
+        "feature_names": list(FEATURE_NAMES) + list(model.architecture.get("style_names", [])),
         "scaling": {k: arrays[k].tolist() for k in BUFFERS},
         "horizon_s": float(horizon),
         "train_config": _jsonable(train_config),
@@ -143,6 +145,8 @@ def save_checkpoint(
         "torch_version": torch.__version__,
         "created_unix_s": time.time(),
     }
+    if style_default is not None:
+        meta["style_default"] = _jsonable(style_default)
     if history is not None:
         h = _jsonable(history)
         meta["training"] = {k: v for k, v in h.items() if k != "epochs"}
@@ -219,8 +223,10 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
         raise CheckpointError(f"{weights_path}: unreadable safetensors ({exc})") from exc
 
     shapes = expected_shapes(meta.get("architecture") or {})
-    if meta["architecture"].get("n_features") != N_FEATURES:
-        raise CheckpointError(f"{sidecar_path}: expects {N_FEATURES} features")
+    n_style = len(meta["architecture"].get("style_names") or ())
+    if meta["architecture"].get("n_features") != N_FEATURES + n_style:
+        raise CheckpointError(f"{sidecar_path}: expects {N_FEATURES} features"
+                              + (f" and {n_style} style inputs" if n_style else ""))
     if set(arrays) != set(shapes):
         raise CheckpointError(
             f"{weights_path}: tensors {sorted(arrays)} do not match the architecture "
@@ -248,7 +254,7 @@ def load_model(path: str | Path) -> tuple[PlannerMLP, dict]:
     try:
         model = PlannerMLP(arch["hidden"], arch["activation"],
                            arch.get("output_mode", "absolute"),
-                           arch.get("horizon_s", meta["horizon_s"]))
+                           arch.get("horizon_s", meta["horizon_s"]), int(arch["n_features"]))
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from exc
     model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in arrays.items()})

@@ -63,7 +63,9 @@ class Episodes:
 
     lanes: (B, 6) lane-line features (c0l, c1l, c2l, c0r, c1r, c2r) at the window start;
     v_human, gap_human, v_lead, s_lead: (B, T) [m/s, m, m/s, m] the human's speed and bumper
-    gap, the leader's speed and position (ego start = 0); maneuver_id: (B,) str.
+    gap, the leader's speed and position (ego start = 0); maneuver_id: (B,) str;
+    style: (B, S) the style inputs of a style-conditioned planner (the driver's preferred time
+    gap [s], :mod:`safeil_sumo.learn.style`), or None.
     """
 
     lanes: torch.Tensor
@@ -73,6 +75,7 @@ class Episodes:
     s_lead: torch.Tensor
     maneuver_id: np.ndarray
     dt_s: float
+    style: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.lanes)
@@ -80,7 +83,14 @@ class Episodes:
     def take(self, idx) -> Episodes:
         return Episodes(self.lanes[idx], self.v_human[idx], self.gap_human[idx],
                         self.v_lead[idx], self.s_lead[idx], self.maneuver_id[np.asarray(idx)],
-                        self.dt_s)
+                        self.dt_s, None if self.style is None else self.style[idx])
+
+    def with_style(self, style_by_maneuver: dict[str, float]) -> Episodes:
+        """The same episodes with a style input per episode, looked up by its maneuver."""
+        style = torch.tensor([[style_by_maneuver[m]] for m in self.maneuver_id],
+                             dtype=torch.float32)
+        return Episodes(self.lanes, self.v_human, self.gap_human, self.v_lead, self.s_lead,
+                        self.maneuver_id, self.dt_s, style)
 
 
 def episodes_from_tuples(tuples: Tuples, window_s: float, stride_s: float, dt_s: float = 0.1,
@@ -142,11 +152,11 @@ def plan_speed_accel(control_points: torch.Tensor, horizon: float, t: float,
         return dx / horizon, ddx / horizon**2
 
     v_ref, _ = derivs(min(max(t / horizon, 0.0), 1.0))
-    _, a_ref = derivs(min(max((t + preview) / horizon, 0.0), 1.0))
+    v_ahead, a_ref = derivs(min(max((t + preview) / horizon, 0.0), 1.0))
     if t + preview > horizon:  # past the horizon the plan continues at its final speed
         a_ref = torch.zeros_like(a_ref)
-    backwards = v_ref < 0.0
-    return torch.where(backwards, 0.0, v_ref), torch.where(backwards, 0.0, a_ref)
+    # each read sees its own time's direction, as the controller's two calls do
+    return torch.where(v_ref < 0.0, 0.0, v_ref), torch.where(v_ahead < 0.0, 0.0, a_ref)
 
 
 def rollout(model: torch.nn.Module, ep: Episodes, loop: LoopModel = LoopModel(),
@@ -168,7 +178,8 @@ def rollout(model: torch.nn.Module, ep: Episodes, loop: LoopModel = LoopModel(),
     gaps, speeds, accels, margins = [], [], [], []
     for k in range(n):
         gap = ep.s_lead[:, k] - s
-        feats = torch.cat([ep.lanes, torch.stack([v, ep.v_lead[:, k], gap], dim=1)], dim=1)
+        parts = [ep.lanes, torch.stack([v, ep.v_lead[:, k], gap], dim=1)]
+        feats = torch.cat(parts if ep.style is None else [*parts, ep.style], dim=1)
         cp = model(feats)
         margins.append(gap[:, None] + ep.v_lead[:, k, None] * times - cp[..., 0])
         gaps.append(gap)

@@ -53,6 +53,18 @@ class MLPPolicy:
             for wt, bi in zip(self._wt[:-1], self._b[:-1], strict=True)
         )
         self._tanh = self.activation == "tanh"
+        # style inputs (safeil_sumo.learn.style): constant for a policy instance, so folded
+        # into the first layer's bias; the planner keeps taking the 9 features
+        self.style_names = tuple(architecture.get("style_names") or ())
+        self._style_rows = self._wt[0][N_FEATURES:].copy()
+        self._bias0 = self._b[0].copy()
+        self._wt[0] = np.ascontiguousarray(self._wt[0][:N_FEATURES])
+        self._hidden = ((self._wt[0], self._b[0], self._hidden[0][2]), *self._hidden[1:]) \
+            if self._hidden else ()
+        self.style: dict[str, float] = {}
+        if self.style_names:
+            default = (self.metadata.get("style_default") or {})
+            self.set_style(**{n: float(default.get(n, 1.5)) for n in self.style_names})
         # residual output mode: x_i += v_x * t_i (constant-speed motion added back)
         mode = architecture.get("output_mode", "absolute")
         if mode not in ("absolute", "residual"):
@@ -61,6 +73,18 @@ class MLPPolicy:
             np.arange(1, 4) * (float(architecture.get("horizon_s", horizon)) / 3.0)
             if mode == "residual" else None
         )
+
+    def set_style(self, **style: float) -> None:
+        """Set the style inputs, e.g. ``set_style(time_gap_s=2.0)`` [s]; a value outside the
+        trained range is clipped to it. A policy without style inputs raises ValueError."""
+        from safeil_sumo.learn.style import clip_time_gap
+
+        if set(style) != set(self.style_names):
+            raise ValueError(f"{self.name}: style inputs are {list(self.style_names) or 'none'}"
+                             f", got {sorted(style)}")
+        self.style = {n: clip_time_gap(style[n]) for n in self.style_names}
+        values = np.array([self.style[n] for n in self.style_names])
+        self._b[0][:] = self._bias0 + values @ self._style_rows
 
     def _act(self, h: np.ndarray) -> None:
         if self._tanh:

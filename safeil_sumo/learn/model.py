@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from safeil_sumo.features import N_FEATURES
+from safeil_sumo.learn.style import STYLE_NAMES
 
 N_OUTPUTS = 6
 ACTIVATIONS = ("tanh", "relu")
@@ -54,7 +55,7 @@ class PlannerMLP(nn.Module):
 
     def __init__(
         self, hidden: Sequence[int] = (64, 64), activation: str = "tanh",
-        output_mode: str = "absolute", horizon: float = 5.0,
+        output_mode: str = "absolute", horizon: float = 5.0, n_features: int = N_FEATURES,
     ) -> None:
         super().__init__()
         if output_mode not in OUTPUT_MODES:
@@ -63,8 +64,13 @@ class PlannerMLP(nn.Module):
         self.activation = activation
         self.output_mode = output_mode
         self.horizon = float(horizon)  # T_h [s]: times of the control points in residual mode
+        # the paper's 9 features, then the style inputs (safeil_sumo.learn.style) if any
+        if n_features not in (N_FEATURES, N_FEATURES + len(STYLE_NAMES)):
+            raise ValueError(f"n_features must be {N_FEATURES} or {N_FEATURES + len(STYLE_NAMES)}"
+                             f" (with the style inputs {STYLE_NAMES}), got {n_features}")
+        self.n_features = int(n_features)
         layers: list[nn.Module] = []
-        width = N_FEATURES
+        width = self.n_features
         for h in self.hidden:
             layers += [nn.Linear(width, h), _activation(activation)]
             width = h
@@ -74,8 +80,8 @@ class PlannerMLP(nn.Module):
         nn.init.zeros_(last.bias)
         layers.append(last)
         self.net = nn.Sequential(*layers)
-        self.register_buffer("feature_mean", torch.zeros(N_FEATURES))
-        self.register_buffer("feature_std", torch.ones(N_FEATURES))
+        self.register_buffer("feature_mean", torch.zeros(self.n_features))
+        self.register_buffer("feature_std", torch.ones(self.n_features))
         self.register_buffer("output_mean", torch.zeros(N_OUTPUTS))
         self.register_buffer("output_std", torch.ones(N_OUTPUTS))
 
@@ -98,7 +104,7 @@ class PlannerMLP(nn.Module):
         return self.net((features - self.feature_mean) / self.feature_std)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        """Control points ``(N, 3, 2)`` [m] for ``features (N, 9)``."""
+        """Control points ``(N, 3, 2)`` [m] for ``features (N, n_features)``."""
         out = self.forward_normalised(features) * self.output_std + self.output_mean
         out = out.reshape(out.shape[:-1] + (3, 2))
         if self.output_mode == "residual":
@@ -110,15 +116,18 @@ class PlannerMLP(nn.Module):
     @property
     def architecture(self) -> dict:
         """What is needed to rebuild the module (stored in the checkpoint sidecar)."""
-        return {
+        arch = {
             "type": "mlp",
-            "n_features": N_FEATURES,
+            "n_features": self.n_features,
             "hidden": list(self.hidden),
             "activation": self.activation,
             "n_outputs": N_OUTPUTS,
             "output_mode": self.output_mode,
             "horizon_s": self.horizon,
         }
+        if self.n_features > N_FEATURES:
+            arch["style_names"] = list(STYLE_NAMES)
+        return arch
 
 
 V_X = 6  # column of the ego speed in the features (FEATURE_NAMES)
@@ -134,4 +143,21 @@ def constant_speed_points(v_x: np.ndarray, horizon: float) -> np.ndarray:
     v = np.asarray(v_x, dtype=float)
     out = np.zeros(v.shape + (3, 2))
     out[..., 0] = v[..., None] * control_times(horizon)
+    return out
+
+
+def with_style_input(model: PlannerMLP, style_mean: float, style_std: float) -> PlannerMLP:
+    """A copy of ``model`` with the style inputs appended (:data:`STYLE_NAMES`), their first-layer
+    weights zero: it plans exactly as ``model`` until trained. ``style_mean`` / ``style_std``
+    normalise the new input (e.g. the training maneuvers' time gaps [s])."""
+    if model.n_features != N_FEATURES:
+        raise ValueError("the model already has style inputs")
+    out = PlannerMLP(model.hidden, model.activation, model.output_mode, model.horizon,
+                     N_FEATURES + len(STYLE_NAMES))
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    w0 = state["net.0.weight"]
+    state["net.0.weight"] = torch.cat([w0, torch.zeros(w0.shape[0], len(STYLE_NAMES))], dim=1)
+    state["feature_mean"] = torch.cat([state["feature_mean"], torch.tensor([float(style_mean)])])
+    state["feature_std"] = torch.cat([state["feature_std"], torch.tensor([float(style_std)])])
+    out.load_state_dict(state)
     return out

@@ -1,0 +1,107 @@
+"""A driver's style (preferred time gap) as a planner input: estimation, model, checkpoint."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from safeil_sumo.learn.checkpoint import CheckpointError, load_model, save_checkpoint
+from safeil_sumo.learn.inference import load_policy
+from safeil_sumo.learn.model import PlannerMLP, with_style_input
+from safeil_sumo.learn.style import (
+    TIME_GAP_RANGE_S,
+    clip_time_gap,
+    estimate_time_gap,
+    maneuver_time_gaps,
+)
+
+STATE = np.array([1.75, 0.0, 0.0, -1.75, 0.0, 0.0, 25.0, 24.0, 40.0])
+
+
+def test_time_gap_is_the_median_over_following_samples():
+    gap = np.array([20.0, 30.0, 45.0, 2.0, 300.0, np.nan])
+    v = np.array([20.0, 20.0, 30.0, 1.0, 20.0, 20.0])
+    # kept: 1.0, 1.5, 1.5 s (2 m at 1 m/s is below the minimum speed, 15 s is no following,
+    # NaN is no sample)
+    assert estimate_time_gap(gap, v) == pytest.approx(1.5)
+    assert np.isnan(estimate_time_gap(np.array([3.0]), np.array([2.0])))
+
+
+def test_time_gap_per_maneuver_with_fallback():
+    gap = np.array([20.0, 40.0, 60.0, 3.0])
+    v = np.array([20.0, 20.0, 20.0, 2.0])
+    ids = np.array(["a", "a", "b", "c"])
+    np.testing.assert_allclose(maneuver_time_gaps(gap, v, ids, fallback_s=1.4),
+                               [1.5, 1.5, 3.0, 1.4])
+
+
+def test_settings_are_clipped_to_the_trained_range():
+    lo, hi = TIME_GAP_RANGE_S
+    assert clip_time_gap(0.1) == lo and clip_time_gap(9.0) == hi and clip_time_gap(1.7) == 1.7
+
+
+def _style_model(seed: int = 0) -> PlannerMLP:
+    torch.manual_seed(seed)
+    base = PlannerMLP(output_mode="residual")
+    with torch.no_grad():
+        for p in base.net.parameters():
+            p.normal_(0.0, 0.3)
+    return base
+
+
+def test_a_new_style_input_changes_nothing_until_trained():
+    base = _style_model()
+    styled = with_style_input(base, 1.5, 0.5)
+    f9 = torch.as_tensor(STATE[None], dtype=torch.float32)
+    for tg in (0.8, 1.5, 3.0):
+        f10 = torch.cat([f9, torch.tensor([[tg]])], dim=1)
+        torch.testing.assert_close(styled(f10), base(f9))
+    assert styled.architecture["n_features"] == 10
+    assert styled.architecture["style_names"] == ["time_gap_s"]
+    with pytest.raises(ValueError, match="already"):
+        with_style_input(styled, 1.5, 0.5)
+
+
+def test_numpy_policy_folds_the_style_into_the_first_layer(tmp_path):
+    styled = with_style_input(_style_model(), 1.5, 0.5)
+    with torch.no_grad():
+        styled.net[0].weight[:, 9].normal_(0.0, 0.5)
+    save_checkpoint(tmp_path / "m", styled, name="styled", horizon=5.0,
+                    style_default={"time_gap_s": 1.3})
+    policy = load_policy(tmp_path / "m")
+    assert policy.style == {"time_gap_s": 1.3}
+
+    def torch_plan(tg: float) -> np.ndarray:
+        f10 = torch.as_tensor(np.r_[STATE, tg][None], dtype=torch.float32)
+        return styled(f10).detach().numpy()[0]
+
+    np.testing.assert_allclose(policy.plan(STATE), torch_plan(1.3), atol=1e-4)
+    policy.set_style(time_gap_s=2.6)
+    np.testing.assert_allclose(policy.plan(STATE), torch_plan(2.6), atol=1e-4)
+    np.testing.assert_allclose(policy.plan(np.stack([STATE, STATE]))[1], torch_plan(2.6),
+                               atol=1e-4)
+    assert np.abs(torch_plan(2.6) - torch_plan(1.3)).max() > 1e-2  # the input matters
+    model, meta = load_model(tmp_path / "m")
+    assert model.n_features == 10 and meta["feature_names"][-1] == "time_gap_s"
+
+
+def test_a_policy_without_style_inputs_refuses_a_style(tmp_path):
+    save_checkpoint(tmp_path / "plain", _style_model(), name="plain", horizon=5.0)
+    policy = load_policy(tmp_path / "plain")
+    assert policy.style == {}
+    with pytest.raises(ValueError, match="none"):
+        policy.set_style(time_gap_s=2.0)
+
+
+def test_checkpoint_with_a_style_input_count_mismatch_is_refused(tmp_path):
+    import json
+
+    save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
+                    horizon=5.0)
+    sidecar = tmp_path / "m.json"
+    meta = json.loads(sidecar.read_text())
+    del meta["architecture"]["style_names"]
+    sidecar.write_text(json.dumps(meta))
+    with pytest.raises(CheckpointError, match="expects 9 features"):
+        load_policy(tmp_path / "m")
