@@ -313,6 +313,10 @@ def test_openacc_runs_by_hand():
     # row 2 not ok; 0.4 -> 0.6 is 2 steps; 0.8 -> 0.95 is exactly 1.5 steps: no break
     assert [r.tolist() for r in runs] == [[0, 1], [3, 4], [5, 6, 7, 8, 9]]
     assert openacc_runs(t, np.zeros(10, bool), 0.1) == []
+    # a removed row breaks the run even where the steps around it are short
+    t2 = np.array([0.0, 0.1, 0.15, 0.2, 0.3])
+    runs = openacc_runs(t2, np.array([1, 1, 0, 1, 1], bool), 0.1)
+    assert [r.tolist() for r in runs] == [[0, 1], [3, 4]]
 
 
 def test_short_run_is_skipped_and_counted(tmp_path):
