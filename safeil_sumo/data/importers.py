@@ -29,21 +29,49 @@ NGSIM (US-101 / I-80 layout, a straight road):
   (counted as ``lead_lateral_from_lane_centre``). Both are rotated into the ego frame.
 - ``lead_v`` = the leader's recorded speed; ``lane_index`` = ``Lane_ID``; ``v_x`` = ``v_Vel``.
 
-OpenACC (JRC, 5 metadata rows then a header): each HUMAN follower ``k >= 2`` of a platoon gives one
-recording ``<file name without extensions>_f<k>``, e.g. ``JRC-VC_280219_part2_f3``.
+OpenACC (JRC; every campaign's layout, e.g. Vicolungo and ZalaZone): 5 metadata rows (``Date``,
+``Vehicle_order``, ``Number_of_vehicles``, ``ACC,0|1|2``, ``Distance_setting``), then the header.
+A header in another row (e.g. a file saved without its metadata rows) is rejected in one line
+naming the row: the file has lost its ACC flag, so it is not read as if it were whole.
+- pairs: leader ``k``, follower ``k+1`` wherever ``IVS{k}`` exists and the follower has columns.
+  Vehicles may have no columns at all (ZalaZone's target car 1, and no ``IVS1``: its car 2 has
+  no measured leader) and numbers may skip (no car 9: no ``IVS8``, no ``IVS9``). The follower
+  needs ``Speed/E/N``; two numbered cars ``k, k+1`` without ``IVS{k}`` between them, or a
+  follower with only part of ``Speed/E/N``, is a broken file (an error naming the column).
+- driver: only a FOLLOWER's own matters. ``Driver{k}`` ("Human"/"ACC", per row) when present,
+  else the file-wide metadata flag (``ACC,0``: all human, ``ACC,1``: all on ACC); with neither
+  (no column and ``ACC,2`` = mixed, or no ACC row) one line names the file and the follower.
+  ACC rows are dropped unless ``include_acc=True``; followers with no human row are skipped.
+- runs: a follower's usable rows (time, ``Speed/E/N`` finite; human unless ``include_acc``) are
+  cut into contiguous runs: a removed row (NaN dropout, ACC stretch) or a time step above 1.5
+  median steps ends a run, and each run is smoothed alone (nothing is filtered across a gap).
+  Runs shorter than the 5 s curvature window are skipped (``runs_short_skipped``,
+  ``rows_short_skipped``). Recording ids: ``<file name without extensions>_f<k>``, e.g.
+  ``JRC-VC_280219_part2_f3``, when follower ``k`` has one run (so whole files keep their ids),
+  else ``..._f<k>_s<i>``, ``i = 1, 2, ...`` over its imported runs in time order.
 - world ``x, y = E{k}, N{k}``; heading from the Savitzky-Golay smoothed path (window 2 s).
 - no lane information (GNSS lateral bias 1-3 m): the follower is centred in a straight-ahead lane
   of width 3.5 m, ``c0l = +1.75``, ``c0r = -1.75``, ``c1 = 0``; the lane bends with the path:
   ``c2 = kappa / 2`` with the path curvature ``kappa = d(yaw)/ds`` from a 5 s Savitzky-Golay
-  derivative of the unwrapped heading, clipped to ``|kappa| <= 1/250 m`` (motorway radii are
-  larger; the clip stops GNSS glitches becoming sharp bends); ``c3 = 0``.
-- leader: ``lead_x = IVS{k-1}`` (bumper-to-bumper, clipped to :data:`MIN_GAP`), ``lead_y = 0``,
-  ``lead_v = Speed{k-1}``. Followers driven by ACC are skipped unless ``include_acc=True``.
-- ``Alt/U/VE/VN/VU`` are not used and may be absent (other campaigns lack them for some vehicles).
+  derivative of the unwrapped heading, clipped to ``|kappa| <= 1/250 m`` by default (motorway
+  radii are larger; the clip stops GNSS glitches becoming sharp bends; ``max_curvature`` for a
+  test track: ZalaZone's handling course has a median radius of ~150 m, 60 % of its rows
+  exceed the motorway clip, 8 % exceed 1/40 m); ``c3 = 0``.
+- leader: ``lead_x = IVS{k-1}`` (bumper-to-bumper, clipped to :data:`MIN_GAP`; NaN rows keep
+  the follower's row with no leader), ``lead_y = 0``, ``lead_v = Speed{k-1}``. When car ``k-1``
+  has no ``Speed`` column, ``lead_v`` is NaN (counted as ``lead_speed_missing``) and the
+  pipeline's leader_speed step differentiates ``IVS`` and adds the follower's speed instead
+  (on Vicolungo's f2: 0.20 m/s RMSE against the measured speed), rather than dropping a pair.
+- ``Lat/Lon/Alt/U/VE/VN/VU`` are not used and may be absent (campaigns differ).
+- ``import_stats``: ``pairs`` (followers imported), ``followers_human``,
+  ``followers_acc_skipped``, ``driver_from_metadata``, ``lead_speed_missing``,
+  ``ivs_without_follower``, ``rows_nan_skipped``, ``runs_short_skipped``,
+  ``rows_short_skipped``, ``gap_clipped``, ``curvature_clipped``, ``recordings``, ``rows``.
 """
 
 from __future__ import annotations
 
+import gzip
 import itertools
 import re
 from pathlib import Path
@@ -322,6 +350,18 @@ def import_ngsim_csv(path: str | Path, min_pair_frames: int = 2) -> pd.DataFrame
 
 # --------------------------------------------------------------------------------------- OpenACC
 
+OPENACC_METADATA_KEYS = ("Date", "Vehicle_order", "Number_of_vehicles", "ACC", "Distance_setting")
+OPENACC_FOLLOWER_COLUMNS = ("Speed", "E", "N")  # per follower k; the leader needs only IVS{k-1}
+OPENACC_VEHICLE_COLUMN = re.compile(r"^(Speed|Lat|Lon|Alt|E|N|U|VE|VN|VU|Driver)(\d+)$")
+OPENACC_IVS_COLUMN = re.compile(r"^IVS(\d+)$")
+# metadata ``ACC,0``: the whole file driven by hand, ``ACC,1``: all followers on ACC; ``ACC,2``
+# (mixed) or no ACC row cannot stand in for a missing Driver column
+OPENACC_ACC_FLAG_HUMAN = {"0": True, "1": False}
+OPENACC_HEADING_WINDOW = 2.0  # [s] Savitzky-Golay window of the path's velocity (heading)
+OPENACC_CURVATURE_WINDOW = 5.0  # [s] window of d(yaw)/dt; also the shortest run imported
+OPENACC_GAP_FACTOR = 1.5  # [-] a time step above this x the median step breaks a run (as the
+#                            pipeline's default gap_factor)
+
 
 def openacc_recording_prefix(path: str | Path) -> str:
     """The file's name without its extensions, characters other than letters, digits, ``_`` and
@@ -334,90 +374,197 @@ def openacc_recording_prefix(path: str | Path) -> str:
     return re.sub(r"[^A-Za-z0-9_-]", "_", stem) or "openacc"
 
 
+def _fields(line: str) -> list[str]:
+    """The comma-separated fields of one line, stripped of blanks and quotes."""
+    return [f.strip().strip('"').strip() for f in line.split(",")]
+
+
+def _head_lines(path: Path, n: int) -> list[str]:
+    """The first ``n`` lines of a plain or gzip (``.gz``) text file; bad bytes are replaced."""
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rt", errors="replace", newline="") as fh:
+            return [line.rstrip("\r\n") for line in itertools.islice(fh, n)]
+    except (OSError, EOFError) as exc:  # e.g. a .gz that is not gzip
+        raise SchemaError(f"{path}: not readable ({type(exc).__name__}: {exc})") from exc
+
+
 def read_openacc(path: str | Path) -> tuple[pd.DataFrame, list[str]]:
-    """The raw OpenACC table (header after 5 metadata rows) and the 5 metadata lines."""
+    """The raw OpenACC table and its 5 metadata lines (trailing empty fields dropped).
+
+    The layout is checked on the first lines: 5 metadata rows (``Date``, ``Vehicle_order``,
+    ``Number_of_vehicles``, ``ACC``, ``Distance_setting``), then the header with ``Time``. A header
+    in another row is rejected with one line naming that row (a file without its metadata rows
+    has lost the file-wide ACC flag, so it is not read as if it were whole); any other file gets
+    one line saying it is not an OpenACC file.
+    """
     path = Path(path)
     if not path.is_file():
         raise SchemaError(f"{path}: no such file")
-    try:
-        meta = pd.read_csv(path, nrows=5, header=None, usecols=[0, 1], dtype=str)
-    except Exception as exc:
-        raise SchemaError(f"{path}: not an OpenACC csv ({type(exc).__name__}: {exc})") from exc
+    head = _head_lines(path, 10)
+    rows = [_fields(line) for line in head]
+    header = next((i for i, r in enumerate(rows) if "Time" in r), None)
+    keys = ", ".join(OPENACC_METADATA_KEYS)
+    if header is None:
+        if rows and rows[0][0] == "Date":
+            raise SchemaError(f"{path}: OpenACC metadata rows but no header with a 'Time' column "
+                              f"in rows 1-{len(rows)}: not the OpenACC layout")
+        start = f"row 1 starts {head[0][:40]!r}" if head else "empty file"
+        raise SchemaError(f"{path}: not an OpenACC file ({start}): OpenACC files start with 5 "
+                          f"metadata rows ({keys}), then a header with 'Time'")
+    if header != 5:
+        raise SchemaError(f"{path}: header (with 'Time') found in row {header + 1}, but OpenACC "
+                          f"files start with 5 metadata rows ({keys}) and have it in row 6")
     raw = _read_table(path, skiprows=5)
     raw.columns = [str(c).strip() for c in raw.columns]
-    if "Time" not in raw.columns:
+    if "Time" not in raw.columns:  # e.g. a quoted header the line check read differently
         raise SchemaError(f"{path}: missing column 'Time' after the 5 metadata rows "
                           f"(have: {', '.join(raw.columns[:8])}, ...): not the OpenACC layout")
-    return raw, [",".join(map(str, r)) for r in meta.fillna("").to_numpy()]
+    meta = [",".join(r).rstrip(",") for r in rows[:5]]
+    return raw, meta
 
 
-def import_openacc(path: str | Path, include_acc: bool = False) -> pd.DataFrame:
-    """One OpenACC platoon file: one recording per human follower (all followers if include_acc).
+def openacc_metadata(lines: list[str]) -> dict[str, list[str]]:
+    """Metadata lines as ``{key: values}``, empty fields dropped: ``"ACC, 1"`` -> ``{"ACC": ["1"]}``."""
+    out: dict[str, list[str]] = {}
+    for line in lines:
+        f = _fields(line)
+        if f[0]:
+            out[f[0]] = [v for v in f[1:] if v]
+    return out
 
+
+def openacc_runs(time: np.ndarray, ok: np.ndarray, dt: float,
+                 gap_factor: float = OPENACC_GAP_FACTOR) -> list[np.ndarray]:
+    """Row indices of each contiguous run of rows where ``ok``: a row that is not ok, or a time
+    step above ``gap_factor * dt``, ends a run (so nothing is smoothed across it)."""
+    idx = np.flatnonzero(ok)
+    if len(idx) == 0:
+        return []
+    brk = (np.diff(idx) > 1) | (np.diff(time[idx]) > gap_factor * dt)
+    return np.split(idx, np.flatnonzero(brk) + 1)
+
+
+def openacc_heading_curvature(e: np.ndarray, n: np.ndarray, dt: float
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """Heading [rad, unwrapped] and path curvature [1/m, not clipped] of ONE contiguous run of
+    positions ``e, n`` [m] sampled every ``dt`` [s]: heading = direction of the Savitzky-Golay
+    velocity (window :data:`OPENACC_HEADING_WINDOW`), curvature = Savitzky-Golay d(heading)/dt
+    (window :data:`OPENACC_CURVATURE_WINDOW`) over ``max(path speed, 1 m/s)``."""
+    w = round(OPENACC_HEADING_WINDOW / dt)
+    ve, vn = _savgol(e, w, 1, dt), _savgol(n, w, 1, dt)
+    yaw = np.unwrap(np.arctan2(vn, ve))
+    yaw_rate = _savgol(yaw, round(OPENACC_CURVATURE_WINDOW / dt), 1, dt)
+    return yaw, yaw_rate / np.maximum(np.hypot(ve, vn), MIN_HEADING_SPEED)
+
+
+def _openacc_human(raw: pd.DataFrame, meta: dict[str, list[str]], k: int,
+                   src: str) -> tuple[np.ndarray, bool]:
+    """``(N,)`` True where follower ``k`` drove by hand: its ``Driver{k}`` column, else the file's
+    metadata ACC flag; and whether the flag was used."""
+    col = f"Driver{k}"
+    if col in raw.columns:
+        return (raw[col].astype(str).str.strip().str.lower() == "human").to_numpy(), False
+    flag = (meta.get("ACC") or [""])[0]
+    if flag not in OPENACC_ACC_FLAG_HUMAN:
+        got = f"metadata row 'ACC,{flag}'" if "ACC" in meta else "no metadata row 'ACC'"
+        raise SchemaError(f"{src}: follower {k} has no column {col!r} and {got} cannot stand in "
+                          "(ACC,0 = all human, ACC,1 = all ACC): who drove it is unknown")
+    return np.full(len(raw), OPENACC_ACC_FLAG_HUMAN[flag]), True
+
+
+def _numeric(raw: pd.DataFrame, column: str) -> np.ndarray:
+    return pd.to_numeric(raw[column], errors="coerce").to_numpy(float)
+
+
+def openacc_pairs(raw: pd.DataFrame, src: str) -> tuple[list[tuple[int, int]], int]:
+    """The (leader, follower) vehicle numbers ``(k, k+1)`` of a raw OpenACC table: wherever
+    ``IVS{k}`` exists and vehicle ``k+1`` has columns; and how many ``IVS`` columns name a
+    follower without any column. A follower lacking one of ``Speed/E/N``, or two numbered
+    vehicles ``k, k+1`` without ``IVS{k}`` between them, is a broken file (SchemaError)."""
+    vehicles = {int(m.group(2)) for c in raw.columns if (m := OPENACC_VEHICLE_COLUMN.match(c))}
+    ivs = sorted(int(m.group(1)) for c in raw.columns if (m := OPENACC_IVS_COLUMN.match(c)))
+    _require(raw, [f"IVS{k}" for k in sorted(vehicles) if k + 1 in vehicles], src)
+    pairs = [(k, k + 1) for k in ivs if k + 1 in vehicles]
+    _require(raw, [f"{c}{f}" for _, f in pairs for c in OPENACC_FOLLOWER_COLUMNS], src)
+    if not pairs:
+        raise SchemaError(
+            f"{src}: no follower pair: a pair (k, k+1) needs a column IVS<k> and vehicle k+1's "
+            f"Speed/E/N (vehicles with columns: {', '.join(map(str, sorted(vehicles))) or 'none'}"
+            f"; IVS columns: {', '.join(f'IVS{k}' for k in ivs) or 'none'})")
+    return pairs, len(ivs) - len(pairs)
+
+
+def import_openacc(path: str | Path, include_acc: bool = False,
+                   max_curvature: float = MAX_PATH_CURVATURE) -> pd.DataFrame:
+    """One OpenACC platoon file: one recording per contiguous run of each human follower (all
+    followers if include_acc); see the module doc for pairs, drivers, runs and ids.
+
+    ``max_curvature`` [1/m] clips the lane curvature; the default suits motorways (R >= 250 m),
+    a test track needs more (ZalaZone's handling course: median radius ~150 m, 1 % below 50 m).
     May return an empty frame (no rows) when no follower qualifies, e.g. an ACC day.
     """
     path = Path(path)
     src = str(path)
-    raw, _ = read_openacc(path)
-    n_veh = 0
-    while f"Speed{n_veh + 1}" in raw.columns:
-        n_veh += 1
-    if n_veh < 2:
-        raise SchemaError(f"{src}: missing column(s) 'Speed1', 'Speed2' (need >= 2 vehicles)")
-    need = [f"{c}{k}" for k in range(1, n_veh + 1) for c in OPENACC_REQUIRED]
-    need += [f"IVS{k}" for k in range(1, n_veh)]
-    _require(raw, need, src)
-    time = pd.to_numeric(raw["Time"], errors="coerce").to_numpy(float)
+    raw, meta_lines = read_openacc(path)
+    meta = openacc_metadata(meta_lines)
+    pairs, ivs_unused = openacc_pairs(raw, src)
+    time = _numeric(raw, "Time")
     prefix = openacc_recording_prefix(path)
-    dt = float(np.median(np.diff(time))) if len(time) > 1 else 0.1
+    dt = float(np.nanmedian(np.diff(time))) if len(time) > 1 else 0.1
+    min_run = round(OPENACC_CURVATURE_WINDOW / dt) | 1  # the curvature filter's window
+    half = 0.5 * OPENACC_LANE_WIDTH
     frames: list[pd.DataFrame] = []
     stats = {"source": src, "followers_human": 0, "followers_acc_skipped": 0,
-             "rows_nan_skipped": 0, "gap_clipped": 0, "curvature_clipped": 0}
-    for k in range(2, n_veh + 1):
-        driver = raw[f"Driver{k}"].astype(str).str.strip().str.lower()
-        human = (driver == "human").to_numpy()
+             "rows_nan_skipped": 0, "gap_clipped": 0, "curvature_clipped": 0,
+             "pairs": 0, "ivs_without_follower": ivs_unused, "driver_from_metadata": 0,
+             "lead_speed_missing": 0, "runs_short_skipped": 0, "rows_short_skipped": 0}
+    for lead, k in pairs:
+        human, from_meta = _openacc_human(raw, meta, k, src)
+        stats["driver_from_metadata"] += int(from_meta)
         if not include_acc and not human.any():
             stats["followers_acc_skipped"] += 1
             continue
         stats["followers_human"] += int(human.any())
-        num = {c: pd.to_numeric(raw[f"{c}{j}"], errors="coerce").to_numpy(float)
-               for c, j in (("E", k), ("N", k), ("Speed", k), ("IVS", k - 1))}
-        lead_v = pd.to_numeric(raw[f"Speed{k - 1}"], errors="coerce").to_numpy(float)
-        ok = np.isfinite(time) & np.isfinite(num["E"]) & np.isfinite(num["N"]) \
-            & np.isfinite(num["Speed"])
+        v, e, nn = (_numeric(raw, f"{c}{k}") for c in ("Speed", "E", "N"))
+        ivs = _numeric(raw, f"IVS{lead}")
+        if f"Speed{lead}" in raw.columns:
+            lead_v = _numeric(raw, f"Speed{lead}")
+        else:  # NaN: the pipeline's leader_speed differentiates IVS (+ follower speed) instead
+            lead_v = np.full(len(raw), np.nan)
+            stats["lead_speed_missing"] += 1
+        ok = np.isfinite(time) & np.isfinite(e) & np.isfinite(nn) & np.isfinite(v)
         if not include_acc:
             ok &= human  # a follower switching to ACC mid-file loses those rows
         stats["rows_nan_skipped"] += int((~ok & (human | include_acc)).sum())
-        idx = np.flatnonzero(ok)
-        if len(idx) < 3:
-            continue
-        e, nn, t = num["E"][idx], num["N"][idx], time[idx]
-        w = round(2.0 / dt)
-        ve, vn = _savgol(e, w, 1, dt), _savgol(nn, w, 1, dt)
-        yaw = np.unwrap(np.arctan2(vn, ve))
-        speed_path = np.hypot(ve, vn)
-        yaw_rate = _savgol(yaw, round(5.0 / dt), 1, dt)
-        kappa = yaw_rate / np.maximum(speed_path, MIN_HEADING_SPEED)
-        stats["curvature_clipped"] += int((np.abs(kappa) > MAX_PATH_CURVATURE).sum())
-        kappa = np.clip(kappa, -MAX_PATH_CURVATURE, MAX_PATH_CURVATURE)
-        gap = num["IVS"][idx]
-        stats["gap_clipped"] += int((gap < MIN_GAP).sum())
-        has_lead = np.isfinite(gap)
-        gap = np.where(has_lead, np.maximum(gap, MIN_GAP), np.nan)
-        half = 0.5 * OPENACC_LANE_WIDTH
-        frames.append(pd.DataFrame({
-            "recording_id": f"{prefix}_f{k}",
-            "time": t,
-            "x": e,
-            "y": nn,
-            "yaw": (yaw + np.pi) % (2 * np.pi) - np.pi,
-            "v_x": num["Speed"][idx],
-            "left_c0": half, "left_c1": 0.0, "left_c2": 0.5 * kappa, "left_c3": 0.0,
-            "right_c0": -half, "right_c1": 0.0, "right_c2": 0.5 * kappa, "right_c3": 0.0,
-            "lead_x": gap,
-            "lead_y": np.where(has_lead, 0.0, np.nan),
-            "lead_v": lead_v[idx],
-        }))
+        runs = openacc_runs(time, ok, dt)
+        short = [r for r in runs if len(r) < min_run]
+        stats["runs_short_skipped"] += len(short)
+        stats["rows_short_skipped"] += sum(len(r) for r in short)
+        runs = [r for r in runs if len(r) >= min_run]
+        stats["pairs"] += int(bool(runs))
+        for i, idx in enumerate(runs, start=1):
+            yaw, kappa = openacc_heading_curvature(e[idx], nn[idx], dt)
+            stats["curvature_clipped"] += int((np.abs(kappa) > max_curvature).sum())
+            kappa = np.clip(kappa, -max_curvature, max_curvature)
+            gap = ivs[idx]
+            stats["gap_clipped"] += int((gap < MIN_GAP).sum())
+            has_lead = np.isfinite(gap)
+            gap = np.where(has_lead, np.maximum(gap, MIN_GAP), np.nan)
+            frames.append(pd.DataFrame({
+                # one run keeps the plain id, so files without breaks keep their ids
+                "recording_id": f"{prefix}_f{k}" if len(runs) == 1 else f"{prefix}_f{k}_s{i}",
+                "time": time[idx],
+                "x": e[idx],
+                "y": nn[idx],
+                "yaw": (yaw + np.pi) % (2 * np.pi) - np.pi,
+                "v_x": v[idx],
+                "left_c0": half, "left_c1": 0.0, "left_c2": 0.5 * kappa, "left_c3": 0.0,
+                "right_c0": -half, "right_c1": 0.0, "right_c2": 0.5 * kappa, "right_c3": 0.0,
+                "lead_x": gap,
+                "lead_y": np.where(has_lead, 0.0, np.nan),
+                "lead_v": lead_v[idx],
+            }))
     if not frames:
         out = pd.DataFrame({c: pd.Series(dtype=float) for c in (
             "time", "x", "y", "yaw", "v_x", "left_c0", "left_c1", "left_c2", "left_c3",
@@ -431,9 +578,10 @@ def import_openacc(path: str | Path, include_acc: bool = False) -> pd.DataFrame:
     return out
 
 
-def import_openacc_files(paths: list[str | Path], include_acc: bool = False) -> pd.DataFrame:
+def import_openacc_files(paths: list[str | Path], include_acc: bool = False,
+                         max_curvature: float = MAX_PATH_CURVATURE) -> pd.DataFrame:
     """Several OpenACC files into one drive frame (recording ids stay unique per file)."""
-    parts = [import_openacc(p, include_acc) for p in paths]
+    parts = [import_openacc(p, include_acc, max_curvature) for p in paths]
     nonempty = [p for p in parts if len(p)]
     out = pd.concat(nonempty, ignore_index=True) if nonempty else parts[0].iloc[:0]
     out.attrs["import_stats"] = {"files": [p.attrs["import_stats"] for p in parts]}
