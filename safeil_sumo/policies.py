@@ -70,3 +70,23 @@ def load_for_replay(name_or_path: str) -> Policy:
     """:func:`load`, plus ``recorded``: an unbound :class:`RecordedPath` that the replay binds to
     the maneuver it rebuilds."""
     return RecordedPath() if name_or_path == RECORDED_NAME else load(name_or_path)
+
+
+def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:
+    """``policy`` set to keep a preferred time gap ``time_gap_s`` [s] (an ACC's distance
+    setting): a style-conditioned checkpoint's style input (:mod:`safeil_sumo.learn.style`,
+    clipped to its trained range), or the IDM's time gap T. Other planners have no such setting:
+    :class:`PolicyError`."""
+    from dataclasses import replace
+
+    from safeil_sumo import idm
+
+    if not (time_gap_s > 0):
+        raise PolicyError(f"a time gap must be > 0 s, got {time_gap_s}")
+    if isinstance(policy, idm.IDMPlanner):
+        return replace(policy, params=replace(policy.params, time_gap_s=float(time_gap_s)))
+    if "time_gap_s" in getattr(policy, "style_names", ()):
+        policy.set_style(time_gap_s=float(time_gap_s))
+        return policy
+    raise PolicyError(f"{policy.name} has no time-gap setting (style-conditioned checkpoints "
+                      "and the IDM have one)")

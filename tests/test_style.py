@@ -105,3 +105,20 @@ def test_checkpoint_with_a_style_input_count_mismatch_is_refused(tmp_path):
     sidecar.write_text(json.dumps(meta))
     with pytest.raises(CheckpointError, match="expects 9 features"):
         load_policy(tmp_path / "m")
+
+
+def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
+    from safeil_sumo import policies
+    from safeil_sumo.analytic import AnalyticPlanner
+
+    styled = with_style_input(_style_model(), 1.5, 0.5)
+    save_checkpoint(tmp_path / "m", styled, name="m", horizon=5.0)
+    p = policies.with_time_gap(policies.load(str(tmp_path / "m.safetensors")), 2.2)
+    assert p.style == {"time_gap_s": 2.2}
+    idm = policies.with_time_gap(policies.load("idm"), 2.4)
+    assert idm.params.time_gap_s == 2.4
+    assert policies.load("idm").params.time_gap_s != 2.4  # the shipped fit is untouched
+    with pytest.raises(policies.PolicyError, match="no time-gap setting"):
+        policies.with_time_gap(AnalyticPlanner(), 2.0)
+    with pytest.raises(policies.PolicyError, match="> 0"):
+        policies.with_time_gap(idm, 0.0)

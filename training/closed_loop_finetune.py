@@ -39,7 +39,12 @@ from safeil_sumo.learn.closed_loop import (
 from safeil_sumo.learn.envelope import sample_states
 from safeil_sumo.learn.losses import envelope_barrier_terms
 from safeil_sumo.learn.model import with_style_input
-from safeil_sumo.learn.style import TIME_GAP_RANGE_S, maneuver_time_gaps
+from safeil_sumo.learn.style import (
+    TIME_GAP_RANGE_S,
+    equilibrium_residual,
+    equilibrium_states,
+    maneuver_time_gaps,
+)
 from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
 
 
@@ -55,6 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lr", type=float, default=3e-4)
     ap.add_argument("--speed-weight", type=float, default=4.0)
     ap.add_argument("--lateral-weight", type=float, default=100.0)
+    ap.add_argument("--equilibrium-weight", type=float, default=0.0,
+                    help="weight of the equilibrium term: behind a leader at its own speed at "
+                         "the preferred gap the plan keeps its speed (learn/style.py)")
     ap.add_argument("--style", action="store_true",
                     help="add the driver's preferred time gap as an input (learn/style.py)")
     ap.add_argument("--seed", type=int, default=0)
@@ -77,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
           f"training maneuvers ({len(held)} held out)")
     feats = torch.as_tensor(tuples.features, dtype=torch.float32)
     style_default = None
+    median = float(np.nanmedian(maneuver_time_gaps(
+        tuples.features[:, D_LEAD], tuples.features[:, V_X], tuples.maneuver_id, np.nan)))
     if args.style:
         tg = maneuver_time_gaps(tuples.features[:, D_LEAD], tuples.features[:, V_X],
                                 tuples.maneuver_id, fallback_s=np.nan)
@@ -109,18 +119,24 @@ def main(argv: list[str] | None = None) -> int:
                                                   dtype=torch.float32)], dim=1)
         env_term = sum(envelope_barrier_terms(env, model(env), horizon, cfg.barrier))
         mono = gap_monotone_penalty(model, env, margin_m=cfg.monotone_margin_m)
+        equilibrium = torch.zeros(())
+        if args.equilibrium_weight > 0:
+            time_gap = env[:, 9] if args.style else torch.full((len(env),), median)
+            eq = equilibrium_states(env, time_gap)
+            equilibrium = equilibrium_residual(model(eq), eq[:, V_X], horizon)
         data_rows = torch.randint(len(feats), (512,), generator=gen)
         anchor = torch.cat([feats[data_rows], env])
         lateral = (model(anchor)[..., 1] - frozen(anchor[:, :9])[..., 1]).pow(2).mean()
         loss = (terms.total + cfg.envelope_weight * env_term + cfg.monotone_weight * mono
-                + args.lateral_weight * lateral)
+                + args.lateral_weight * lateral + args.equilibrium_weight * equilibrium)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         opt.step()
         row = {**terms.as_floats(), "envelope": float(env_term.detach()),
                "monotone": float(mono.detach()),
-               "lateral": float(lateral.detach()), "loss": float(loss.detach())}
+               "lateral": float(lateral.detach()), "equilibrium": float(equilibrium.detach()),
+               "loss": float(loss.detach())}
         log.append(row)
         bar.set_postfix(gap=f"{row['gap']:.1f}", v=f"{row['speed']:.2f}",
                         lat=f"{row['lateral']:.2g}", refresh=False)
@@ -130,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         "init": str(args.init), "window_s": args.window, "stride_s": args.stride,
         "iters": args.iters, "batch": args.batch, "lr": args.lr,
         "speed_weight": args.speed_weight, "lateral_weight": args.lateral_weight,
+        "equilibrium_weight": args.equilibrium_weight,
         "seed": args.seed, "episodes": len(eps), "seconds": seconds, "style": args.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,

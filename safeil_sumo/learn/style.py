@@ -18,11 +18,13 @@ with styles across :data:`TIME_GAP_RANGE_S`.
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 STYLE_NAMES = ("time_gap_s",)
 TIME_GAP_RANGE_S = (0.6, 3.5)  # [s] styles drawn for the envelope states; settings are clipped
 MIN_SPEED_MPS = 5.0  # [m/s] slower samples say more about standstill distance than time gap
 MAX_TIME_GAP_S = 6.0  # [s] a sample farther back is not following
+STANDSTILL_GAP_M = 2.0  # [m] the equilibrium gap's floor at low speed
 
 
 def estimate_time_gap(gap_m: np.ndarray, speed_mps: np.ndarray,
@@ -55,3 +57,22 @@ def clip_time_gap(time_gap_s: float) -> float:
     """A setting inside the trained range :data:`TIME_GAP_RANGE_S`."""
     lo, hi = TIME_GAP_RANGE_S
     return float(min(max(float(time_gap_s), lo), hi))
+
+
+def equilibrium_states(states: torch.Tensor, time_gap_s: torch.Tensor) -> torch.Tensor:
+    """``states (N, >= 9)`` moved to the equilibrium of a driver with ``time_gap_s (N,)`` [s]:
+    the leader at the ego's speed, at the gap ``max(T v, STANDSTILL_GAP_M)``."""
+    out = states.clone()
+    v = out[:, 6]
+    out[:, 7] = v
+    out[:, 8] = torch.clamp(time_gap_s * v, min=STANDSTILL_GAP_M)
+    return out
+
+
+def equilibrium_residual(control_points: torch.Tensor, v_x: torch.Tensor,
+                         horizon: float) -> torch.Tensor:
+    """Mean squared departure [m^2] of the plans' x control points ``(N, 3, 2)`` from driving on
+    at the current speed ``v_x (N,)``: zero when a driver at equilibrium keeps its speed. This
+    gives the closed loop its fixed point at the preferred gap."""
+    times = torch.arange(1, 4, dtype=control_points.dtype) * (horizon / 3.0)
+    return (control_points[..., 0] - v_x[:, None] * times).pow(2).mean()
