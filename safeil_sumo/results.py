@@ -481,7 +481,8 @@ def _whole_readme(whole: list[dict]) -> list[str]:
         "human: below 0 the planner follows closer). `constant_speed` keeps its initial speed on "
         "the lane centre and ignores the leader: the naive baseline of the car-following "
         "literature. `recorded` drives the human's own path: the instrument's floor. A run that "
-        "ends in a collision is compared up to it. Median and mean over maneuvers with seeded "
+        "ends before the recording (a collision, off the road, or past the road's end) is "
+        "compared up to there (*runs ended early*). Median and mean over maneuvers with seeded "
         "bootstrap 95 % intervals; worst: the largest gap RMSE and its maneuver. Per driver "
         "(an OpenACC file's follower, an NGSIM follower vehicle): "
         "`humanlike_whole_by_driver.csv`.", "",
@@ -492,7 +493,8 @@ def _whole_readme(whole: list[dict]) -> list[str]:
                          "time_gap_rmse_median_s": "time-gap RMSE median [s]",
                          "tg_err": "time-gap error median / mean [s]",
                          "flags": "flags", "flags_beyond_human":
-                         "flags where the human has none", "collisions": "collisions"}),
+                         "flags where the human has none", "collisions": "collisions",
+                         "ended_early": "runs ended early"}),
         "", *[f"![{s} whole](humanlike_whole_{s}.png)"
               for s in dict.fromkeys(r["source"] for r in whole)], ""]
 

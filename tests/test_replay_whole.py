@@ -83,7 +83,9 @@ def _window_table() -> pd.DataFrame:
     df = pd.DataFrame(rows, columns=["policy", "driver", "maneuver_id", "start_s", "rmse_gap",
                                      "rmspe_gap", "rmse_headway", "bias_headway", "flag",
                                      "end_reason"])
-    return df.assign(status="ok", rmse_v=0.5, rmse_d=0.1, w1_headway=0.2, human_flag="")
+    coverage = [1.0, 0.4, 0.9, 1.0]  # the collisions ended their runs early
+    return df.assign(status="ok", rmse_v=0.5, rmse_d=0.1, w1_headway=0.2, human_flag="",
+                     coverage=coverage)
 
 
 def test_aggregate_per_policy_reports_worst_window_rmspe_and_collisions():
@@ -100,9 +102,10 @@ def test_aggregate_per_policy_reports_worst_window_rmspe_and_collisions():
     assert a["time_gap_error_median_s"] == pytest.approx(0.1)
     assert a["time_gap_error_mean_s"] == pytest.approx(0.1)
     # windows with a collision (first flag TTC, or collision): 2, not the counts OR-ed (1 | 2)
-    assert a["collisions"] == 2 and a["flags"] == 2
+    assert a["collisions"] == 2 and a["flags"] == 2 and a["ended_early"] == 2
     b = agg.loc["b"]
     assert math.isnan(b["spacing_rmspe_median"]) and b["collisions"] == 0
+    assert b["ended_early"] == 0
     assert b["gap_rmse_worst"] == "1-0#0@0s" and b["flags"] == 1
 
 

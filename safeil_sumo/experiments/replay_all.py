@@ -349,7 +349,8 @@ def literature_summary(g: pd.DataFrame) -> dict:
     """What the car-following literature reports, over the windows ``g`` (rows of
     :func:`table`, one group): the worst window's gap RMSE [m] and its :func:`window_id`, the
     spacing RMSPE's median and mean [-, fractions], the time-gap RMSE's median [s], the mean
-    time-gap error's median and mean [s] (policy - human)."""
+    time-gap error's median and mean [s] (policy - human), and the windows whose run ended
+    before the recording (a collision, off the road, at the road's end: compared up to there)."""
     gap = _column(g, "rmse_gap")
     worst = int(np.nanargmax(gap)) if np.isfinite(gap).any() else None
     return {
@@ -361,6 +362,7 @@ def literature_summary(g: pd.DataFrame) -> dict:
         "time_gap_rmse_median_s": _nan_stat(np.nanmedian, _column(g, "rmse_headway")),
         "time_gap_error_median_s": _nan_stat(np.nanmedian, _column(g, "bias_headway")),
         "time_gap_error_mean_s": _nan_stat(np.nanmean, _column(g, "bias_headway")),
+        "ended_early": int((_column(g, "coverage") < 1.0).sum()),
     }
 
 
