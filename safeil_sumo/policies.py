@@ -1,7 +1,9 @@
 """Name -> Policy: ``analytic``, ``idm`` (the calibrated IDM baseline), the shipped ``safeil`` /
 ``safeil_paper`` / ``bc`` checkpoints, a checkpoint path, or an IDM model file (``*.json`` with
-``"type": "idm"``, written by ``training/fit_idm.py``). Replays also know ``recorded``, the
-human's own path (:mod:`safeil_sumo.sim.recorded_ego`, :func:`load_for_replay`)."""
+``"type": "idm"``, written by ``training/fit_idm.py``). Replays also know two kinematic
+pseudo-planners (:func:`load_for_replay`): ``recorded``, the human's own path
+(:mod:`safeil_sumo.sim.recorded_ego`), and ``constant_speed``, the ego keeping its initial speed
+on its lane centre (:mod:`safeil_sumo.sim.constant_speed_ego`)."""
 
 from __future__ import annotations
 
@@ -9,11 +11,13 @@ from pathlib import Path
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.policy import Policy
+from safeil_sumo.sim.constant_speed_ego import CONSTANT_SPEED_NAME, ConstantSpeedPath
 from safeil_sumo.sim.recorded_ego import RECORDED_NAME, RecordedPath
 
 MODELS_DIR = Path(__file__).resolve().parent / "models"
 SHIPPED = ("safeil", "safeil_paper", "bc")
 NAMES = ("analytic", "idm", *SHIPPED)
+REPLAY_ONLY = (RECORDED_NAME, CONSTANT_SPEED_NAME)  # kinematic pseudo-planners of a replay
 
 
 class PolicyError(ValueError):
@@ -38,6 +42,9 @@ def load(name_or_path: str) -> Policy:
     if name_or_path == RECORDED_NAME:
         raise PolicyError("the 'recorded' pseudo-planner drives a recorded maneuver's own path: "
                           "use it with python -m safeil_sumo.replay")
+    if name_or_path == CONSTANT_SPEED_NAME:
+        raise PolicyError("the 'constant_speed' baseline keeps a recorded maneuver's initial "
+                          "speed: use it with python -m safeil_sumo.replay")
     if name_or_path == "analytic":
         return AnalyticPlanner()
     if name_or_path == "idm" or (name_or_path.endswith(".json")
@@ -67,9 +74,14 @@ def load(name_or_path: str) -> Policy:
 
 
 def load_for_replay(name_or_path: str) -> Policy:
-    """:func:`load`, plus ``recorded``: an unbound :class:`RecordedPath` that the replay binds to
-    the maneuver it rebuilds."""
-    return RecordedPath() if name_or_path == RECORDED_NAME else load(name_or_path)
+    """:func:`load`, plus ``recorded`` (an unbound :class:`RecordedPath`) and ``constant_speed``
+    (an unbound :class:`ConstantSpeedPath`), which the replay binds to the maneuver it
+    rebuilds."""
+    if name_or_path == RECORDED_NAME:
+        return RecordedPath()
+    if name_or_path == CONSTANT_SPEED_NAME:
+        return ConstantSpeedPath()
+    return load(name_or_path)
 
 
 def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:

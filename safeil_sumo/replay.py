@@ -88,8 +88,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="replay length [s] (default 11, the paper's; 0 = to the maneuver end)")
     p.add_argument("--policies", nargs="+", default=["analytic"],
                    help="safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
-                        "path: the instrument's error floor) and/or checkpoint paths "
-                        "(default analytic)")
+                        "path: the instrument's error floor), constant_speed (the initial speed "
+                        "held on the lane centre, no reaction to the leader: the naive "
+                        "baseline) and/or checkpoint paths (default analytic)")
     p.add_argument("--rate", type=finite_float, default=10.0,
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
@@ -171,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         policies = {}
         for name in args.policies:
             policy = pol.load_for_replay(name)
-            label = name if name in ("analytic", "recorded", *pol.SHIPPED) else policy.name
+            label = name if name in ("analytic", *pol.REPLAY_ONLY, *pol.SHIPPED) else policy.name
             policies[label if label not in policies else name] = policy
     except (SchemaError, rp.ReplayError, pol.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

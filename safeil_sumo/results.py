@@ -11,6 +11,9 @@ Sections (``--only`` picks some; every sweep is resumable, its task files live i
 - ``leader``: the static leader probe and the leader-response suite for every planner;
 - ``humanlike``: every 11 s window (every 20 s) of the held-out OpenACC and NGSIM maneuvers
   replayed with every planner: gap-RMSE distributions with bootstrap intervals;
+- ``whole``: the same held-out maneuvers replayed whole (start to end), beside the
+  ``constant_speed`` baseline: gap RMSE median, mean and worst, spacing RMSPE, time-gap error,
+  per planner and per driver;
 - ``ablation``: ``training/leader_following_ablation.py`` (one lever at a time);
 - ``instrument``: the replay's own error: the ``recorded`` pseudo-planner (the human's path)
   over every whole maneuver of OpenACC, NGSIM and the synthetic drives;
@@ -59,12 +62,16 @@ PAPER_REPLAY_GAP_RMSE_M, PAPER_REPLAY_GAP_MAX_M = 0.78, 1.52
 POLICIES = ("safeil", "safeil_paper", "bc", "analytic", "idm")
 LABELS = {"safeil": "SafeIL (exact lane bound)", "safeil_paper": "SafeIL (paper barrier)",
           "bc": "BC", "analytic": "analytic", "idm": "IDM (calibrated)",
-          "recorded": "recorded human path (the replay's floor)"}
+          "recorded": "recorded human path (the replay's floor)",
+          "constant_speed": "constant speed (naive baseline)"}
 COLORS = {"safeil": "tab:green", "safeil_paper": "tab:olive", "bc": "tab:red",
           "analytic": "tab:gray", "idm": "tab:blue"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
-            "humanlike", "ablation", "instrument", "n74")
+            "humanlike", "whole", "ablation", "instrument", "n74")
+# the whole-maneuver replays: the planners, the naive baseline and the instrument's floor
+WHOLE_POLICIES = ("safeil", "idm", "analytic", "bc", "constant_speed", "recorded")
+WHOLE_QUICK_MANEUVERS = 2  # [-] held-out maneuvers per source with --quick
 
 
 def _sweep(specs: list[ScenarioSpec], work: Path, name: str, workers: int) -> pd.DataFrame:
@@ -450,6 +457,48 @@ def _pct(rate: float, low: float | None = None, high: float | None = None) -> st
     return text + (f" [{100 * low:.3g}, {100 * high:.3g}]" if low is not None else "")
 
 
+def _whole_readme(whole: list[dict]) -> list[str]:
+    """The README section of :func:`whole`: one row per source and planner."""
+    rows = [dict(
+        r, planner=LABELS.get(r["policy"], r["policy"]),
+        span=f"{r['maneuvers']} ({r['shortest_s']:.0f}–{r['longest_s']:.0f} s)",
+        med=f"{r['gap_rmse_median_m']:.2f} [{r['gap_rmse_median_lo']:.2f}, "
+            f"{r['gap_rmse_median_hi']:.2f}]",
+        mean=f"{r['gap_rmse_mean_m']:.2f} [{r['gap_rmse_mean_lo']:.2f}, "
+             f"{r['gap_rmse_mean_hi']:.2f}]",
+        worst=f"{r['gap_rmse_max_m']:.2f} (`{str(r['gap_rmse_worst']).split('@')[0]}`)",
+        rmspe=f"{100 * r['spacing_rmspe_median']:.1f} / {100 * r['spacing_rmspe_mean']:.1f} %",
+        tg_err=f"{r['time_gap_error_median_s']:+.2f} / {r['time_gap_error_mean_s']:+.2f}")
+        for r in whole]
+    return [
+        "## Human-likeness over whole held-out maneuvers", "",
+        "The maneuvers of the previous section (held out of the shipped SafeIL's training), each "
+        "replayed from its start to its end (`python -m safeil_sumo.replay --source SOURCE "
+        "--maneuver all --windows whole --held-out-of safeil_sumo/models/safeil.json --policies "
+        + " ".join(WHOLE_POLICIES) + "`). Per maneuver: the gap RMSE against the human; the "
+        "spacing RMSPE, sqrt(mean(((gap − human gap) / human gap)²)), as the FollowNet benchmark "
+        "(Sci Data 2023) reports it; the time-gap RMSE and the mean time-gap error (planner − "
+        "human: below 0 the planner follows closer). `constant_speed` keeps its initial speed on "
+        "the lane centre and ignores the leader: the naive baseline of the car-following "
+        "literature. `recorded` drives the human's own path: the instrument's floor. A run that "
+        "ends before the recording (a collision, off the road, or past the road's end) is "
+        "compared up to there (*runs ended early*). Median and mean over maneuvers with seeded "
+        "bootstrap 95 % intervals; worst: the largest gap RMSE and its maneuver. Per driver "
+        "(an OpenACC file's follower, an NGSIM follower vehicle): "
+        "`humanlike_whole_by_driver.csv`.", "",
+        _md_table(rows, {"source": "source", "span": "maneuvers (length)",
+                         "planner": "planner", "med": "gap RMSE median [95 % CI] [m]",
+                         "mean": "mean [95 % CI] [m]", "worst": "worst [m] (maneuver)",
+                         "rmspe": "spacing RMSPE median / mean",
+                         "time_gap_rmse_median_s": "time-gap RMSE median [s]",
+                         "tg_err": "time-gap error median / mean [s]",
+                         "flags": "flags", "flags_beyond_human":
+                         "flags where the human has none", "collisions": "collisions",
+                         "ended_early": "runs ended early"}),
+        "", *[f"![{s} whole](humanlike_whole_{s}.png)"
+              for s in dict.fromkeys(r["source"] for r in whole)], ""]
+
+
 def _n74_readme(n74: dict) -> list[str]:
     d = n74["design"]
     stretches = ", ".join(f"{a:g}-{b:g}" for a, b in d["stretches_km"])
@@ -608,6 +657,8 @@ def write_readme(out: Path, facts: dict) -> None:
         lines += [f"![{s}](humanlike_{s}.png)"
                   for s in dict.fromkeys(r["source"] for r in facts["humanlike"])]
         lines += [""]
+    if facts.get("whole"):
+        lines += _whole_readme(facts["whole"])
     if facts.get("instrument"):
         lines += ["## The replay's own error: the human's path replayed", "",
                   "The `recorded` pseudo-planner drives the ego along the human's own recorded "
@@ -785,6 +836,50 @@ def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     table = pd.DataFrame(rows)
     if len(table):
         _save_csv(table, out / "humanlike.csv")
+    return rows
+
+
+def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> list[dict]:
+    """The maneuvers the shipped SafeIL held out (those of ``humanlike``), each replayed whole
+    with :data:`WHOLE_POLICIES`, per source: ``humanlike_whole.csv`` (per planner),
+    ``humanlike_whole_by_driver.csv`` (per planner and driver), ``humanlike_whole_<source>.png``.
+    ``quick``: the first :data:`WHOLE_QUICK_MANEUVERS` held-out maneuvers per source."""
+    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers
+    from safeil_sumo.replay import load_source
+
+    held = set(held_out_maneuvers(SHIPPED_SAFEIL))
+    rows, drivers = [], []
+    for source in ("openacc", "ngsim"):
+        try:
+            maneuvers, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
+        except (OSError, ValueError) as exc:
+            print(f"[whole] {source} skipped: {exc}")
+            continue
+        only = sorted(held & set(maneuvers["maneuver_id"].astype(str)))
+        if quick:
+            only = only[:WHOLE_QUICK_MANEUVERS]
+        wins = ra.windows(maneuvers, "whole", only=only)
+        folder = work / f"whole_{source}"
+        records = ra.replay_all(maneuvers, wins, list(WHOLE_POLICIES), folder,
+                                rp.ReplayConfig(seed=seed), workers)
+        df, agg = ra.write(folder, records, {"source": source, "maneuvers": only,
+                                             "windows_mode": "whole"}, seed, f"{source} whole")
+        shutil.copyfile(folder / "replay_all.png", out / f"humanlike_whole_{source}.png")
+        ok = df[df["status"] == "ok"].drop_duplicates("maneuver_id")
+        span = {"maneuvers": len(only), "failed": len(records) - len(ok),
+                "shortest_s": float(ok["duration_s"].min()) if len(ok) else math.nan,
+                "longest_s": float(ok["duration_s"].max()) if len(ok) else math.nan}
+        rows += [dict(r, source=source, **span) for r in agg.to_dict("records")]
+        drivers += [dict(r, source=source) for r in
+                    ra.aggregate(df, seed, ("policy", "driver")).to_dict("records")]
+        print(f"[whole] {source}: {len(ok)} of {len(only)} held-out maneuvers replayed whole "
+              f"({span['shortest_s']:.0f}-{span['longest_s']:.0f} s)")
+    if rows:
+        _save_csv(pd.DataFrame(rows), out / "humanlike_whole.csv")
+        _save_csv(pd.DataFrame(drivers), out / "humanlike_whole_by_driver.csv")
     return rows
 
 
@@ -1004,6 +1099,9 @@ def main(argv: list[str] | None = None) -> int:
     if "humanlike" in args.only:
         facts["humanlike"] = timed("humanlike", humanlike, args.out, args.work, args.workers,
                                    args.seed)
+    if "whole" in args.only:
+        facts["whole"] = timed("whole", whole, args.out, args.work, args.workers, args.seed,
+                               args.quick)
     if "ablation" in args.only:
         facts["ablation"] = timed("ablation", ablation, args.out, args.workers)
     if "instrument" in args.only:

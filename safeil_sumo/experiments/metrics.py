@@ -5,6 +5,10 @@ Two kinds of comparison (paper Fig. "Human-like Performance Validation"):
   RMSE and max absolute error over the samples both sides have;
 - distributions of time headway, speed and lateral offset over the maneuver: Wasserstein-1
   distance (in the quantity's unit) and the two-sample Kolmogorov-Smirnov statistic (0..1).
+
+And the car-following literature's spacing RMSPE (:func:`rmspe`, as the FollowNet benchmark, Sci
+Data 2023, reports it beside the spacing RMSE) and the mean signed error (:func:`mean_error`: a
+time gap kept longer or shorter than the human's on average).
 """
 
 from __future__ import annotations
@@ -52,6 +56,35 @@ def series_error(human: np.ndarray, policy: np.ndarray) -> SeriesError:
     err = p[ok] - h[ok]
     return SeriesError(float(np.sqrt(np.mean(err**2))), float(np.max(np.abs(err))), n,
                        int(h.size))
+
+
+def _finite_pairs(human: np.ndarray, policy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The samples ``(N,)`` where both series are finite."""
+    h = np.asarray(human, dtype=float)
+    p = np.asarray(policy, dtype=float)
+    if h.shape != p.shape:
+        raise ValueError(f"series must have the same shape, got {h.shape} and {p.shape}")
+    ok = np.isfinite(h) & np.isfinite(p)
+    return h[ok], p[ok]
+
+
+def rmspe(human: np.ndarray, policy: np.ndarray) -> float:
+    """Root mean square percentage error ``sqrt(mean(((policy - human) / human)^2))`` as a
+    fraction (0.1 = 10 %), over the samples ``(N,)`` where both are finite and ``human > 0`` (a
+    gap of 0 has no relative error); NaN when there is none. Large where the human's gap is
+    small: a 1 m error on a 2 m gap weighs as much as 25 m on 50 m."""
+    h, p = _finite_pairs(human, policy)
+    ok = h > 0
+    if not ok.any():
+        return math.nan
+    return float(np.sqrt(np.mean(((p[ok] - h[ok]) / h[ok]) ** 2)))
+
+
+def mean_error(human: np.ndarray, policy: np.ndarray) -> float:
+    """Mean signed error ``mean(policy - human)`` over the samples ``(N,)`` where both are
+    finite (positive: the policy's values are larger); NaN when there is none."""
+    h, p = _finite_pairs(human, policy)
+    return float(np.mean(p - h)) if len(h) else math.nan
 
 
 def distribution_distance(human: np.ndarray, policy: np.ndarray) -> DistributionDistance:

@@ -13,7 +13,9 @@ The digital twin of a maneuver left out of training:
 - the duration: the maneuver's.
 
 The ``recorded`` pseudo-planner (:mod:`safeil_sumo.sim.recorded_ego`) drives the ego along the
-human's own path: its error is the instrument's floor (docs/replay_instrument.md). Each policy
+human's own path: its error is the instrument's floor (docs/replay_instrument.md). The
+``constant_speed`` pseudo-planner (:mod:`safeil_sumo.sim.constant_speed_ego`) keeps the initial
+speed on the lane centre: the literature's naive baseline. Each policy
 runs closed-loop; its state is compared with the human's at the recorded timestamps
 (:mod:`safeil_sumo.experiments.metrics`): x, y in the local frame (origin at the recorded start,
 x along the initial lane heading, as the paper plots them), along-lane ``s`` and lateral offset
@@ -40,6 +42,7 @@ from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios import replay_road as rr
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import monitors as mon
+from safeil_sumo.sim.constant_speed_ego import ConstantSpeedPath
 from safeil_sumo.sim.leaders import SpeedProfile
 from safeil_sumo.sim.recorded_ego import RecordedPath
 from safeil_sumo.sim.runner import LoopConfig, Rollout, Scenario, run_scenario
@@ -287,12 +290,19 @@ def policy_trace(log: pd.DataFrame, human: pd.DataFrame) -> pd.DataFrame:
 
 def compare(human: pd.DataFrame, policy: pd.DataFrame) -> dict:
     """Flat metrics of one policy against the human (keys ``rmse_<col>``, ``max_<col>``,
-    ``w1_<col>``, ``ks_<col>``, ``coverage``)."""
+    ``w1_<col>``, ``ks_<col>``, ``coverage``), and the car-following literature's: the spacing
+    RMSPE ``rmspe_gap`` [-, a fraction], the time-gap RMSE ``rmse_headway`` [s] and the mean
+    time-gap error ``bias_headway`` [s] (policy - human: > 0 keeps longer gaps)."""
     row: dict = {}
     for col, _unit in SERIES:
         e = hm.series_error(human[col].to_numpy(), policy[col].to_numpy())
         row[f"rmse_{col}"] = e.rmse
         row[f"max_{col}"] = e.max_abs
+    row["rmspe_gap"] = hm.rmspe(human["gap"].to_numpy(), policy["gap"].to_numpy())
+    row["rmse_headway"] = hm.series_error(human["headway"].to_numpy(),
+                                          policy["headway"].to_numpy()).rmse
+    row["bias_headway"] = hm.mean_error(human["headway"].to_numpy(),
+                                        policy["headway"].to_numpy())
     for col, _unit in DISTRIBUTIONS:
         dd = hm.distribution_distance(human[col].to_numpy(), policy[col].to_numpy())
         row[f"w1_{col}"] = dd.wasserstein
@@ -341,11 +351,23 @@ def prepare_replay(drive_rows: pd.DataFrame, out_dir: Path,
                       human_flag(human, scenario.monitors))
 
 
+def constant_speed_path(prep: ReplayPrep) -> ConstantSpeedPath:
+    """The ``constant_speed`` baseline of ``prep``'s replay: from the recorded start's place
+    along the ego lane (``road.path_start_s``), on the lane centre, at the recorded initial
+    speed."""
+    road = prep.road
+    return ConstantSpeedPath(road.lanes[road.ego_lane].centre, road.path_start_s,
+                             prep.scenario.ego_speed_mps)
+
+
 def replay_policy(prep: ReplayPrep, policy: Policy) -> Policy:
-    """The planner that drives ``prep``'s replay: ``policy``, or for the ``recorded``
-    pseudo-planner the human's own path in this replay's frame."""
+    """The planner that drives ``prep``'s replay: ``policy``, or for the kinematic
+    pseudo-planners ``recorded`` the human's own path and ``constant_speed`` the initial speed
+    held on the lane centre, in this replay's frame."""
     if isinstance(policy, RecordedPath):
         return recorded_path(prep.rows, prep.frame)
+    if isinstance(policy, ConstantSpeedPath):
+        return constant_speed_path(prep)
     return policy
 
 

@@ -15,10 +15,13 @@ Windows (``mode``):
   ``replay --maneuver all``: many windows per maneuver, all its traffic situations);
 - ``whole``: each maneuver from start to end.
 
-The aggregate per policy: windows, median and mean gap RMSE with seeded bootstrap 95 % intervals,
-median speed and lateral RMSE, the time-gap Wasserstein distance to the human, flags (also
-counted apart when the recording itself has a flag there, ``flags_beyond_human``) and
-collisions.
+The aggregate per policy (or per policy and driver, :func:`aggregate`'s ``by``): windows,
+median and mean gap RMSE with seeded bootstrap 95 % intervals, the worst window's gap RMSE and
+its id, the spacing RMSPE and the time-gap error (:func:`literature_summary`: the figures the
+car-following literature reports), median speed and lateral RMSE, the time-gap Wasserstein
+distance to the human, flags (also counted apart when the recording itself has a flag there,
+``flags_beyond_human``) and collisions. Each record carries the window's ``driver``
+(:func:`driver_id`).
 """
 
 from __future__ import annotations
@@ -55,6 +58,8 @@ INSTRUMENT_KEYS = ("max_abs_lane_rebuild_error_m", "max_abs_leader_drift_m",
 # windows per worker task run side by side in one SUMO simulation (``replay --batch``):
 # measured on OpenACC, docs/performance.md ("Batched replays")
 DEFAULT_BATCH = 32
+# an NGSIM pair recording "<follower>-<leader>", "_<n>" when the pair recurs (data.importers)
+NGSIM_PAIR = re.compile(r"^(\d+)-\d+(?:_\d+)?$")
 
 
 @dataclass(frozen=True)
@@ -71,6 +76,21 @@ class Window:
         text = f"{self.maneuver_id}|{self.start_s:.3f}|{self.duration_s}"
         digest = hashlib.sha256(text.encode()).hexdigest()[:10]
         return re.sub(r"[^A-Za-z0-9_]+", "_", self.maneuver_id)[:40] + f"-{self.start_s:07.1f}-{digest}"
+
+
+def driver_id(maneuver_id: str) -> str:
+    """The driver of a maneuver ``"<recording>#<k>"`` (the processing pipeline's ids): the
+    follower's vehicle id of an NGSIM pair ``"<follower>-<leader>"`` (one vehicle follows
+    several leaders in turn), else the recording: an OpenACC follower ``"<file>_f<k>"``, a
+    synthetic drive ``"n74_d<k>"``."""
+    recording = maneuver_id.rsplit("#", 1)[0]
+    pair = NGSIM_PAIR.match(recording)
+    return pair.group(1) if pair else recording
+
+
+def window_id(maneuver_id: str, start_s: float) -> str:
+    """A window's name in tables: ``"<maneuver>@<start>s"``."""
+    return f"{maneuver_id}@{start_s:g}s"
 
 
 def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
@@ -113,8 +133,8 @@ def _window_rows(window: Window, maneuvers: pd.DataFrame) -> pd.DataFrame:
 def _failed(window: Window, exc: Exception) -> dict:
     """The record of a window that could not be replayed."""
     return {"task_id": window.task_id, "maneuver_id": window.maneuver_id,
-            "start_s": window.start_s, "status": "failed",
-            "error": f"{type(exc).__name__}: {exc}"}
+            "driver": driver_id(window.maneuver_id), "start_s": window.start_s,
+            "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
 
 
 def _record(window: Window, res: rp.ReplayResult) -> dict:
@@ -122,6 +142,7 @@ def _record(window: Window, res: rp.ReplayResult) -> dict:
     metrics = res.metrics.replace({np.nan: None}).to_dict(orient="records")
     return {
         "task_id": window.task_id, "maneuver_id": window.maneuver_id,
+        "driver": driver_id(window.maneuver_id),
         "start_s": window.start_s, "duration_s": res.info["duration_s"], "status": "ok",
         "mean_speed_mps": res.info["mean_speed_mps"], "mean_gap_m": res.info["mean_gap_m"],
         **{k: res.info[k] for k in INSTRUMENT_KEYS},
@@ -286,6 +307,8 @@ def table(records: list[dict]) -> pd.DataFrame:
     for r in records:
         base = {k: r.get(k) for k in ("maneuver_id", "start_s", "duration_s", "mean_speed_mps",
                                       "mean_gap_m", *INSTRUMENT_KEYS, "status")}
+        # records written before drivers were recorded: the same rule
+        base["driver"] = r.get("driver") or driver_id(str(r["maneuver_id"]))
         if r["status"] != "ok":
             rows.append({**base, "error": r.get("error")})
             continue
@@ -311,29 +334,65 @@ def bootstrap_ci(values: np.ndarray, stat=np.median, samples: int = BOOTSTRAP_SA
     return float(lo), float(hi)
 
 
-def aggregate(df: pd.DataFrame, seed: int = 0) -> pd.DataFrame:
-    """Per policy: windows, gap RMSE median/mean with bootstrap 95 % CIs, speed and lateral RMSE
-    medians, time-gap W1 median, flags, flags in windows whose recording has no flag of its
-    own, collisions."""
+def _column(g: pd.DataFrame, name: str) -> np.ndarray:
+    """``g[name]`` as floats; NaN where a table (records of an older version) lacks it."""
+    return g[name].to_numpy(float) if name in g else np.full(len(g), np.nan)
+
+
+def _nan_stat(stat, values: np.ndarray) -> float:
+    """``stat`` (np.nanmedian, np.nanmean, ...) of the finite values; NaN when there is none."""
+    v = np.asarray(values, float)
+    return float(stat(v)) if np.isfinite(v).any() else math.nan
+
+
+def literature_summary(g: pd.DataFrame) -> dict:
+    """What the car-following literature reports, over the windows ``g`` (rows of
+    :func:`table`, one group): the worst window's gap RMSE [m] and its :func:`window_id`, the
+    spacing RMSPE's median and mean [-, fractions], the time-gap RMSE's median [s], the mean
+    time-gap error's median and mean [s] (policy - human), and the windows whose run ended
+    before the recording (a collision, off the road, at the road's end: compared up to there)."""
+    gap = _column(g, "rmse_gap")
+    worst = int(np.nanargmax(gap)) if np.isfinite(gap).any() else None
+    return {
+        "gap_rmse_max_m": math.nan if worst is None else float(gap[worst]),
+        "gap_rmse_worst": "" if worst is None else window_id(
+            str(g["maneuver_id"].iloc[worst]), float(g["start_s"].iloc[worst])),
+        "spacing_rmspe_median": _nan_stat(np.nanmedian, _column(g, "rmspe_gap")),
+        "spacing_rmspe_mean": _nan_stat(np.nanmean, _column(g, "rmspe_gap")),
+        "time_gap_rmse_median_s": _nan_stat(np.nanmedian, _column(g, "rmse_headway")),
+        "time_gap_error_median_s": _nan_stat(np.nanmedian, _column(g, "bias_headway")),
+        "time_gap_error_mean_s": _nan_stat(np.nanmean, _column(g, "bias_headway")),
+        "ended_early": int((_column(g, "coverage") < 1.0).sum()),
+    }
+
+
+def aggregate(df: pd.DataFrame, seed: int = 0, by: Sequence[str] = ("policy",)
+              ) -> pd.DataFrame:
+    """Per policy (or per group of the columns ``by``, e.g. ``("policy", "driver")``): windows,
+    gap RMSE median/mean with bootstrap 95 % CIs, :func:`literature_summary`, speed and lateral
+    RMSE medians, time-gap W1 median, flags, flags in windows whose recording has no flag of its
+    own, and collisions: windows that end in one or have one as their first flag (a TTC flag
+    usually comes first)."""
     ok = df[df["status"] == "ok"]
     rows = []
-    for policy, g in ok.groupby("policy", sort=False):
+    for key, g in ok.groupby(list(by), sort=False):
         gap = g["rmse_gap"].to_numpy(float)
         med_lo, med_hi = bootstrap_ci(gap, np.median, seed=seed)
         mean_lo, mean_hi = bootstrap_ci(gap, np.mean, seed=seed)
         rows.append({
-            "policy": policy, "windows": len(g),
+            **dict(zip(by, key, strict=True)), "windows": len(g),
             "gap_rmse_median_m": float(np.nanmedian(gap)), "gap_rmse_median_lo": med_lo,
             "gap_rmse_median_hi": med_hi, "gap_rmse_mean_m": float(np.nanmean(gap)),
             "gap_rmse_mean_lo": mean_lo, "gap_rmse_mean_hi": mean_hi,
             "speed_rmse_median_mps": float(np.nanmedian(g["rmse_v"])),
             "lateral_rmse_median_m": float(np.nanmedian(g["rmse_d"])),
             "time_gap_w1_median_s": float(np.nanmedian(g["w1_headway"])),
+            **literature_summary(g),
             "flags": int((g["flag"] != "").sum()),
             # a flag in a window whose recording has none of its own (replay.human_flag)
             "flags_beyond_human": int(((g["flag"] != "") & (g["human_flag"] == "")).sum()),
-            "collisions": int((g["flag"] == "collision").sum()
-                              | (g["end_reason"] == "collision").sum()),
+            "collisions": int(((g["flag"] == "collision")
+                               | (g["end_reason"] == "collision")).sum()),
         })
     return pd.DataFrame(rows)
 
@@ -373,14 +432,19 @@ def plot(records: list[dict], df: pd.DataFrame, path: Path, title: str = "") -> 
 
 def write(out_dir: Path, records: list[dict], extra_manifest: dict, seed: int = 0,
           title: str = "") -> tuple[pd.DataFrame, pd.DataFrame]:
-    """``windows.csv`` (per window x policy), ``aggregate.csv``, ``replay_all.png``,
-    ``manifest.json``; returns (per-window table, aggregate)."""
+    """``windows.csv`` (per window x policy), ``aggregate.csv`` (per policy),
+    ``aggregate_by_driver.csv`` (per policy and driver), ``replay_all.png``, ``manifest.json``;
+    returns (per-window table, aggregate)."""
     df = table(records)
     agg = aggregate(df, seed) if len(df) and "policy" in df else pd.DataFrame()
+    by_driver = (aggregate(df, seed, ("policy", "driver")) if len(df) and "policy" in df
+                 else pd.DataFrame())
     with atomic_path(out_dir / "windows.csv") as tmp:
         df.to_csv(tmp, index=False)
     with atomic_path(out_dir / "aggregate.csv") as tmp:
         agg.to_csv(tmp, index=False)
+    with atomic_path(out_dir / "aggregate_by_driver.csv") as tmp:
+        by_driver.to_csv(tmp, index=False)
     if len(agg):
         plot(records, df, out_dir / "replay_all.png", title)
     outputs.write_json(out_dir / "manifest.json", outputs.manifest(
