@@ -314,3 +314,19 @@ def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
                      str(tmp_path / "x")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
     assert not (tmp_path / "x").exists()
+
+
+def test_aggregate_counts_each_collision_window_once():
+    from safeil_sumo.experiments import replay_all as ra
+
+    # window 1 flags a collision and ends in one; window 2 ends in a collision after a lane
+    # departure flag; window 3 neither: 2 windows with a collision (a bitwise OR of the two
+    # counts, 1 | 2, gave 3)
+    df = pd.DataFrame({
+        "status": "ok", "policy": "p", "rmse_gap": [1.0, 2.0, 3.0], "rmse_v": 0.1,
+        "rmse_d": 0.1, "w1_headway": 0.1, "human_flag": "",
+        "flag": ["collision", "lane_departure", "lane_departure"],
+        "end_reason": ["collision", "collision", "timeout"]})
+    row = ra.aggregate(df).iloc[0]
+    assert row["collisions"] == 2
+    assert row["flags"] == 3 and row["windows"] == 3
