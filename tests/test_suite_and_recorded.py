@@ -212,3 +212,57 @@ def test_explicit_ego_speed_wins_over_a_recorded_follower() -> None:
     # by default the ego starts as the recorded follower did; a speed given explicitly wins
     assert build_scenario(spec, road).ego_speed_mps == pytest.approx(drawn.ego_speed_mps)
     assert build_scenario(replace(spec, ego_speed_mps=25.0), road).ego_speed_mps == 25.0
+
+
+# ------------------------------------------------------------------- physically impossible profiles
+
+
+def _dropout_profile(tmp_path) -> str:
+    """30 s at 25.8 m/s whose speed sensor drops out to 0 for one sample at t = 112.3 s (the
+    file's own clock starts at 100 s)."""
+    t = np.round(np.arange(100.0, 130.0, 0.1), 1)
+    v = np.where(np.isclose(t, 112.3), 0.0, 25.8)
+    return _profile(tmp_path / "dropout.csv", t, v)
+
+
+def test_a_speed_dropout_is_refused_by_run_and_sweep(tmp_path, capsys) -> None:
+    path = _dropout_profile(tmp_path)
+    rl.library.cache_clear()
+    out = tmp_path / "run"
+    assert run_cli.main(["--net", "straight", "--policy", "analytic", "--leader", "recorded",
+                         "--leader-profile", path, "--scenarios", "1", "--no-plots", "--out",
+                         str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and err.count("\n") == 1, err
+    assert "dropout.csv" in err and "falls 25.8 m/s in 0.1 s at t = 112.3 s" in err, err
+    assert not out.exists()
+    rl.library.cache_clear()
+    assert sweep_cli.main(["--net", "straight", "--policies", "analytic", "--leader",
+                           "recorded", "--leader-profile", str(tmp_path), "--scenarios", "1",
+                           "--out", str(tmp_path / "sw"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "dropout.csv" in err and "112.3 s" in err, err
+    assert not (tmp_path / "sw").exists()
+
+
+def test_a_hard_but_plausible_braking_profile_is_accepted(tmp_path) -> None:
+    from safeil_sumo.sim.leaders import from_file
+
+    # 30 -> 3 m/s at 9 m/s^2 (an emergency stop of an ordinary car), then 3 m/s
+    t = np.arange(0.0, 25.0, 0.1)
+    v = np.clip(30.0 - 9.0 * np.clip(t - 5.0, 0.0, None), 3.0, None)
+    prof = from_file(_profile(tmp_path / "hard.csv", t, v))
+    assert prof.speeds.min() == pytest.approx(3.0)
+
+
+@pytest.mark.parametrize("source", ["ngsim", "openacc"])
+def test_the_human_leader_libraries_are_plausible(source) -> None:
+    from safeil_sumo.sim.leaders import implausible_change
+    from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
+
+    require_file(NGSIM_PAIRS if source == "ngsim"
+                 else OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")
+    # the check refuses no real leader the project drives (measured: NGSIM -5.6 / +4.6 m/s^2,
+    # OpenACC -3.6 / +1.4 m/s^2 over 0.5 s)
+    for rec in rl.library(source):
+        assert implausible_change(rec.times, rec.speeds) is None, rec.recording_id
