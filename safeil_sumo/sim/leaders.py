@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-
 # The fastest a real car's speed changes, averaged over PLAUSIBLE_WINDOW_S (a recorded profile
 # that changes faster is a sensor dropout or glitch, not a leader to test against):
 # - braking: tyre-limited, ~8-10 m/s^2 for an ordinary car with ABS on dry asphalt, ~13 m/s^2
