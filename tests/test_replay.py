@@ -330,3 +330,40 @@ def test_aggregate_counts_each_collision_window_once():
     row = ra.aggregate(df).iloc[0]
     assert row["collisions"] == 2
     assert row["flags"] == 3 and row["windows"] == 3
+
+
+def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
+    from safeil_sumo import replay as cli
+    from safeil_sumo.experiments import replay_all as ra
+
+    drive = pd.concat([arc_drive(24.0).assign(recording_id="a"),
+                       arc_drive(12.0, origin=(6.0e5, 4.9e6)).assign(recording_id="b")],
+                      ignore_index=True).drop(columns="maneuver_id")
+    src = tmp_path / "drive.parquet"
+    save_drive(drive, src)
+    base = ["--source", str(src), "--maneuver", "all", "--windows", "whole", "--policies",
+            "analytic"]
+    # uncapped: each maneuver whole; --duration 5: each from its start for 5 s
+    assert cli.main([*base, "--out", str(tmp_path / "whole")]) == 0
+    whole = pd.read_csv(tmp_path / "whole" / "windows.csv").sort_values("duration_s")
+    assert whole["duration_s"].tolist() == pytest.approx([12.0, 24.0], abs=0.15)
+    assert cli.main([*base, "--duration", "5", "--out", str(tmp_path / "capped")]) == 0
+    capped = pd.read_csv(tmp_path / "capped" / "windows.csv")
+    assert capped["duration_s"].tolist() == pytest.approx([5.0, 5.0], abs=1e-6)
+    assert (capped["start_s"] == 0.0).all()
+    # the closed loop of a capped window lasts no longer than the cap
+    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+
+    rows, _ = process_drive(drive, PipelineConfig(rate_hz=10.0))
+    win = ra.windows(rows, "whole", 5.0)[0]
+    assert win.duration_s == 5.0
+    res = rp.replay_maneuver(ra._window_rows(win, rows), {"analytic": AnalyticPlanner()},
+                             tmp_path / "one", maneuver_id=win.maneuver_id)
+    assert 4.9 <= res.rollouts["analytic"].log["t"].max() <= 5.0 + 1e-9
+    # a cap longer than a maneuver is that maneuver whole (the same window, the same task)
+    assert [w.duration_s for w in ra.windows(rows, "whole", 30.0)] == [None, None]
+    # --duration 0 (to the end) with windows of a length is refused (it silently was 11 s)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli.main([*base[:4], "--windows", "sliding", "--duration", "0"])
+    assert exc.value.code == 2 and "--duration 0" in capsys.readouterr().err
