@@ -119,14 +119,15 @@ def sweep(policies_: Sequence[str], out: str | Path, scenarios: int = 10, nets: 
 
 def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path,
            maneuvers: str | Sequence[str] = "all", windows: str = "sliding",
-           workers: int = 1, duration_s: float = 11.0, stride_s: float = 20.0,
+           workers: int = 1, duration_s: float | None = None, stride_s: float = 20.0,
            config: ReplayConfig | None = None, progress: bool = False,
            name: str | None = None, manifest: dict | None = None, batch: int = REPLAY_BATCH
            ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Replay every window of ``maneuvers`` (``"all"`` or ids) of ``source`` (``openacc``,
     ``ngsim``, a drive file, or an already processed maneuvers frame) with each policy (names or
     paths, ``recorded`` for the human's own path): ``(per-window table, per-policy
-    aggregate)``, both also written to ``out`` with the plots; resumable. ``name`` titles the
+    aggregate)``; ``duration_s`` [s]: the length of ``paper`` / ``sliding`` windows (None: 11 s),
+    or a cap on each ``whole`` maneuver from its start (None: the whole maneuver); both also written to ``out`` with the plots; resumable. ``name`` titles the
     plots and messages (default: the source). Up to ``batch`` windows of a worker task run side
     by side in one SUMO simulation (1: one simulation per run; the same records)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
@@ -141,8 +142,8 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
     only = None if maneuvers == "all" else list(maneuvers)
     wins = ra.windows(rows, windows, duration_s, stride_s, only)
     if not wins:
-        raise ra.rp.ReplayError(f"no maneuver of {name} is long enough for a {duration_s:g} s "
-                                "window")
+        raise ra.rp.ReplayError(f"no maneuver of {name} is long enough for a "
+                                f"{duration_s or ra.rp.PAPER_DURATION_S:g} s window")
     config = config or ReplayConfig()
     records = ra.replay_all(rows, wins, list(policies_), Path(out), config, workers,
                             progress=progress, batch=batch)

@@ -36,12 +36,22 @@ def add_leader_options(parser: argparse.ArgumentParser, kinds: tuple[str, ...],
     parser.add_argument(
         "--leader", choices=kinds, default="constant",
         help=f"constant speed (the paper); braking or accelerating ({change}); or recorded (a "
-             "human leader's speed profile, the ego starting as the recorded follower did) "
-             "(default constant)")
+             "human leader's speed profile, the ego starting as the recorded follower did, or "
+             "behind a profile file at the leader's speed) (default constant)")
     parser.add_argument(
         "--leader-profile", default=None,
         help="with --leader recorded: ngsim (default) or openacc (from ../shared/data), or a "
              "CSV/Parquet file with columns time [s] and speed [m/s], or a folder of them")
+
+
+def add_ego_speed_option(parser: argparse.ArgumentParser) -> None:
+    """``--ego-speed``, shared by ``run`` and ``sweep``: default None, resolved per scenario by
+    :class:`safeil_sumo.experiments.sweep.ScenarioSpec` (30 m/s, or a recorded leader's start)."""
+    parser.add_argument(
+        "--ego-speed", type=finite_float, default=None, metavar="MPS",
+        help="ego initial speed [m/s] (default 30; with --leader recorded: as the recorded "
+             "follower started (ngsim, openacc), or the profile's speed where the scenario "
+             "starts in it (a file); a speed given here wins)")
 
 
 def add_route_option(parser: argparse.ArgumentParser) -> None:

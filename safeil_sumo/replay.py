@@ -84,8 +84,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "training (its metrics.val_maneuvers)")
     p.add_argument("--start", type=finite_float, default=0.0,
                    help="start [s] within the maneuver (ignored with auto)")
-    p.add_argument("--duration", type=finite_float, default=rp.PAPER_DURATION_S,
-                   help="replay length [s] (default 11, the paper's; 0 = to the maneuver end)")
+    p.add_argument("--duration", type=finite_float, default=None,
+                   help="replay length [s] (default 11, the paper's; 0 = to the maneuver end); "
+                        "with --maneuver all/list: the length of paper/sliding windows, or with "
+                        "--windows whole a cap on each maneuver from its start (default: whole)")
     p.add_argument("--policies", nargs="+", default=["analytic"],
                    help="safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
                         "path: the instrument's error floor), constant_speed (the initial speed "
@@ -102,13 +104,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", type=Path, default=None, help="results folder "
                    "(default runs/replay_<maneuver>)")
     args = p.parse_args(argv)
-    if args.duration < 0 or args.start < 0:
+    if (args.duration is not None and args.duration < 0) or args.start < 0:
         p.error("--duration and --start must be >= 0")
     if not 0 < args.rate <= 100 or not 0 < args.plan_rate <= 100:
         p.error("--rate and --plan-rate must be in (0, 100] Hz")
     if args.stride <= 0 or args.workers < 1 or args.batch < 1:
         p.error("--stride must be > 0 s, --workers >= 1 and --batch >= 1")
     args.many = args.maneuver == "all" or "," in args.maneuver
+    if args.many and args.windows != "whole" and args.duration == 0:
+        p.error(f"--duration 0 (to the maneuver's end) needs one maneuver or --windows whole; "
+                f"{args.windows} windows need a length > 0 s")
     if args.held_out_of is not None and args.maneuver != "all":
         p.error("--held-out-of needs --maneuver all")
     if args.animate and args.many:
@@ -135,10 +140,13 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
     config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate))
     table, agg = api.replay(
         maneuvers, args.policies, out, only or "all", args.windows, args.workers,
-        args.duration or rp.PAPER_DURATION_S, args.stride, config, progress=True,
+        args.duration, args.stride, config, progress=True,
         name=str(args.source), manifest={"source": args.source, "policies": args.policies,
                   "windows_mode": args.windows, "stride_s": args.stride,
-                  "duration_s": args.duration, "maneuvers": only or "all",
+                  # as used: the window length, or the cap on whole maneuvers (None: none)
+                  "duration_s": rp.PAPER_DURATION_S if args.duration is None
+                  and args.windows != "whole" else args.duration or None,
+                  "maneuvers": only or "all",
                   "batch": args.batch},
         batch=args.batch)
     failed = table.drop_duplicates(["maneuver_id", "start_s"])
@@ -167,8 +175,8 @@ def main(argv: list[str] | None = None) -> int:
             raise rp.ReplayError(f"{args.source}: no car-following maneuver to replay")
         if args.many:
             return main_many(args, maneuvers)
-        mid, start, rows = rp.select_maneuver(maneuvers, args.maneuver, args.start,
-                                              args.duration or None)
+        duration = rp.PAPER_DURATION_S if args.duration is None else args.duration or None
+        mid, start, rows = rp.select_maneuver(maneuvers, args.maneuver, args.start, duration)
         policies = {}
         for name in args.policies:
             policy = pol.load_for_replay(name)

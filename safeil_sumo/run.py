@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from safeil_sumo import animate, api, policies
 from safeil_sumo.cli_args import (
+    add_ego_speed_option,
     add_lane_option,
     add_leader_options,
     add_n74_options,
@@ -62,7 +63,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     # accelerating leaders need a target speed: sweep has the options for it
     add_leader_options(p, tuple(k for k in LEADER_KINDS if k != "accelerating"),
                        "braking: to 15 m/s at 3 m/s^2 after 5 s; accelerating: use sweep")
-    p.add_argument("--ego-speed", type=finite_float, default=30.0, help="ego initial speed [m/s]")
+    add_ego_speed_option(p)
     p.add_argument("--gap", type=finite_float, default=50.0, help="initial bumper gap [m]")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
@@ -80,7 +81,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.scenarios < 1:
         p.error("--scenarios must be >= 1")
-    if not 0 <= args.ego_speed <= 100 or args.gap <= 0:
+    if (args.ego_speed is not None and not 0 <= args.ego_speed <= 100) or args.gap <= 0:
         p.error("--ego-speed must be in [0, 100] m/s and --gap > 0")
     lo, hi = args.leader_speed
     if not 0 <= lo <= hi <= 100:
@@ -183,7 +184,9 @@ def main(argv: list[str] | None = None) -> int:
         "leaders": [sc.leader.label if sc.leader is not None else "traffic"
                     for sc in scenarios],
         "traffic": args.traffic,
-        "ego_speed_mps": args.ego_speed, "initial_gap_m": args.gap,
+        # as given (None: the default, or a recorded leader's start), and as each scenario began
+        "ego_speed_mps": args.ego_speed, "ego_speeds_mps": [sc.ego_speed_mps for sc in scenarios],
+        "initial_gap_m": args.gap,
         "loop": asdict(loop), "vehicle": asdict(vehicle),
         "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
     }

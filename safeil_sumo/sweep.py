@@ -29,6 +29,7 @@ from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
+    add_ego_speed_option,
     add_lane_option,
     add_leader_options,
     add_n74_options,
@@ -108,8 +109,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="braking decel. [m/s^2] (3)")
     p.add_argument("--brake-to", type=finite_float, default=15.0,
                    help="speed after braking [m/s] (15)")
-    p.add_argument("--ego-speed", type=finite_float, default=30.0,
-                   help="ego initial speed [m/s] (30)")
+    add_ego_speed_option(p)
     gap = p.add_mutually_exclusive_group()
     gap.add_argument("--gap", type=finite_float, default=None, help="initial bumper gap [m] (50)")
     gap.add_argument("--gap-range", type=finite_float, nargs=2, default=None,

@@ -314,3 +314,57 @@ def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
                      str(tmp_path / "x")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
     assert not (tmp_path / "x").exists()
+
+
+def test_aggregate_counts_each_collision_window_once():
+    from safeil_sumo.experiments import replay_all as ra
+
+    # window 1 flags a collision and ends in one; window 2 ends in a collision after a lane
+    # departure flag; window 3 neither: 2 windows with a collision (a bitwise OR of the two
+    # counts, 1 | 2, gave 3)
+    df = pd.DataFrame({
+        "status": "ok", "policy": "p", "rmse_gap": [1.0, 2.0, 3.0], "rmse_v": 0.1,
+        "rmse_d": 0.1, "w1_headway": 0.1, "human_flag": "", "maneuver_id": "m",
+        "start_s": [0.0, 20.0, 40.0],
+        "flag": ["collision", "lane_departure", "lane_departure"],
+        "end_reason": ["collision", "collision", "timeout"]})
+    row = ra.aggregate(df).iloc[0]
+    assert row["collisions"] == 2
+    assert row["flags"] == 3 and row["windows"] == 3
+
+
+def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
+    from safeil_sumo import replay as cli
+    from safeil_sumo.experiments import replay_all as ra
+
+    drive = pd.concat([arc_drive(24.0).assign(recording_id="a"),
+                       arc_drive(12.0, origin=(6.0e5, 4.9e6)).assign(recording_id="b")],
+                      ignore_index=True).drop(columns="maneuver_id")
+    src = tmp_path / "drive.parquet"
+    save_drive(drive, src)
+    base = ["--source", str(src), "--maneuver", "all", "--windows", "whole", "--policies",
+            "analytic"]
+    # uncapped: each maneuver whole; --duration 5: each from its start for 5 s
+    assert cli.main([*base, "--out", str(tmp_path / "whole")]) == 0
+    whole = pd.read_csv(tmp_path / "whole" / "windows.csv").sort_values("duration_s")
+    assert whole["duration_s"].tolist() == pytest.approx([12.0, 24.0], abs=0.15)
+    assert cli.main([*base, "--duration", "5", "--out", str(tmp_path / "capped")]) == 0
+    capped = pd.read_csv(tmp_path / "capped" / "windows.csv")
+    assert capped["duration_s"].tolist() == pytest.approx([5.0, 5.0], abs=1e-6)
+    assert (capped["start_s"] == 0.0).all()
+    # the closed loop of a capped window lasts no longer than the cap
+    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+
+    rows, _ = process_drive(drive, PipelineConfig(rate_hz=10.0))
+    win = ra.windows(rows, "whole", 5.0)[0]
+    assert win.duration_s == 5.0
+    res = rp.replay_maneuver(ra._window_rows(win, rows), {"analytic": AnalyticPlanner()},
+                             tmp_path / "one", maneuver_id=win.maneuver_id)
+    assert 4.9 <= res.rollouts["analytic"].log["t"].max() <= 5.0 + 1e-9
+    # a cap longer than a maneuver is that maneuver whole (the same window, the same task)
+    assert [w.duration_s for w in ra.windows(rows, "whole", 30.0)] == [None, None]
+    # --duration 0 (to the end) with windows of a length is refused (it silently was 11 s)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        cli.main([*base[:4], "--windows", "sliding", "--duration", "0"])
+    assert exc.value.code == 2 and "--duration 0" in capsys.readouterr().err

@@ -141,3 +141,128 @@ def test_quick_suite_runs_every_family_in_libsumo(tmp_path) -> None:
     assert table["collisions"].sum() == 0
     acc = summary[summary["index"].map(suite.family_of) == "accelerating"]
     assert (acc["leader_label"] == "piecewise").all()
+
+
+# ------------------------------------------------------- the ego's start behind a recorded leader
+
+
+@pytest.fixture()
+def slow_profile(tmp_path) -> str:
+    """21 s of a leader at 6.5 m/s (congestion), a little stop-and-go after 10 s."""
+    t = np.arange(0.0, 21.0, 0.1)
+    return _profile(tmp_path / "slow.csv", t, 6.5 + np.where(t > 10.0, np.sin(t - 10.0), 0.0))
+
+
+def test_run_starts_the_ego_at_the_profile_speed_unless_given(tmp_path, slow_profile) -> None:
+    import json
+
+    rl.library.cache_clear()
+    args = ["--net", "straight", "--policy", "analytic", "--leader", "recorded",
+            "--leader-profile", slow_profile, "--scenarios", "1", "--no-plots"]
+    for extra, expected in (([], 6.5), (["--ego-speed", "8"], 8.0)):
+        out = tmp_path / f"run{len(extra)}"
+        assert run_cli.main([*args, *extra, "--out", str(out)]) == 0
+        steps = pd.read_parquet(out / "steps.parquet")
+        # the first logged step is 0.01 s after the start: within 0.1 m/s of the start speed
+        assert steps["v"].iloc[0] == pytest.approx(expected, abs=0.1)
+        summary = pd.read_csv(out / "summary.csv")
+        assert summary["ego_speed0_mps"].iloc[0] == pytest.approx(expected)
+        config = json.loads((out / "manifest.json").read_text())["config"]
+        assert config["ego_speeds_mps"] == pytest.approx([expected])
+        assert summary["flag"].iloc[0] != "collision"  # NaN (no flag) or another flag
+
+
+def test_sweep_and_api_resolve_the_ego_speed_alike(tmp_path, slow_profile) -> None:
+    import json
+
+    from safeil_sumo import api
+
+    rl.library.cache_clear()
+    # the API: the profile's first speed, or the one given; other leaders: 30 m/s as before
+    assert api.scenario("straight", leader_kind="recorded",
+                        leader_profile=slow_profile).ego_speed_mps == pytest.approx(6.5)
+    assert api.scenario("straight", leader_kind="recorded", leader_profile=slow_profile,
+                        ego_speed_mps=12.0).ego_speed_mps == 12.0
+    assert api.scenario("straight").ego_speed_mps == 30.0
+    assert ScenarioSpec().ego_speed_mps == 30.0  # the JSON (task id) of other leaders unchanged
+    # the sweep: the task's record holds the resolved speed, its spec what was asked (None: the
+    # recording's start)
+    out = tmp_path / "sw"
+    assert sweep_cli.main(["--net", "straight", "--policies", "analytic", "--leader", "recorded",
+                           "--leader-profile", slow_profile, "--scenarios", "1", "--max-time",
+                           "5", "--out", str(out), "--no-progress"]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    assert summary["ego_speed0_mps"].iloc[0] == pytest.approx(6.5)
+    spec = json.loads((out / "manifest.json").read_text())["config"]["specs"][0]
+    assert spec["ego_speed_mps"] is None
+
+
+def test_explicit_ego_speed_wins_over_a_recorded_follower() -> None:
+    from dataclasses import replace
+
+    from safeil_sumo.scenarios.safety import scenario_seed
+    from tests.fixtures_data import NGSIM_PAIRS, require_file
+
+    require_file(NGSIM_PAIRS)  # the library reads the default data folder, ../shared/data
+    spec = ScenarioSpec(net="straight", index=2, leader_kind="recorded", leader_profile="ngsim")
+    rng = np.random.default_rng(scenario_seed(0, 2))
+    rng.uniform(25, 32)  # the spec's leader-speed draw comes first, as in build_scenario
+    drawn = rl.draw(rl.library("ngsim"), rng)
+    road = _road("straight")
+    # by default the ego starts as the recorded follower did; a speed given explicitly wins
+    assert build_scenario(spec, road).ego_speed_mps == pytest.approx(drawn.ego_speed_mps)
+    assert build_scenario(replace(spec, ego_speed_mps=25.0), road).ego_speed_mps == 25.0
+
+
+# ------------------------------------------------------------------- physically impossible profiles
+
+
+def _dropout_profile(tmp_path) -> str:
+    """30 s at 25.8 m/s whose speed sensor drops out to 0 for one sample at t = 112.3 s (the
+    file's own clock starts at 100 s)."""
+    t = np.round(np.arange(100.0, 130.0, 0.1), 1)
+    v = np.where(np.isclose(t, 112.3), 0.0, 25.8)
+    return _profile(tmp_path / "dropout.csv", t, v)
+
+
+def test_a_speed_dropout_is_refused_by_run_and_sweep(tmp_path, capsys) -> None:
+    path = _dropout_profile(tmp_path)
+    rl.library.cache_clear()
+    out = tmp_path / "run"
+    assert run_cli.main(["--net", "straight", "--policy", "analytic", "--leader", "recorded",
+                         "--leader-profile", path, "--scenarios", "1", "--no-plots", "--out",
+                         str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and err.count("\n") == 1, err
+    assert "dropout.csv" in err and "falls 25.8 m/s in 0.1 s at t = 112.3 s" in err, err
+    assert not out.exists()
+    rl.library.cache_clear()
+    assert sweep_cli.main(["--net", "straight", "--policies", "analytic", "--leader",
+                           "recorded", "--leader-profile", str(tmp_path), "--scenarios", "1",
+                           "--out", str(tmp_path / "sw"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "dropout.csv" in err and "112.3 s" in err, err
+    assert not (tmp_path / "sw").exists()
+
+
+def test_a_hard_but_plausible_braking_profile_is_accepted(tmp_path) -> None:
+    from safeil_sumo.sim.leaders import from_file
+
+    # 30 -> 3 m/s at 9 m/s^2 (an emergency stop of an ordinary car), then 3 m/s
+    t = np.arange(0.0, 25.0, 0.1)
+    v = np.clip(30.0 - 9.0 * np.clip(t - 5.0, 0.0, None), 3.0, None)
+    prof = from_file(_profile(tmp_path / "hard.csv", t, v))
+    assert prof.speeds.min() == pytest.approx(3.0)
+
+
+@pytest.mark.parametrize("source", ["ngsim", "openacc"])
+def test_the_human_leader_libraries_are_plausible(source) -> None:
+    from safeil_sumo.sim.leaders import implausible_change
+    from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
+
+    require_file(NGSIM_PAIRS if source == "ngsim"
+                 else OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")
+    # the check refuses no real leader the project drives (measured: NGSIM -5.6 / +4.6 m/s^2,
+    # OpenACC -3.6 / +1.4 m/s^2 over 0.5 s)
+    for rec in rl.library(source):
+        assert implausible_change(rec.times, rec.speeds) is None, rec.recording_id

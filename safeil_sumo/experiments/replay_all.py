@@ -13,7 +13,8 @@ Windows (``mode``):
 - ``paper``: the paper's 11 s from the start of each maneuver;
 - ``sliding``: 11 s windows every ``stride_s`` s through each maneuver (the default of
   ``replay --maneuver all``: many windows per maneuver, all its traffic situations);
-- ``whole``: each maneuver from start to end.
+- ``whole``: each maneuver from start to end (or, given a duration, for at most that long from
+  its start).
 
 The aggregate per policy (or per policy and driver, :func:`aggregate`'s ``by``): windows,
 median and mean gap RMSE with seeded bootstrap 95 % intervals, the worst window's gap RMSE and
@@ -94,12 +95,16 @@ def window_id(maneuver_id: str, start_s: float) -> str:
 
 
 def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
-            duration_s: float = rp.PAPER_DURATION_S, stride_s: float = 20.0,
+            duration_s: float | None = None, stride_s: float = 20.0,
             only: list[str] | None = None) -> list[Window]:
-    """The windows of every maneuver (or of ``only``) in ``mode``; maneuvers shorter than one
-    window are skipped in ``paper`` / ``sliding`` mode."""
+    """The windows of every maneuver (or of ``only``) in ``mode``. ``duration_s`` [s]: the
+    window length in ``paper`` / ``sliding`` mode (None: the paper's 11 s; maneuvers shorter
+    than one window are skipped), a cap from each maneuver's start in ``whole`` mode (None or 0:
+    to its end; a maneuver no longer than the cap stays whole, the same window)."""
     if mode not in WINDOW_MODES:
         raise ValueError(f"windows must be one of {WINDOW_MODES}, got {mode!r}")
+    if mode != "whole":
+        duration_s = duration_s or rp.PAPER_DURATION_S
     table = rp.maneuver_table(maneuvers)
     if only is not None:
         unknown = sorted(set(only) - set(table.index))
@@ -112,7 +117,8 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
     for mid, row in table.iterrows():
         dur = float(row["duration_s"])
         if mode == "whole":
-            out.append(Window(str(mid), 0.0, None))
+            capped = bool(duration_s) and duration_s < dur - 1e-9
+            out.append(Window(str(mid), 0.0, float(duration_s) if capped else None))
         elif dur >= duration_s - 1e-9:
             starts = [0.0] if mode == "paper" else np.arange(0.0, dur - duration_s + 1e-9,
                                                              stride_s)
@@ -391,6 +397,7 @@ def aggregate(df: pd.DataFrame, seed: int = 0, by: Sequence[str] = ("policy",)
             "flags": int((g["flag"] != "").sum()),
             # a flag in a window whose recording has none of its own (replay.human_flag)
             "flags_beyond_human": int(((g["flag"] != "") & (g["human_flag"] == "")).sum()),
+            # windows where either says collision (each window counted once)
             "collisions": int(((g["flag"] == "collision")
                                | (g["end_reason"] == "collision")).sum()),
         })

@@ -39,6 +39,7 @@ LEADER_KINDS = ("constant", "braking", "accelerating", "recorded")
 TIMING_FIELDS = ("wall_time_s", "steps_per_s", "task_wall_time_s")  # differ run to run
 STATUS_OK = "ok"
 MAX_SPEED_MPS = 100.0  # [m/s] above: a unit mistake (SUMO refuses such departures)
+DEFAULT_EGO_SPEED_MPS = 30.0  # [m/s] the ego's start speed unless given (~108 km/h)
 STATUS_FAILED = "failed"
 
 TaskFn = Callable[["ScenarioSpec"], dict]
@@ -58,7 +59,10 @@ class ScenarioSpec:
     brake_time_s: float = 5.0  # braking/accelerating leader: the change starts at this time [s]
     brake_decel_mps2: float = 3.0  # braking/accelerating leader: rate of the change [m/s^2]
     brake_to_mps: float = 15.0  # braking/accelerating leader: final speed [m/s]
-    ego_speed_mps: float = 30.0  # ego initial speed [m/s]
+    # ego initial speed [m/s]; None: DEFAULT_EGO_SPEED_MPS, or behind a recorded leader the
+    # recording's start (the recorded follower's speed, or the leader's own speed for a profile
+    # file: :func:`safeil_sumo.scenarios.recorded_leaders.draw`); stays None in the JSON then
+    ego_speed_mps: float | None = None
     initial_gap_m: float | tuple[float, float] = 50.0  # bumper gap, fixed or (low, high) [m]
     lane_noise_c0_m: float = 0.0  # std of camera lane-offset noise [m]
     radar_noise_m: float = 0.0  # std of radar range noise [m]
@@ -95,6 +99,8 @@ class ScenarioSpec:
         set_(self, "route", tuple(str(e) for e in route))
         if self.leader_kind == "recorded" and not self.leader_profile:
             set_(self, "leader_profile", "ngsim")
+        if self.ego_speed_mps is None and self.leader_kind != "recorded":
+            set_(self, "ego_speed_mps", DEFAULT_EGO_SPEED_MPS)  # the JSON of earlier versions
         set_(self, "index", int(self.index))
         set_(self, "master_seed", int(self.master_seed))
         set_(self, "safety_filter", bool(self.safety_filter))
@@ -103,12 +109,10 @@ class ScenarioSpec:
         gap = self.initial_gap_m
         set_(self, "initial_gap_m", float(gap) if isinstance(gap, numbers.Real)
              else _pair(gap, "initial gap"))
-        for name in ("brake_time_s", "brake_decel_mps2", "brake_to_mps", "ego_speed_mps",
+        for name in ("brake_time_s", "brake_decel_mps2", "brake_to_mps",
                      "lane_noise_c0_m", "radar_noise_m", "plan_rate_hz"):
             set_(self, name, float(getattr(self, name)))
-        if self.max_time_s is not None:
-            set_(self, "max_time_s", float(self.max_time_s))
-        for name in ("from_km", "to_km"):
+        for name in ("max_time_s", "ego_speed_mps", "from_km", "to_km"):
             if getattr(self, name) is not None:
                 set_(self, name, float(getattr(self, name)))
         set_(self, "traffic", "" if self.traffic in ("", "none", None) else str(self.traffic))
@@ -119,7 +123,8 @@ class ScenarioSpec:
                              f"{self.master_seed}")
         values = {f.name: getattr(self, f.name) for f in fields(self) if f.type == "float"}
         values |= {"leader_speed_range_mps": self.leader_speed_range_mps,
-                   "initial_gap_m": self.gap_range_m, "max_time_s": self.max_time_s or 1.0}
+                   "initial_gap_m": self.gap_range_m, "max_time_s": self.max_time_s or 1.0,
+                   "ego_speed_mps": 0.0 if self.ego_speed_mps is None else self.ego_speed_mps}
         for name, value in values.items():  # NaN passes every < / > check below
             if not all(math.isfinite(v) for v in np.atleast_1d(value)):
                 raise ValueError(f"{name} must be finite (no NaN/inf), got {value}")
@@ -138,7 +143,7 @@ class ScenarioSpec:
                              "m/s^2 and a final speed >= 0 m/s")
         if self.leader_profile and self.leader_kind != "recorded":
             raise ValueError("a leader profile needs leader kind 'recorded'")
-        if not 0 <= self.ego_speed_mps <= MAX_SPEED_MPS:
+        if self.ego_speed_mps is not None and not 0 <= self.ego_speed_mps <= MAX_SPEED_MPS:
             raise ValueError(f"ego speed must be in [0, {MAX_SPEED_MPS:g}] m/s, "
                              f"got {self.ego_speed_mps}")
         if self.lane_noise_c0_m < 0 or self.radar_noise_m < 0:
@@ -301,7 +306,7 @@ def build_scenario(spec: ScenarioSpec, road):
 
         drawn = rl.draw(rl.library(spec.leader_profile), rng, spec.max_time_s)
         leader = drawn.profile
-        ego_speed = drawn.ego_speed_mps if drawn.ego_speed_mps is not None else ego_speed
+        ego_speed = drawn.ego_speed_mps if ego_speed is None else ego_speed  # given: it wins
         gap = drawn.initial_gap_m if drawn.initial_gap_m is not None else gap
         max_time = min(max_time or math.inf, drawn.duration_s)
     else:
@@ -841,8 +846,8 @@ __all__ = [
     "batches",
     "build_scenario",
     "collect",
-    "even_units",
     "comparable",
+    "even_units",
     "leader_profile",
     "load_specs",
     "run_sweep",

@@ -8,7 +8,11 @@ follower's state at its start (the ego starts where the human did: same speed, s
   by the project's processing pipeline at 10 Hz — read from the data folder at run time
   (``../shared/data`` by default), never copied into the project;
 - a CSV or Parquet file with ``time`` [s] and ``speed`` [m/s] columns (one profile; the ego then
-  starts at the profile's first speed and the spec's initial gap), or a folder of such files.
+  starts at the leader's speed where the scenario starts in the profile, its first speed when
+  the profile is drawn from its start, and the spec's initial gap), or a folder of such files.
+
+A speed the spec gives explicitly (``ScenarioSpec.ego_speed_mps``, ``--ego-speed``) wins over the
+recording's.
 
 Scenario ``index`` of a sweep draws its recording and a start time within it from its own seed
 (:func:`draw`), so it is the same alone or in any sweep. A scenario lasts what is left of the
@@ -49,13 +53,15 @@ class LeaderRecording:
 
 @dataclass(frozen=True)
 class LeaderDraw:
-    """One scenario's recorded leader: the profile from ``start_s`` and the ego's initial state
-    (``None``: take the scenario spec's)."""
+    """One scenario's recorded leader: the profile from ``start_s`` and the ego's initial state:
+    ``ego_speed_mps`` the recorded follower's speed there, or without a recorded follower (a
+    profile file) the leader's own; ``initial_gap_m`` the recorded gap (``None``: take the
+    scenario spec's)."""
 
     recording_id: str
     start_s: float
     profile: SpeedProfile
-    ego_speed_mps: float | None
+    ego_speed_mps: float
     initial_gap_m: float | None
 
     @property
@@ -132,7 +138,9 @@ def draw(recordings: tuple[LeaderRecording, ...], rng: np.random.Generator,
     times = rec.times[k:] - rec.times[k]
     profile = SpeedProfile(times, rec.speeds[k:], f"recorded {rec.recording_id} from {start:.1f} s")
     ego = float(rec.follower_speeds[k])
+    # no recorded follower: the ego starts at its leader's speed (30 m/s behind a leader at
+    # 6.5 m/s is an emergency stop, not car following)
+    ego = ego if np.isfinite(ego) else float(rec.speeds[k])
     gap = float(rec.gaps[k])
-    return LeaderDraw(rec.recording_id, float(rec.times[k]), profile,
-                      ego if np.isfinite(ego) else None, gap if np.isfinite(gap) and gap > 0
-                      else None)
+    return LeaderDraw(rec.recording_id, float(rec.times[k]), profile, ego,
+                      gap if np.isfinite(gap) and gap > 0 else None)
