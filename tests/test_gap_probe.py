@@ -125,6 +125,14 @@ def test_not_settled_drift_and_time_gap_edges() -> None:
     assert m_late["settled"] is True  # holds the band for 44 s
     m_short = gp.response_metrics(t[:6000], late[:6000], v[:6000], 0.0)  # 60 s: holds 13 s
     assert m_short["settled"] is False
+    # a run that ended before its step (e.g. off the road): no response, not settled
+    early = gp.response_metrics(t[:3000], ramp[:3000], v[:3000], 60.0)
+    assert early["settled"] is False and early["step_time_s"] == 60.0
+    assert all(math.isnan(early[k]) for k in ("eq_time_gap_s", "min_time_gap_s", "drift_m"))
+    assert set(early) == set(m)
+    # the leader beyond the radar's range
+    assert not m["beyond_radar"]
+    assert gp.response_metrics(t, ramp + 100.0, v, 0.0)["beyond_radar"]
     # time gap: undefined below MIN_SPEED_TIME_GAP
     tg = gp.time_gap(np.array([10.0, 10.0, 10.0]), np.array([20.0, 0.5, 0.0]))
     assert tg[0] == 0.5 and np.isnan(tg[1:]).all()
@@ -196,7 +204,7 @@ def test_step_specs() -> None:
 
 
 def _record(**over):
-    base = {"policy": "p", "index": gp.KIND_BASE["far"] + 2500, "leader_speed0_mps": 25.0,
+    base = {"policy": "p", "index": gp.KIND_BASE["far"] + 2500, "leader_speed_low_mps": 25.0,
             "eq_time_gap_s": 1.0, "min_time_gap_s": 0.9, "settling_time_s": 20.0,
             "settled": True, "time_gap_at_step_s": 4.0, "end_reason": "timeout",
             "status": "ok", "resp_collision": False, "resp_min_time_gap_s": 0.9}

@@ -52,6 +52,7 @@ import pandas as pd
 
 from safeil_sumo.experiments.suite import MIN_SPEED_TIME_GAP
 from safeil_sumo.experiments.sweep import ScenarioSpec, run_task
+from safeil_sumo.sim.sensors import SensorConfig
 
 KINDS = ("pull_away", "slow_down", "far", "close")
 SPEEDS_MPS = (15.0, 25.0, 35.0)
@@ -71,6 +72,11 @@ BAND = 0.10  # [-] settling band: this fraction of the final gap
 HOLD_S = 30.0  # [s] settled: inside the band for at least this long at the end of the run
 MIN_CHANGE_M = 1.0  # [m] rise time and overshoot need a gap change at least this large
 SERIES_RATE_HZ = 2.0  # [Hz] the time series kept per run (for the plot)
+RADAR_RANGE_M = SensorConfig().radar_range_m  # [m] beyond it the planner sees a free road
+METRIC_COLUMNS = ("eq_time_gap_s", "final_gap_m", "final_speed_mps", "min_time_gap_s",
+                  "min_gap_m", "max_gap_m", "settling_time_s", "settled", "rise_time_s",
+                  "overshoot_m", "drift_m", "gap_at_step_m", "time_gap_at_step_s",
+                  "step_time_s", "beyond_radar")
 KIND_BASE = {kind: 10_000 * (k + 1) for k, kind in enumerate(KINDS)}  # task index = base + 100 v
 
 # issue 20's targets, for the CSV's target_* columns (measured, never tuned to)
@@ -246,6 +252,9 @@ def response_metrics(t: np.ndarray, gap: np.ndarray, v: np.ndarray, t_step: floa
     t, gap, v = np.asarray(t, float), np.asarray(gap, float), np.asarray(v, float)
     tg = time_gap(gap, v)
     after = t >= t_step - 1e-9
+    if not after.any():  # the run ended before its step (e.g. off the road): no response
+        return {"step_time_s": float(t_step), "settled": False} | {
+            k: math.nan for k in METRIC_COLUMNS if k not in ("step_time_s", "settled")}
     final = window_mean(t, gap, window_s)
     settle = settling_time(t, gap, t_step, final, band)
     return {
@@ -264,6 +273,8 @@ def response_metrics(t: np.ndarray, gap: np.ndarray, v: np.ndarray, t_step: floa
         "min_gap_m": float(np.min(gap[after])),
         "max_gap_m": float(np.max(gap[after])),
         "drift_m": drift(t, gap, window_s),
+        # the radar sees no leader beyond its range: the planner then drives a free road
+        "beyond_radar": bool(np.max(gap[after]) > RADAR_RANGE_M),
     }
 
 
@@ -374,10 +385,6 @@ def load_human_rows(data_dir: Path, sources: Sequence[str] = HUMAN_SOURCES) -> p
 # ------------------------------------------------------------------------------- the table
 
 
-METRIC_COLUMNS = ("eq_time_gap_s", "final_gap_m", "final_speed_mps", "min_time_gap_s",
-                  "min_gap_m", "max_gap_m", "settling_time_s", "settled", "rise_time_s",
-                  "overshoot_m", "drift_m", "gap_at_step_m", "time_gap_at_step_s",
-                  "step_time_s")
 SUMMARY_COLUMNS = ("end_reason", "flag", "flag_time_s", "min_ttc_s", "ttc_events",
                    "lane_departure_events", "collision_events", "status", "error")
 
@@ -387,7 +394,7 @@ def table(records: pd.DataFrame, humans: pd.DataFrame | None = None) -> pd.DataF
     the ``humans`` rows; each planner row carries its speed band's human percentiles and the
     issue's targets as ``target_*`` booleans (NaN without human data)."""
     r = records.copy()
-    r["speed_mps"] = r["leader_speed0_mps"].astype(float)
+    r["speed_mps"] = r["leader_speed_low_mps"].astype(float)  # a spec field: failed runs too
     r["kind"] = r["index"].map(kind_of)
     r["collision"] = r["end_reason"].eq("collision") | r.get(
         "resp_collision", pd.Series(False, index=r.index)).fillna(False).astype(bool)
@@ -398,6 +405,8 @@ def table(records: pd.DataFrame, humans: pd.DataFrame | None = None) -> pd.DataF
     cols = ["policy", "speed_mps", "kind", *METRIC_COLUMNS, "run_min_time_gap_s", "collision",
             *SUMMARY_COLUMNS]
     out = r[cols].copy()
+    ran = out["status"].eq("ok")
+    out.loc[ran, "min_ttc_s"] = out.loc[ran, "min_ttc_s"].fillna(math.inf)  # JSON's null: inf
     human_cols = [f"human_p{round(100 * q):02d}_s" for q in HUMAN_QUANTILES]
     if humans is not None and len(humans):
         bands = humans.set_index("speed_mps")[human_cols]
@@ -422,25 +431,27 @@ def table(records: pd.DataFrame, humans: pd.DataFrame | None = None) -> pd.DataF
 
 
 def series(records: pd.DataFrame) -> pd.DataFrame:
-    """The kept time series of every run, long: ``policy, speed_mps, kind, t, gap, v,
-    leader_v, time_gap``."""
+    """The kept time series of every run, long: ``policy, speed_mps, kind, step_time_s, t, gap,
+    v, leader_v, time_gap``."""
     parts = []
     for _, r in records.iterrows():
         if not isinstance(r.get("series_t"), list):
             continue
         gap, v = np.asarray(r["series_gap"], float), np.asarray(r["series_v"], float)
         parts.append(pd.DataFrame({
-            "policy": r["policy"], "speed_mps": float(r["leader_speed0_mps"]),
-            "kind": kind_of(int(r["index"])), "t": r["series_t"], "gap": gap, "v": v,
-            "leader_v": r["series_leader_v"], "time_gap": time_gap(gap, v)}))
+            "policy": r["policy"], "speed_mps": float(r["leader_speed_low_mps"]),
+            "kind": kind_of(int(r["index"])), "step_time_s": float(r["step_time_s"]),
+            "t": r["series_t"], "gap": gap, "v": v, "leader_v": r["series_leader_v"],
+            "time_gap": time_gap(gap, v)}))
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(
-        columns=["policy", "speed_mps", "kind", "t", "gap", "v", "leader_v", "time_gap"])
+        columns=["policy", "speed_mps", "kind", "step_time_s", "t", "gap", "v", "leader_v",
+                 "time_gap"])
 
 
 def plot(series_df: pd.DataFrame, humans: pd.DataFrame | None, path: Path) -> None:
     """Time gap vs time: one panel per step kind (rows) and speed (columns), a line per policy;
     the humans' interquartile range (shaded) and 5th percentile (dashed) of that speed band, and
-    the 0.8 s target (dotted)."""
+    the 0.8 s target (dotted); a grey vertical line at a leader's speed change."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -465,6 +476,8 @@ def plot(series_df: pd.DataFrame, humans: pd.DataFrame | None, path: Path) -> No
                            label="humans IQR")
                 ax.axhline(b["human_p05_s"], color="0.3", ls="--", lw=0.9, label="humans p05")
             ax.axhline(TARGET_MIN_TIME_GAP_S, color="tab:red", ls=":", lw=0.9, label="0.8 s")
+            for step in set(g["step_time_s"]) - {0.0}:  # the leader's speed change
+                ax.axvline(step, color="0.6", lw=0.8)
             top = np.nanquantile(g["time_gap"], 0.98) if len(g) else 3.0
             ax.set_ylim(0.0, max(3.0, min(float(top) * 1.1, 6.0)))
             ax.set_title(f"{kind}, {s:g} m/s", fontsize=9)
