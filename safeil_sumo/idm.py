@@ -76,6 +76,16 @@ def idm_acceleration(v, v_lead, gap, p: IDMParams):
     return p.a_max_mps2 * (1.0 - (v / p.v0_mps) ** p.delta - (s_star / s) ** 2)
 
 
+def equilibrium_gap(v, p: IDMParams):
+    """The IDM's steady-state bumper gap [m] behind a leader at the ego's speed ``v`` [m/s]
+    (zero acceleration, ``v_lead = v``): ``(s0 + v T) / sqrt(1 - (v/v0)^delta)``; inf at or
+    above ``v0``. Below ``v0`` it exceeds the low-speed approximation ``s0 + v T``."""
+    v = np.asarray(v, dtype=float)
+    free = 1.0 - (v / p.v0_mps) ** p.delta
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(free > 0.0, (p.s0_m + v * p.time_gap_s) / np.sqrt(free), np.inf)
+
+
 def simulate_follower(times: np.ndarray, v_lead: np.ndarray, v0: float, gap0: float,
                       p: IDMParams) -> tuple[np.ndarray, np.ndarray]:
     """The IDM follower behind a recorded leader: ``(gap (N,), speed (N,))`` at ``times (N,)`` [s].

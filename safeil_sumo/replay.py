@@ -56,6 +56,18 @@ def load_source(source: str, data_dir: Path = DEFAULT_DATA_DIR) -> pd.DataFrame:
     return load_drive(source)
 
 
+def driver_of(source: str, maneuver_id: str) -> str:
+    """The driver a maneuver of ``source`` belongs to, where the data identify drivers: OpenACC
+    ``openacc/f<k>``, the platoon position of one campaign day (the same car and driver in every
+    part); NGSIM ``ngsim/<id>``, the follower's vehicle id; else ``<source>/<recording>``."""
+    recording = maneuver_id.split("#")[0]
+    if source == "openacc":
+        return f"openacc/{recording.rsplit('_', 1)[-1]}"
+    if source == "ngsim":
+        return f"ngsim/{recording.split('-')[0]}"
+    return f"{source}/{recording}"
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m safeil_sumo.replay",
                                 description="Replay a recorded maneuver in SUMO and compare "

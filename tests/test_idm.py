@@ -31,6 +31,16 @@ def test_free_road_and_equilibrium_hand_computed() -> None:
     assert idm.idm_acceleration(v, v - dv, 40.0, P) == pytest.approx(expected)
 
 
+def test_equilibrium_gap_hand_computed() -> None:
+    # s_e = (s0 + v T) / sqrt(1 - (v/v0)^4): at v = 20, v0 = 30: 26 / sqrt(65/81)
+    assert idm.equilibrium_gap(20.0, P) == pytest.approx(26.0 / math.sqrt(65.0 / 81.0))
+    gaps = idm.equilibrium_gap(np.array([5.0, 15.0, 25.0]), P)
+    assert idm.idm_acceleration(np.array([5.0, 15.0, 25.0]), np.array([5.0, 15.0, 25.0]), gaps,
+                                P) == pytest.approx(np.zeros(3), abs=1e-12)
+    assert idm.equilibrium_gap(30.0, P) == math.inf  # at v0 no gap holds it
+    assert idm.equilibrium_gap(35.0, P) == math.inf
+
+
 def test_params_validation() -> None:
     with pytest.raises(idm.IDMError, match="time_gap_s"):
         idm.IDMParams(time_gap_s=-1.0)

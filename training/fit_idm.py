@@ -26,22 +26,12 @@ from safeil_sumo import idm
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import load_drive
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
-from safeil_sumo.replay import DEFAULT_DATA_DIR, load_source
+from safeil_sumo.replay import DEFAULT_DATA_DIR, driver_of, load_source
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "safeil_sumo" / "models" / "idm.json"
 DEFAULT_EXCLUDE = REPO / "safeil_sumo" / "models" / "safeil.json"
 MIN_DRIVER_SAMPLES = 600  # [-] a driver needs >= 60 s at 10 Hz for a per-driver fit
-
-
-def driver_of(source: str, maneuver_id: str) -> str:
-    """The driver a maneuver belongs to (see the module docstring)."""
-    recording = maneuver_id.split("#")[0]
-    if source == "openacc":
-        return f"openacc/{recording.rsplit('_', 1)[-1]}"  # platoon position: same car, same driver
-    if source == "ngsim":
-        return f"ngsim/{recording.split('-')[0]}"  # follower vehicle id
-    return f"{source}/{recording}"
 
 
 def held_out_ids(paths: list[Path]) -> set[str]:

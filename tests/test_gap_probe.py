@@ -1,0 +1,315 @@
+"""The gap-regulation probe: metrics on hand-built step responses with closed-form rise and
+settling times, the humans' steady-following bands on hand-built maneuvers, the step specs, the
+table's targets, one real libsumo step response of the IDM, the CLI, and the real human data."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.optimize import brentq
+
+from safeil_sumo import idm, policies
+from safeil_sumo.experiments import gap_probe as gp
+from safeil_sumo.gap_probe import main
+
+DT = 0.01  # [s] the closed loop's log step
+
+
+def first_order(t, t_step, g0, gf, tau):
+    """A first-order approach from g0 to gf with time constant tau, starting at t_step."""
+    x = np.maximum(t - t_step, 0.0)
+    return gf + (g0 - gf) * np.exp(-x / tau)
+
+
+def second_order(t, t_step, g0, gf, zeta, omega):
+    """The underdamped second-order step response from g0 to gf (zeta < 1), from t_step."""
+    x = np.maximum(t - t_step, 0.0)
+    wd = omega * math.sqrt(1 - zeta**2)
+    shape = np.exp(-zeta * omega * x) * (np.cos(wd * x)
+                                          + zeta / math.sqrt(1 - zeta**2) * np.sin(wd * x))
+    return gf + (g0 - gf) * shape
+
+
+# ------------------------------------------------------------------------------ pure metrics
+
+
+def test_first_order_approach_closed_form() -> None:
+    t = np.arange(0.0, 200.0 + DT / 2, DT)
+    t_step, g0, gf, tau = 10.0, 100.0, 30.0, 8.0
+    gap = first_order(t, t_step, g0, gf, tau)
+    v = np.full_like(t, 20.0)
+    m = gp.response_metrics(t, gap, v, t_step)
+    # 10 % -> 90 % of the change: tau ln 9; into gf +- 10 % gf: |g0 - gf| e^(-x/tau) = 0.1 gf
+    assert m["rise_time_s"] == pytest.approx(tau * math.log(9.0), abs=1e-3)
+    assert m["settling_time_s"] == pytest.approx(tau * math.log(70.0 / 3.0), abs=DT + 1e-9)
+    assert m["settled"] is True
+    assert m["overshoot_m"] == pytest.approx(0.0, abs=1e-6)
+    assert m["final_gap_m"] == pytest.approx(gf, abs=1e-6)
+    assert m["eq_time_gap_s"] == pytest.approx(1.5, abs=1e-6)
+    assert m["min_time_gap_s"] == pytest.approx(1.5, abs=1e-6)
+    assert m["min_gap_m"] == pytest.approx(gf, abs=1e-6) and m["max_gap_m"] == g0
+    assert m["drift_m"] == pytest.approx(0.0, abs=1e-6)
+    assert m["gap_at_step_m"] == g0 and m["time_gap_at_step_s"] == pytest.approx(5.0)
+    assert m["step_time_s"] == t_step
+
+
+def test_first_order_rising_gap_and_a_step_inside_the_band() -> None:
+    t = np.arange(0.0, 120.0 + DT / 2, DT)
+    v = np.full_like(t, 25.0)
+    rising = gp.response_metrics(t, first_order(t, 0.0, 20.0, 40.0, 5.0), v, 0.0)
+    assert rising["rise_time_s"] == pytest.approx(5.0 * math.log(9.0), abs=1e-3)
+    # |20 - 40| e^(-x/5) = 4
+    assert rising["settling_time_s"] == pytest.approx(5.0 * math.log(5.0), abs=DT + 1e-9)
+    # a change smaller than 10 % of the final gap never leaves the band: settled at once;
+    # below MIN_CHANGE_M there is no rise time nor overshoot
+    small = gp.response_metrics(t, first_order(t, 0.0, 40.5, 40.0, 5.0), v, 0.0)
+    assert small["settling_time_s"] == 0.0 and small["settled"] is True
+    assert math.isnan(small["rise_time_s"]) and math.isnan(small["overshoot_m"])
+
+
+def test_second_order_overshoot_rise_and_settling_closed_form() -> None:
+    t = np.arange(0.0, 150.0 + DT / 2, DT)
+    t_step, g0, gf, zeta, omega = 20.0, 100.0, 30.0, 0.3, 0.5
+    gap = second_order(t, t_step, g0, gf, zeta, omega)
+    v = np.full_like(t, 20.0)
+    m = gp.response_metrics(t, gap, v, t_step)
+    damp = math.exp(-zeta * math.pi / math.sqrt(1 - zeta**2))  # the first peak's fraction
+    assert m["overshoot_m"] == pytest.approx(70.0 * damp, rel=1e-4)
+    assert m["min_gap_m"] == pytest.approx(gf - 70.0 * damp, abs=1e-3)
+    assert m["min_time_gap_s"] == pytest.approx((gf - 70.0 * damp) / 20.0, abs=1e-4)
+
+    def y(x):  # the continuous response after the step
+        return float(second_order(np.array([t_step + x]), t_step, g0, gf, zeta, omega)[0])
+
+    wd = omega * math.sqrt(1 - zeta**2)
+    # 10 % and 90 % of the change are first reached before the first peak (x = pi / wd)
+    x10 = brentq(lambda x: (g0 - y(x)) / 70.0 - 0.1, 0.0, math.pi / wd)
+    x90 = brentq(lambda x: (g0 - y(x)) / 70.0 - 0.9, 0.0, math.pi / wd)
+    assert m["rise_time_s"] == pytest.approx(x90 - x10, abs=1e-3)
+    # extrema at k pi / wd deviate 70 damp^k from gf: the last beyond the band (3 m) is k*;
+    # the gap enters the band for good on the way from that extremum to the next zero crossing
+    k = max(k for k in range(1, 50) if 70.0 * damp**k > 3.0)
+    x_zero = brentq(lambda x: y(x) - gf, k * math.pi / wd, (k + 1) * math.pi / wd)
+    x_settle = brentq(lambda x: abs(y(x) - gf) - 3.0, k * math.pi / wd, x_zero)
+    assert m["settling_time_s"] == pytest.approx(x_settle, abs=DT + 1e-6)
+    assert m["settled"] is True
+
+
+def test_not_settled_drift_and_time_gap_edges() -> None:
+    t = np.arange(0.0, 90.0 + DT / 2, DT)
+    v = np.full_like(t, 20.0)
+    # a gap opening by 0.2 m/s: the drift over the last 15 s is 3 m; the final gap is the mean
+    # over those 15 s (66.5 m). The ramp enters 66.5 +- 6.65 m at 49.25 s and stays: by the
+    # band alone a slow drift counts as settled; the drift shows it
+    ramp = 50.0 + 0.2 * t
+    m = gp.response_metrics(t, ramp, v, 0.0)
+    assert m["drift_m"] == pytest.approx(3.0, abs=1e-9)
+    assert m["final_gap_m"] == pytest.approx(66.5, abs=1e-6)
+    assert m["settling_time_s"] == pytest.approx((0.9 * 66.5 - 50.0) / 0.2, abs=DT + 1e-9)
+    assert m["settled"] is True
+    # a last sample outside the band: no settling time
+    jump = np.full_like(t, 30.0)
+    jump[-1] = 40.0
+    assert math.isnan(gp.settling_time(t, jump, 0.0, 30.0))
+    # a response that settles, but too late to hold the band for HOLD_S: not settled
+    late = first_order(t, 0.0, 100.0, 30.0, 15.0)
+    m_late = gp.response_metrics(t, late, v, 0.0)
+    f = m_late["final_gap_m"]  # 30.3 m: the tail still decays; 70 e^(-x/15) = 1.1 f - 30
+    assert m_late["settling_time_s"] == pytest.approx(15 * math.log(70 / (1.1 * f - 30)),
+                                                      abs=DT + 1e-6)
+    assert m_late["settling_time_s"] == pytest.approx(45.7, abs=0.1)
+    assert m_late["settled"] is True  # holds the band for 44 s
+    m_short = gp.response_metrics(t[:6000], late[:6000], v[:6000], 0.0)  # 60 s: holds 13 s
+    assert m_short["settled"] is False
+    # a run that ended before its step (e.g. off the road): no response, not settled
+    early = gp.response_metrics(t[:3000], ramp[:3000], v[:3000], 60.0)
+    assert early["settled"] is False and early["step_time_s"] == 60.0
+    assert all(math.isnan(early[k]) for k in ("eq_time_gap_s", "min_time_gap_s", "drift_m"))
+    assert set(early) == set(m)
+    # the leader beyond the radar's range
+    assert not m["beyond_radar"]
+    assert gp.response_metrics(t, ramp + 100.0, v, 0.0)["beyond_radar"]
+    # time gap: undefined below MIN_SPEED_TIME_GAP
+    tg = gp.time_gap(np.array([10.0, 10.0, 10.0]), np.array([20.0, 0.5, 0.0]))
+    assert tg[0] == 0.5 and np.isnan(tg[1:]).all()
+
+
+# ------------------------------------------------------------------------------- the humans
+
+
+def _maneuver(mid, driver, v, v_lead, gap, n=200, hz=10.0):
+    t = np.arange(n) / hz
+    return pd.DataFrame({"maneuver_id": mid, "driver": driver, "time": 1000.0 + t,
+                         "v_x": v(t) if callable(v) else np.full(n, v),
+                         "v_lead": np.full(n, v_lead), "lead_x": np.full(n, gap)})
+
+
+def test_human_bands_on_hand_built_maneuvers() -> None:
+    rows = pd.concat([
+        _maneuver("a#0", "d1", 25.0, 25.0, 25.0),  # steady, 1.0 s
+        _maneuver("b#0", "d2", 25.0, 25.0, 50.0, n=100),  # steady, 2.0 s
+        _maneuver("c#0", "d2", 25.0, 26.0, 10.0),  # |dv| = 1 m/s: not steady
+        _maneuver("d#0", "d3", lambda t: 24.0 + 1.0 * t, 25.0, 10.0, n=40),  # 1 m/s^2: no
+        _maneuver("e#0", "d3", lambda t: 14.0 + 0.2 * t, 14.5, 30.0, n=50),  # 0.2 m/s^2: yes
+    ], ignore_index=True)
+    steady = gp.steady_following(rows)
+    man, v = rows["maneuver_id"].to_numpy(), rows["v_x"].to_numpy()
+    expected = np.isin(man, ["a#0", "b#0"]) | ((man == "e#0") & (np.abs(v - 14.5) < 0.5))
+    np.testing.assert_array_equal(steady, expected)
+    bands = gp.human_time_gap_bands(rows, speeds=(15.0, 25.0, 35.0)).set_index("speed_mps")
+    b25 = bands.loc[25.0]
+    assert (b25["samples"], b25["maneuvers"], b25["drivers"]) == (300, 2, 2)
+    pooled = np.r_[np.full(200, 1.0), np.full(100, 2.0)]
+    for q in gp.HUMAN_QUANTILES:
+        assert b25[f"human_p{round(100 * q):02d}_s"] == pytest.approx(np.quantile(pooled, q))
+    assert b25["human_p50_s"] == 1.0 and b25["human_p75_s"] == 2.0
+    b15 = bands.loc[15.0]  # maneuver e: v 14.0..14.98, steady where |v - 14.5| < 0.5
+    sel = expected & (man == "e#0")
+    assert b15["samples"] == sel.sum() and b15["drivers"] == 1
+    assert b15["human_p50_s"] == pytest.approx(np.median(30.0 / v[sel]))
+    assert bands.loc[35.0, "samples"] == 0 and math.isnan(bands.loc[35.0, "human_p50_s"])
+
+
+# ------------------------------------------------------------------------------ the specs
+
+
+def test_step_specs() -> None:
+    assert [gp.initial_gap_m("close", v) for v in (15, 25, 35)] == [5.0, 15.0, 25.0]
+    assert gp.initial_gap_m("far", 25) == 100.0 and gp.initial_gap_m("pull_away", 20) == 30.0
+    with pytest.raises(ValueError, match="unknown step kind"):
+        gp.initial_gap_m("sideways", 25)
+    pull = gp.probe_spec("idm", "pull_away", 25.0)
+    from safeil_sumo.experiments.sweep import leader_profile
+
+    prof = leader_profile(pull, 25.0)
+    assert prof.speed_at(59.9) == 25.0 and prof.speed_at(61.5) == pytest.approx(26.5)
+    assert prof.speed_at(63.0) == 28.0 and prof.speed_at(149.0) == 28.0
+    assert pull.max_time_s == gp.SETTLE_S + gp.AFTER_STEP_S and gp.step_time_s(pull) == 60.0
+    slow = gp.probe_spec("idm", "slow_down", 15.0)
+    assert leader_profile(slow, 15.0).speed_at(100.0) == 12.0
+    far = gp.probe_spec("idm", "far", 35.0)
+    assert gp.step_time_s(far) == 0.0 and far.max_time_s == gp.AFTER_STEP_S
+    assert leader_profile(far, 35.0).speed_at(80.0) == 35.0
+    assert [gp.kind_of(gp.probe_spec("idm", k, 25.0).index) for k in gp.KINDS] == list(gp.KINDS)
+    # the leader's distance: gap + car + 60 s at 25 + the 3 s ramp at 26.5 + 87 s at 28
+    assert gp.leader_distance_m(pull) == pytest.approx(37.5 + 4.54 + 1500 + 79.5 + 2436,
+                                                       abs=0.5)
+    gp.check_fits(gp.probe_spec("idm", "pull_away", 40.0))
+    with pytest.raises(ValueError, match="beyond the probe's"):
+        gp.check_fits(gp.probe_spec("idm", "pull_away", 55.0))
+
+
+def _record(**over):
+    base = {"policy": "p", "index": gp.KIND_BASE["far"] + 2500, "leader_speed_low_mps": 25.0,
+            "eq_time_gap_s": 1.0, "min_time_gap_s": 0.9, "settling_time_s": 20.0,
+            "settled": True, "time_gap_at_step_s": 4.0, "end_reason": "timeout",
+            "status": "ok", "resp_collision": False, "resp_min_time_gap_s": 0.9}
+    return base | over
+
+
+def test_table_targets() -> None:
+    records = pd.DataFrame([
+        _record(),
+        _record(min_time_gap_s=0.79),  # below 0.8 s
+        _record(settling_time_s=46.0),  # too slow
+        _record(settled=False),
+        _record(eq_time_gap_s=1.5),  # outside the humans' IQR
+        # close: started at 0.6 s and never went lower: not blamed for its start
+        _record(index=gp.KIND_BASE["close"] + 2500, min_time_gap_s=0.6, time_gap_at_step_s=0.6),
+        _record(index=gp.KIND_BASE["close"] + 2500, min_time_gap_s=0.55, time_gap_at_step_s=0.6),
+        _record(end_reason="collision"),
+    ])
+    humans = pd.DataFrame([{"policy": "humans", "kind": "steady_following", "speed_mps": 25.0,
+                            "samples": 10, "maneuvers": 2, "drivers": 2, "human_p05_s": 0.85,
+                            "human_p25_s": 0.9, "human_p50_s": 1.1, "human_p75_s": 1.3}])
+    t = gp.table(records, humans)
+    runs = t[t["policy"] == "p"]
+    assert list(runs["kind"]) == ["far"] * 5 + ["close"] * 2 + ["far"]
+    # the floor is max(0.8, p05 = 0.85)
+    assert list(runs["target_min_time_gap"]) == [True, False, True, True, True, True, False,
+                                                 True]
+    assert list(runs["target_settling"]) == [True, True, False, False, True, True, True, True]
+    assert list(runs["target_eq_in_human_iqr"]) == [True, True, True, True, False, True, True,
+                                                    True]
+    assert list(runs["collision"]) == [False] * 7 + [True]
+    assert t.iloc[-1]["policy"] == "humans" and t.iloc[-1]["drivers"] == 2
+    # without the humans: the 0.8 s floor alone, and no IQR verdict
+    bare = gp.table(records)
+    assert list(bare["target_min_time_gap"])[:2] == [True, False]
+    assert bare["target_eq_in_human_iqr"].isna().all()
+
+
+# ------------------------------------------------------------------------ real closed loops
+
+
+def test_idm_step_response_in_libsumo() -> None:
+    # the ego starts 10 m closer than a 1 s time gap allows (5 m at 15 m/s) behind a leader at
+    # 15 m/s; the calibrated IDM must open the gap to its own equilibrium (s0 + v T) /
+    # sqrt(1 - (v/v0)^4), computed from the model file, and settle there
+    r = gp.run_step("idm", "close", 15.0, after_s=30.0)
+    assert r["status"] == "ok" and r["end_reason"] == "timeout" and r["flag"] == ""
+    assert r["kind"] == "close" and r["gap_at_step_m"] == pytest.approx(5.0, abs=1e-3)
+    params = policies.load("idm").params
+    v = r["final_speed_mps"]
+    assert v == pytest.approx(15.0, abs=0.1)
+    expected = float(idm.equilibrium_gap(v, params)) / v  # ~1.0 s at 15 m/s
+    assert r["eq_time_gap_s"] == pytest.approx(expected, rel=0.03)
+    assert r["final_gap_m"] > 12.0  # the gap opened from 5 m
+    # it settled into the band within 20 s, opening the gap without overshooting by more than
+    # the band, and never closed in below its start
+    assert 2.0 < r["settling_time_s"] < 20.0
+    assert 2.0 < r["rise_time_s"] < 20.0
+    assert r["overshoot_m"] < 0.1 * r["final_gap_m"]
+    assert r["min_gap_m"] == pytest.approx(5.0, abs=0.05)
+    assert abs(r["drift_m"]) < 1.0
+    assert len(r["series_t"]) == 60 and r["series_t"][-1] == pytest.approx(30.0)
+
+
+def test_cli_writes_the_results(tmp_path, capsys) -> None:
+    out = tmp_path / "probe"
+    code = main(["--policies", "analytic", "--speeds", "25", "--kinds", "close",
+                 "--no-humans", "--no-progress", "--out", str(out)])
+    assert code == 0
+    for name in ("gap_probe.csv", "gap_probe.png", "series.parquet", "manifest.json"):
+        assert (out / name).is_file(), name
+    table = pd.read_csv(out / "gap_probe.csv")
+    assert len(table) == 1 and table.loc[0, "kind"] == "close"
+    # the analytic planner's desired gap is 5 m + 1.5 s v: 1.7 s at 25 m/s
+    assert table.loc[0, "eq_time_gap_s"] == pytest.approx(1.7, abs=0.05)
+    assert bool(table.loc[0, "settled"])
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config"]["speeds_mps"] == [25.0] and manifest["git_commit"]
+    assert "results:" in capsys.readouterr().out
+    # a rerun resumes: nothing runs again, the same table
+    assert main(["--policies", "analytic", "--speeds", "25", "--kinds", "close",
+                 "--no-humans", "--no-progress", "--out", str(out)]) == 0
+    pd.testing.assert_frame_equal(pd.read_csv(out / "gap_probe.csv"), table)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--policies", "nosuchpolicy"], "unknown policy"),
+    (["--speeds", "55", "--kinds", "pull_away"], "beyond the probe's"),
+])
+def test_cli_bad_input_one_line(tmp_path, capsys, args, message) -> None:
+    code = main([*args, "--no-humans", "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and message in err and "Traceback" not in err and "\n" not in err
+    assert not (tmp_path / "x").exists()
+
+
+def test_human_bands_from_the_real_data() -> None:
+    from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, SHARED, require_file
+
+    require_file(NGSIM_PAIRS)
+    require_file(OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")
+    bands = gp.human_time_gap_bands(gp.load_human_rows(SHARED)).set_index("speed_mps")
+    for v, b in bands.iterrows():
+        assert b["samples"] > 100, v
+        q = [b[f"human_p{round(100 * q):02d}_s"] for q in gp.HUMAN_QUANTILES]
+        assert q == sorted(q) and 0.1 < q[0] and q[-1] < 5.0
+    # 15 m/s: NGSIM's congested I-80 (many followers); 35 m/s: OpenACC's four motorway drivers
+    assert bands.loc[15.0, "drivers"] >= 10 and bands.loc[35.0, "drivers"] == 4
