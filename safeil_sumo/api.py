@@ -121,15 +121,17 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
            maneuvers: str | Sequence[str] = "all", windows: str = "sliding",
            workers: int = 1, duration_s: float | None = None, stride_s: float = 20.0,
            config: ReplayConfig | None = None, progress: bool = False,
-           name: str | None = None, manifest: dict | None = None, batch: int = REPLAY_BATCH
-           ) -> tuple[pd.DataFrame, pd.DataFrame]:
+           name: str | None = None, manifest: dict | None = None, batch: int = REPLAY_BATCH,
+           adapt_first_s: float = 0.0) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Replay every window of ``maneuvers`` (``"all"`` or ids) of ``source`` (``openacc``,
     ``ngsim``, a drive file, or an already processed maneuvers frame) with each policy (names or
     paths, ``recorded`` for the human's own path): ``(per-window table, per-policy
     aggregate)``; ``duration_s`` [s]: the length of ``paper`` / ``sliding`` windows (None: 11 s),
     or a cap on each ``whole`` maneuver from its start (None: the whole maneuver); both also written to ``out`` with the plots; resumable. ``name`` titles the
     plots and messages (default: the source). Up to ``batch`` windows of a worker task run side
-    by side in one SUMO simulation (1: one simulation per run; the same records)."""
+    by side in one SUMO simulation (1: one simulation per run; the same records).
+    ``adapt_first_s`` [s] (``whole`` windows): the planners are adapted to each driver on the
+    maneuver's first seconds, which are then not scored (``replay_all.adapt_planners``)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay_all as ra
     from safeil_sumo.replay import load_source
@@ -140,10 +142,12 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
         rows, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
     name = name or (str(source) if isinstance(source, str) else "maneuvers")
     only = None if maneuvers == "all" else list(maneuvers)
-    wins = ra.windows(rows, windows, duration_s, stride_s, only)
+    wins = ra.windows(rows, windows, duration_s, stride_s, only, adapt_first_s)
     if not wins:
-        raise ra.rp.ReplayError(f"no maneuver of {name} is long enough for a "
-                                f"{duration_s or ra.rp.PAPER_DURATION_S:g} s window")
+        raise ra.rp.ReplayError(
+            f"no maneuver of {name} is long enough for "
+            + (f"{adapt_first_s:g} s of adaptation and {ra.MIN_SCORED_S:g} s scored"
+               if adapt_first_s else f"a {duration_s or ra.rp.PAPER_DURATION_S:g} s window"))
     config = config or ReplayConfig()
     records = ra.replay_all(rows, wins, list(policies_), Path(out), config, workers,
                             progress=progress, batch=batch)

@@ -100,6 +100,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="replay length [s] (default 11, the paper's; 0 = to the maneuver end); "
                         "with --maneuver all/list: the length of paper/sliding windows, or with "
                         "--windows whole a cap on each maneuver from its start (default: whole)")
+    p.add_argument("--adapt-first-s", type=finite_float, default=0.0, metavar="S",
+                   help="with --windows whole: adapt the planners to each driver on the "
+                        "maneuver's first S seconds, then score the rest (a style-conditioned "
+                        "checkpoint gets the driver's time gap, the IDM is refitted on them; "
+                        "maneuvers without 20 s left are skipped). Default 0: no adaptation")
     p.add_argument("--policies", nargs="+", default=["analytic"],
                    help="safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
                         "path: the instrument's error floor), constant_speed (the initial speed "
@@ -126,6 +131,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.many and args.windows != "whole" and args.duration == 0:
         p.error(f"--duration 0 (to the maneuver's end) needs one maneuver or --windows whole; "
                 f"{args.windows} windows need a length > 0 s")
+    if args.adapt_first_s < 0 or (args.adapt_first_s and not (
+            args.many and args.windows == "whole")):
+        p.error("--adapt-first-s needs --windows whole with --maneuver all or a list, and "
+                "S >= 0 s")
     if args.held_out_of is not None and args.maneuver != "all":
         p.error("--held-out-of needs --maneuver all")
     if args.animate and args.many:
@@ -158,9 +167,9 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
                   # as used: the window length, or the cap on whole maneuvers (None: none)
                   "duration_s": rp.PAPER_DURATION_S if args.duration is None
                   and args.windows != "whole" else args.duration or None,
-                  "maneuvers": only or "all",
+                  "maneuvers": only or "all", "adapt_first_s": args.adapt_first_s,
                   "batch": args.batch},
-        batch=args.batch)
+        batch=args.batch, adapt_first_s=args.adapt_first_s)
     failed = table.drop_duplicates(["maneuver_id", "start_s"])
     failed = failed[failed["status"] != "ok"]
     n_windows = len(table.drop_duplicates(["maneuver_id", "start_s"]))

@@ -122,3 +122,90 @@ def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
         policies.with_time_gap(AnalyticPlanner(), 2.0)
     with pytest.raises(policies.PolicyError, match="> 0"):
         policies.with_time_gap(idm, 0.0)
+
+
+# ------------------------------------------------------------------ adaptation in replays
+
+
+def _arc_rows(duration: float, gap: float = 50.0):
+    from test_replay import V, arc_drive
+
+    rows = arc_drive(duration)
+    rows["lead_x"] = gap
+    rows["v_lead"] = V
+    return rows
+
+
+def test_adapted_windows_leave_out_the_adaptation_seconds():
+    import pandas as pd
+
+    from safeil_sumo.experiments import replay_all as ra
+
+    maneuvers = pd.concat([_arc_rows(40.0), _arc_rows(25.0).assign(maneuver_id="short#0")],
+                          ignore_index=True)
+    wins = ra.windows(maneuvers, "whole", adapt_s=10.0)
+    # 40 s: scored from 10 s to the end; 25 s: only 15 s left (< 20 s): skipped
+    assert [(w.maneuver_id, w.start_s, w.duration_s, w.adapt_s) for w in wins] == [
+        ("arc#0", 10.0, None, 10.0)]
+    plain = ra.Window("arc#0", 10.0, None)
+    assert wins[0].task_id != plain.task_id  # never mixed up with an unadapted run
+    capped = ra.windows(maneuvers, "whole", duration_s=20.0, adapt_s=10.0)
+    assert capped[0].duration_s == 20.0
+    with pytest.raises(ValueError, match="whole"):
+        ra.windows(maneuvers, "sliding", adapt_s=10.0)
+
+
+def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
+    from test_replay import V
+
+    from safeil_sumo import idm
+    from safeil_sumo import policies as pol
+    from safeil_sumo.experiments import replay_all as ra
+
+    save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
+                    horizon=5.0)
+    styled = pol.load(str(tmp_path / "m.safetensors"))
+    shipped_idm = pol.load("idm")
+    planners = {"m": styled, "idm": shipped_idm, "analytic": pol.load("analytic")}
+    rows = _arc_rows(20.0, gap=40.0)
+    out = ra.adapt_planners(planners, rows)
+    assert out["m"].style == {"time_gap_s": pytest.approx(40.0 / V)}
+    assert styled.style == {"time_gap_s": 1.5}  # the shared planner is untouched
+    assert out["analytic"] is planners["analytic"]
+    # the refitted IDM follows this driver better than the population fit
+    man = idm.maneuvers_from_rows(rows)
+    fitted, _ = idm.evaluate_fit(man, out["idm"].params)
+    shipped, _ = idm.evaluate_fit(man, shipped_idm.params)
+    assert fitted < shipped and out["idm"].params != shipped_idm.params
+
+
+def test_an_adapted_whole_replay_in_sumo(tmp_path):
+    import pandas as pd
+
+    """Real libsumo: the arc maneuver replayed from 10 s on with the planners adapted on its
+    first 10 s; the record says so and covers the rest only."""
+    pytest.importorskip("libsumo")
+    from safeil_sumo.experiments import replay_all as ra
+
+    maneuvers = _arc_rows(35.0)
+    wins = ra.windows(maneuvers, "whole", adapt_s=10.0)
+    records = ra.replay_all(maneuvers, wins, ["idm", "recorded"], tmp_path, progress=False)
+    (rec,) = records
+    assert rec["status"] == "ok" and rec["adapt_s"] == 10.0 and rec["start_s"] == 10.0
+    assert rec["duration_s"] == pytest.approx(25.0, abs=0.2)
+    by_policy = {m["policy"]: m for m in rec["metrics"]}
+    assert by_policy["recorded"]["rmse_gap"] < 0.2  # the instrument's floor on the rest
+    assert by_policy["idm"]["end_reason"] != "collision"
+    # the IDM ran with the parameters fitted on the first 10 s, not the shipped ones
+    from dataclasses import asdict
+
+    from safeil_sumo import policies as pol
+
+    assert set(rec["adapted"]) == {"idm", "recorded"} and rec["adapted"]["recorded"] == {}
+    assert rec["adapted"]["idm"] != asdict(pol.load("idm").params)
+    # the same with two windows side by side in one simulation (the batched path)
+    both = pd.concat([maneuvers, _arc_rows(35.0).assign(maneuver_id="arc#1")],
+                     ignore_index=True)
+    batched = ra.replay_all(both, ra.windows(both, "whole", adapt_s=10.0), ["idm"],
+                            tmp_path / "b", progress=False, batch=2)
+    assert [r["adapted"]["idm"] for r in batched] == [rec["adapted"]["idm"]] * 2

@@ -71,10 +71,15 @@ class Window:
     maneuver_id: str
     start_s: float
     duration_s: float | None
+    # [s] the planners were adapted to the driver on the maneuver's first adapt_s seconds
+    # (adapt_planners), which the window then leaves out: start_s = adapt_s
+    adapt_s: float = 0.0
 
     @property
     def task_id(self) -> str:
         text = f"{self.maneuver_id}|{self.start_s:.3f}|{self.duration_s}"
+        if self.adapt_s:
+            text += f"|adapt {self.adapt_s:.3f}"
         digest = hashlib.sha256(text.encode()).hexdigest()[:10]
         return re.sub(r"[^A-Za-z0-9_]+", "_", self.maneuver_id)[:40] + f"-{self.start_s:07.1f}-{digest}"
 
@@ -96,13 +101,18 @@ def window_id(maneuver_id: str, start_s: float) -> str:
 
 def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
             duration_s: float | None = None, stride_s: float = 20.0,
-            only: list[str] | None = None) -> list[Window]:
+            only: list[str] | None = None, adapt_s: float = 0.0) -> list[Window]:
     """The windows of every maneuver (or of ``only``) in ``mode``. ``duration_s`` [s]: the
     window length in ``paper`` / ``sliding`` mode (None: the paper's 11 s; maneuvers shorter
     than one window are skipped), a cap from each maneuver's start in ``whole`` mode (None or 0:
-    to its end; a maneuver no longer than the cap stays whole, the same window)."""
+    to its end; a maneuver no longer than the cap stays whole, the same window).
+    ``adapt_s`` [s] (``whole`` mode only): the planners are adapted to the driver on each
+    maneuver's first ``adapt_s`` seconds (:func:`adapt_planners`) and the window is the rest of
+    the maneuver; a maneuver without :data:`MIN_SCORED_S` left after them is skipped."""
     if mode not in WINDOW_MODES:
         raise ValueError(f"windows must be one of {WINDOW_MODES}, got {mode!r}")
+    if adapt_s and mode != "whole":
+        raise ValueError("adapting to the driver (adapt_s) needs whole-maneuver windows")
     if mode != "whole":
         duration_s = duration_s or rp.PAPER_DURATION_S
     table = rp.maneuver_table(maneuvers)
@@ -116,7 +126,13 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
     out = []
     for mid, row in table.iterrows():
         dur = float(row["duration_s"])
-        if mode == "whole":
+        if mode == "whole" and adapt_s:
+            if dur - adapt_s < MIN_SCORED_S:
+                continue
+            capped = bool(duration_s) and duration_s < dur - adapt_s - 1e-9
+            out.append(Window(str(mid), float(adapt_s), float(duration_s) if capped else None,
+                              float(adapt_s)))
+        elif mode == "whole":
             capped = bool(duration_s) and duration_s < dur - 1e-9
             out.append(Window(str(mid), 0.0, float(duration_s) if capped else None))
         elif dur >= duration_s - 1e-9:
@@ -124,6 +140,55 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
                                                              stride_s)
             out += [Window(str(mid), float(s), duration_s) for s in starts]
     return out
+
+
+MIN_SCORED_S = 20.0  # [s] an adapted maneuver needs this much left to score
+
+
+def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> dict:
+    """The planners adapted to the driver of ``first_rows`` (a maneuver's first seconds, which
+    the score then leaves out): a style-conditioned checkpoint is set to the driver's preferred
+    time gap (:func:`safeil_sumo.learn.style.estimate_time_gap`); the IDM's five parameters are
+    fitted on those seconds (:func:`safeil_sumo.idm.fit_idm`, the same calibration as the
+    shipped fit). Other planners are returned as they are. Copies: ``policies`` is unchanged."""
+    import copy
+    from dataclasses import replace
+
+    from safeil_sumo import idm
+    from safeil_sumo import policies as pol
+    from safeil_sumo.learn.style import estimate_time_gap
+
+    time_gap = estimate_time_gap(first_rows["lead_x"].to_numpy(float),
+                                 first_rows["v_x"].to_numpy(float))
+    out = {}
+    for label, policy in policies.items():
+        if isinstance(policy, idm.IDMPlanner):
+            fit = idm.fit_idm(idm.maneuvers_from_rows(first_rows), seed=seed, starts=2)
+            out[label] = replace(policy, params=fit.params)
+        elif "time_gap_s" in getattr(policy, "style_names", ()) and np.isfinite(time_gap):
+            out[label] = pol.with_time_gap(copy.deepcopy(policy), time_gap)
+        else:
+            out[label] = policy
+    return out
+
+
+def adaptation(planners: dict) -> dict:
+    """What each adapted planner was set to (JSON-able, for the window's record): the style of
+    a style-conditioned checkpoint, the IDM's parameters; ``{}`` for the others."""
+    from dataclasses import asdict
+
+    from safeil_sumo import idm
+
+    return {label: asdict(p.params) if isinstance(p, idm.IDMPlanner)
+            else dict(getattr(p, "style", None) or {}) for label, p in planners.items()}
+
+
+def _window_policies(window: Window, maneuvers: pd.DataFrame, policies: dict) -> dict:
+    """``policies``, adapted on the maneuver's first ``window.adapt_s`` seconds if asked."""
+    if not window.adapt_s:
+        return policies
+    rows = maneuvers[maneuvers["maneuver_id"] == window.maneuver_id].reset_index(drop=True)
+    return adapt_planners(policies, rp.window(rows, 0.0, window.adapt_s))
 
 
 def _headway_hist(values: np.ndarray) -> list[int]:
@@ -143,13 +208,16 @@ def _failed(window: Window, exc: Exception) -> dict:
             "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
 
 
-def _record(window: Window, res: rp.ReplayResult) -> dict:
-    """The JSON-able record of a replayed window."""
+def _record(window: Window, res: rp.ReplayResult, planners: dict | None = None) -> dict:
+    """The JSON-able record of a replayed window (``planners``: those it ran, for the settings
+    of an adapted window)."""
     metrics = res.metrics.replace({np.nan: None}).to_dict(orient="records")
-    return {
+    extra = {"adapted": adaptation(planners)} if window.adapt_s and planners else {}
+    return {**extra,
         "task_id": window.task_id, "maneuver_id": window.maneuver_id,
         "driver": driver_id(window.maneuver_id),
         "start_s": window.start_s, "duration_s": res.info["duration_s"], "status": "ok",
+        "adapt_s": window.adapt_s,
         "mean_speed_mps": res.info["mean_speed_mps"], "mean_gap_m": res.info["mean_gap_m"],
         **{k: res.info[k] for k in INSTRUMENT_KEYS},
         "metrics": metrics,
@@ -164,12 +232,13 @@ def run_window(window: Window, maneuvers: pd.DataFrame, policies: dict, config: 
     """Replay one window with every policy: a JSON-able record (never raises)."""
     try:
         rows = _window_rows(window, maneuvers)
+        policies = _window_policies(window, maneuvers, policies)
         with tempfile.TemporaryDirectory() as tmp:
             res = rp.replay_maneuver(rows, policies, Path(tmp), config,
                                      maneuver_id=window.maneuver_id)
     except Exception as exc:  # noqa: BLE001 - a record, never an exception: the run goes on
         return _failed(window, exc)
-    return _record(window, res)
+    return _record(window, res, policies)
 
 
 def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
@@ -193,6 +262,7 @@ def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
     records: list[dict | None] = [None] * len(wins)
     preps: dict[int, rp.ReplayPrep] = {}
     rollouts: dict[int, dict] = {}  # window -> label -> rollout, until the window's record
+    used: dict[int, dict] = {}  # window -> label -> the planner it ran (adapted or not)
     batched: list[tuple[int, str, object]] = []  # (window, label, planner) of the batch
 
     def settle(k: int, rec: dict | None = None) -> None:
@@ -202,7 +272,8 @@ def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
                 return
             try:
                 rec = _record(wins[k], rp.compare_replay(
-                    preps[k], {label: rollouts[k][label] for label in policies}, config))
+                    preps[k], {label: rollouts[k][label] for label in policies}, config),
+                    used[k])
             except Exception as exc:  # noqa: BLE001 - a record: the batch goes on
                 rec = _failed(wins[k], exc)
         rollouts.pop(k, None)  # its logs are freed
@@ -216,7 +287,8 @@ def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
                 preps[k] = rp.prepare_replay(_window_rows(w, maneuvers), Path(tmp) / str(k),
                                              config, w.maneuver_id)
                 rollouts[k] = {}
-                for label, policy in policies.items():
+                used[k] = _window_policies(w, maneuvers, policies)
+                for label, policy in used[k].items():
                     planner = rp.replay_policy(preps[k], policy)
                     if getattr(planner, "pose_at", None) is not None:  # kinematic: alone
                         rollouts[k][label] = run_scenario(preps[k].scenario, planner,
