@@ -54,6 +54,15 @@ def add_ego_speed_option(parser: argparse.ArgumentParser) -> None:
              "starts in it (a file); a speed given here wins)")
 
 
+def add_time_gap_option(parser: argparse.ArgumentParser) -> None:
+    """``--time-gap``, shared by ``run`` and ``sweep``: the planner's preferred time gap."""
+    parser.add_argument(
+        "--time-gap", type=finite_float, default=None, metavar="S",
+        help="the planner's preferred time gap [s], like an ACC's distance setting: the style "
+             "input of a style-conditioned checkpoint (default: the humans' median stored in "
+             "it), or the IDM's T; other planners refuse it")
+
+
 def add_route_option(parser: argparse.ArgumentParser) -> None:
     """``--route EDGE [EDGE ...]``, shared by ``run`` and ``sweep``."""
     parser.add_argument(

@@ -27,6 +27,7 @@ from safeil_sumo.cli_args import (
     add_leader_options,
     add_n74_options,
     add_route_option,
+    add_time_gap_option,
     finite_float,
     lane_for_net,
     nonnegative_int,
@@ -64,6 +65,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add_leader_options(p, tuple(k for k in LEADER_KINDS if k != "accelerating"),
                        "braking: to 15 m/s at 3 m/s^2 after 5 s; accelerating: use sweep")
     add_ego_speed_option(p)
+    add_time_gap_option(p)
     p.add_argument("--gap", type=finite_float, default=50.0, help="initial bumper gap [m]")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
@@ -140,6 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         road = api.road(args.net, args.route, args.from_km, args.to_km, args.lane)
         policy = policies.load(args.policy)
+        if args.time_gap is not None:
+            policy = policies.with_time_gap(policy, args.time_gap)
     except (NetworkError, policies.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -178,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     config = {
         "net": str(road.net_path), "route": list(args.route), "lane": args.lane or None,
         "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
+        "time_gap_s": args.time_gap,
         "scenarios": args.scenarios,
         "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
         "leader": args.leader, "leader_profile": args.leader_profile,

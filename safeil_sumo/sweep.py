@@ -34,6 +34,7 @@ from safeil_sumo.cli_args import (
     add_leader_options,
     add_n74_options,
     add_route_option,
+    add_time_gap_option,
     finite_float,
     nonnegative_int,
 )
@@ -110,6 +111,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--brake-to", type=finite_float, default=15.0,
                    help="speed after braking [m/s] (15)")
     add_ego_speed_option(p)
+    add_time_gap_option(p)
     gap = p.add_mutually_exclusive_group()
     gap.add_argument("--gap", type=finite_float, default=None, help="initial bumper gap [m] (50)")
     gap.add_argument("--gap-range", type=finite_float, nargs=2, default=None,
@@ -188,7 +190,7 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
             plan_rate_hz=args.plan_rate, max_time_s=args.max_time,
             stop_on_flag=args.stop_on_flag, leader_profile=args.leader_profile or "",
             route=tuple(args.route), from_km=args.from_km, to_km=args.to_km,
-            traffic=args.traffic, lane=args.lane or "",
+            traffic=args.traffic, lane=args.lane or "", time_gap_s=args.time_gap,
         )
         for net, policy, filt, index in itertools.product(
             args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
@@ -197,7 +199,8 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
 
 def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = (),
                  route: tuple[str, ...] = (), from_km: float | None = None,
-                 to_km: float | None = None, lane: str = "") -> None:
+                 to_km: float | None = None, lane: str = "",
+                 time_gap_s: float | None = None) -> None:
     """Resolve every net (building curved<R> once; along ``route`` or the n74 stretch if given),
     load every policy
     and recorded-leader library before any task runs.
@@ -215,7 +218,9 @@ def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()
     for net in dict.fromkeys(nets):
         _road(net, route, from_km, to_km, lane)
     for name in dict.fromkeys(policies_):
-        policies.load(name)
+        policy = policies.load(name)
+        if time_gap_s is not None:
+            policies.with_time_gap(policy, time_gap_s)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -224,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
         specs = build_specs(args)
         check_inputs(sorted({s.net for s in specs}), args.policies,
                      sorted({s.leader_profile for s in specs if s.leader_profile}),
-                     tuple(args.route), args.from_km, args.to_km, args.lane or "")
+                     tuple(args.route), args.from_km, args.to_km, args.lane or "",
+                     args.time_gap)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

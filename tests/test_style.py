@@ -209,3 +209,42 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     batched = ra.replay_all(both, ra.windows(both, "whole", adapt_s=10.0), ["idm"],
                             tmp_path / "b", progress=False, batch=2)
     assert [r["adapted"]["idm"] for r in batched] == [rec["adapted"]["idm"]] * 2
+
+
+# ------------------------------------------------------------- the setting in run and sweep
+
+
+def test_sweep_specs_carry_the_time_gap():
+    from safeil_sumo.experiments.sweep import ScenarioSpec, batch_key, task_id
+
+    plain = ScenarioSpec(policy="idm")
+    set_ = ScenarioSpec(policy="idm", time_gap_s=2)
+    assert "time_gap_s" not in plain.to_json()  # earlier task ids are unchanged
+    assert set_.to_json()["time_gap_s"] == 2.0
+    assert ScenarioSpec.from_json(set_.to_json()) == set_
+    assert task_id(plain) != task_id(set_) and batch_key(plain) != batch_key(set_)
+    with pytest.raises(ValueError, match="time gap"):
+        ScenarioSpec(policy="idm", time_gap_s=0.0)
+
+
+def test_run_time_gap_sets_the_planners_distance(tmp_path, capsys):
+    """Real libsumo: the IDM told to keep 2.5 s settles farther back than told 1.0 s; a planner
+    without the setting is refused in one line."""
+    pytest.importorskip("libsumo")
+    import pandas as pd
+
+    from safeil_sumo import run
+
+    gaps = {}
+    for tg in (1.0, 2.5):
+        out = tmp_path / f"tg{tg}"
+        assert run.main(["--net", "straight", "--policy", "idm", "--time-gap", str(tg),
+                         "--scenarios", "1", "--leader-speed", "20", "20", "--ego-speed", "20",
+                         "--gap", "40", "--no-plots", "--out", str(out)]) == 0
+        log = pd.read_parquet(out / "steps.parquet")
+        gaps[tg] = float(log["gap"].iloc[-1])
+    # IDM equilibrium at 20 m/s: (s0 + v T) / sqrt(1 - (v/v0)^4) grows by 1.5 s x 20 m/s
+    assert gaps[2.5] - gaps[1.0] > 20.0
+    assert run.main(["--net", "straight", "--policy", "analytic", "--time-gap", "2",
+                     "--scenarios", "1", "--no-plots", "--out", str(tmp_path / "a")]) == 2
+    assert "no time-gap setting" in capsys.readouterr().err

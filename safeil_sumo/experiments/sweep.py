@@ -88,6 +88,9 @@ class ScenarioSpec:
     # first edge (as text) on a .net.xml (:func:`safeil_sumo.cli_args.lane_for_net`); left out
     # of the JSON when ""
     lane: str = ""
+    # the planner's preferred time gap [s] (an ACC's distance setting,
+    # :func:`safeil_sumo.policies.with_time_gap`); None: its default; left out of the JSON then
+    time_gap_s: float | None = None
 
     def __post_init__(self) -> None:
         # normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same
@@ -112,12 +115,14 @@ class ScenarioSpec:
         for name in ("brake_time_s", "brake_decel_mps2", "brake_to_mps",
                      "lane_noise_c0_m", "radar_noise_m", "plan_rate_hz"):
             set_(self, name, float(getattr(self, name)))
-        for name in ("max_time_s", "ego_speed_mps", "from_km", "to_km"):
+        for name in ("max_time_s", "ego_speed_mps", "from_km", "to_km", "time_gap_s"):
             if getattr(self, name) is not None:
                 set_(self, name, float(getattr(self, name)))
         set_(self, "traffic", "" if self.traffic in ("", "none", None) else str(self.traffic))
         set_(self, "lane", "" if self.lane in ("", None) else str(self.lane))
 
+        if self.time_gap_s is not None and not (0 < self.time_gap_s <= 10):
+            raise ValueError(f"time gap must be in (0, 10] s, got {self.time_gap_s}")
         if self.index < 0 or self.master_seed < 0:
             raise ValueError(f"scenario index and master seed must be >= 0, got {self.index}, "
                              f"{self.master_seed}")
@@ -181,7 +186,7 @@ class ScenarioSpec:
             out["route"] = list(out["route"])
         else:
             del out["route"]
-        for name in ("from_km", "to_km"):
+        for name in ("from_km", "to_km", "time_gap_s"):
             if out[name] is None:
                 del out[name]
         if not out["traffic"]:
@@ -326,7 +331,7 @@ def build_scenario(spec: ScenarioSpec, road):
     )
 
 
-_SHARED_POLICIES: dict[str, Any] = {}
+_SHARED_POLICIES: dict[tuple, Any] = {}
 
 
 def _load_policy(spec: ScenarioSpec, shared: bool = False):
@@ -334,12 +339,18 @@ def _load_policy(spec: ScenarioSpec, shared: bool = False):
 
     # loaded fresh for every task: no state (e.g. filter counters) leaks between tasks; a
     # batch shares the (stateless) planner itself
-    if shared:
-        if spec.policy not in _SHARED_POLICIES:
-            _SHARED_POLICIES[spec.policy] = policies.load(spec.policy)
-        policy = _SHARED_POLICIES[spec.policy]
-    else:
+    def load():
         policy = policies.load(spec.policy)
+        return policy if spec.time_gap_s is None else policies.with_time_gap(policy,
+                                                                             spec.time_gap_s)
+
+    if shared:
+        key = (spec.policy, spec.time_gap_s)
+        if key not in _SHARED_POLICIES:
+            _SHARED_POLICIES[key] = load()
+        policy = _SHARED_POLICIES[key]
+    else:
+        policy = load()
     if spec.safety_filter:
         from safeil_sumo.safety_filter import SafetyFiltered  # lazily: optional component
 
@@ -424,7 +435,7 @@ def batch_key(spec: ScenarioSpec) -> tuple | None:
     if spec.traffic:
         return None
     return (spec.net, spec.route, spec.from_km, spec.to_km, spec.lane, spec.policy,
-            spec.safety_filter, spec.plan_rate_hz, spec.stop_on_flag)
+            spec.time_gap_s, spec.safety_filter, spec.plan_rate_hz, spec.stop_on_flag)
 
 
 def batches(specs: Sequence[ScenarioSpec], size: int, workers: int = 1
