@@ -140,3 +140,13 @@ def test_episodes_from_tuples_rebuild_the_recorded_gap():
                                atol=1e-5)
     with pytest.raises(ValueError, match="no maneuver"):
         episodes_from_tuples(tup, window_s=30.0, stride_s=5.0)
+
+
+def test_perturbed_start_moves_the_ego_back_and_changes_its_speed():
+    ep = _episode(25.0, 25.0, 40.0, 50)
+    out = rollout(ConstantAccelPlanner(), ep, gap_offset_m=torch.tensor([12.0]),
+                  speed_offset_mps=torch.tensor([0.0]))
+    np.testing.assert_allclose(out["gap"].numpy(), 52.0, atol=1e-3)  # kept at constant speed
+    fast = rollout(ConstantAccelPlanner(), ep, speed_offset_mps=torch.tensor([2.0]))
+    assert float(fast["v"][0, 0]) == pytest.approx(27.0)
+    assert float(fast["gap"][0, -1]) < 40.0 - 2.0 * 4.0  # closing at 2 m/s for ~4.9 s

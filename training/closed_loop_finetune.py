@@ -63,6 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--equilibrium-weight", type=float, default=0.0,
                     help="weight of the equilibrium term: behind a leader at its own speed at "
                          "the preferred gap the plan keeps its speed (learn/style.py)")
+    ap.add_argument("--perturb", type=float, default=0.0,
+                    help="share of episodes started off the human's state: the gap scaled by "
+                         "a factor in [0.5, 1.8] and the speed changed by up to 2 m/s; the "
+                         "planner must bring the gap back (default 0: none)")
     ap.add_argument("--style", action="store_true",
                     help="add the driver's preferred time gap as an input (learn/style.py)")
     ap.add_argument("--seed", type=int, default=0)
@@ -110,7 +114,16 @@ def main(argv: list[str] | None = None) -> int:
         idx = torch.randperm(len(eps), generator=gen)[: args.batch]
         ep = eps.take(idx.numpy())
         model.train()
-        terms = closed_loop_loss(rollout(model, ep, horizon=horizon), ep,
+        gap_off = speed_off = None
+        if args.perturb > 0:
+            on = torch.as_tensor(rng.uniform(size=len(ep)) < args.perturb, dtype=torch.float32)
+            factor = torch.as_tensor(rng.uniform(0.5, 1.8, len(ep)), dtype=torch.float32)
+            gap0 = ep.gap_human[:, 0]
+            gap_off = on * torch.clamp(gap0 * (factor - 1.0), min=3.0 - gap0)
+            speed_off = on * torch.as_tensor(rng.uniform(-2.0, 2.0, len(ep)),
+                                             dtype=torch.float32)
+        terms = closed_loop_loss(rollout(model, ep, horizon=horizon, gap_offset_m=gap_off,
+                                         speed_offset_mps=speed_off), ep,
                                  speed_weight=args.speed_weight, barrier_k=cfg.barrier_k,
                                  barrier_weight=cfg.envelope_weight)
         env = torch.as_tensor(sample_states(cfg.envelope_batch, rng), dtype=torch.float32)
@@ -146,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         "init": str(args.init), "window_s": args.window, "stride_s": args.stride,
         "iters": args.iters, "batch": args.batch, "lr": args.lr,
         "speed_weight": args.speed_weight, "lateral_weight": args.lateral_weight,
-        "equilibrium_weight": args.equilibrium_weight,
+        "equilibrium_weight": args.equilibrium_weight, "perturb": args.perturb,
         "seed": args.seed, "episodes": len(eps), "seconds": seconds, "style": args.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,

@@ -160,8 +160,11 @@ def plan_speed_accel(control_points: torch.Tensor, horizon: float, t: float,
 
 
 def rollout(model: torch.nn.Module, ep: Episodes, loop: LoopModel = LoopModel(),
-            horizon: float = 5.0) -> dict[str, torch.Tensor]:
+            horizon: float = 5.0, gap_offset_m: torch.Tensor | None = None,
+            speed_offset_mps: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Drive every episode with ``model`` (features ``(N, 9)`` -> control points ``(N, 3, 2)``).
+    ``gap_offset_m`` / ``speed_offset_mps`` (B,): the ego starts this much farther back / faster
+    than the human did (perturbed starts: the planner must bring the gap back).
 
     Returns (B, T) tensors ``gap`` [m], ``v`` [m/s], ``accel`` [m/s^2] and the plans' leader
     margins ``lead_margin`` (B, T, 3) [m] (leader's predicted position minus each control point's
@@ -169,8 +172,9 @@ def rollout(model: torch.nn.Module, ep: Episodes, loop: LoopModel = LoopModel(),
     """
     b, n = ep.v_human.shape
     dt = ep.dt_s
-    v = ep.v_human[:, 0]
-    s = torch.zeros(b)
+    v = ep.v_human[:, 0] if speed_offset_mps is None else torch.clamp(
+        ep.v_human[:, 0] + speed_offset_mps, min=0.0)
+    s = torch.zeros(b) if gap_offset_m is None else -gap_offset_m
     a = torch.zeros(b)
     integral = torch.zeros(b)
     times = torch.arange(1, 4, dtype=torch.float32) * (horizon / 3.0)
@@ -217,7 +221,8 @@ def closed_loop_loss(out: dict[str, torch.Tensor], ep: Episodes, speed_weight: f
                      barrier_k: float = 1000.0, barrier_weight: float = 0.01,
                      gap_scale_m: float = 1.0) -> ClosedLoopTerms:
     """Gap and speed errors to the human over the rollout, plus the leader barrier
-    ``K softplus(-margin)`` on the plans of the states the rollout visits."""
+    ``K softplus(-margin)`` on the plans of the states the rollout visits. From a perturbed
+    start the errors score how the planner brings the gap back to the human's."""
     gap = ((out["gap"] - ep.gap_human) / gap_scale_m).pow(2).mean()
     speed = (out["v"] - ep.v_human).pow(2).mean()
     barrier = barrier_k * F.softplus(-out["lead_margin"]).sum(-1).mean()
