@@ -150,3 +150,41 @@ def test_perturbed_start_moves_the_ego_back_and_changes_its_speed():
     fast = rollout(ConstantAccelPlanner(), ep, speed_offset_mps=torch.tensor([2.0]))
     assert float(fast["v"][0, 0]) == pytest.approx(27.0)
     assert float(fast["gap"][0, -1]) < 40.0 - 2.0 * 4.0  # closing at 2 m/s for ~4.9 s
+
+
+def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
+    """Two fine-tunes with one seed give the same weights, bit for bit (same machine); the
+    checkpoint has the style input, its default (the training maneuvers' median) and the
+    initial checkpoint's held-out maneuvers."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from test_learn import make_tuples
+
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers, save_checkpoint
+    from safeil_sumo.learn.model import PlannerMLP
+    from safeil_sumo.learn.train import TrainConfig
+
+    tup = make_tuples(n_maneuvers=4, per_maneuver=60, curved=False)
+    tup.save(tmp_path / "t.parquet")
+    model = PlannerMLP(output_mode="residual")
+    model.set_scaling(tup.features, tup.control_points)
+    cfg = TrainConfig(envelope_weight=0.01, monotone_weight=1.0, output_mode="residual")
+    held = [str(np.unique(tup.maneuver_id)[0])]
+    save_checkpoint(tmp_path / "init", model, name="safeil", horizon=5.0, train_config=cfg,
+                    metrics={"val_maneuvers": held})
+    spec = importlib.util.spec_from_file_location(
+        "finetune", Path(__file__).parents[1] / "training" / "closed_loop_finetune.py")
+    ft = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ft)
+    args = ["--init", str(tmp_path / "init.safetensors"), "--data", str(tmp_path / "t.parquet"),
+            "--iters", "2", "--batch", "4", "--window", "8", "--stride", "4", "--style",
+            "--perturb", "0.5", "--equilibrium-weight", "1", "--no-progress"]
+    for name in ("a", "b"):
+        assert ft.main([*args, "--out", str(tmp_path / name)]) == 0
+    assert (tmp_path / "a.safetensors").read_bytes() == (tmp_path / "b.safetensors").read_bytes()
+    meta = json.loads((tmp_path / "a.json").read_text())
+    assert meta["architecture"]["style_names"] == ["time_gap_s"]
+    assert 1.0 < meta["style_default"]["time_gap_s"] < 2.2  # make_tuples' drivers: 1.2-2.0 s
+    assert held_out_maneuvers(tmp_path / "a.json") == held
