@@ -59,18 +59,22 @@ PAPER_BC = (0.305120983855612, 0.085567405490334, 0.24590380413413, 0.1881621825
 # leader after ~4 s.
 PAPER_REPLAY_GAP_RMSE_M, PAPER_REPLAY_GAP_MAX_M = 0.78, 1.52
 
-POLICIES = ("safeil", "safeil_paper", "bc", "analytic", "idm")
-LABELS = {"safeil": "SafeIL (exact lane bound)", "safeil_paper": "SafeIL (paper barrier)",
+POLICIES = ("safeil", "safeil_openloop", "safeil_paper", "bc", "analytic", "idm")
+LABELS = {"safeil": "SafeIL (closed loop + driver style)",
+          "safeil_openloop": "SafeIL open loop (exact lane bound)",
+          "safeil_paper": "SafeIL (paper barrier)",
           "bc": "BC", "analytic": "analytic", "idm": "IDM (calibrated)",
           "recorded": "recorded human path (the replay's floor)",
           "constant_speed": "constant speed (naive baseline)"}
-COLORS = {"safeil": "tab:green", "safeil_paper": "tab:olive", "bc": "tab:red",
+COLORS = {"safeil": "tab:green", "safeil_openloop": "tab:cyan", "safeil_paper": "tab:olive",
+          "bc": "tab:red",
           "analytic": "tab:gray", "idm": "tab:blue"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
             "humanlike", "whole", "ablation", "instrument", "n74")
 # the whole-maneuver replays: the planners, the naive baseline and the instrument's floor
-WHOLE_POLICIES = ("safeil", "idm", "analytic", "bc", "constant_speed", "recorded")
+WHOLE_POLICIES = ("safeil", "safeil_openloop", "idm", "analytic", "bc", "constant_speed",
+                  "recorded")
 WHOLE_QUICK_MANEUVERS = 2  # [-] held-out maneuvers per source with --quick
 
 

@@ -1,6 +1,6 @@
 """Closed-loop fine-tuning of a SafeIL checkpoint behind recorded human leaders.
 
-    python training/closed_loop_finetune.py --init safeil_sumo/models/safeil.safetensors \
+    python training/closed_loop_finetune.py --init safeil_sumo/models/safeil_openloop.safetensors \
         --data data/openacc_tuples.parquet data/ngsim_tuples.parquet --out data/models/safeil_cl
 
 The planner drives the differentiable longitudinal loop of :mod:`safeil_sumo.learn.closed_loop`
@@ -50,7 +50,8 @@ from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--init", type=Path, default=Path("safeil_sumo/models/safeil.safetensors"))
+    ap.add_argument("--init", type=Path,
+                    default=Path("safeil_sumo/models/safeil_openloop.safetensors"))
     ap.add_argument("--data", type=Path, nargs="+", required=True, help="tuple Parquet files")
     ap.add_argument("--out", type=Path, required=True, help="checkpoint prefix")
     ap.add_argument("--window", type=float, default=40.0, help="rollout length [s]")

@@ -12,13 +12,22 @@ for early stopping; their ids are stored in each checkpoint (``metrics.val_maneu
 
 Models, all on the same data and split:
 
-- ``safeil`` (default): SafeIL with the exact Bernstein lane bound, the network predicting the
+- ``safeil`` (default): ``safeil_openloop`` fine-tuned in closed loop with the driver's style as
+  an input (``training/closed_loop_finetune.py``, :mod:`safeil_sumo.learn.closed_loop`,
+  :mod:`safeil_sumo.learn.style`): the planner drives a differentiable model of the longitudinal
+  loop for 60 s behind the recorded leaders of the training maneuvers (OpenACC and NGSIM, half
+  of the episodes from perturbed starts) and learns the human's gap and speed; a 10th input, the
+  driver's preferred time gap (estimated per maneuver), with an equilibrium term; the envelope
+  barrier and the monotonicity penalty stay in the loss, and the lane-keeping outputs are held to
+  ``safeil_openloop``'s.
+- ``safeil_openloop``: SafeIL with the exact Bernstein lane bound, the network predicting the
   control points relative to constant-speed motion (``--output-mode residual``), and the barrier
   also on states drawn across the operating envelope (``--envelope-weight 0.01``) with a
   gap-monotonicity penalty. Two candidates (leader margin: none as in the paper, or a 2 m
   standstill distance) are trained and the one that does best in a short closed-loop SUMO
   validation battery (:mod:`safeil_sumo.experiments.selection`: safety first, then the held-out
-  imitation error) is shipped; the battery's table goes to ``models/selection.json``.
+  imitation error) is shipped; the battery's table goes to ``models/selection.json``. It was
+  the default ``safeil`` until the closed-loop stage above.
 - ``safeil_paper``: SafeIL exactly as the paper (absolute control points, barrier on the three
   control points, no envelope states).
 - ``bc``: behavioral cloning, the paper's baseline: the same network, data and loop, no barrier.
@@ -55,6 +64,9 @@ SAFEIL_CANDIDATES = {
     "safeil_margin0": [*SAFEIL],
     "safeil_margin2m": [*SAFEIL, "--gap-min", "2"],
 }
+# closed-loop stage (docs/human_likeness.md): 400 iterations of 64 episodes of 60 s
+CLOSED_LOOP = ["--window", "60", "--iters", "400", "--style", "--equilibrium-weight", "1",
+               "--perturb", "0.5", "--seed", str(SEED)]
 OTHERS = {
     "safeil_paper": [*MIXED, "--method", "safeil", "--barrier-lateral", "control_points"],
     "bc": [*MIXED, "--method", "bc", "--output-mode", "residual"],
@@ -82,8 +94,11 @@ def _train_all(jobs: dict[str, tuple[list[str], str]], parallel: int) -> dict[st
 
 
 def _ship(prefix: Path, name: str) -> None:
-    for suffix in (".safetensors", ".json"):
-        shutil.copyfile(prefix.with_suffix(suffix), MODELS / f"{name}{suffix}")
+    """Copy a checkpoint into the package as ``name`` (the sidecar's policy name too)."""
+    shutil.copyfile(prefix.with_suffix(".safetensors"), MODELS / f"{name}.safetensors")
+    meta = json.loads(prefix.with_suffix(".json").read_text())
+    meta["name"] = name
+    (MODELS / f"{name}.json").write_text(json.dumps(meta, indent=1) + "\n")
     print(f"shipped {MODELS / name}.safetensors")
 
 
@@ -117,7 +132,12 @@ def main(argv: list[str] | None = None) -> int:
     table = table.sort_values(["collisions", "flags", "val_imitation"], kind="stable")
     best = Path(table["policy"].iloc[0]).with_suffix("")
     print(table[["policy", "collisions", "flags", "min_ttc_s", "val_imitation"]].to_string())
-    _ship(best, "safeil")
+    _ship(best, "safeil_openloop")
+    subprocess.run([sys.executable, str(REPO / "training" / "closed_loop_finetune.py"),
+                    "--init", str(MODELS / "safeil_openloop.safetensors"),
+                    "--data", *map(str, REAL), "--out", str(WORK / "safeil"), "--no-progress",
+                    *CLOSED_LOOP], check=True, stdout=subprocess.DEVNULL)
+    _ship(WORK / "safeil", "safeil")
     records = table.drop(columns=["rank_key"]).to_dict(orient="records")
     for r in records:
         r["policy"] = Path(r["policy"]).stem

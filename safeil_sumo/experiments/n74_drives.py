@@ -30,7 +30,7 @@ import pandas as pd
 from safeil_sumo.experiments.sweep import ScenarioSpec, run_task
 from safeil_sumo.sim.monitors import event_starts
 
-PLANNERS = ("safeil", "bc", "analytic", "idm")
+PLANNERS = ("safeil", "safeil_openloop", "bc", "analytic", "idm")
 # Three stretches covering direction A (km posts of n74.json, 29.2 km), each driven with
 # SEEDS_PER_STRETCH traffic seeds by every planner (the same seeds: common random numbers).
 STRETCHES_KM = ((0.2, 9.9), (9.9, 19.6), (19.6, 29.0))
