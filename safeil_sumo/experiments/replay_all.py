@@ -332,8 +332,9 @@ def aggregate(df: pd.DataFrame, seed: int = 0) -> pd.DataFrame:
             "flags": int((g["flag"] != "").sum()),
             # a flag in a window whose recording has none of its own (replay.human_flag)
             "flags_beyond_human": int(((g["flag"] != "") & (g["human_flag"] == "")).sum()),
-            "collisions": int((g["flag"] == "collision").sum()
-                              | (g["end_reason"] == "collision").sum()),
+            # windows flagged for a collision or ended by one (each window counted once)
+            "collisions": int(((g["flag"] == "collision")
+                               | (g["end_reason"] == "collision")).sum()),
         })
     return pd.DataFrame(rows)
 
