@@ -39,7 +39,8 @@ def test_drift_correction_low_passes_position_noise() -> None:
     noisy = position + np.random.default_rng(0).normal(0.0, 0.05, len(t))  # 5 cm, seeded
     v = rr.drift_corrected_speed(t, 1.01 * true_v, noisy, window_s=5.0)
     err = v - true_v
-    assert np.sqrt(np.mean(err ** 2)) < 0.02
+    # order 2 over 5 s: 0.005 m/s RMS (a cubic fit, order 3, lets 0.012 through)
+    assert np.sqrt(np.mean(err ** 2)) < 0.008
     assert np.max(np.abs(err)) < 0.1
 
 
