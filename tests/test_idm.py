@@ -119,3 +119,111 @@ def test_idm_completes_curved500_in_libsumo() -> None:
     rollout = run_scenario(safety_scenario(road, 0), policies.load("idm"), LoopConfig())
     assert rollout.summary["completed"], rollout.summary
     assert rollout.summary["flag"] == ""
+
+
+# ------------------------------------- cases found by mutation testing (docs/mutation_testing.md)
+
+
+def test_idm_acceleration_floors_and_arrays() -> None:
+    # a much faster leader: the dynamic term would make s* < s0; it is floored at s0 = 2 m
+    assert idm.idm_acceleration(10.0, 40.0, 50.0, P) == pytest.approx(
+        1.5 * (1 - (10 / 30) ** 4 - (2.0 / 50.0) ** 2))
+    # a gap of 0 is floored at MIN_GAP_M = 0.1 m: s* = 2 + 12 = 14 m
+    assert idm.idm_acceleration(10.0, 10.0, 0.0, P) == pytest.approx(
+        1.5 * (1 - (10 / 30) ** 4 - (14.0 / 0.1) ** 2))
+    a = idm.idm_acceleration(np.array([15.0, 20.0]), 20.0, np.array([1e9, 40.0]), P)
+    assert a.shape == (2,) and a[0] == pytest.approx(1.5 * 15 / 16)
+    assert a[1] == pytest.approx(1.5 * (1 - (20 / 30) ** 4 - (26.0 / 40.0) ** 2))
+
+
+def test_maneuvers_from_rows_groups_and_sorts() -> None:
+    import pandas as pd
+
+    rows = pd.DataFrame({"maneuver_id": ["b#0", "a#1", "b#0", "a#1", "a#1"],
+                         "time": [1.0, 0.2, 0.0, 0.0, 0.1],
+                         "v_x": [11.0, 22.0, 10.0, 20.0, 21.0],
+                         "lead_x": [31.0, 42.0, 30.0, 40.0, 41.0],
+                         "v_lead": [13.0, 24.0, 12.0, 22.0, 23.0]})
+    a, b = idm.maneuvers_from_rows(rows)
+    assert (a.maneuver_id, b.maneuver_id) == ("a#1", "b#0")
+    np.testing.assert_array_equal(a.times, [0.0, 0.1, 0.2])
+    np.testing.assert_array_equal(a.v, [20.0, 21.0, 22.0])
+    np.testing.assert_array_equal(a.gap, [40.0, 41.0, 42.0])
+    np.testing.assert_array_equal(a.v_lead, [22.0, 23.0, 24.0])
+    np.testing.assert_array_equal(b.gap, [30.0, 31.0])
+
+
+def test_fit_needs_maneuvers() -> None:
+    with pytest.raises(idm.IDMError, match="^no maneuvers to fit the IDM on$"):
+        idm.fit_idm([])
+
+
+def test_model_file_contents_and_loading_rules(tmp_path) -> None:
+    fit = idm.IDMFit(P, 1.25, 0.5, ("a#0", "b#1"), 100)
+    other = idm.IDMFit(idm.IDMParams(), 2.0, 1.0, ("c#0",), 7)
+    path = tmp_path / "sub" / "m.json"  # parent folders are made
+    idm.save_model(path, {"openacc": fit, "x": fit}, default="openacc",
+                   per_driver={"openacc/f2": other, "x": other}, extra={"note": "hi"})
+    doc = json.loads(path.read_text())
+    params = {"v0_mps": 30.0, "time_gap_s": 1.2, "s0_m": 2.0, "a_max_mps2": 1.5,
+              "b_mps2": 2.0, "delta": 4.0}
+    assert doc["fits"]["openacc"] == {"params": params, "rmse_gap_m": 1.25,
+                                      "rmse_speed_mps": 0.5, "samples": 100,
+                                      "maneuver_ids": ["a#0", "b#1"]}
+    assert (doc["format"], doc["type"], doc["default"], doc["horizon_s"], doc["note"]) == \
+        ("safeil-idm-1", "idm", "openacc", 5.0, "hi")
+    assert doc["per_driver"]["openacc/f2"]["samples"] == 7
+    assert path.read_text().endswith("}\n") and list(tmp_path.rglob("*")) == [path.parent, path]
+    planner = idm.load_planner(path, name="calibrated")
+    assert (planner.params, planner.name, planner.horizon) == (P, "calibrated", 5.0)
+    assert idm.load_planner(path, fit="openacc/f2").params == idm.IDMParams()
+    assert idm.load_planner(path, fit="x").params == P  # a source fit wins over a driver's
+    doc["horizon_s"] = 4.0
+    path.write_text(json.dumps(doc))
+    assert idm.load_planner(path).horizon == 4.0
+    with pytest.raises(idm.IDMError, match=r"no fit 'nope' \(has \['openacc', 'openacc/f2', "
+                                           r"'x'\]\)"):
+        idm.load_planner(path, fit="nope")
+    # without per-driver fits, a file saves an empty table
+    idm.save_model(tmp_path / "plain.json", {"openacc": fit}, default="openacc")
+    assert json.loads((tmp_path / "plain.json").read_text())["per_driver"] == {}
+
+
+def test_model_file_errors_name_the_file(tmp_path) -> None:
+    missing = tmp_path / "missing.json"
+    with pytest.raises(idm.IDMError, match=f"^{missing}: not a readable IDM model file"):
+        idm.load_planner(missing)
+    not_json = tmp_path / "x.json"
+    not_json.write_text("{nope")
+    assert not idm.is_model_file(not_json) and not idm.is_model_file(missing)
+    listed = tmp_path / "list.json"
+    listed.write_text("[1, 2]")
+    assert not idm.is_model_file(listed)
+    with pytest.raises(idm.IDMError, match=r"not an IDM model file \(format must be "
+                                           r"'safeil-idm-1'\)"):
+        idm.load_planner(listed)
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"type": "idm", "format": "safeil-idm-0"}))
+    assert idm.is_model_file(other)
+    with pytest.raises(idm.IDMError, match="not an IDM model file"):
+        idm.load_planner(other)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"format": idm.FORMAT, "type": "idm", "default": "x",
+                               "fits": {"x": {"params": {"v0_mps": 30}}}}))
+    with pytest.raises(idm.IDMError, match=f"^{bad}: fit 'x' lacks parameter 'time_gap_s'$"):
+        idm.load_planner(bad)
+    with pytest.raises(idm.IDMError, match=r"^default fit 'ngsim' not among \['openacc'\]$"):
+        idm.save_model(tmp_path / "m.json", {"openacc": idm.IDMFit(P, 1, 1, (), 1)},
+                       default="ngsim")
+    assert not (tmp_path / "m.json").exists()
+
+
+def test_params_vector_round_trip_and_messages() -> None:
+    x = P.vector()
+    np.testing.assert_array_equal(x, [30.0, 1.2, 2.0, 1.5, 2.0])
+    assert idm.IDMParams.from_vector(x) == P
+    assert idm.IDMParams.from_vector(x, delta=2.0).delta == 2.0
+    assert isinstance(idm.IDMParams(v0_mps=30).v0_mps, float)
+    with pytest.raises(idm.IDMError, match=r"^IDM parameter s0_m must be finite and > 0, got "
+                                           r"0.0$"):
+        idm.IDMParams(s0_m=0.0)

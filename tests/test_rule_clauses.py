@@ -81,7 +81,8 @@ def test_idm_closing_acceleration_hand_computed() -> None:
 
 
 @pytest.mark.parametrize("params", [P, idm.IDMParams()])
-@pytest.mark.parametrize(("v", "v_lead", "gap"), [(30.0, 20.0, 30.0), (25.0, 28.0, 60.0)])
+@pytest.mark.parametrize(("v", "v_lead", "gap"), [(30.0, 20.0, 30.0), (25.0, 28.0, 60.0),
+                                                   (10.0, 0.0, 5.0)])  # the last one stops
 def test_idm_planner_follows_the_model(params: idm.IDMParams, v: float, v_lead: float,
                                        gap: float) -> None:
     """Rule: the IDM planner's longitudinal plan is the IDM (:func:`idm.idm_acceleration`, whose
@@ -104,6 +105,9 @@ def test_idm_planner_follows_the_model(params: idm.IDMParams, v: float, v_lead: 
     expected, *_ = np.linalg.lstsq(bspline.basis(tau)[:, 1:], x, rcond=None)
     f = straight_lane_features(np.array(v), np.array(v_lead), np.array(gap))
     np.testing.assert_allclose(planner.plan(f)[:, 0], expected, atol=1e-6)
+    batch = planner.plan(np.broadcast_to(f, (2, 3, 9)))  # any leading shape
+    assert batch.shape == (2, 3, 3, 2)
+    np.testing.assert_allclose(batch[1, 2, :, 0], expected, atol=1e-6)
 
 
 # ------------------------------------------------------- 4. envelope: recoverable at 6 m/s^2
