@@ -39,6 +39,7 @@ def test_evaluate_time_scales_derivatives() -> None:
     for k in (0, 1, 2):
         np.testing.assert_allclose(bspline.evaluate_time(CP, t, horizon, k), spl(t, nu=k),
                                    atol=1e-10)
+    np.testing.assert_allclose(bspline.evaluate_time(CP, t, horizon), spl(t), atol=1e-10)
 
 
 def test_plan_starts_at_origin_and_ends_at_last_control_point() -> None:

@@ -197,6 +197,18 @@ def test_rectangles_overlap_against_edge_crossings():
                      for i in range(4) for j in range(4))
                  or _inside(a[0], b) or _inside(b[0], a))
         assert rectangles_overlap(a, b) == truth
+    # general convex quadrilaterals (no parallel sides, so no axis is tested twice)
+    for _ in range(400):
+        quads = []
+        for centre in (rng.uniform(-1, 1, 2), rng.uniform(-4, 4, 2)):
+            ang = np.sort(rng.uniform(0.0, 2 * np.pi, 4))
+            r = rng.uniform(0.5, 3.0, 2)
+            quads.append(centre + np.column_stack([r[0] * np.cos(ang), r[1] * np.sin(ang)]))
+        a, b = quads
+        truth = (any(_segments_cross(a[i], a[(i + 1) % 4], b[j], b[(j + 1) % 4])
+                     for i in range(4) for j in range(4))
+                 or _inside(a[0], b) or _inside(b[0], a))
+        assert rectangles_overlap(a, b) == truth
     # touching is contact: two boxes sharing an edge overlap
     box = rectangle_corners(np.array([0.0, 0.0]), 0.0, 4.0, 2.0)
     assert rectangles_overlap(box, rectangle_corners(np.array([4.0, 0.0]), 0.0, 4.0, 2.0))

@@ -126,6 +126,9 @@ def test_recorded_leader_speed_and_travel_by_hand():
     np.testing.assert_allclose(rr.leader_speed(rows), [22.0, 22.5, 22.5, 21.0])
     np.testing.assert_allclose(rr.leader_speed(rows.assign(lead_v=[1.0, np.nan, -3.0, 4.0])),
                                [1.0, 22.5, 0.0, 4.0])
+    # at 0.5 s steps the gap's rate doubles: 4, 5, 3, 0
+    np.testing.assert_allclose(rr.leader_speed(rows.assign(time=0.5 * t)),
+                               [24.0, 25.0, 24.0, 21.0])
     both = rows.assign(v_lead=[5.0, 6.0, 7.0, 8.0], lead_v=[1.0, 1.0, 1.0, 1.0])
     np.testing.assert_allclose(rr.leader_speed(both), [5.0, 6.0, 7.0, 8.0])
     uneven = rows.assign(time=[0.0, 0.5, 2.0, 3.0], v_lead=[10.0, 20.0, 20.0, 30.0])

@@ -304,35 +304,43 @@ def test_headway_histogram_bins_by_hand() -> None:
 
 
 def test_replay_aggregate_by_hand() -> None:
-    """Per policy over the replayed windows (a failed window left out): gap RMSE median and
-    mean with their bootstrap CIs, medians of the other errors, flags, flags where the human
-    had none, and collisions (flagged OR ended by one, each window once)."""
+    """Per policy, in order of appearance, over the replayed windows (a failed window left
+    out): gap RMSE median and mean with their seeded bootstrap CIs, medians of the other
+    errors, flags, flags where the human had none, and collisions (flagged OR ended by one,
+    each window once)."""
     from safeil_sumo.experiments.replay_all import aggregate, bootstrap_ci
 
+    gap_p = np.array([1.0, 2.0, 6.0, 0.5, 3.0, 4.0, 2.5, 8.0, 1.5, 0.8])
     df = pd.DataFrame({
-        "status": ["ok"] * 5 + ["failed"],
-        "policy": ["p", "p", "p", "q", "q", "p"],
-        "rmse_gap": [1.0, 2.0, 6.0, 0.5, np.nan, 99.0],
-        "rmse_v": [0.1, 0.3, 0.2, 0.4, 0.6, 99.0],
-        "rmse_d": [0.01, 0.05, 0.03, 0.02, 0.04, 99.0],
-        "w1_headway": [0.2, 0.1, 0.3, 0.5, 0.7, 99.0],
-        "flag": ["collision", "collision", "", "ttc", "lane_departure", "collision"],
-        "human_flag": ["", "", "", "ttc", "", ""],
-        "end_reason": ["collision", "completed", "collision", "completed", "completed",
-                       "collision"],
+        "status": ["ok"] * 12 + ["failed"],
+        "policy": ["safeil"] * 10 + ["bc"] * 2 + ["safeil"],
+        "rmse_gap": [*gap_p, 0.5, np.nan, 99.0],
+        "rmse_v": [0.1, 0.3, 0.2, 0.1, 0.2, 0.2, 0.3, 0.1, 0.2, 0.2, 0.4, 0.6, 99.0],
+        "rmse_d": [0.03] * 10 + [0.02, 0.04, 99.0],
+        "w1_headway": [0.2] * 10 + [0.5, 0.7, 99.0],
+        "flag": ["collision", "collision", ""] + [""] * 7 + ["ttc", "lane_departure",
+                                                              "collision"],
+        "human_flag": [""] * 10 + ["ttc", "", ""],
+        "end_reason": ["collision", "completed", "collision"] + ["completed"] * 9
+        + ["collision"],
     })
-    table = aggregate(df, seed=5).set_index("policy")
-    assert list(table.index) == ["p", "q"]
-    p = table.loc["p"]
-    assert (p["windows"], p["flags"], p["flags_beyond_human"], p["collisions"]) == (3, 2, 2, 3)
-    assert (p["gap_rmse_median_m"], p["gap_rmse_mean_m"]) == (2.0, 3.0)
+    table = aggregate(df)
+    assert list(table["policy"]) == ["safeil", "bc"]
+    p, q = table.iloc[0], table.iloc[1]
+    assert (p["windows"], p["flags"], p["flags_beyond_human"], p["collisions"]) == (10, 2, 2, 3)
+    assert (p["gap_rmse_median_m"], p["gap_rmse_mean_m"]) == (2.25, 2.93)
     assert (p["speed_rmse_median_mps"], p["lateral_rmse_median_m"],
             p["time_gap_w1_median_s"]) == pytest.approx((0.2, 0.03, 0.2))
-    gap = np.array([1.0, 2.0, 6.0])
+    # the CIs: bootstrap_ci's, seeded with the aggregate's seed (default 0)
     assert (p["gap_rmse_median_lo"], p["gap_rmse_median_hi"]) == \
-        bootstrap_ci(gap, np.median, seed=5)
-    assert (p["gap_rmse_mean_lo"], p["gap_rmse_mean_hi"]) == bootstrap_ci(gap, np.mean, seed=5)
-    q = table.loc["q"]  # a NaN gap RMSE is left out of its statistics
+        bootstrap_ci(gap_p, np.median, seed=0)
+    assert (p["gap_rmse_mean_lo"], p["gap_rmse_mean_hi"]) == bootstrap_ci(gap_p, np.mean, seed=0)
+    other = aggregate(df, seed=5).iloc[0]
+    assert (other["gap_rmse_mean_lo"], other["gap_rmse_mean_hi"]) == \
+        bootstrap_ci(gap_p, np.mean, seed=5) != bootstrap_ci(gap_p, np.mean, seed=0)
+    assert (other["gap_rmse_median_lo"], other["gap_rmse_median_hi"]) == \
+        bootstrap_ci(gap_p, np.median, seed=5)
+    # a NaN gap RMSE is left out of its statistics
     assert (q["windows"], q["gap_rmse_median_m"], q["gap_rmse_mean_m"]) == (2, 0.5, 0.5)
     assert (q["gap_rmse_median_lo"], q["gap_rmse_median_hi"]) == (0.5, 0.5)
     assert (q["flags"], q["flags_beyond_human"], q["collisions"]) == (2, 1, 0)

@@ -63,8 +63,10 @@ def test_braking_avoids_edge_cases_hand_computed() -> None:
     """Each clause of the rule alone decides one case (mutation testing, docs/mutation_testing.md)."""
     t = np.arange(0.0, 10.0, 0.01)
     lead = np.full_like(t, 20.0)
-    # TTC exactly 1 s at the start (10 m, closing at 10 m/s) is a flag: TTC <= 1 s
+    # TTC exactly 1 s at the start is a flag (TTC <= 1 s), even where it rises at once after
+    # (5 m, closing at 5 m/s: braking at 6 m/s^2 > 5 m/s^2 makes d(gap/closing)/dt > 0)
     assert not suite.braking_avoids(t, 10.0, 30.0, lead)
+    assert not suite.braking_avoids(t, 5.0, 25.0, lead)
     # no TTC limit: 10 -> 0 m/s closing costs 100 / 12 = 8.33 m; 8.2 m collides, 8.8 m ends
     # 0.47 m behind (> 0: avoided)
     assert not suite.braking_avoids(t, 8.2, 30.0, lead, ttc_s=0.0)
@@ -78,6 +80,10 @@ def test_braking_avoids_edge_cases_hand_computed() -> None:
     # 10 m ahead of an ego at 15 m/s: TTC 0.67 s at the first step
     jump = np.where(t > 0.0, 30.0, 0.0)
     assert not suite.braking_avoids(t, 10.0, 15.0, jump)
+    # ... and the first step uses the first speed, the last speed is never used: 0.5 m behind
+    # a leader as fast as the ego that stops at the log's last sample
+    stops = np.where(t < t[-1], 30.0, 0.0)
+    assert suite.braking_avoids(t, 0.5, 30.0, stops)
     # a log that starts at t = 100 s (steps are differences of times): 20 m, closing at 5 m/s
     assert suite.braking_avoids(100.0 + t, 20.0, 25.0, lead)
 
@@ -136,7 +142,7 @@ def test_response_metrics_of_short_and_special_logs() -> None:
 def test_suite_aggregate_hand_computed() -> None:
     """Per policy x family (family from the index): collisions (logged or the run's end
     reason), flags split by avoidability, extreme TTC, time gap, deceleration and jerk."""
-    records = pd.DataFrame({
+    records = pd.DataFrame({  # listed out of alphabetical order: kept as listed
         "policy": ["a", "a", "a", "b"],
         "index": [10_000, 11_002, 20_001, 10_000],
         "flag": ["ttc", "", None, "collision"],
@@ -148,6 +154,9 @@ def test_suite_aggregate_hand_computed() -> None:
         "resp_max_decel_mps2": [4.0, 6.0, 2.0, 9.0],
         "resp_max_jerk_mps3": [10.0, 30.0, 5.0, 50.0],
     })
+    order = [3, 2, 0, 1]  # b/approach, a/braking, a/approach, a/approach
+    assert list(suite.aggregate(records.iloc[order]).set_index(["policy", "family"]).index) == \
+        [("b", "approach"), ("a", "braking"), ("a", "approach")]
     table = suite.aggregate(records).set_index(["policy", "family"])
     assert list(table.index) == [("a", "approach"), ("a", "braking"), ("b", "approach")]
     assert table.loc[("a", "approach")].to_dict() == {
