@@ -174,6 +174,7 @@ def test_model_file_contents_and_loading_rules(tmp_path) -> None:
         ("safeil-idm-1", "idm", "openacc", 5.0, "hi")
     assert doc["per_driver"]["openacc/f2"]["samples"] == 7
     assert path.read_text().endswith("}\n") and list(tmp_path.rglob("*")) == [path.parent, path]
+    assert path.read_text().count("\n") > 20  # one key per line: readable diffs
     planner = idm.load_planner(path, name="calibrated")
     assert (planner.params, planner.name, planner.horizon) == (P, "calibrated", 5.0)
     assert idm.load_planner(path, fit="openacc/f2").params == idm.IDMParams()
@@ -184,6 +185,13 @@ def test_model_file_contents_and_loading_rules(tmp_path) -> None:
     with pytest.raises(idm.IDMError, match=r"no fit 'nope' \(has \['openacc', 'openacc/f2', "
                                            r"'x'\]\)"):
         idm.load_planner(path, fit="nope")
+    # older or hand-written files: no horizon (5 s), no source fits, a fit without parameters
+    path.write_text(json.dumps({"format": idm.FORMAT, "type": "idm", "default": "d",
+                                "per_driver": {"d": {"params": params}}, "fits_": {}}))
+    assert idm.load_planner(path).horizon == 5.0 and idm.load_planner(path).params == P
+    path.write_text(json.dumps({"format": idm.FORMAT, "default": "d", "fits": {"d": {}}}))
+    with pytest.raises(idm.IDMError, match="fit 'd' lacks parameter 'v0_mps'"):
+        idm.load_planner(path)
     # without per-driver fits, a file saves an empty table
     idm.save_model(tmp_path / "plain.json", {"openacc": fit}, default="openacc")
     assert json.loads((tmp_path / "plain.json").read_text())["per_driver"] == {}
