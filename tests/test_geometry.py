@@ -149,6 +149,7 @@ def test_polyline_stack_equals_each_polyline(seed, spread):
     hint = np.array([lines[k].segment_index(float(s)) for k, s in zip(line_of, s0)])
     hint += rng.integers(-2, 3, len(hint))
     stacked = PolylineStack(lines, line_of).project_near_many(xy[:, 0], xy[:, 1], hint)
+    assert all(a.dtype == np.float64 for a in stacked[:3])
     for k, line in enumerate(lines):
         rows = np.flatnonzero(line_of == k)
         own = line.project_near_many(xy[rows, 0], xy[rows, 1], hint[rows])
@@ -270,11 +271,17 @@ def test_projection_of_a_single_segment_and_of_an_uneven_bend():
     bend = Polyline(np.array([[0.0, 0.0], [10.0, 0.0], [12.0, 2.0]]))
     s, d = bend.project(np.array([11.0, -1.0]))
     assert (float(s), float(d)) == pytest.approx((10.0, -1.0))
+    # (10.5, -2) lies in the gap outside the bend, BEFORE the last segment's start: the vertex
+    # again (the last segment extends forward only)
+    s, d = bend.project(np.array([10.5, -2.0]))
+    assert (float(s), float(d)) == pytest.approx((10.0, -2.0))
 
 
 def _wiggly_road(rng: np.random.Generator) -> Polyline:
-    """A gently winding road: 12 segments of 5-30 m turning up to 15 deg either way."""
-    heading = np.cumsum(rng.uniform(-0.26, 0.26, 12))
+    """A zigzag road: 12 segments of 5-30 m, bends of 5-50 deg alternating left and right
+    (no U-turn: the road never comes back near itself)."""
+    turns = rng.uniform(0.09, 0.87, 12) * np.where(np.arange(12) % 2, 1.0, -1.0)
+    heading = 0.5 * turns[0] + np.cumsum(turns) - np.cumsum(turns).mean()
     steps = rng.uniform(5.0, 30.0, 12)[:, None] * np.column_stack([np.cos(heading),
                                                                    np.sin(heading)])
     return Polyline(np.vstack([[0.0, 0.0], np.cumsum(steps, axis=0)]))
@@ -311,11 +318,14 @@ def test_projections_agree_with_a_dense_reference_on_a_winding_road(seed, monkey
     every other point itself (the batched loop's speed rests on that)."""
     rng = np.random.default_rng(seed)
     line = _wiggly_road(rng)
-    # anywhere along the line and beyond its ends, and within 1 m of each vertex (both sides)
-    s0 = np.r_[rng.uniform(-20.0, line.length + 20.0, 40),
-               line.s[1:-1] + rng.uniform(-1.0, 1.0, len(line.s) - 2)]
+    # anywhere along the line and beyond its ends, and within 1.5 m of each vertex on both
+    # sides (inside a bend a point can project on both segments, outside on neither)
+    near = np.repeat(line.s[1:-1], 4) + rng.uniform(-1.5, 1.5, 4 * (len(line.s) - 2))
+    s0 = np.r_[rng.uniform(-20.0, line.length + 20.0, 40), near]
     n = len(s0)
-    xy = line.point_at(s0)[0] + rng.uniform(-3.0, 3.0, (n, 2))
+    xy, heading = line.point_at(s0)
+    side = rng.uniform(-3.0, 3.0, n)
+    xy = xy + side[:, None] * np.column_stack([-np.sin(heading), np.cos(heading)])
     s_ref, d_ref = _dense_projection(line, xy)
     s, d = line.project(xy)
     np.testing.assert_allclose(s, s_ref, atol=2e-3)
