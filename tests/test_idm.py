@@ -235,3 +235,63 @@ def test_params_vector_round_trip_and_messages() -> None:
     with pytest.raises(idm.IDMError, match=r"^IDM parameter s0_m must be finite and > 0, got "
                                            r"0.0$"):
         idm.IDMParams(s0_m=0.0)
+
+
+def test_follower_simulation_two_steps_by_hand() -> None:
+    """Explicit Euler at the log's own (uneven) steps: the acceleration of the state at the
+    step's start, speed clipped at 0, the gap from the trapezoid of both speeds."""
+    t = np.array([0.0, 0.5, 1.25])
+    vl = np.array([20.0, 22.0, 24.0])
+    gap, v = idm.simulate_follower(t, vl, 25.0, 30.0, P)
+    g, s = 30.0, 25.0
+    want_g, want_v = [g], [s]
+    for k in (1, 2):
+        dt = t[k] - t[k - 1]
+        s_star = 2.0 + max(0.0, s * 1.2 + s * (s - vl[k - 1]) / (2 * math.sqrt(1.5 * 2.0)))
+        a = 1.5 * (1 - (s / 30.0) ** 4 - (s_star / g) ** 2)
+        s_new = max(s + a * dt, 0.0)
+        g += 0.5 * (vl[k - 1] + vl[k]) * dt - 0.5 * (s + s_new) * dt
+        s = s_new
+        want_g.append(g)
+        want_v.append(s)
+    np.testing.assert_allclose(gap, want_g, rtol=1e-12)
+    np.testing.assert_allclose(v, want_v, rtol=1e-12)
+    assert v[1] == pytest.approx(25.0 - 0.5 * 6.949, abs=1e-3)  # a = -6.949 m/s^2 at first
+    # a stopped leader close ahead: the follower stops and never reverses
+    _, v_stop = idm.simulate_follower(np.arange(0.0, 20.0, 0.1), np.zeros(200), 10.0, 8.0, P)
+    assert v_stop.min() == 0.0 and v_stop[-1] == 0.0
+
+
+def test_fit_rmse_over_maneuvers_of_different_lengths() -> None:
+    """The spacing / speed RMSE pools every recorded sample of every maneuver; the padding of
+    the shorter one is not counted; the true parameters give zero."""
+    ms = []
+    for k, n in enumerate((120, 300)):
+        t, vl = _leader(k, n=n)
+        gap, v = idm.simulate_follower(t, vl, 24.0 + k, 25.0 + 5 * k, P)
+        ms.append(idm.Maneuver(f"m{k}", t, v, gap, vl))
+    assert idm.evaluate_fit(ms, P) == pytest.approx((0.0, 0.0), abs=1e-9)
+    other = idm.IDMParams(v0_mps=30.0, time_gap_s=1.6, s0_m=2.0, a_max_mps2=1.5, b_mps2=2.0)
+    each = [idm.evaluate_fit([m], other) for m in ms]
+    pooled = idm.evaluate_fit(ms, other)
+    for j in (0, 1):
+        assert pooled[j] == pytest.approx(
+            math.sqrt((120 * each[0][j] ** 2 + 300 * each[1][j] ** 2) / 420), rel=1e-9)
+    assert pooled[0] > 1.0
+
+
+def test_fit_recovers_parameters_from_one_start() -> None:
+    """The default start alone (2 maneuvers of 30 s) finds the generating parameters; the fit
+    records what it was fitted on."""
+    ms = []
+    for k in range(2):
+        t, vl = _leader(k, n=300)
+        gap, v = idm.simulate_follower(t, vl, 24.0 + k, 25.0 + 5 * k, P)
+        ms.append(idm.Maneuver(f"m{k}", t, v, gap, vl))
+    fit = idm.fit_idm(ms, seed=0, starts=1)
+    assert fit.rmse_gap_m < 1e-6 and fit.rmse_speed_mps < 1e-6
+    np.testing.assert_allclose(fit.params.vector(), P.vector(), rtol=1e-6)
+    assert (fit.maneuver_ids, fit.samples) == (("m0", "m1"), 600)
+    # a second, seeded start within the bounds: the better of the two is kept
+    two = idm.fit_idm(ms, seed=3, starts=2)
+    assert two.rmse_gap_m <= fit.rmse_gap_m + 1e-9
