@@ -161,7 +161,7 @@ def test_fit_needs_maneuvers() -> None:
 def test_model_file_contents_and_loading_rules(tmp_path) -> None:
     fit = idm.IDMFit(P, 1.25, 0.5, ("a#0", "b#1"), 100)
     other = idm.IDMFit(idm.IDMParams(), 2.0, 1.0, ("c#0",), 7)
-    path = tmp_path / "sub" / "m.json"  # parent folders are made
+    path = tmp_path / "sub" / "dir" / "m.json"  # parent folders are made
     idm.save_model(path, {"openacc": fit, "x": fit}, default="openacc",
                    per_driver={"openacc/f2": other, "x": other}, extra={"note": "hi"})
     doc = json.loads(path.read_text())
@@ -173,7 +173,8 @@ def test_model_file_contents_and_loading_rules(tmp_path) -> None:
     assert (doc["format"], doc["type"], doc["default"], doc["horizon_s"], doc["note"]) == \
         ("safeil-idm-1", "idm", "openacc", 5.0, "hi")
     assert doc["per_driver"]["openacc/f2"]["samples"] == 7
-    assert path.read_text().endswith("}\n") and list(tmp_path.rglob("*")) == [path.parent, path]
+    assert path.read_text().endswith("}\n")
+    assert sorted(tmp_path.rglob("*")) == [path.parent.parent, path.parent, path]
     assert path.read_text().count("\n") > 20  # one key per line: readable diffs
     planner = idm.load_planner(path, name="calibrated")
     assert (planner.params, planner.name, planner.horizon) == (P, "calibrated", 5.0)
@@ -237,13 +238,16 @@ def test_params_vector_round_trip_and_messages() -> None:
         idm.IDMParams(s0_m=0.0)
 
 
-def test_follower_simulation_two_steps_by_hand() -> None:
+@pytest.mark.parametrize(("vl", "v0", "gap0"), [((20.0, 22.0, 24.0), 25.0, 30.0),
+                                                ((40.0, 40.0, 40.0), 10.0, 20.0)])
+def test_follower_simulation_two_steps_by_hand(vl, v0, gap0) -> None:
     """Explicit Euler at the log's own (uneven) steps: the acceleration of the state at the
-    step's start, speed clipped at 0, the gap from the trapezoid of both speeds."""
+    step's start, speed clipped at 0, the gap from the trapezoid of both speeds; a much faster
+    leader makes the dynamic term negative: s* is then s0."""
     t = np.array([0.0, 0.5, 1.25])
-    vl = np.array([20.0, 22.0, 24.0])
-    gap, v = idm.simulate_follower(t, vl, 25.0, 30.0, P)
-    g, s = 30.0, 25.0
+    vl = np.array(vl)
+    gap, v = idm.simulate_follower(t, vl, v0, gap0, P)
+    g, s = gap0, v0
     want_g, want_v = [g], [s]
     for k in (1, 2):
         dt = t[k] - t[k - 1]
@@ -256,7 +260,10 @@ def test_follower_simulation_two_steps_by_hand() -> None:
         want_v.append(s)
     np.testing.assert_allclose(gap, want_g, rtol=1e-12)
     np.testing.assert_allclose(v, want_v, rtol=1e-12)
-    assert v[1] == pytest.approx(25.0 - 0.5 * 6.949, abs=1e-3)  # a = -6.949 m/s^2 at first
+    if v0 == 25.0:
+        assert v[1] == pytest.approx(25.0 - 0.5 * 6.949, abs=1e-3)  # a = -6.949 m/s^2 first
+    else:  # s* = s0 = 2 m: a = 1.5 (1 - (1/3)^4 - (2/20)^2)
+        assert v[1] == pytest.approx(10.0 + 0.5 * 1.5 * (1 - 1 / 81 - 0.01), rel=1e-12)
     # a stopped leader close ahead: the follower stops and never reverses
     _, v_stop = idm.simulate_follower(np.arange(0.0, 20.0, 0.1), np.zeros(200), 10.0, 8.0, P)
     assert v_stop.min() == 0.0 and v_stop[-1] == 0.0
@@ -280,18 +287,36 @@ def test_fit_rmse_over_maneuvers_of_different_lengths() -> None:
     assert pooled[0] > 1.0
 
 
-def test_fit_recovers_parameters_from_one_start() -> None:
-    """The default start alone (2 maneuvers of 30 s) finds the generating parameters; the fit
+def test_fit_recovers_parameters_from_one_start(monkeypatch) -> None:
+    """The default start alone (2 maneuvers of 15 s) finds the generating parameters; the fit
     records what it was fitted on."""
     ms = []
     for k in range(2):
-        t, vl = _leader(k, n=300)
+        t, vl = _leader(k, n=150)
         gap, v = idm.simulate_follower(t, vl, 24.0 + k, 25.0 + 5 * k, P)
         ms.append(idm.Maneuver(f"m{k}", t, v, gap, vl))
     fit = idm.fit_idm(ms, seed=0, starts=1)
     assert fit.rmse_gap_m < 1e-6 and fit.rmse_speed_mps < 1e-6
     np.testing.assert_allclose(fit.params.vector(), P.vector(), rtol=1e-6)
-    assert (fit.maneuver_ids, fit.samples) == (("m0", "m1"), 600)
-    # a second, seeded start within the bounds: the better of the two is kept
+    assert (fit.maneuver_ids, fit.samples) == (("m0", "m1"), 300)
+    # a second start, seeded, drawn within the bounds: the better of the two is kept, and the
+    # same seed gives the same fit
+    calls = []
+    solve = idm.least_squares
+
+    def counted(fun, x0, **kw):
+        calls.append(np.array(x0))
+        return solve(fun, x0, **kw)
+
+    monkeypatch.setattr(idm, "least_squares", counted)
     two = idm.fit_idm(ms, seed=3, starts=2)
+    assert len(calls) == 2 and np.all((calls[1] >= idm.LOWER) & (calls[1] <= idm.UPPER))
+    np.testing.assert_array_equal(calls[0], idm.IDMParams().vector())
     assert two.rmse_gap_m <= fit.rmse_gap_m + 1e-9
+    again = idm.fit_idm(ms, seed=3, starts=2)
+    np.testing.assert_array_equal(calls[3], calls[1])
+    assert again.params == two.params
+    idm.fit_idm(ms, seed=4, starts=2)
+    assert not np.array_equal(calls[5], calls[1])
+    idm.fit_idm(ms, seed=3, starts=1)
+    assert len(calls) == 7
