@@ -365,3 +365,37 @@ def test_projections_agree_with_a_dense_reference_on_a_winding_road(seed, monkey
     assert all(m.dtype == np.float64 for m in many[:3])
     assert {tuple(c) for c in calls} == {(float(xy[j, 0]), float(xy[j, 1])) for j in ambiguous}
     assert 0 < len(ambiguous) < n
+
+
+def test_points_on_the_bisectors_of_every_bend():
+    """At every vertex of a zigzag road: a point 1.5 m out along the outer bisector (in the gap:
+    its nearest point is the vertex) and one 1.5 m in along the inner bisector (equally near
+    both segments); project_near from either end and the batch agree with project()."""
+    rng = np.random.default_rng(7)
+    line = _wiggly_road(rng)
+    t = line._tangents
+    pts, extra = [], []
+    for k in range(1, len(line.points) - 1):
+        bis = t[k] - t[k - 1]  # points to the inside of the bend
+        bis /= np.linalg.norm(bis)
+        pts += [line.points[k] + 1.5 * bis, line.points[k] - 1.5 * bis]
+        # inside, 1.5 m from one segment, 0.3 m short of / past the vertex: within reach of
+        # both segments, whichever side the walk comes from
+        for u, sign in ((t[k - 1], -0.3), (t[k], 0.3)):
+            turn = t[k - 1][0] * t[k][1] - t[k - 1][1] * t[k][0]  # > 0: a left bend
+            normal = np.array([-u[1], u[0]]) * np.sign(turn)
+            extra.append(line.points[k] + sign * u + 1.5 * normal)
+    xy = np.array(pts + extra)
+    s, d = line.project(xy)
+    for hint in (0, len(t) - 1):
+        for j in range(len(xy)):
+            got = line.project_near(float(xy[j, 0]), float(xy[j, 1]), hint)
+            assert got[:2] == pytest.approx((s[j], d[j]), abs=1e-9)
+        many = line.project_near_many(xy[:, 0], xy[:, 1], np.full(len(xy), hint))
+        np.testing.assert_allclose(many[0], s, atol=1e-9)
+        np.testing.assert_allclose(many[1], d, atol=1e-9)
+    # outside: s at the vertex; inside: one of the two feet (a tie up to
+    # rounding, resolved as project() does), 1.5 m sin(half the bend) from the vertex
+    m = len(pts)
+    np.testing.assert_allclose(s[1:m:2], line.s[1:-1], atol=1e-9)
+    assert np.all(np.abs(s[0:m:2] - line.s[1:-1]) > 0.01)

@@ -543,6 +543,12 @@ def test_envelope_barrier_keeps_every_setting_and_the_margin_where_reachable() -
     assert envelope_barrier_terms(wide, cp_paper, 3.0, only_gap)[2].item() == pytest.approx(
         barrier_terms(wide, cp_paper, 3.0, only_gap)[2].item(), rel=1e-12)
     assert barrier_terms(wide, cp_paper, 3.0, only_gap)[2].item() > 1.0
+    # the paper's lane terms on the sampled points only (no control points): kept too
+    cfg_cp = BarrierConfig(n_samples=4, control_points=False, gap_min=2.0, time_gap=1.0)
+    zero_cp = BarrierConfig(n_samples=4, control_points=False)
+    for a, b in zip(envelope_barrier_terms(far, cp, 5.0, cfg_cp)[:2],
+                    barrier_terms(far, cp, 5.0, zero_cp)[:2], strict=True):
+        assert a.item() == pytest.approx(b.item(), rel=1e-12)
     # a batch of both: the mean of the two
     both = envelope_barrier_terms(torch.cat([reach, far]), cp.expand(2, 3, 2), 5.0, cfg)
     for k in range(3):
