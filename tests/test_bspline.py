@@ -39,6 +39,7 @@ def test_evaluate_time_scales_derivatives() -> None:
     for k in (0, 1, 2):
         np.testing.assert_allclose(bspline.evaluate_time(CP, t, horizon, k), spl(t, nu=k),
                                    atol=1e-10)
+    np.testing.assert_allclose(bspline.evaluate_time(CP, t, horizon), spl(t), atol=1e-10)
 
 
 def test_plan_starts_at_origin_and_ends_at_last_control_point() -> None:
@@ -177,3 +178,18 @@ def test_bernstein_condition_on_a_straight_lane_is_implied_by_the_control_points
     cp_ok = at_cp.min(axis=-1) >= 0
     assert np.all(coeffs[cp_ok, 1:].min(axis=-1) >= -1e-12)
     assert np.sum(coeffs[:, 1:].min(axis=-1) >= 0) > np.sum(cp_ok)  # strictly less conservative
+
+
+# ------------------------------------- cases found by mutation testing (docs/mutation_testing.md)
+
+
+def test_basis_clips_tau_takes_scalars_and_vanishes_beyond_degree() -> None:
+    # outside [0, 1] the plan holds its ends (tau is clipped), for positions and derivatives
+    np.testing.assert_array_equal(bspline.basis(np.array([-0.5, 1.5])), bspline.basis([0.0, 1.0]))
+    np.testing.assert_array_equal(bspline.basis(np.array([1.2]), 1), bspline.basis([1.0], 1))
+    assert bspline.basis(0.5).shape == (4,)
+    np.testing.assert_allclose(bspline.basis(0.5), [0.125, 0.375, 0.375, 0.125])
+    np.testing.assert_array_equal(bspline.basis(TAU, 4), np.zeros((len(TAU), 4)))
+    line = np.array([1.5, 0.01, 0.002])
+    np.testing.assert_array_equal(bspline.lateral_margin_bernstein(CP, line),
+                                  bspline.lateral_margin_bernstein(CP, line, 0.0))

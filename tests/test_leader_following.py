@@ -19,8 +19,8 @@ from safeil_sumo.learn.losses import BarrierConfig, barrier_terms, envelope_barr
 from safeil_sumo.learn.model import PlannerMLP, constant_speed_points
 from safeil_sumo.learn.train import (
     TrainConfig,
-    gap_monotone_penalty,
     axis_weights,
+    gap_monotone_penalty,
     split_by_maneuver,
     train,
 )
@@ -213,3 +213,41 @@ def test_envelope_training_runs_and_logs_its_terms(data: Tuples) -> None:
     for a, b in zip(m1.state_dict().values(), m2.state_dict().values(), strict=True):
         assert torch.equal(a, b)  # same seed, same envelope draws, same weights
     assert TrainConfig.from_dict(dataclasses.asdict(cfg)) == cfg
+
+
+# ------------------------------------- cases found by mutation testing (docs/mutation_testing.md)
+
+
+def test_envelope_draws_each_quantity_per_state() -> None:
+    """Every state gets its own lane width, offset, heading, curvature and leader, within the
+    configured ranges: lines in the ego frame at +-width/2 - offset, both with the lane's c1 and
+    c2 = curvature / 2; leader speeds clipped at 0 (not above); a 10 % share of "no leader"
+    states drawn before the recoverability filter (about 11 % after it)."""
+    a = sample_states(4000, np.random.default_rng(2))
+    width, offset = a[:, 0] - a[:, 3], -(a[:, 0] + a[:, 3]) / 2
+    for x, lo, hi in ((width, 3.3, 3.8), (offset, -0.6, 0.6), (a[:, 1], -0.03, 0.03),
+                      (a[:, 2], -0.002, 0.002)):
+        assert x.min() >= lo - 1e-9 and x.max() <= hi + 1e-9
+        assert x.std() > 0.2 * (hi - lo)  # spread over the range, not one value for all
+        assert x.max() - x.min() > 0.9 * (hi - lo)
+    np.testing.assert_array_equal(a[:, 1], a[:, 4])
+    np.testing.assert_array_equal(a[:, 2], a[:, 5])
+    lead = a[a[:, 8] != 150.0]
+    rel = lead[:, 7] - lead[:, 6]
+    moving = lead[:, 7] > 0
+    assert rel[moving].min() >= -15.0 - 1e-9 and rel.max() <= 5.0 + 1e-9
+    assert rel[moving].std() > 3.0
+    assert (lead[:, 7] == 0.0).mean() > 0.05  # a slow ego behind a stopped leader exists
+    free = a[:, 8] == 150.0
+    assert 0.09 < free.mean() < 0.13
+
+
+def test_envelope_small_draws_and_always_recoverable_leaders() -> None:
+    """Any n works (the batch is oversampled); a faster leader is recoverable at any gap (no
+    closing: nothing to brake for), so a tiny-gap envelope of faster leaders is kept whole."""
+    for n in (1, 2, 3):
+        assert sample_states(n, np.random.default_rng(n)).shape == (n, 9)
+    cfg = dataclasses.replace(EnvelopeConfig(), gap_m=(0.01, 0.05), relative_speed_mps=(0.5, 5.0),
+                              ego_speed_mps=(10.0, 30.0), no_leader_share=0.0)
+    gap = sample_states(50, np.random.default_rng(0), cfg)[:, 8]
+    assert gap.max() <= 0.05

@@ -427,3 +427,130 @@ def test_cli_trains_and_writes_checkpoint(tmp_path: Path, data: Tuples) -> None:
     assert '"barrier_lateral": "bernstein"' in proc.stdout
     assert (tmp_path / "models" / "safeil_test.safetensors").is_file()
     assert (tmp_path / "models" / "safeil_test.json").is_file()
+
+
+# ------------------------------------- cases found by mutation testing (docs/mutation_testing.md)
+
+
+def test_losses_by_hand_on_batches_and_weights() -> None:
+    """Imitation: squared error summed over the 6 outputs (x and y weighted per sample), mean
+    over a batch of 3; barriers: summed over the points, mean over the batch."""
+    from safeil_sumo.learn.losses import constrained_points
+
+    pred = torch.tensor([[[1.0, 1.0], [2.0, 0.0], [3.0, 0.0]]] * 3, dtype=torch.float64)
+    target = pred.clone()
+    target[0, 0, 0], target[1, 1, 1], target[2, 2, 0] = 3.0, 1.0, 0.0  # errors 2, 1, 3
+    assert imitation_loss(pred, target).item() == pytest.approx((4 + 1 + 9) / 3)
+    w = torch.tensor([[1.0, 0.0], [0.0, 1.0], [0.5, 1.0]], dtype=torch.float64)
+    assert imitation_loss(pred, target, w).item() == pytest.approx((4 + 1 + 0.5 * 9) / 3)
+    f = torch.tensor([STRAIGHT] * 3, dtype=torch.float64)
+    terms = safe_loss(f, pred, target, 3.0, axis_weight=w)  # the barrier is on by default
+    assert terms.imitation.item() == pytest.approx((4 + 1 + 4.5) / 3)
+    assert terms.total.item() == pytest.approx(
+        terms.imitation.item() + terms.barrier_left.item() + terms.barrier_right.item()
+        + terms.barrier_lead.item())
+    # two plans: one on the centre line, one 1 m left at every point; per-plan sums, batch mean
+    f2, cp2 = f[:2], torch.tensor([[[10.0, 0.0], [20.0, 0.0], [30.0, 0.0]],
+                                   [[10.0, 1.0], [20.0, 1.0], [30.0, 1.0]]], dtype=torch.float64)
+    left, _, _ = barrier_terms(f2, cp2, 3.0, BarrierConfig())
+    assert left.item() == pytest.approx(1000 * (3 * _softplus(-0.87) + 3 * _softplus(0.13)) / 2)
+    # the points and times the barrier acts on: by default the 3 control points only
+    pts, times = constrained_points(cp2, 6.0)
+    assert torch.equal(pts, cp2) and times.tolist() == [2.0, 4.0, 6.0]
+    pts, times = constrained_points(cp2, 6.0, n_samples=2, include_control=False)
+    np.testing.assert_allclose(pts[1].numpy(), bspline.evaluate(cp2[1].numpy(), [0.5, 1.0]))
+    assert times.tolist() == [3.0, 6.0]
+    _, times = constrained_points(cp2, 6.0, n_samples=1)
+    assert times.tolist() == [2.0, 4.0, 6.0, 6.0]
+
+
+def test_lead_margin_options_each_alone() -> None:
+    f, cp = _one(STRAIGHT, [[10.0, 0.0], [20.0, 0.0], [60.0, 0.0]])
+    times = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    base = [40 + 25 * t - x for x, t in ((10, 1), (20, 2), (60, 3))]
+    np.testing.assert_allclose(lead_margins(f, cp, times, gap_min=2.0).numpy()[0],
+                               [b - 2.0 for b in base])
+    np.testing.assert_allclose(lead_margins(f, cp, times, time_gap=1.0).numpy()[0],
+                               [b - 25.0 for b in base])
+
+
+def test_barrier_config_messages() -> None:
+    with pytest.raises(ValueError, match=r"^lateral must be one of \('control_points', "
+                                         r"'bernstein'\), got 'spline'$"):
+        BarrierConfig(lateral="spline")
+    with pytest.raises(ValueError, match="^the barrier needs control points or n_samples > 0$"):
+        BarrierConfig(control_points=False)
+    assert BarrierConfig(control_points=False, n_samples=1).n_samples == 1
+
+
+def test_bernstein_barrier_on_spline_points_only() -> None:
+    """lateral="bernstein" with control_points=False: the 6 Bernstein terms per line and ALL
+    the sampled points (none of them is a control point to skip)."""
+    f, cp = _one(STRAIGHT, [[10.0, 0.0], [20.0, 0.5], [30.0, 1.0]])
+    n = 4
+    cfg = BarrierConfig(n_samples=n, control_points=False, lateral="bernstein")
+    left, _, _ = barrier_terms(f, cp, 3.0, cfg)
+    b_left = bspline.lateral_margin_bernstein(cp.numpy()[0], np.array(STRAIGHT[0:3]), -0.88)
+    pts = bspline.evaluate(cp.numpy()[0], np.arange(1, n + 1) / n)
+    expected = 1000 * (sum(_softplus(-b) for b in b_left[1:])
+                       + sum(_softplus(y - 0.87) for y in pts[:, 1]))
+    assert left.item() == pytest.approx(expected, rel=1e-12)
+
+
+def test_envelope_barrier_keeps_every_setting_and_the_margin_where_reachable() -> None:
+    """The envelope barrier is barrier_terms with the same settings (K, track, samples, control
+    points, lateral mode): with the margin where braking at 6 m/s^2 can reach it, the paper's
+    zero margin elsewhere; each state's terms summed over its points, averaged over the batch."""
+    from safeil_sumo.learn.losses import envelope_barrier_terms
+
+    cfg = BarrierConfig(k=10.0, track=2.0, n_samples=4, control_points=False,
+                        lateral="bernstein", gap_min=2.0, time_gap=1.0)
+    zero = BarrierConfig(k=10.0, track=2.0, n_samples=4, control_points=False,
+                         lateral="bernstein")
+    # x(t) = 28 t over 5 s (a straight spline), drifting left: the margins matter
+    cp = torch.tensor([[[140 / 3, 0.3], [280 / 3, 0.6], [140.0, 0.9]]], dtype=torch.float64)
+
+    def state(v: float, v_lead: float, gap: float) -> torch.Tensor:
+        return torch.tensor([[1.75, 0.0, 0.0, -1.75, 0.0, 0.0, v, v_lead, gap]],
+                            dtype=torch.float64)
+
+    # with the margin the points sit 5 m short of it (reach) or past it (far, edge); without,
+    # 37 m and more: each case below tells the two apart
+    assert barrier_terms(state(30.0, 28.0, 37.0), cp, 5.0, cfg)[2].item() > 0.1
+    assert barrier_terms(state(30.0, 28.0, 37.0), cp, 5.0, zero)[2].item() < 1e-9
+    # reachable: closing at 2 m/s, gap - margin = 37 - 32 = 5 m > 4 / 12 m
+    # (and > 4 / 3 m and < 48 m: a misplaced brake factor would decide otherwise)
+    reach = state(30.0, 28.0, 37.0)
+    env = envelope_barrier_terms(reach, cp, 5.0, cfg)
+    for a, b in zip(env, barrier_terms(reach, cp, 5.0, cfg), strict=True):
+        assert a.item() == pytest.approx(b.item(), rel=1e-12)
+    # out of reach: closing at 10 m/s, 8 m < 100 / 12 m: the zero margin
+    far = state(30.0, 20.0, 40.0)
+    env_far = envelope_barrier_terms(far, cp, 5.0, cfg)
+    assert env_far[2].item() < 0.5 * barrier_terms(far, cp, 5.0, cfg)[2].item()
+    for a, b in zip(env_far, barrier_terms(far, cp, 5.0, zero), strict=True):
+        assert a.item() == pytest.approx(b.item(), rel=1e-12)
+    # opening by 5 m/s, 5 cm beyond the 22 m margin: reachable (nothing to brake for)
+    edge = state(20.0, 25.0, 22.05)
+    assert barrier_terms(edge, cp, 5.0, cfg)[2].item() > 10 * barrier_terms(edge, cp, 5.0,
+                                                                           zero)[2].item()
+    assert envelope_barrier_terms(edge, cp, 5.0, cfg)[2].item() == pytest.approx(
+        barrier_terms(edge, cp, 5.0, cfg)[2].item(), rel=1e-12)
+    # the gap margin alone (no time gap) is a margin too
+    only_gap = BarrierConfig(gap_min=30.0)
+    cp_paper = torch.tensor([[[50.0, 0.0], [75.0, 0.0], [100.0, 0.0]]], dtype=torch.float64)
+    wide = state(25.0, 25.0, 60.0)
+    assert envelope_barrier_terms(wide, cp_paper, 3.0, only_gap)[2].item() == pytest.approx(
+        barrier_terms(wide, cp_paper, 3.0, only_gap)[2].item(), rel=1e-12)
+    assert barrier_terms(wide, cp_paper, 3.0, only_gap)[2].item() > 1.0
+    # the paper's lane terms on the sampled points only (no control points): kept too
+    cfg_cp = BarrierConfig(n_samples=4, control_points=False, gap_min=2.0, time_gap=1.0)
+    zero_cp = BarrierConfig(n_samples=4, control_points=False)
+    for a, b in zip(envelope_barrier_terms(far, cp, 5.0, cfg_cp)[:2],
+                    barrier_terms(far, cp, 5.0, zero_cp)[:2], strict=True):
+        assert a.item() == pytest.approx(b.item(), rel=1e-12)
+    # a batch of both: the mean of the two
+    both = envelope_barrier_terms(torch.cat([reach, far]), cp.expand(2, 3, 2), 5.0, cfg)
+    for k in range(3):
+        assert both[k].item() == pytest.approx((env[k].item() + env_far[k].item()) / 2,
+                                               rel=1e-12)

@@ -85,6 +85,56 @@ def test_drift_corrected_speed_follows_the_positions():
     assert rr.drift_corrected_speed(t[:50], np.zeros(50), -np.arange(50.0), 1.0).min() == 0.0
 
 
+
+@pytest.mark.parametrize("n", [200, 31, 30, 7, 6])
+@pytest.mark.parametrize("window_s", [5.0, 1.0, 0.5])
+def test_drift_correction_is_exact_for_a_quadratic_drift(n: int, window_s: float):
+    """A drift quadratic in time (0.01 t^2 m: a 2 % per 100 s speed bias growing linearly) is
+    removed exactly at every sample, the first and last included: an order-2 Savitzky-Golay
+    derivative is exact on it, whatever the window (capped at the samples there are), on a log
+    that starts at t = 40 s."""
+    t = 40.0 + 0.1 * np.arange(n)
+    tau = t - t[0]
+    v = rr.drift_corrected_speed(t, np.full(n, 25.0), 100.0 + 25.0 * tau + 0.01 * tau ** 2,
+                                 window_s)
+    np.testing.assert_allclose(v, 25.0 + 0.02 * tau, atol=1e-9)
+
+
+def test_drift_correction_of_too_few_samples_is_the_mean_rate():
+    """Fewer samples than a 5-point filter: the speed gains the mean drift rate
+    (drift[-1] - drift[0]) / (t[-1] - t[0]). Here the positions run 1, 3 and 6 m ahead of 20
+    m/s after 1, 2, 3 s: +2 m/s everywhere."""
+    t = np.array([10.0, 11.0, 12.0, 13.0])
+    v = rr.drift_corrected_speed(t, np.full(4, 20.0), np.array([0.0, 21.0, 43.0, 66.0]), 5.0)
+    np.testing.assert_allclose(v, 22.0)
+    two = rr.drift_corrected_speed(np.array([0.0, 1.0]), np.array([10.0, 10.0]),
+                                   np.array([0.0, 12.0]), 5.0)
+    np.testing.assert_allclose(two, 12.0)
+    # no window: the speed itself, only clipped at 0
+    np.testing.assert_array_equal(
+        rr.drift_corrected_speed(t[:2], np.array([0.5, -1.0]), np.zeros(2), 0.0), [0.5, 0.0])
+
+
+def test_recorded_leader_speed_and_travel_by_hand():
+    """The leader's speed: the pipeline's ``v_lead``, else ``lead_v``, else the ego speed plus
+    the derivative of the gap; gaps in the column filled from the derivative; clipped at 0.
+    Its travel: the trapezoid integral."""
+    t = np.array([0.0, 1.0, 2.0, 3.0])
+    rows = pd.DataFrame({"time": t, "v_x": [20.0, 20.0, 21.0, 21.0],
+                         "lead_x": [30.0, 32.0, 35.0, 35.0]})
+    # np.gradient: one-sided at the ends, central inside: 2, 2.5, 1.5, 0
+    np.testing.assert_allclose(rr.leader_speed(rows), [22.0, 22.5, 22.5, 21.0])
+    np.testing.assert_allclose(rr.leader_speed(rows.assign(lead_v=[1.0, np.nan, -3.0, 4.0])),
+                               [1.0, 22.5, 0.0, 4.0])
+    # at 0.5 s steps the gap's rate doubles: 4, 5, 3, 0
+    np.testing.assert_allclose(rr.leader_speed(rows.assign(time=0.5 * t)),
+                               [24.0, 25.0, 24.0, 21.0])
+    both = rows.assign(v_lead=[5.0, 6.0, 7.0, 8.0], lead_v=[1.0, 1.0, 1.0, 1.0])
+    np.testing.assert_allclose(rr.leader_speed(both), [5.0, 6.0, 7.0, 8.0])
+    uneven = rows.assign(time=[0.0, 0.5, 2.0, 3.0], v_lead=[10.0, 20.0, 20.0, 30.0])
+    # 0.5 * (10 + 20) * 0.5 + 20 * 1.5 + 0.5 * (20 + 30) * 1 = 7.5 + 30 + 25
+    assert rr.recorded_leader_travel(uneven) == pytest.approx(62.5)
+
 def _lines(c0l: float, c0r: float, c1: float = 0.0) -> pd.DataFrame:
     return pd.DataFrame({"left_c0": [c0l], "left_c1": [c1], "left_c2": [0.0], "left_c3": [0.0],
                          "right_c0": [c0r], "right_c1": [c1], "right_c2": [0.0],

@@ -283,6 +283,74 @@ def test_bootstrap_ci_is_seeded_and_brackets_the_median():
     assert lo < np.median(v) < hi and hi - lo < 1.0
 
 
+def test_bootstrap_ci_edge_cases() -> None:
+    from safeil_sumo.experiments.replay_all import bootstrap_ci
+
+    v = np.random.default_rng(0).lognormal(1.0, 0.5, 50)
+    assert bootstrap_ci(v) == bootstrap_ci(v, seed=0)  # seeded by default
+    assert bootstrap_ci(np.array([3.0, np.nan])) == (3.0, 3.0)  # one finite value
+    assert all(math.isnan(x) for x in bootstrap_ci(np.array([np.nan, np.inf])))
+    # every value can be drawn: the mean of one 10 among nine zeros varies
+    lo, hi = bootstrap_ci(np.r_[10.0, np.zeros(9)], np.mean)
+    assert lo == 0.0 and hi >= 2.0
+
+
+def test_headway_histogram_bins_by_hand() -> None:
+    from safeil_sumo.experiments.replay_all import _headway_hist
+
+    h = _headway_hist(np.array([0.05, 0.15, 0.15, 4.99, 5.0, 7.0, -0.1, np.nan, np.inf]))
+    assert len(h) == 50 and sum(h) == 5  # 0.1 s bins over 0-5 s; beyond and NaN left out
+    assert (h[0], h[1], h[49]) == (1, 2, 2)  # the last bin holds its right edge
+
+
+def test_replay_aggregate_by_hand() -> None:
+    """Per policy, in order of appearance, over the replayed windows (a failed window left
+    out): gap RMSE median and mean with their seeded bootstrap CIs, medians of the other
+    errors, flags, flags where the human had none, and collisions (flagged OR ended by one,
+    each window once)."""
+    from safeil_sumo.experiments.replay_all import aggregate, bootstrap_ci, window_id
+
+    gap_p = np.array([1.0, 2.0, 6.0, 0.5, 3.0, 4.0, 2.5, 8.0, 1.5, 0.8])
+    df = pd.DataFrame({
+        "status": ["ok"] * 12 + ["failed"],
+        "policy": ["safeil"] * 10 + ["bc"] * 2 + ["safeil"],
+        "rmse_gap": [*gap_p, 0.5, np.nan, 99.0],
+        "rmse_v": [0.1, 0.3, 0.2, 0.1, 0.2, 0.2, 0.3, 0.1, 0.2, 0.2, 0.4, 0.6, 99.0],
+        "rmse_d": [0.03] * 10 + [0.02, 0.04, 99.0],
+        "w1_headway": [0.2] * 10 + [0.5, 0.7, 99.0],
+        "flag": ["collision", "collision", ""] + [""] * 7 + ["ttc", "lane_departure",
+                                                              "collision"],
+        "human_flag": [""] * 10 + ["ttc", "", ""],
+        "end_reason": ["collision", "completed", "collision"] + ["completed"] * 9
+        + ["collision"],
+        "maneuver_id": [f"m{i}" for i in range(13)],
+        "start_s": [0.0] * 7 + [22.0] + [0.0] * 5,
+    })
+    table = aggregate(df)
+    assert list(table["policy"]) == ["safeil", "bc"]
+    p, q = table.iloc[0], table.iloc[1]
+    assert (p["windows"], p["flags"], p["flags_beyond_human"], p["collisions"]) == (10, 2, 2, 3)
+    assert (p["gap_rmse_median_m"], p["gap_rmse_mean_m"]) == (2.25, 2.93)
+    # the worst window (8.0 m, m7 from 22 s), not the failed one's 99 m
+    assert (p["gap_rmse_max_m"], p["gap_rmse_worst"]) == (8.0, window_id("m7", 22.0))
+    assert (p["speed_rmse_median_mps"], p["lateral_rmse_median_m"],
+            p["time_gap_w1_median_s"]) == pytest.approx((0.2, 0.03, 0.2))
+    # the CIs: bootstrap_ci's, seeded with the aggregate's seed (default 0)
+    assert (p["gap_rmse_median_lo"], p["gap_rmse_median_hi"]) == \
+        bootstrap_ci(gap_p, np.median, seed=0)
+    assert (p["gap_rmse_mean_lo"], p["gap_rmse_mean_hi"]) == bootstrap_ci(gap_p, np.mean, seed=0)
+    other = aggregate(df, seed=5).iloc[0]
+    assert (other["gap_rmse_mean_lo"], other["gap_rmse_mean_hi"]) == \
+        bootstrap_ci(gap_p, np.mean, seed=5) != bootstrap_ci(gap_p, np.mean, seed=0)
+    assert (other["gap_rmse_median_lo"], other["gap_rmse_median_hi"]) == \
+        bootstrap_ci(gap_p, np.median, seed=5)
+    # a NaN gap RMSE is left out of its statistics
+    assert (q["windows"], q["gap_rmse_median_m"], q["gap_rmse_mean_m"]) == (2, 0.5, 0.5)
+    assert (q["gap_rmse_median_lo"], q["gap_rmse_median_hi"]) == (0.5, 0.5)
+    assert (q["flags"], q["flags_beyond_human"], q["collisions"]) == (2, 1, 0)
+    assert (q["speed_rmse_median_mps"], q["time_gap_w1_median_s"]) == pytest.approx((0.5, 0.6))
+
+
 def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
     from safeil_sumo import replay as cli
 

@@ -39,7 +39,8 @@ def test_drift_correction_low_passes_position_noise() -> None:
     noisy = position + np.random.default_rng(0).normal(0.0, 0.05, len(t))  # 5 cm, seeded
     v = rr.drift_corrected_speed(t, 1.01 * true_v, noisy, window_s=5.0)
     err = v - true_v
-    assert np.sqrt(np.mean(err ** 2)) < 0.02
+    # order 2 over 5 s: 0.005 m/s RMS (a cubic fit, order 3, lets 0.012 through)
+    assert np.sqrt(np.mean(err ** 2)) < 0.008
     assert np.max(np.abs(err)) < 0.1
 
 
@@ -57,10 +58,11 @@ def test_bootstrap_ci_of_a_mean_has_the_normal_width(level: float, z: float) -> 
     for seed in range(3):
         v = np.random.default_rng(seed).normal(0.0, 1.0, 400)
         se = v.std() / math.sqrt(len(v))  # the bootstrap's own standard error (ddof 0)
-        lo, hi = bootstrap_ci(v, np.mean, seed=1, level=level)
-        # 2000 resamples: each edge is within ~5 % of z se; 12 % leaves room for the seed
-        assert (v.mean() - lo) / se == pytest.approx(z, rel=0.12)
-        assert (hi - v.mean()) / se == pytest.approx(z, rel=0.12)
+        lo, hi = bootstrap_ci(v, np.mean, samples=20_000, seed=1, level=level)
+        # 20,000 resamples: each edge within ~2 % of z se (a 1/3 instead of 1/2 of the tail,
+        # 1.67 %, would put the lower edge at 2.13 se)
+        assert (v.mean() - lo) / se == pytest.approx(z, rel=0.03)
+        assert (hi - v.mean()) / se == pytest.approx(z, rel=0.03)
 
 
 # ---------------------------------------------------------------- 3. idm: the planner's own law
@@ -79,7 +81,8 @@ def test_idm_closing_acceleration_hand_computed() -> None:
 
 
 @pytest.mark.parametrize("params", [P, idm.IDMParams()])
-@pytest.mark.parametrize(("v", "v_lead", "gap"), [(30.0, 20.0, 30.0), (25.0, 28.0, 60.0)])
+@pytest.mark.parametrize(("v", "v_lead", "gap"), [(30.0, 20.0, 30.0), (25.0, 28.0, 60.0),
+                                                   (10.0, 0.0, 5.0)])  # the last one stops
 def test_idm_planner_follows_the_model(params: idm.IDMParams, v: float, v_lead: float,
                                        gap: float) -> None:
     """Rule: the IDM planner's longitudinal plan is the IDM (:func:`idm.idm_acceleration`, whose
@@ -102,6 +105,9 @@ def test_idm_planner_follows_the_model(params: idm.IDMParams, v: float, v_lead: 
     expected, *_ = np.linalg.lstsq(bspline.basis(tau)[:, 1:], x, rcond=None)
     f = straight_lane_features(np.array(v), np.array(v_lead), np.array(gap))
     np.testing.assert_allclose(planner.plan(f)[:, 0], expected, atol=1e-6)
+    batch = planner.plan(np.broadcast_to(f, (2, 3, 9)))  # any leading shape
+    assert batch.shape == (2, 3, 3, 2)
+    np.testing.assert_allclose(batch[1, 2, :, 0], expected, atol=1e-6)
 
 
 # ------------------------------------------------------- 4. envelope: recoverable at 6 m/s^2

@@ -3,6 +3,8 @@ suite in real libsumo)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -54,6 +56,118 @@ def test_response_metrics_hand_computed() -> None:
     assert m["min_time_gap_s"] == pytest.approx(40.0 / 20.0)
     assert m["max_jerk_mps3"] == pytest.approx(3.0 / 0.1, rel=0.05)  # the step, over 0.1 s
     assert m["avoidable"] and not m["collision"]
+
+
+
+def test_braking_avoids_edge_cases_hand_computed() -> None:
+    """Each clause of the rule alone decides one case (mutation testing, docs/mutation_testing.md)."""
+    t = np.arange(0.0, 10.0, 0.01)
+    lead = np.full_like(t, 20.0)
+    # TTC exactly 1 s at the start is a flag (TTC <= 1 s), even where it rises at once after
+    # (5 m, closing at 5 m/s: braking at 6 m/s^2 > 5 m/s^2 makes d(gap/closing)/dt > 0)
+    assert not suite.braking_avoids(t, 10.0, 30.0, lead)
+    assert not suite.braking_avoids(t, 5.0, 25.0, lead)
+    # no TTC limit: 10 -> 0 m/s closing costs 100 / 12 = 8.33 m; 8.2 m collides, 8.8 m ends
+    # 0.47 m behind (> 0: avoided)
+    assert not suite.braking_avoids(t, 8.2, 30.0, lead, ttc_s=0.0)
+    assert suite.braking_avoids(t, 8.8, 30.0, lead, ttc_s=0.0)
+    # closing at 0.5 m/s 0.4 m behind: TTC 0.8 s at once
+    assert not suite.braking_avoids(t, 0.4, 20.5, lead)
+    # a faster leader 0.5 m ahead: never closer; at 0 m ahead: touching is not avoided
+    assert suite.braking_avoids(t, 0.5, 15.0, lead)
+    assert not suite.braking_avoids(t, 0.0, 15.0, lead)
+    # the leader's speed at the START of each step counts: standing at t = 0, 30 m/s after,
+    # 10 m ahead of an ego at 15 m/s: TTC 0.67 s at the first step
+    jump = np.where(t > 0.0, 30.0, 0.0)
+    assert not suite.braking_avoids(t, 10.0, 15.0, jump)
+    # ... and the first step uses the first speed, the last speed is never used: 0.5 m behind
+    # a leader as fast as the ego that stops at the log's last sample
+    stops = np.where(t < t[-1], 30.0, 0.0)
+    assert suite.braking_avoids(t, 0.5, 30.0, stops)
+    # a log that starts at t = 100 s (steps are differences of times): 20 m, closing at 5 m/s
+    assert suite.braking_avoids(100.0 + t, 20.0, 25.0, lead)
+
+
+def _log(t, v, gap, leader_v=20.0, ttc=np.inf, collision=False) -> pd.DataFrame:
+    return pd.DataFrame({"t": t, "v": v, "gap": gap, "ttc": ttc, "leader_v": leader_v,
+                         "collision": collision})
+
+
+def test_response_metrics_of_short_and_special_logs() -> None:
+    """Empty, one-row and two-row logs, a standing ego, no leader, a collision, a log at 10 Hz
+    (jerk unsmoothed) and one decelerating from its first row (no ramp at the edges)."""
+    empty = suite.response_metrics(_log([], [], []))
+    assert math.isnan(empty["min_ttc_s"]) and empty["min_time_gap_s"] == math.inf
+    assert (empty["max_decel_mps2"], empty["max_jerk_mps3"], empty["avoidable"],
+            empty["collision"]) == (0.0, 0.0, False, False)
+    one = suite.response_metrics(_log([0.0], [20.0], [40.0], ttc=8.0))
+    assert one == {"min_ttc_s": 8.0, "min_time_gap_s": 2.0, "max_decel_mps2": 0.0,
+                   "max_jerk_mps3": 0.0, "collision": False, "avoidable": True}
+    two = suite.response_metrics(_log([0.0, 0.5], [20.0, 19.0], [40.0, 40.0]))
+    assert two["max_decel_mps2"] == pytest.approx(2.0) and two["max_jerk_mps3"] == 0.0
+    accelerating = suite.response_metrics(_log([0.0, 0.5], [20.0, 21.0], [40.0, 40.0]))
+    assert accelerating["max_decel_mps2"] == 0.0
+    # 10 Hz: 0.1 s / 0.1 s = 1 sample of smoothing; accelerations 0, -2, -2, 0: jerk 20 m/s^3
+    hz10 = suite.response_metrics(_log([0.0, 0.1, 0.2, 0.3, 0.4], [20.0, 20.0, 19.8, 19.6, 19.6],
+                                       40.0))
+    assert hz10["max_jerk_mps3"] == pytest.approx(20.0)
+    assert hz10["max_decel_mps2"] == pytest.approx(2.0)
+    # 3 samples at 10 Hz: accelerations 0 then -2: one jerk value of 20 m/s^3
+    assert suite.response_metrics(_log([0.0, 0.1, 0.2], [20.0, 20.0, 19.8], 40.0)
+                                  )["max_jerk_mps3"] == pytest.approx(20.0)
+    # 100 Hz, 10-sample smoothing: a constant 3 m/s^2 braking from the first row has no jerk
+    t = np.arange(0.0, 1.0, 0.01)
+    steady = suite.response_metrics(_log(t, 25.0 - 3.0 * t, 40.0))
+    assert steady["max_jerk_mps3"] == pytest.approx(0.0, abs=1e-6)
+    # fewer samples than the smoothing window (5 < 10): the raw accelerations 0, 0, -3, -3
+    short = suite.response_metrics(_log(t[:5], [25.0, 25.0, 25.0, 24.97, 24.94], 40.0))
+    assert short["max_jerk_mps3"] == pytest.approx(300.0)
+    # exactly one window of accelerations (11 rows, 10 accelerations): one smoothed value, no
+    # jerk, however the raw accelerations vary
+    wavy = 20.0 + 0.01 * np.sin(np.arange(11.0))
+    assert suite.response_metrics(_log(t[:11], wavy, 40.0))["max_jerk_mps3"] == 0.0
+    # the time gap needs v > 1 m/s: at exactly 1 m/s it is not defined
+    standing = suite.response_metrics(_log([0.0, 1.0], [1.0, 0.5], [0.5, 0.5], leader_v=0.0))
+    assert standing["min_time_gap_s"] == math.inf
+    # no leader (no finite gap): nothing to avoid, so not "avoidable"
+    assert not suite.response_metrics(_log([0.0, 1.0], 20.0, np.inf))["avoidable"]
+    assert suite.response_metrics(_log([0.0, 1.0], 20.0, 40.0, collision=[False, True])
+                                  )["collision"]
+    # avoidability starts from the FIRST row's gap and speed: 5 m at 30 m/s behind 20 m/s
+    # cannot be avoided, whatever follows
+    first = suite.response_metrics(_log([0.0, 1.0, 2.0], [30.0, 20.0, 20.0], [5.0, 50.0, 50.0]))
+    assert not first["avoidable"]
+
+
+def test_suite_aggregate_hand_computed() -> None:
+    """Per policy x family (family from the index): collisions (logged or the run's end
+    reason), flags split by avoidability, extreme TTC, time gap, deceleration and jerk."""
+    records = pd.DataFrame({  # listed out of alphabetical order: kept as listed
+        "policy": ["a", "a", "a", "b"],
+        "index": [10_000, 11_002, 20_001, 10_000],
+        "flag": ["ttc", "", None, "collision"],
+        "end_reason": ["completed", "collision", "completed", "collision"],
+        "resp_collision": [False, False, False, True],
+        "resp_avoidable": [True, False, False, False],
+        "resp_min_ttc_s": [0.8, 3.0, 2.0, 0.0],
+        "resp_min_time_gap_s": [0.5, 1.2, 1.0, 0.0],
+        "resp_max_decel_mps2": [4.0, 6.0, 2.0, 9.0],
+        "resp_max_jerk_mps3": [10.0, 30.0, 5.0, 50.0],
+    })
+    order = [3, 2, 0, 1]  # b/approach, a/braking, a/approach, a/approach
+    assert list(suite.aggregate(records.iloc[order]).set_index(["policy", "family"]).index) == \
+        [("b", "approach"), ("a", "braking"), ("a", "approach")]
+    table = suite.aggregate(records).set_index(["policy", "family"])
+    assert list(table.index) == [("a", "approach"), ("a", "braking"), ("b", "approach")]
+    assert table.loc[("a", "approach")].to_dict() == {
+        "scenarios": 2, "collisions": 1, "flags_avoidable": 1, "flags_unavoidable": 0,
+        "min_ttc_s": 0.8, "min_time_gap_s": 0.5, "max_decel_mps2": 6.0, "max_jerk_mps3": 30.0}
+    assert table.loc[("a", "braking"), "collisions"] == 0
+    assert table.loc[("a", "braking"), "flags_unavoidable"] == 0  # no flag (None)
+    b = table.loc[("b", "approach")]
+    assert (b["collisions"], b["flags_avoidable"], b["flags_unavoidable"]) == (1, 0, 1)
+    assert [suite.family_of(i) for i in (10_000, 20_999, 30_000, 40_001, 50_002)] == \
+        list(suite.FAMILIES)
 
 
 # ----------------------------------------------------------------------- recorded leaders

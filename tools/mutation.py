@@ -1,0 +1,167 @@
+"""Mutation testing of the pure core with mutmut, on demand (not in CI): docs/mutation_testing.md.
+
+    pip install mutmut==3.8.1                  # once, into the project's venv
+    python tools/mutation.py run               # ~50 min on one core; mutants/ holds the results
+    python tools/mutation.py report            # counts, kill rate, the survivors left to judge
+    python tools/mutation.py run "safeil_sumo.idm.*"   # re-run a part (fnmatch on mutant names)
+
+mutmut reads its settings (files to mutate, the fast unit tests to run) from ``setup.cfg``; this
+script adds the function scope (SCOPE below: whole files, and the named functions of the larger
+experiment modules) and one worker process (the machine's cores are shared).
+
+``tools/mutation_equivalent.tsv`` lists the surviving mutants judged EQUIVALENT (the program's
+behaviour cannot change), one per line: ``mutant name <TAB> function hash <TAB> reason``. The
+hash is mutmut's hash of the function when it was judged: once the function changes, the entry
+is reported stale and must be judged again (mutant numbers shift with the code).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import fnmatch
+import json
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+EQUIVALENT = ROOT / "tools" / "mutation_equivalent.tsv"
+# fnmatch patterns over mutmut's mutant names (module.x_function__mutmut_N,
+# module.xǁClassǁmethod__mutmut_N); the files themselves are listed in setup.cfg
+SCOPE = (
+    "safeil_sumo.geometry.*",
+    "safeil_sumo.bspline.*",
+    "safeil_sumo.idm.*",
+    "safeil_sumo.learn.losses.*",
+    "safeil_sumo.learn.envelope.*",
+    "safeil_sumo.sim.monitors.*",
+    # the suite's avoidability and the metrics and aggregate built on it
+    "safeil_sumo.experiments.suite.x_braking_avoids__mutmut_*",
+    "safeil_sumo.experiments.suite.x_response_metrics__mutmut_*",
+    "safeil_sumo.experiments.suite.x_aggregate__mutmut_*",
+    "safeil_sumo.experiments.suite.x_family_of__mutmut_*",
+    # the replay statistics
+    "safeil_sumo.experiments.replay_all.x_bootstrap_ci__mutmut_*",
+    "safeil_sumo.experiments.replay_all.x_aggregate__mutmut_*",
+    "safeil_sumo.experiments.replay_all.x__headway_hist__mutmut_*",
+    # the recorded leader's speed and its drift filter
+    "safeil_sumo.scenarios.replay_road.x_drift_corrected_speed__mutmut_*",
+    "safeil_sumo.scenarios.replay_road.x_leader_speed__mutmut_*",
+    "safeil_sumo.scenarios.replay_road.x_recorded_leader_travel__mutmut_*",
+)
+# mutmut's exit codes per mutant (mutmut/__main__.py: status_by_exit_code)
+KILLED = {1, 3}  # a test failed (3: pytest's internal error)
+TIMEOUT = {-24, 24, 36, 152, 255}  # CPU or time limit: counted as caught (an endless loop)
+SURVIVED = {0}  # the tests passed
+NO_TESTS = {5, 33}  # no selected test executes the function: counted as survived
+
+
+def function_of(mutant: str) -> str:
+    """``safeil_sumo.idm.x_fit_idm__mutmut_3`` -> ``safeil_sumo.idm.x_fit_idm``."""
+    return mutant.rsplit("__mutmut_", 1)[0]
+
+
+def load_results(patterns: tuple[str, ...]) -> tuple[dict[str, int | None], dict[str, str]]:
+    """Exit code per mutant in scope (None: not run yet) and mutmut's hash per function."""
+    codes: dict[str, int | None] = {}
+    hashes: dict[str, str] = {}
+    for meta in sorted((ROOT / "mutants").rglob("*.py.meta")):
+        data = json.loads(meta.read_text())
+        module = ".".join(meta.relative_to(ROOT / "mutants").with_suffix("").with_suffix("").parts)
+        for name, digest in data.get("hash_by_function_name", {}).items():
+            hashes[f"{module}.{name}"] = digest
+        for name, code in data["exit_code_by_key"].items():
+            if any(fnmatch.fnmatchcase(name, p) for p in patterns):
+                codes[name] = code
+    return codes, hashes
+
+
+def load_equivalent() -> dict[str, tuple[str, str]]:
+    """Mutant name -> (function hash, reason) from the equivalents file."""
+    if not EQUIVALENT.is_file():
+        return {}
+    rows = csv.reader(EQUIVALENT.read_text().splitlines(), delimiter="\t")
+    out = {}
+    for k, row in enumerate(rows, 1):
+        if not row or row[0].startswith("#"):
+            continue
+        if len(row) != 3:
+            sys.exit(f"{EQUIVALENT}:{k}: expected 3 tab-separated fields, got {len(row)}")
+        out[row[0]] = (row[1], row[2])
+    return out
+
+
+def report(patterns: tuple[str, ...]) -> int:
+    codes, hashes = load_results(patterns)
+    if not codes:
+        print("no mutants in scope: run `python tools/mutation.py run` first", file=sys.stderr)
+        return 2
+    equivalent = load_equivalent()
+    stale = sorted(m for m, (h, _) in equivalent.items()
+                   if m in codes and hashes.get(function_of(m)) != h)
+    kinds = Counter()
+    per_file: dict[str, Counter] = {}
+    left = []
+    for name, code in sorted(codes.items()):
+        if code is None:
+            kind = "not run"
+        elif code in KILLED:
+            kind = "killed"
+        elif code in TIMEOUT:
+            kind = "timeout"
+        elif code in NO_TESTS:
+            kind = "no tests"
+        elif code in SURVIVED:
+            kind = "equivalent" if name in equivalent and name not in stale else "survived"
+        else:
+            kind = f"other ({code})"
+        kinds[kind] += 1
+        per_file.setdefault(name.rsplit(".", 1)[0], Counter())[kind] += 1
+        if kind in ("survived", "no tests"):
+            left.append(name)
+    cols = ("killed", "timeout", "equivalent", "survived", "no tests", "not run")
+    print(f"{'module':40s} " + " ".join(f"{c:>10s}" for c in cols))
+    for module, c in per_file.items():
+        print(f"{module:40s} " + " ".join(f"{c[k]:10d}" for k in cols))
+    total = sum(kinds.values())
+    caught = kinds["killed"] + kinds["timeout"]
+    candidates = total - kinds["equivalent"] - kinds["not run"]
+    print(f"\nmutants {total}: killed {kinds['killed']}, timeout {kinds['timeout']}, "
+          f"equivalent {kinds['equivalent']}, survived {kinds['survived']}, "
+          f"no tests {kinds['no tests']}, not run {kinds['not run']}")
+    others = {k: v for k, v in kinds.items() if k.startswith("other")}
+    if others:
+        print(f"other exit codes: {others}")
+    if candidates:
+        print(f"kill rate of non-equivalent mutants: {caught}/{candidates} = "
+              f"{100 * caught / candidates:.1f} %")
+    for name in stale:
+        print(f"stale equivalent (its function changed; judge again): {name}")
+    gone = sorted(set(equivalent) - set(codes))
+    for name in gone:
+        print(f"equivalent entry names no mutant in scope: {name}")
+    if left:
+        print(f"\n{len(left)} survivors to judge (`mutmut show NAME` prints the diff):")
+        print("\n".join(left))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("command", choices=("run", "report"))
+    ap.add_argument("patterns", nargs="*", help="fnmatch patterns of mutant names (default: "
+                    "the whole scope)")
+    args = ap.parse_args(argv)
+    patterns = tuple(args.patterns) or SCOPE
+    if args.command == "run":
+        cmd = [sys.executable, "-m", "mutmut", "run", "--max-children", "1", *patterns]
+        code = subprocess.call(cmd, cwd=ROOT)
+        if code:
+            return code
+    return report(patterns)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
