@@ -1,0 +1,222 @@
+"""Leave-one-driver-out: train the shipped recipe without a driver, replay that driver whole.
+
+    python training/leave_one_driver_out.py [--folds 4] [--workers 2] [--out results/lodo]
+
+Generalisation across drivers (issue 20): the shipped ``safeil`` held out 20 % of the maneuvers,
+but the drivers of those maneuvers also drove training maneuvers. Here each fold leaves whole
+drivers out of everything, trains ``safeil`` with the shipped two-stage recipe
+(``training/train_shipped_models.py``: the open-loop stage with the chosen candidate's options,
+then the closed-loop fine-tune with the style input) and calibrates the IDM on the same data
+(``training/fit_idm.py --exclude-from``), then replays every maneuver of the left-out drivers
+whole, in SUMO, beside the ``constant_speed`` baseline.
+
+Drivers (:func:`safeil_sumo.replay.driver_of`): OpenACC Vicolungo has 4 human followers, the
+platoon positions ``f2``-``f5`` of one campaign day (the same car and driver in both parts):
+fold k leaves out position ``f{k+2}``. NGSIM I-80 drivers are the follower vehicles (one vehicle
+follows several leaders in turn), shuffled with seed 0 and dealt into the same number of folds;
+fold k leaves out its share of each source at once. The synthetic drivers stay in every fold.
+The style input is left at the fold's default (the training drivers' median time gap): the
+left-out driver's preference is unknown to the planner, as it is to the IDM.
+
+Writes ``<out>/windows.csv`` (one row per fold, policy and maneuver), ``<out>/per_driver.csv``,
+``<out>/summary.csv`` and ``<out>/summary.md``; the fold models go to ``data/lodo/`` (not
+committed). Each fold costs one open-loop training (≤ 10 min on one core), one closed-loop
+fine-tune (≈ 7 min) and one IDM calibration; folds run ``--workers`` at a time, resumed where
+their files exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "training"))
+import train_shipped_models as shipped  # noqa: E402  (the shipped recipe, one source of truth)
+
+from safeil_sumo.data.tuples import Tuples  # noqa: E402
+from safeil_sumo.replay import driver_of  # noqa: E402
+
+SOURCES = ("openacc", "ngsim")
+WORK = REPO / "data" / "lodo"
+POLICY_LABELS = {"safeil": "safeil (fold)", "idm": "idm (fold)"}
+
+
+def tuples_path(source: str) -> Path:
+    return shipped.DATA_DIR / f"{source}_tuples.parquet"
+
+
+def fold_drivers(n_folds: int, seed: int = 0) -> list[set[str]]:
+    """The drivers each fold leaves out: OpenACC position k+2 in fold k, NGSIM vehicles dealt
+    round-robin after a seeded shuffle."""
+    ids = {s: np.unique(pd.read_parquet(tuples_path(s), columns=["maneuver_id"])["maneuver_id"])
+           for s in SOURCES}
+    openacc = sorted({driver_of("openacc", m) for m in ids["openacc"]})
+    if len(openacc) != n_folds:
+        raise SystemExit(f"--folds must equal the {len(openacc)} OpenACC drivers {openacc}")
+    ngsim = sorted({driver_of("ngsim", m) for m in ids["ngsim"]})
+    order = np.random.default_rng(seed).permutation(len(ngsim))
+    return [{openacc[k]} | {ngsim[i] for i in order[k::n_folds]} for k in range(n_folds)]
+
+
+def held_out_maneuvers(drivers: set[str]) -> dict[str, list[str]]:
+    """Per source, the maneuver ids of ``drivers``."""
+    out = {}
+    for s in SOURCES:
+        ids = np.unique(pd.read_parquet(tuples_path(s), columns=["maneuver_id"])["maneuver_id"])
+        out[s] = sorted(m for m in ids if driver_of(s, m) in drivers)
+    return out
+
+
+def _run(cmd: list[str], log: Path) -> None:
+    with log.open("a") as f:
+        f.write(f"$ {' '.join(cmd)}\n")
+        f.flush()
+        if subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT).returncode != 0:
+            raise SystemExit(f"failed: {' '.join(cmd)} (see {log})")
+
+
+def train_fold(k: int, drivers: set[str]) -> Path:
+    """Train and calibrate fold ``k`` without ``drivers``; its folder (skips finished steps)."""
+    fold = WORK / f"fold{k}"
+    fold.mkdir(parents=True, exist_ok=True)
+    log = fold / "log.txt"
+    held = held_out_maneuvers(drivers)
+    (fold / "held_out.json").write_text(json.dumps(sorted(sum(held.values(), []))) + "\n")
+    (fold / "drivers.json").write_text(json.dumps(sorted(drivers)) + "\n")
+    real = []
+    for s in SOURCES:
+        t = Tuples.load(tuples_path(s))
+        path = fold / f"{s}_tuples.parquet"
+        t.subset(~np.isin(t.maneuver_id, held[s])).save(path)
+        real.append(str(path))
+    py = sys.executable
+    chosen = json.loads((shipped.MODELS / "selection.json").read_text())["chosen"]
+    if not (fold / "safeil_openloop.safetensors").is_file():
+        _run([py, str(REPO / "training" / "train.py"), "--data", str(shipped.SYNTHETIC), *real,
+              "--seed", str(shipped.SEED), "--name", "safeil", "--out",
+              str(fold / "safeil_openloop"), "--no-progress",
+              *shipped.SAFEIL_CANDIDATES[chosen]], log)
+    if not (fold / "safeil.safetensors").is_file():
+        _run([py, str(REPO / "training" / "closed_loop_finetune.py"), "--init",
+              str(fold / "safeil_openloop.safetensors"), "--data", *real, "--out",
+              str(fold / "safeil"), "--no-progress", *shipped.CLOSED_LOOP], log)
+    if not (fold / "idm.json").is_file():
+        _run([py, str(REPO / "training" / "fit_idm.py"), "--exclude-from",
+              str(fold / "held_out.json"), "--out", str(fold / "idm.json")], log)
+    return fold
+
+
+def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
+    """Replay fold ``k``'s left-out maneuvers whole with its planners; their windows table."""
+    held = held_out_maneuvers(set(json.loads((fold / "drivers.json").read_text())))
+    tables = []
+    for s in SOURCES:
+        out = fold / f"replay_{s}"
+        if held[s] and not (out / "windows.csv").is_file():
+            _run([sys.executable, "-m", "safeil_sumo.replay", "--source", s, "--maneuver",
+                  ",".join(held[s]), "--windows", "whole", "--workers", str(workers),
+                  "--policies", str(fold / "safeil.safetensors"), str(fold / "idm.json"),
+                  "constant_speed", "--out", str(out)], fold / "log.txt")
+        if held[s]:
+            t = pd.read_csv(out / "windows.csv")
+            tables.append(t.assign(fold=k, source=s, driver=[driver_of(s, m)
+                                                             for m in t["maneuver_id"]]))
+    return pd.concat(tables, ignore_index=True)
+
+
+def summarise(df: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Per source and policy: maneuvers, gap RMSE median / mean / worst [m], spacing RMSPE
+    median, time-gap error median [s], flags, collisions, runs ended early; and the same per
+    driver (mean gap RMSE over the driver's maneuvers)."""
+    ok = df[df["status"] == "ok"].copy()
+    ok["policy"] = ok["policy"].map(lambda p: POLICY_LABELS.get(p, p))
+    rows = []
+    for (s, p), g in ok.groupby(["source", "policy"], sort=False):
+        gap = g["rmse_gap"].to_numpy(float)
+        rows.append({
+            "source": s, "policy": p, "maneuvers": len(g),
+            "drivers": g["driver"].nunique(),
+            "gap_rmse_median_m": float(np.nanmedian(gap)),
+            "gap_rmse_mean_m": float(np.nanmean(gap)),
+            "gap_rmse_max_m": float(np.nanmax(gap)),
+            "spacing_rmspe_median": float(np.nanmedian(g["rmspe_gap"])),
+            "time_gap_error_median_s": float(np.nanmedian(g["bias_headway"])),
+            "flags": int((g["flag"].fillna("") != "").sum()),
+            "flags_beyond_human": int(((g["flag"].fillna("") != "")
+                                       & (g["human_flag"].fillna("") == "")).sum()),
+            "collisions": int(((g["flag"] == "collision")
+                               | (g["end_reason"] == "collision")).sum()),
+            "ended_early": int((g["coverage"] < 1.0).sum()),
+        })
+    per_driver = (ok.groupby(["source", "driver", "policy"], sort=False)["rmse_gap"]
+                  .agg(["count", "mean", "max"]).reset_index()
+                  .rename(columns={"count": "maneuvers", "mean": "gap_rmse_mean_m",
+                                   "max": "gap_rmse_max_m"}))
+    return pd.DataFrame(rows), per_driver
+
+
+def markdown(summary: pd.DataFrame, per_driver: pd.DataFrame) -> str:
+    lines = ["| source | policy | maneuvers (drivers) | gap RMSE median / mean / worst [m] | "
+             "spacing RMSPE median | time-gap error median [s] | flags (beyond human) | "
+             "collisions | ended early |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in summary.itertuples():
+        lines.append(f"| {r.source} | {r.policy} | {r.maneuvers} ({r.drivers}) | "
+                     f"{r.gap_rmse_median_m:.2f} / {r.gap_rmse_mean_m:.2f} / "
+                     f"{r.gap_rmse_max_m:.1f} | {r.spacing_rmspe_median:.3f} | "
+                     f"{r.time_gap_error_median_s:+.2f} | {r.flags} ({r.flags_beyond_human}) | "
+                     f"{r.collisions} | {r.ended_early} |")
+    wide = per_driver.pivot_table(index=["source", "driver"], columns="policy",
+                                  values="gap_rmse_mean_m").reset_index()
+    a, b = POLICY_LABELS["safeil"], POLICY_LABELS["idm"]
+    if a in wide and b in wide:
+        better = wide[a] <= wide[b]
+        for s, g in wide.groupby("source"):
+            lines.append(f"\n{s}: `safeil` (fold) at or below the fold IDM's mean gap RMSE for "
+                         f"{int(better[g.index].sum())} of {len(g)} left-out drivers.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--folds", type=int, default=4, help="= the number of OpenACC drivers")
+    ap.add_argument("--workers", type=int, default=2, help="folds trained at once")
+    ap.add_argument("--out", type=Path, default=REPO / "results" / "lodo")
+    args = ap.parse_args(argv)
+    if not all(tuples_path(s).is_file() for s in SOURCES):
+        subprocess.run([sys.executable, str(REPO / "training" / "build_real_datasets.py"),
+                        "--out", str(shipped.DATA_DIR)], check=True)
+    if not shipped.SYNTHETIC.is_file():
+        subprocess.run([sys.executable, str(REPO / "training" / "build_synthetic_dataset.py")],
+                       check=True)
+    folds = fold_drivers(args.folds)
+    t0 = time.perf_counter()
+
+    def one(k: int) -> pd.DataFrame:
+        fold = train_fold(k, folds[k])
+        print(f"fold {k}: trained ({time.perf_counter() - t0:.0f} s)", flush=True)
+        return replay_fold(k, fold, workers=1)
+
+    with ThreadPoolExecutor(args.workers) as pool:
+        df = pd.concat(list(pool.map(one, range(args.folds))), ignore_index=True)
+    summary, per_driver = summarise(df)
+    args.out.mkdir(parents=True, exist_ok=True)
+    df.to_csv(args.out / "windows.csv", index=False)
+    per_driver.to_csv(args.out / "per_driver.csv", index=False)
+    summary.to_csv(args.out / "summary.csv", index=False)
+    (args.out / "summary.md").write_text(markdown(summary, per_driver))
+    print(markdown(summary, per_driver))
+    print(f"{args.folds} folds in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
