@@ -13,12 +13,13 @@ import bisect
 import json
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from safeil_sumo.geometry import Polyline
+from safeil_sumo.scenarios import track
 
 
 class NetworkError(ValueError):
@@ -225,25 +226,21 @@ def load_road(
 
 
 def _exact_lanes(meta: dict, lanes: list[Lane], ego_lane: int) -> tuple[list[Lane], float, float]:
-    """Lanes of a generated track rebuilt from its spec at a fine sagitta (see network.py).
+    """Lanes of a generated track rebuilt from its spec at a fine sagitta (see track.py).
 
     The SUMO net approximates arcs coarsely to keep ``moveToXY`` cheap; sensors and monitors
     measure against the intended geometry instead. Returns lanes and the test path's ends.
     """
-    from dataclasses import fields
-
-    from safeil_sumo.scenarios import network
-
-    spec = network.TrackSpec(**{f.name: meta[f.name] for f in fields(network.TrackSpec)})
+    spec = track.TrackSpec(**{f.name: meta[f.name] for f in fields(track.TrackSpec)})
     if spec.lanes != len(lanes):
         raise NetworkError(f"{meta.get('name')}: track.json says {spec.lanes} lanes, the net has "
                            f"{len(lanes)}")
-    road_centre = Polyline(network.road_centre_line(spec, network.GEOMETRY_SAGITTA_M))
+    road_centre = Polyline(track.road_centre_line(spec, track.GEOMETRY_SAGITTA_M))
     exact = []
     for lane in lanes:
         offset = (lane.index - (spec.lanes - 1) / 2) * spec.lane_width_m
         centre = road_centre.offset(offset)
         exact.append(Lane(lane.lane_id, lane.index, lane.width, lane.sumo_length, centre,
                           centre.offset(0.5 * lane.width), centre.offset(-0.5 * lane.width)))
-    s, _ = exact[ego_lane].centre.project(network.ego_path_ends(spec))
+    s, _ = exact[ego_lane].centre.project(track.ego_path_ends(spec))
     return exact, float(s[0]), float(s[1])
