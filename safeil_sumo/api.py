@@ -25,9 +25,10 @@ from tqdm import tqdm
 from safeil_sumo import policies
 from safeil_sumo.experiments.replay import ReplayConfig
 from safeil_sumo.experiments.replay_all import DEFAULT_BATCH as REPLAY_BATCH
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, build_scenario, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
+from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -60,14 +61,14 @@ def road(net: str = "curved500", route: Sequence[str] = (), from_km: float | Non
     of it, see :func:`safeil_sumo.scenarios.n74.stretch_road`). ``lane``: the ego's lane,
     ``right``/``left`` on n74, a SUMO lane index of the first edge on a ``.net.xml`` (default:
     the middle lane)."""
-    from safeil_sumo.experiments.sweep import _road
+    from safeil_sumo.scenarios.spec import resolve_road
 
-    return _road(net, tuple(route), from_km, to_km, "" if lane is None else str(lane))
+    return resolve_road(net, tuple(route), from_km, to_km, "" if lane is None else str(lane))
 
 
 def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: object) -> Scenario:
     """Scenario ``index`` of master ``seed`` on ``net``; ``spec`` takes any
-    :class:`~safeil_sumo.experiments.sweep.ScenarioSpec` field (``leader_kind="recorded"``,
+    :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` field (``leader_kind="recorded"``,
     ``leader_profile="ngsim"``, ``leader_speed_range_mps=(20, 25)``, ``initial_gap_m=30``,
     ``route=("E0", "E1")``, ...)."""
     sc = ScenarioSpec(net=net, index=index, master_seed=seed, **spec)
@@ -134,7 +135,7 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
     maneuver's first seconds, which are then not scored (``replay_all.adapt_planners``)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay_all as ra
-    from safeil_sumo.replay import load_source
+    from safeil_sumo.data.sources import load_source
 
     if isinstance(source, pd.DataFrame):
         rows = source

@@ -252,7 +252,8 @@ def closed_loop_peak_rss_mb(policy_name: str, sim_s: float) -> float:
 
 _SWEEP_SCRIPT = _PEAK_KB + """
 import json, sys, time
-from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep
+from safeil_sumo.experiments.sweep import run_sweep
+from safeil_sumo.scenarios.spec import ScenarioSpec
 n, workers, out, max_time = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 batch, policy = int(sys.argv[5]), sys.argv[6]
 specs = [ScenarioSpec(net="curved500", index=i, policy=policy,
@@ -301,7 +302,8 @@ def multi_edge_rows(policy: str, quick: bool, rows: dict) -> None:
     one edge (curved500), µs per step of the loop alone; the wall time of a 10 km n74 drive
     (task start included) with a scripted 30 m/s leader and, full runs only, among SUMO's
     default traffic."""
-    from safeil_sumo.experiments.sweep import ScenarioSpec, run_task
+    from safeil_sumo.experiments.sweep import run_task
+    from safeil_sumo.scenarios.spec import ScenarioSpec
 
     def task(**kw) -> tuple[float, dict]:
         t0 = time.perf_counter()

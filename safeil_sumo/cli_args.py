@@ -6,6 +6,9 @@ from __future__ import annotations
 import argparse
 import math
 
+# checked by the scenario layer, re-exported for the CLIs
+from safeil_sumo.scenarios.spec import N74_LANES, lane_for_net  # noqa: F401
+
 
 def finite_float(text: str) -> float:
     """A float that is not NaN or ±inf."""
@@ -46,7 +49,7 @@ def add_leader_options(parser: argparse.ArgumentParser, kinds: tuple[str, ...],
 
 def add_ego_speed_option(parser: argparse.ArgumentParser) -> None:
     """``--ego-speed``, shared by ``run`` and ``sweep``: default None, resolved per scenario by
-    :class:`safeil_sumo.experiments.sweep.ScenarioSpec` (30 m/s, or a recorded leader's start)."""
+    :class:`safeil_sumo.scenarios.spec.ScenarioSpec` (30 m/s, or a recorded leader's start)."""
     parser.add_argument(
         "--ego-speed", type=finite_float, default=None, metavar="MPS",
         help="ego initial speed [m/s] (default 30; with --leader recorded: as the recorded "
@@ -90,7 +93,6 @@ def add_n74_options(parser: argparse.ArgumentParser) -> None:
                              "(no scripted leader). Default none")
 
 
-N74_LANES = ("right", "left")  # --lane with --net n74: the main lanes of direction A
 
 
 def add_lane_option(parser: argparse.ArgumentParser) -> None:
@@ -100,23 +102,3 @@ def add_lane_option(parser: argparse.ArgumentParser) -> None:
         help="the ego's lane: with --net n74 the main lane, right (default) or left; with a "
              ".net.xml path the SUMO lane index (0 = rightmost) on the first edge of --route "
              "(or of the net's one edge); default: the middle lane")
-
-
-def lane_for_net(net: str, lane: str | None) -> str:
-    """``--lane`` checked against ``--net``: ``""`` (the default lane), ``right``/``left`` (n74)
-    or a SUMO lane index as text (a ``.net.xml``). Raises ``ValueError`` with a one-line reason;
-    whether the index exists on the first edge is checked when the net is read."""
-    if lane is None:
-        return ""
-    if net == "n74":
-        if lane not in N74_LANES:
-            raise ValueError(f"--lane with --net n74 is right or left (its main lanes), got "
-                             f"{lane!r}")
-        return lane
-    if not net.endswith(".xml"):
-        raise ValueError(f"--lane needs --net n74 or a .net.xml path; the {net} track is built "
-                         "around its middle lane")
-    if not lane.isdigit():
-        raise ValueError(f"--lane with a .net.xml is a SUMO lane index >= 0 on the first edge, "
-                         f"got {lane!r}")
-    return str(int(lane))

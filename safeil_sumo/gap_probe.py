@@ -26,7 +26,7 @@ from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.experiments import gap_probe as gp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.replay import DEFAULT_DATA_DIR
+from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -80,13 +80,14 @@ def format_table(table) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from safeil_sumo import policies
-    from safeil_sumo.experiments.sweep import _road, run_sweep
+    from safeil_sumo.experiments.sweep import run_sweep
+    from safeil_sumo.scenarios.spec import resolve_road
 
     try:
         for name in dict.fromkeys(args.policies):  # fail fast, before any run
             policies.load(name)
         specs = gp.probe_specs(args.policies, args.speeds, args.kinds, args.seed)
-        _road(gp.NET, (), *gp.STRETCH_KM)
+        resolve_road(gp.NET, (), *gp.STRETCH_KM)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -27,7 +27,16 @@ from safeil_sumo import api
 from safeil_sumo import policies as pol
 from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
-from safeil_sumo.data.schema import SchemaError, load_drive
+from safeil_sumo.data.schema import SchemaError
+
+# re-exported: these were defined here before
+from safeil_sumo.data.sources import (  # noqa: F401
+    DEFAULT_DATA_DIR,
+    NGSIM_FILE,
+    OPENACC_GLOB,
+    driver_of,
+    load_source,
+)
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import replay as rp
 from safeil_sumo.experiments import replay_all as ra
@@ -35,37 +44,6 @@ from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.sumo_api import SumoError
-
-DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
-NGSIM_FILE = Path("ngsim_i80") / "i80_pairs.parquet"
-OPENACC_GLOB = "openacc_vicolungo/JRC-VC_280219_*.csv.gz"  # the all-human day
-
-
-def load_source(source: str, data_dir: Path = DEFAULT_DATA_DIR) -> pd.DataFrame:
-    """A validated drive frame of ``openacc``, ``ngsim`` or a drive file path."""
-    from safeil_sumo.data.importers import import_ngsim_pairs, import_openacc
-
-    if source == "ngsim":
-        return import_ngsim_pairs(data_dir / NGSIM_FILE)
-    if source == "openacc":
-        files = sorted(data_dir.glob(OPENACC_GLOB))
-        if not files:
-            raise SchemaError(f"no OpenACC files {OPENACC_GLOB} in {data_dir}")
-        frames = [import_openacc(f) for f in files]
-        return pd.concat([f for f in frames if len(f)], ignore_index=True)
-    return load_drive(source)
-
-
-def driver_of(source: str, maneuver_id: str) -> str:
-    """The driver a maneuver of ``source`` belongs to, where the data identify drivers: OpenACC
-    ``openacc/f<k>``, the platoon position of one campaign day (the same car and driver in every
-    part); NGSIM ``ngsim/<id>``, the follower's vehicle id; else ``<source>/<recording>``."""
-    recording = maneuver_id.split("#")[0]
-    if source == "openacc":
-        return f"openacc/{recording.rsplit('_', 1)[-1]}"
-    if source == "ngsim":
-        return f"ngsim/{recording.split('-')[0]}"
-    return f"{source}/{recording}"
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

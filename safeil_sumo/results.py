@@ -41,7 +41,8 @@ import pandas as pd
 
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.stats import breakdown
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, comparable, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, comparable, run_sweep
+from safeil_sumo.scenarios.spec import ScenarioSpec
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED_DATA = REPO / "data" / "synthetic" / "tuples.parquet"
@@ -253,7 +254,7 @@ def _paper_like_window(source: str, maneuver: str | list[str] = "auto"
     some maneuvers or in all of ``source`` (10 Hz). Raises OSError/ValueError without the data."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay as rp
-    from safeil_sumo.replay import load_source
+    from safeil_sumo.data.sources import load_source
 
     maneuvers, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
     if maneuver != "auto":
@@ -817,7 +818,7 @@ def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     from safeil_sumo.experiments import replay as rp
     from safeil_sumo.experiments import replay_all as ra
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
-    from safeil_sumo.replay import load_source
+    from safeil_sumo.data.sources import load_source
 
     held = set(held_out_maneuvers(SHIPPED_SAFEIL))
     rows = []
@@ -852,7 +853,7 @@ def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -
     from safeil_sumo.experiments import replay as rp
     from safeil_sumo.experiments import replay_all as ra
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
-    from safeil_sumo.replay import load_source
+    from safeil_sumo.data.sources import load_source
 
     held = set(held_out_maneuvers(SHIPPED_SAFEIL))
     rows, drivers = [], []
@@ -894,7 +895,7 @@ def instrument(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay as rp
     from safeil_sumo.experiments import replay_all as ra
-    from safeil_sumo.replay import load_source
+    from safeil_sumo.data.sources import load_source
 
     rows = []
     for source, where in (("openacc", "openacc"), ("ngsim", "ngsim"),

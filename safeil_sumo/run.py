@@ -33,9 +33,9 @@ from safeil_sumo.cli_args import (
     nonnegative_int,
 )
 from safeil_sumo.experiments import outputs, plots
-from safeil_sumo.experiments.sweep import LEADER_KINDS
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
+from safeil_sumo.scenarios.spec import LEADER_KINDS
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig
 from safeil_sumo.sim.sumo_api import SumoError

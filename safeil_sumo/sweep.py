@@ -39,7 +39,8 @@ from safeil_sumo.cli_args import (
     nonnegative_int,
 )
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, LEADER_KINDS, ScenarioSpec, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
+from safeil_sumo.scenarios.spec import LEADER_KINDS, ScenarioSpec
 
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
 
@@ -213,10 +214,10 @@ def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()
     for profile in dict.fromkeys(profiles):
         recorded_leaders.library(profile)
     from safeil_sumo import policies
-    from safeil_sumo.experiments.sweep import _road
+    from safeil_sumo.scenarios.spec import resolve_road
 
     for net in dict.fromkeys(nets):
-        _road(net, route, from_km, to_km, lane)
+        resolve_road(net, route, from_km, to_km, lane)
     for name in dict.fromkeys(policies_):
         policy = policies.load(name)
         if time_gap_s is not None:

@@ -12,8 +12,10 @@ import pytest
 from safeil_sumo import run as run_cli
 from safeil_sumo import sweep as sweep_cli
 from safeil_sumo.experiments import suite
-from safeil_sumo.experiments.sweep import ScenarioSpec, _road, build_scenario, run_sweep, task_id
+from safeil_sumo.experiments.sweep import run_sweep, task_id
 from safeil_sumo.scenarios import recorded_leaders as rl
+from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
+from safeil_sumo.scenarios.spec import resolve_road as _road
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig, run_scenario
 

@@ -10,7 +10,7 @@ then the closed-loop fine-tune with the style input) and calibrates the IDM on t
 (``training/fit_idm.py --exclude-from``), then replays every maneuver of the left-out drivers
 whole, in SUMO, beside the ``constant_speed`` baseline.
 
-Drivers (:func:`safeil_sumo.replay.driver_of`): OpenACC Vicolungo has 4 human followers, the
+Drivers (:func:`safeil_sumo.data.sources.driver_of`): OpenACC Vicolungo has 4 human followers, the
 platoon positions ``f2``-``f5`` of one campaign day (the same car and driver in both parts):
 fold k leaves out position ``f{k+2}``. NGSIM I-80 drivers are the follower vehicles (one vehicle
 follows several leaders in turn), shuffled with seed 0 and dealt into the same number of folds;
@@ -43,7 +43,7 @@ sys.path.insert(0, str(REPO / "training"))
 import train_shipped_models as shipped  # noqa: E402  (the shipped recipe, one source of truth)
 
 from safeil_sumo.data.tuples import Tuples  # noqa: E402
-from safeil_sumo.replay import driver_of  # noqa: E402
+from safeil_sumo.data.sources import driver_of  # noqa: E402
 
 SOURCES = ("openacc", "ngsim")
 WORK = REPO / "data" / "lodo"

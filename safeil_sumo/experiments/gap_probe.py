@@ -51,7 +51,8 @@ import numpy as np
 import pandas as pd
 
 from safeil_sumo.experiments.suite import MIN_SPEED_TIME_GAP
-from safeil_sumo.experiments.sweep import ScenarioSpec, run_task
+from safeil_sumo.experiments.sweep import run_task
+from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim.sensors import SensorConfig
 
 KINDS = ("pull_away", "slow_down", "far", "close")
@@ -140,7 +141,7 @@ def step_time_s(spec: ScenarioSpec) -> float:
 def leader_distance_m(spec: ScenarioSpec) -> float:
     """How far [m] the leader's front bumper gets from the ego's start over the run: its
     initial gap plus a car length plus the distance its speed profile drives."""
-    from safeil_sumo.experiments.sweep import leader_profile
+    from safeil_sumo.scenarios.spec import leader_profile
     from safeil_sumo.sim.vehicle import VehicleParams
 
     duration = spec.max_time_s or 0.0
@@ -370,9 +371,9 @@ def human_time_gap_bands(rows: pd.DataFrame, speeds: Sequence[float] = SPEEDS_MP
 
 def load_human_rows(data_dir: Path, sources: Sequence[str] = HUMAN_SOURCES) -> pd.DataFrame:
     """The processed maneuvers (pipeline at 10 Hz) of the human sources, with columns ``source``
-    and ``driver`` (:func:`safeil_sumo.replay.driver_of`)."""
+    and ``driver`` (:func:`safeil_sumo.data.sources.driver_of`)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
-    from safeil_sumo.replay import driver_of, load_source
+    from safeil_sumo.data.sources import driver_of, load_source
 
     frames = []
     for source in sources:

@@ -27,7 +27,8 @@ from functools import partial
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.experiments.sweep import ScenarioSpec, run_task
+from safeil_sumo.experiments.sweep import run_task
+from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim.monitors import event_starts
 
 PLANNERS = ("safeil", "safeil_openloop", "bc", "analytic", "idm")

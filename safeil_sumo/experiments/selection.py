@@ -22,7 +22,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, ScenarioSpec, run_sweep
+from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
+from safeil_sumo.scenarios.spec import ScenarioSpec
 
 VALIDATION_SEED = 7919  # master seed of the battery (the reported tests use 0)
 FAMILIES = ("paper", "approach", "braking", "cut_in")

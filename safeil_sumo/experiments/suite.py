@@ -29,7 +29,7 @@ import math
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.experiments.sweep import ScenarioSpec
+from safeil_sumo.scenarios.spec import ScenarioSpec
 
 FAMILIES = ("approach", "braking", "cut_in", "stop_and_go", "accelerating")
 NETS = ("straight", "curved500")

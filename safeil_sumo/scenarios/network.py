@@ -88,7 +88,7 @@ def nodes_xml(shape: np.ndarray) -> str:
 
 def edges_xml(shape: np.ndarray, lanes: int, lane_width_m: float, speed_mps: float) -> str:
     """netconvert edge file: ONE edge whose shape is the road centre line (``spreadType=center``;
-    a junction seam would leave the ego lane-less for a step, DESIGN.md)."""
+    a junction seam would leave the ego lane-less for a step: docs/architecture.md)."""
     shape_txt = " ".join(f"{_fmt(x)},{_fmt(y)}" for x, y in shape)
     return (
         "<edges>\n"

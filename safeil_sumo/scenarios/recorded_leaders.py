@@ -74,7 +74,7 @@ def library(source: str, data_dir: str | None = None) -> tuple[LeaderRecording, 
     """The recordings of ``ngsim``, ``openacc``, a profile file or a folder of profile files
     (cached per process). Raises :class:`ProfileError` with one clear line."""
     if source in LIBRARIES:
-        from safeil_sumo.replay import DEFAULT_DATA_DIR  # the data folder every command reads
+        from safeil_sumo.data.sources import DEFAULT_DATA_DIR  # the data folder every command reads
 
         return _from_dataset(source, Path(data_dir) if data_dir else DEFAULT_DATA_DIR)
     path = Path(source).expanduser()
@@ -98,7 +98,7 @@ def library(source: str, data_dir: str | None = None) -> tuple[LeaderRecording, 
 def _from_dataset(source: str, data_dir: Path) -> tuple[LeaderRecording, ...]:
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.schema import SchemaError
-    from safeil_sumo.replay import load_source
+    from safeil_sumo.data.sources import load_source
 
     try:
         rows, _ = process_drive(load_source(source, data_dir), PipelineConfig(rate_hz=RATE_HZ))

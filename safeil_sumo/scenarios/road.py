@@ -1,7 +1,7 @@
 """Road geometry read once from a SUMO ``.net.xml``: lane centre lines and boundaries as polylines.
 
 The closed loop never asks SUMO for geometry per step: sensors and monitors use this object.
-A road is one SUMO edge (a closed test track is one edge; see DESIGN.md), or a route of edges
+A road is one SUMO edge (a closed test track is one edge: docs/architecture.md), or a route of edges
 whose lanes are concatenated across the junctions (:mod:`safeil_sumo.scenarios.route`). Lane
 index 0 is the rightmost lane, as in SUMO. A sidecar ``<net stem>.track.json`` written by the network generator
 marks the test path (where the measured part of the scenario starts and ends on the ego lane).

@@ -126,7 +126,8 @@ ApiFactory = Callable[[Sequence[str]], sumo_api.SumoApi]
 
 
 def sumo_args(scenario: Scenario, loop: LoopConfig) -> list[str]:
-    """SUMO command-line options of a run (see DESIGN.md: collision detection for a remote ego)."""
+    """SUMO command-line options of a run (collision detection for a remote-controlled ego:
+    docs/architecture.md, "Facts about SUMO")."""
     args = [
         "-n", str(scenario.road.net_path),
         "--step-length", f"{loop.step_s}",

@@ -1,0 +1,186 @@
+"""The package's structure, checked from its source (docs/architecture.md): no import cycle, every
+import runs down the layers, no function grows past 100 lines.
+
+Imports inside functions count as much as those at the top: a lazy import hides a cycle from
+Python, not from a reader. A new module must be given its layer in ``LAYERS``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "safeil_sumo"
+
+# bottom to top; a module may import its own layer and those below. A name ending in ".*" is a
+# package and everything in it, unless a module of it is named in another layer.
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("core: pure maths and the planner contract",
+     ("geometry", "bspline", "features", "policy", "atomic", "analytic", "idm", "safety_filter")),
+    ("roads: SUMO nets and the geometry read from them",
+     ("scenarios.track", "scenarios.road", "scenarios.network", "scenarios.route",
+      "scenarios.n74", "scenarios.catalogue", "scenarios.replay_road")),
+    ("data, learning and the closed loop",
+     ("data.*", "learn.*", "sim.*", "policies")),
+    ("scenarios: specs built into the loop's Scenario",
+     ("scenarios.spec", "scenarios.safety", "scenarios.recorded_leaders")),
+    ("experiments: sweeps, replays, probes, metrics",
+     ("experiments.*",)),
+    ("the Python API", ("api",)),
+    ("command lines", ("run", "sweep", "replay", "probe", "gap_probe", "results", "bench",
+                       "animate", "cli_args")),
+)
+# upward imports allowed, each with its reason (none today: keep it so)
+ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
+# functions over 100 lines today, with their length then: they may shrink, not grow, and no
+# other may join them (issue 21 splits them)
+LONG_FUNCTIONS = {
+    "results.py::write_readme": 212,
+    "sim/runner.py::run_scenario": 204,
+    "sim/batch.py::_loop": 165,
+    "data/recorder.py::record_drive": 109,
+    "scenarios/route.py::load_route": 102,
+}
+MAX_FUNCTION_LINES = 100
+
+
+def modules() -> dict[str, Path]:
+    """``"scenarios.road" -> path`` for every module of the package (packages by their name)."""
+    out = {}
+    for path in PKG.rglob("*.py"):
+        parts = path.relative_to(PKG).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = path
+    return out
+
+
+def imports(path: Path, known: dict[str, Path]) -> set[str]:
+    """The package's modules that ``path`` imports, anywhere in it (``from a import b`` names
+    module ``a.b`` when that is a module, else ``a``)."""
+
+    def resolve(dotted: str) -> str | None:
+        name = dotted.removeprefix("safeil_sumo").lstrip(".")
+        while name and name not in known:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names if a.name.split(".")[0] == "safeil_sumo"]
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "safeil_sumo":
+            targets = [f"{node.module}.{a.name}" for a in node.names]
+        else:
+            continue
+        found |= {m for t in targets if (m := resolve(t))}
+    return found
+
+
+def import_graph() -> dict[str, set[str]]:
+    known = modules()
+    return {name: imports(path, known) - {name} for name, path in known.items() if name}
+
+
+def layer_of(module: str) -> int | None:
+    """The index in ``LAYERS`` of ``module`` (an exact name wins over a package's ``.*``)."""
+    for i, (_, names) in enumerate(LAYERS):
+        if module in names:
+            return i
+    for i, (_, names) in enumerate(LAYERS):
+        if any(n.endswith(".*") and module.startswith(n[:-1]) for n in names):
+            return i
+    return None
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_cycle_finder_by_hand() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": {"e2"}, "e2": {"e"}, "f": set()}
+    assert sorted(cycles(graph)) == [["a", "b", "c"], ["e", "e2"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_layers_by_hand() -> None:
+    assert layer_of("geometry") == 0
+    assert layer_of("scenarios.road") == 1 and layer_of("scenarios.spec") == 3
+    assert layer_of("sim.runner") == layer_of("learn.model") == 2
+    assert layer_of("experiments.sweep") == 4 and layer_of("run") == len(LAYERS) - 1
+    assert layer_of("somewhere_new") is None
+
+
+def test_imports_are_resolved_to_modules(tmp_path: Path) -> None:
+    src = tmp_path / "m.py"
+    src.write_text("import os\nfrom safeil_sumo.scenarios import road, nothing\n"
+                   "def f():\n    from safeil_sumo.sim.runner import Scenario\n"
+                   "    import safeil_sumo.geometry as g\n")
+    known = {"scenarios": PKG, "scenarios.road": PKG, "sim": PKG, "sim.runner": PKG,
+             "geometry": PKG}
+    assert imports(src, known) == {"scenarios.road", "scenarios", "sim.runner", "geometry"}
+
+
+def test_no_import_cycle() -> None:
+    assert cycles(import_graph()) == []
+
+
+def test_every_module_has_a_layer() -> None:
+    packages = {p.parent.relative_to(PKG).as_posix().replace("/", ".")
+                for p in PKG.rglob("__init__.py")}
+    missing = sorted(m for m in import_graph() if m not in packages and layer_of(m) is None)
+    assert missing == [], f"give these modules a layer in LAYERS: {missing}"
+
+
+def test_imports_run_down_the_layers() -> None:
+    upward = []
+    for module, targets in import_graph().items():
+        here = layer_of(module)
+        for target in targets:
+            there = layer_of(target)
+            if here is not None and there is not None and there > here \
+                    and (module, target) not in ALLOWED_UPWARD:
+                upward.append(f"{module} ({LAYERS[here][0]}) -> {target} ({LAYERS[there][0]})")
+    assert upward == [], "imports that run up the layers:\n" + "\n".join(sorted(upward))
+
+
+@pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
+def test_no_function_grows_past_100_lines(path: Path) -> None:
+    rel = path.relative_to(PKG).as_posix()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            lines = node.end_lineno - node.lineno + 1
+            limit = LONG_FUNCTIONS.get(f"{rel}::{node.name}", MAX_FUNCTION_LINES)
+            assert lines <= limit, f"{rel}::{node.name} has {lines} lines (at most {limit})"
