@@ -436,3 +436,35 @@ def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         cli.main([*base[:4], "--windows", "sliding", "--duration", "0"])
     assert exc.value.code == 2 and "--duration 0" in capsys.readouterr().err
+
+
+def test_literature_summary_by_hand() -> None:
+    """The figures the car-following literature reports, over one group of windows: the worst
+    window and its id, spacing RMSPE median and mean, time-gap RMSE median, the mean time-gap
+    error's median and mean (NaN left out), and the windows that ended before the recording."""
+    from safeil_sumo.experiments.replay_all import literature_summary, window_id
+
+    g = pd.DataFrame({
+        "maneuver_id": ["a", "b", "c", "d"], "start_s": [0.0, 20.0, 0.0, 40.0],
+        "rmse_gap": [2.0, np.nan, 7.5, 3.0],
+        "rmspe_gap": [0.10, 0.30, 0.20, np.nan],
+        "rmse_headway": [0.5, 0.1, 0.3, 0.9],
+        "bias_headway": [-0.4, 0.2, np.nan, 0.5],
+        "coverage": [1.0, 0.5, 0.999, 1.0],
+    })
+    s = literature_summary(g)
+    assert (s["gap_rmse_max_m"], s["gap_rmse_worst"]) == (7.5, window_id("c", 0.0)) == (7.5, "c@0s")
+    assert s["spacing_rmspe_median"] == pytest.approx(0.20)
+    assert s["spacing_rmspe_mean"] == pytest.approx(0.20)
+    assert s["time_gap_rmse_median_s"] == pytest.approx(0.4)
+    assert s["time_gap_error_median_s"] == pytest.approx(0.2)
+    assert s["time_gap_error_mean_s"] == pytest.approx((-0.4 + 0.2 + 0.5) / 3)
+    assert s["ended_early"] == 2
+    # a table without the newer columns, and no finite gap RMSE: NaN, no worst window
+    old = g[["maneuver_id", "start_s"]].assign(rmse_gap=np.nan)
+    s = literature_summary(old)
+    assert math.isnan(s["gap_rmse_max_m"]) and s["gap_rmse_worst"] == ""
+    assert all(math.isnan(s[k]) for k in ("spacing_rmspe_median", "spacing_rmspe_mean",
+                                          "time_gap_rmse_median_s", "time_gap_error_median_s",
+                                          "time_gap_error_mean_s"))
+    assert s["ended_early"] == 0

@@ -45,6 +45,9 @@ SCOPE = (
     # the replay statistics
     "safeil_sumo.experiments.replay_all.x_bootstrap_ci__mutmut_*",
     "safeil_sumo.experiments.replay_all.x_aggregate__mutmut_*",
+    "safeil_sumo.experiments.replay_all.x_literature_summary__mutmut_*",
+    "safeil_sumo.experiments.replay_all.x__column__mutmut_*",
+    "safeil_sumo.experiments.replay_all.x__nan_stat__mutmut_*",
     "safeil_sumo.experiments.replay_all.x__headway_hist__mutmut_*",
     # the recorded leader's speed and its drift filter
     "safeil_sumo.scenarios.replay_road.x_drift_corrected_speed__mutmut_*",
