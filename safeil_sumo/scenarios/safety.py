@@ -11,7 +11,7 @@ import numpy as np
 
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim.leaders import constant
-from safeil_sumo.sim.runner import Scenario
+from safeil_sumo.sim.loop_types import Scenario
 
 PAPER_LEADER_SPEED_MPS = (25.0, 32.0)  # the paper: constant random speed in [25, 32] m/s
 

@@ -260,7 +260,7 @@ def leader_profile(spec: ScenarioSpec, speed_mps: float):
 def build_scenario(spec: ScenarioSpec, road):
     """The runner's :class:`Scenario` of a spec (every draw from the scenario seed)."""
     from safeil_sumo.scenarios.safety import scenario_seed
-    from safeil_sumo.sim.runner import Scenario
+    from safeil_sumo.sim.loop_types import Scenario
     from safeil_sumo.sim.sensors import SensorConfig
 
     seed = scenario_seed(spec.master_seed, spec.index)

@@ -13,8 +13,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -34,94 +32,21 @@ from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import traffic as trf
 from safeil_sumo.sim import vehicle as veh
-from safeil_sumo.sim.leaders import SpeedProfile
+
+# the loop's types, re-exported: they were defined here before
+from safeil_sumo.sim.loop_types import (  # noqa: F401
+    EGO_PLACEMENTS,
+    GUI_SCREENSHOT_AT_S,
+    LoopConfig,
+    Rollout,
+    Scenario,
+)
 
 EGO_ID = "ego"
 LEADER_ID = "leader"
 ROUTE_ID = "r_ego"
 LEADER_ROUTE_ID = "r_leader"  # the route's edges from the leader's first edge (when not the ego's)
 GUI_VIEW_WIDTH_M = 150.0  # sumo-gui's view width around the ego: it and a leader 50 m ahead [m]
-GUI_SCREENSHOT_AT_S = 1.0  # simulation time of LoopConfig.gui_screenshot [s]
-EGO_PLACEMENTS = ("xy", "lane")  # LoopConfig.ego_placement
-
-
-@dataclass(frozen=True)
-class Scenario:
-    """One closed-loop test: a road, a leader speed profile and the ego's initial state.
-
-    The paper fixes the leader (constant speed in [25, 32] m/s) but leaves the ego's initial
-    state open; we start the ego at ``ego_speed_mps`` = 30 m/s (~108 km/h, close to the paper's
-    115 km/h data) with a bumper-to-bumper gap of ``initial_gap_m`` = 50 m (~1.7 s), at the
-    start of the test path.
-    """
-
-    name: str
-    road: Road
-    leader: SpeedProfile | None
-    ego_speed_mps: float = 30.0  # ego initial speed [m/s]
-    initial_gap_m: float = 50.0  # initial bumper-to-bumper gap to the leader [m]
-    seed: int = 0  # seeds SUMO and the sensor noise
-    ego_lateral_offset_m: float = 0.0  # initial front-bumper offset from the lane centre, left + [m]
-    ego_heading_offset_rad: float = 0.0  # initial yaw minus lane heading [rad]
-    max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
-    sensors: sen.SensorConfig = field(default_factory=sen.SensorConfig)
-    monitors: mon.MonitorConfig = field(default_factory=mon.MonitorConfig)
-    # SUMO's own vehicles as leaders (the radar target is SUMO's leader of the ego); no
-    # scripted leader then
-    traffic: trf.Traffic | None = None
-
-    def __post_init__(self) -> None:
-        if self.traffic is not None and self.leader is not None:
-            raise ValueError("a scenario with traffic has no scripted leader (leader=None)")
-        if not self.ego_speed_mps >= 0:
-            raise ValueError(f"ego initial speed must be >= 0 m/s, got {self.ego_speed_mps}")
-        if not self.initial_gap_m > 0:
-            raise ValueError(f"initial gap must be > 0 m, got {self.initial_gap_m}")
-
-
-@dataclass(frozen=True)
-class LoopConfig:
-    """How the loop runs."""
-
-    step_s: float = 0.01  # SUMO and plant step [s] (the paper's digital-twin step)
-    plan_rate_hz: float = 10.0  # re-planning rate [Hz]
-    max_time_s: float | None = None  # None: 2x the path at the initial speed + 10 s [s]
-    stop_on_flag: bool = False  # end the run at the first safety flag
-    offroad_stop_m: float = 6.0  # end the run when the ego centre is this far off its lane [m]
-    backend: str = "libsumo"  # "libsumo" | "traci"
-    gui: bool = False  # sumo-gui (traci backend only)
-    gui_screenshot: Path | None = None  # PNG of sumo-gui's view at GUI_SCREENSHOT_AT_S (gui only)
-    ssm_file: Path | None = None  # write SUMO's SSM device output for the ego here
-    # how SUMO is told where the ego is, every step: "xy" moveToXY, the exact pose (front
-    # bumper, heading; ~25 us per call, the loop's largest SUMO cost); "lane" moveTo at the
-    # front bumper's arc length on its lane (~1 us) while the front bumper is inside the lane,
-    # moveToXY when it is not: SUMO then sees an ego inside its lane on the centre line, heading
-    # along it. Our monitors never read the ego back from SUMO, and SUMO's collision check is per
-    # lane and longitudinal, so both give the same logs with a scripted leader (tested); among
-    # traffic, SUMO's vehicles react to the ego's SUMO position, so logs differ by millimetres.
-    # sumo-gui always gets "xy" (it shows the true pose)
-    ego_placement: str = "lane"
-
-    def __post_init__(self) -> None:
-        if self.ego_placement not in EGO_PLACEMENTS:
-            raise ValueError(f"ego_placement must be one of {EGO_PLACEMENTS}, got "
-                             f"{self.ego_placement!r}")
-        if not 0 < self.step_s <= 0.1:
-            raise ValueError(f"step_s must be in (0, 0.1] s, got {self.step_s}")
-        if not 0 < self.plan_rate_hz <= 1.0 / self.step_s:
-            raise ValueError(f"plan_rate_hz must be in (0, {1.0 / self.step_s:g}] Hz")
-        if self.gui_screenshot is not None and not self.gui:
-            raise ValueError("gui_screenshot needs gui=True")
-
-
-@dataclass(frozen=True)
-class Rollout:
-    """A finished run: per-step ``log`` and a flat ``summary`` of the scenario."""
-
-    log: pd.DataFrame
-    summary: dict
-
-
 ApiFactory = Callable[[Sequence[str]], sumo_api.SumoApi]
 
 
