@@ -184,3 +184,20 @@ def test_no_function_grows_past_100_lines(path: Path) -> None:
             lines = node.end_lineno - node.lineno + 1
             limit = LONG_FUNCTIONS.get(f"{rel}::{node.name}", MAX_FUNCTION_LINES)
             assert lines <= limit, f"{rel}::{node.name} has {lines} lines (at most {limit})"
+
+
+def test_console_scripts_name_the_python_m_commands() -> None:
+    """Each ``[project.scripts]`` entry is ``safeil-<module>`` -> ``safeil_sumo.<module>:main``,
+    for every command-line module with a ``main``, and that main prints its help."""
+    import importlib
+    import tomllib
+
+    scripts = tomllib.loads((PKG.parent / "pyproject.toml").read_text())["project"]["scripts"]
+    clis = {m for m in LAYERS[-1][1] if m != "cli_args"}
+    assert {v.split(":")[0].removeprefix("safeil_sumo.") for v in scripts.values()} == clis
+    for name, target in scripts.items():
+        module, func = target.split(":")
+        assert name == "safeil-" + module.removeprefix("safeil_sumo.").replace("_", "-")
+        with pytest.raises(SystemExit) as exit_:
+            getattr(importlib.import_module(module), func)(["--help"])
+        assert exit_.value.code == 0
