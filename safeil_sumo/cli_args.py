@@ -4,6 +4,7 @@ traceback or a run on NaN/inf."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 
 # checked by the scenario layer, re-exported for the CLIs
@@ -102,3 +103,48 @@ def add_lane_option(parser: argparse.ArgumentParser) -> None:
         help="the ego's lane: with --net n74 the main lane, right (default) or left; with a "
              ".net.xml path the SUMO lane index (0 = rightmost) on the first edge of --route "
              "(or of the net's one edge); default: the middle lane")
+
+
+def int_list(text: str) -> tuple[int, ...]:
+    """Comma-separated integers, e.g. layer widths ``64,64``."""
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not comma-separated integers: {text!r}") from None
+
+
+def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
+                          helps: dict[str, str] | None = None,
+                          aliases: dict[str, tuple[str, ...]] | None = None,
+                          choices: dict[str, tuple] | None = None) -> None:
+    """One option per field of the dataclass ``cls``, named after it (``max_epochs`` ->
+    ``--max-epochs``, plus any ``aliases``), defaulting to the field's default and typed by it:
+    a float is finite, a bool is ``--x/--no-x``, a tuple of ints is comma-separated, another
+    tuple takes several values. Values are checked by ``cls.__post_init__`` when the instance is
+    built (:func:`dataclass_from_args`), so each rule lives in one place."""
+    defaults = cls()
+    for f in dataclasses.fields(cls):
+        default = getattr(defaults, f.name)
+        flags = ["--" + f.name.replace("_", "-"), *(aliases or {}).get(f.name, ())]
+        kw: dict = {"dest": f.name, "default": default,
+                    "help": f"{(helps or {}).get(f.name, f.name)} (default {default!r})"}
+        if isinstance(default, bool):
+            kw["action"] = argparse.BooleanOptionalAction
+        elif isinstance(default, float):
+            kw["type"] = finite_float
+        elif isinstance(default, int):
+            kw["type"] = int
+        elif isinstance(default, tuple):
+            if "int" in str(f.type):
+                kw["type"] = int_list
+            else:
+                kw["nargs"] = "*"
+        if f.name in (choices or {}):
+            kw["choices"] = choices[f.name]
+        parser.add_argument(*flags, **kw)
+
+
+def dataclass_from_args(cls: type, args: argparse.Namespace):
+    """``cls`` built from the options :func:`add_dataclass_options` added (``ValueError`` from
+    its checks)."""
+    return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)})

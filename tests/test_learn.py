@@ -554,3 +554,33 @@ def test_envelope_barrier_keeps_every_setting_and_the_margin_where_reachable() -
     for k in range(3):
         assert both[k].item() == pytest.approx((env[k].item() + env_far[k].item()) / 2,
                                                rel=1e-12)
+
+
+def test_train_cli_has_every_config_field_under_its_own_name() -> None:
+    """training/train.py's options are generated from TrainConfig: each field is ``--<field>``,
+    its default is the config's, and the options build the config they name (old flag names
+    kept as aliases)."""
+    import dataclasses
+    import importlib.util
+
+    from safeil_sumo.learn.train import TrainConfig
+
+    spec = importlib.util.spec_from_file_location("train_cli", REPO / "training" / "train.py")
+    cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(cli)
+    base = ["--data", "x.parquet", "--out", "o"]
+    assert cli.config_of(cli.parse_args(base)) == TrainConfig()
+    args = cli.parse_args([*base, "--weight-decay", "0.01", "--max-epochs", "7", "--hidden", "32,16",
+                           "--no-barrier-control-points", "--barrier-samples", "4",
+                           "--longitudinal-only-sources", "openacc", "ngsim", "--threads", "2",
+                           "--monotone-margin", "0.002", "--envelope-weight", "0.1"])
+    assert cli.config_of(args) == TrainConfig(
+        weight_decay=0.01, max_epochs=7, hidden=(32, 16), barrier_control_points=False,
+        barrier_samples=4, longitudinal_only_sources=("openacc", "ngsim"), num_threads=2,
+        monotone_margin_m=0.002, envelope_weight=0.1)
+    for field in dataclasses.fields(TrainConfig):
+        flag = "--" + field.name.replace("_", "-")
+        assert any(flag in a.option_strings for a in cli.build_parser()._actions), flag
+    with pytest.raises(ValueError, match="weight_decay"):
+        cli.config_of(cli.parse_args([*base, "--weight-decay", "-1"]))
+

@@ -4,7 +4,9 @@
 
 Whole maneuvers are left out for validation (early stopping and the printed open-loop metrics).
 Writes ``<out>.safetensors`` + ``<out>.json`` (architecture, scaling, config, data fingerprint,
-metrics, per-epoch history).
+metrics, per-epoch history). Every field of :class:`safeil_sumo.learn.train.TrainConfig` is an
+option under its own name (``--max-epochs``, ``--weight-decay``, ...; ``--epochs``, ``--threads``
+and ``--monotone-margin`` are kept as aliases), checked by the config itself.
 """
 
 from __future__ import annotations
@@ -15,13 +17,14 @@ import json
 import sys
 from pathlib import Path
 
-from safeil_sumo.cli_args import finite_float, nonnegative_int
+from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args, finite_float
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
 from safeil_sumo.learn.evaluate import open_loop_metrics
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.losses import LATERAL_MODES
-from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES
+from safeil_sumo.learn.train import METHODS, TrainConfig, split_by_maneuver, train
 from safeil_sumo.safety_filter import SafeSet
 
 SUMMARY_KEYS = (
@@ -35,97 +38,89 @@ SUMMARY_KEYS = (
 )
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    d = TrainConfig()
+# one line of help per TrainConfig field (its docstring has the detail)
+FIELD_HELP = {
+    "method": "safeil (imitation + barrier) or bc (imitation only)",
+    "hidden": "hidden layer widths, e.g. 64,64",
+    "activation": "hidden-layer activation",
+    "lr": "Adam learning rate",
+    "weight_decay": "Adam L2 weight decay",
+    "batch_size": "minibatch size (0 = full batch)",
+    "max_epochs": "max epochs",
+    "patience": "epochs without a validation improvement before stopping",
+    "seed": "seed of the split, the initial weights and the minibatches",
+    "barrier_k": "barrier weight K",
+    "track": "vehicle track T [m]",
+    "gap_min": "extra leader gap [m]",
+    "time_gap": "extra leader gap [s]",
+    "barrier_samples": "also constrain this many points along the spline (0 = paper)",
+    "barrier_control_points": "constrain the control points (the paper; --no-... needs "
+                              "--barrier-samples > 0)",
+    "num_threads": "torch CPU threads",
+    "barrier_lateral": "lane barrier on the control points (paper) or on the exact Bernstein "
+                       "coefficients of the margin along the spline",
+    "output_mode": "control points (paper) or their residual to constant-speed motion",
+    "longitudinal_only_sources": "sources whose lateral (y) targets are not learned (e.g. "
+                                 "openacc: no lanes)",
+    "lateral_only_sources": "sources whose longitudinal (x) targets are not learned (e.g. "
+                            "synthetic)",
+    "envelope_weight": "weight of the barrier on states sampled across the operating envelope "
+                       "(0 = paper)",
+    "envelope_batch": "envelope states per minibatch",
+    "monotone_weight": "weight of the penalty on plans that shorten as the gap grows (on the "
+                       "envelope states)",
+    "monotone_margin_m": "growth [m] of the plan per 2 m of gap asked by the monotonicity penalty",
+}
+# the names these options had before they were generated from TrainConfig
+ALIASES = {"max_epochs": ("--epochs",), "num_threads": ("--threads",),
+           "monotone_margin_m": ("--monotone-margin",)}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The data, split and output options, and one option per :class:`TrainConfig` field under
+    its own name (``--max-epochs``, old names kept as aliases). The config's own checks judge
+    the values: see :func:`config_of`."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, type=Path, nargs="+",
                    help="Tuples Parquet file(s); several are concatenated (e.g. sources)")
-    p.add_argument("--method", choices=("safeil", "bc"), default=d.method)
     p.add_argument("--val-fraction", type=finite_float, default=0.2,
                    help="fraction of maneuvers left out for validation (default 0.2)")
     p.add_argument("--val-maneuvers", default=None,
                    help="comma-separated maneuver ids to leave out (overrides --val-fraction)")
-    p.add_argument("--seed", type=nonnegative_int, default=d.seed)
-    p.add_argument("--epochs", type=int, default=d.max_epochs, help="max epochs")
-    p.add_argument("--patience", type=int, default=d.patience)
-    p.add_argument("--batch-size", type=nonnegative_int, default=d.batch_size,
-                   help="0 = full batch")
-    p.add_argument("--lr", type=finite_float, default=d.lr)
-    p.add_argument("--hidden", default=",".join(map(str, d.hidden)), help="e.g. 64,64")
-    p.add_argument("--activation", choices=("tanh", "relu"), default=d.activation)
-    p.add_argument("--barrier-k", type=finite_float, default=d.barrier_k)
-    p.add_argument("--track", type=finite_float, default=d.track, help="vehicle track T [m]")
-    p.add_argument("--gap-min", type=finite_float, default=d.gap_min, help="extra leader gap [m]")
-    p.add_argument("--time-gap", type=finite_float, default=d.time_gap, help="extra leader gap [s]")
-    p.add_argument("--barrier-samples", type=nonnegative_int, default=d.barrier_samples,
-                   help="also constrain this many points along the spline (0 = paper)")
-    p.add_argument("--no-barrier-control-points", action="store_true",
-                   help="do not constrain the control points (needs --barrier-samples > 0)")
-    p.add_argument("--barrier-lateral", choices=LATERAL_MODES, default=d.barrier_lateral,
-                   help="lane barrier on the control points (paper) or on the exact Bernstein "
-                        "coefficients of the margin along the spline")
-    p.add_argument("--output-mode", choices=("absolute", "residual"), default=d.output_mode,
-                   help="control points (paper) or their residual to constant-speed motion")
-    p.add_argument("--longitudinal-only-sources", nargs="*", default=list(d.longitudinal_only_sources),
-                   help="sources whose lateral (y) targets are not learned (e.g. openacc: no lanes)")
-    p.add_argument("--lateral-only-sources", nargs="*", default=list(d.lateral_only_sources),
-                   help="sources whose longitudinal (x) targets are not learned (e.g. synthetic)")
-    p.add_argument("--envelope-weight", type=finite_float, default=d.envelope_weight,
-                   help="weight of the barrier on states sampled across the operating envelope "
-                        "(0 = paper)")
-    p.add_argument("--monotone-weight", type=finite_float, default=d.monotone_weight,
-                   help="weight of the penalty on plans that shorten as the gap grows "
-                        "(on the envelope states)")
-    p.add_argument("--monotone-margin", type=finite_float, default=d.monotone_margin_m,
-                   help="growth [m] of the plan per 2 m of gap asked by the monotonicity penalty")
-    p.add_argument("--envelope-batch", type=int, default=d.envelope_batch,
-                   help="envelope states per minibatch")
-    p.add_argument("--threads", type=int, default=d.num_threads)
+    add_dataclass_options(p, TrainConfig, helps=FIELD_HELP, aliases=ALIASES,
+                          choices={"method": METHODS, "activation": ACTIVATIONS,
+                                   "barrier_lateral": LATERAL_MODES,
+                                   "output_mode": OUTPUT_MODES})
     p.add_argument("--out", required=True, type=Path, help="checkpoint prefix")
     p.add_argument("--name", default=None,
                    help="policy name stored in the checkpoint (default: the method)")
     p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = build_parser()
     args = p.parse_args(argv)
     if not 0 <= args.val_fraction < 1:
         p.error("--val-fraction must be in [0, 1)")
-    if args.epochs < 1 or args.patience < 1 or args.threads < 1:
-        p.error("--epochs, --patience and --threads must be >= 1")
-    if not args.lr > 0 or args.barrier_k < 0 or not args.track > 0:
-        p.error("--lr and --track must be > 0, --barrier-k >= 0")
-    if args.gap_min < 0 or args.time_gap < 0:
-        p.error("--gap-min and --time-gap must be >= 0")
-    try:
-        hidden = tuple(int(h) for h in args.hidden.split(",") if h.strip())
-    except ValueError:
-        p.error(f"--hidden needs comma-separated layer widths, got {args.hidden!r}")
-    if not hidden or min(hidden) < 1:
-        p.error(f"--hidden needs widths >= 1, got {args.hidden!r}")
-    args.hidden = hidden
     return args
+
+
+def config_of(args: argparse.Namespace) -> TrainConfig:
+    """The :class:`TrainConfig` of the parsed options (``ValueError`` naming a bad value)."""
+    return dataclass_from_args(TrainConfig, args)
 
 
 def main(argv: list[str] | None = None) -> dict:
     """Train and save; returns the metrics. Bad input raises ValueError (see :func:`cli`)."""
     args = parse_args(argv)
+    config = config_of(args)  # bad values fail here, before any data is read
     tuples = Tuples.concat([Tuples.load(path) for path in args.data])
     data_label = ",".join(map(str, args.data))
     if len(tuples) == 0:
         raise ValueError(f"{data_label}: no tuples to train on")
     val_ids = args.val_maneuvers.split(",") if args.val_maneuvers else None
-    tr, va = split_by_maneuver(tuples, args.val_fraction, args.seed, val_ids)
-    config = TrainConfig(
-        method=args.method, hidden=args.hidden,
-        activation=args.activation, lr=args.lr, batch_size=args.batch_size,
-        max_epochs=args.epochs, patience=args.patience, seed=args.seed,
-        barrier_k=args.barrier_k, track=args.track, gap_min=args.gap_min,
-        time_gap=args.time_gap, barrier_samples=args.barrier_samples,
-        barrier_control_points=not args.no_barrier_control_points, num_threads=args.threads,
-        barrier_lateral=args.barrier_lateral, output_mode=args.output_mode,
-        longitudinal_only_sources=tuple(args.longitudinal_only_sources),
-        lateral_only_sources=tuple(args.lateral_only_sources),
-        envelope_weight=args.envelope_weight, envelope_batch=args.envelope_batch,
-        monotone_weight=args.monotone_weight, monotone_margin_m=args.monotone_margin,
-    )
+    tr, va = split_by_maneuver(tuples, args.val_fraction, config.seed, val_ids)
     print(f"{data_label}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
           f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "
           f"horizon {tuples.horizon:g} s")
@@ -138,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
                "data": data_label, "val_maneuvers": sorted(map(str, va.maneuvers))}
     # Save, then evaluate the checkpoint through the numpy policy the closed loop will use.
     save_checkpoint(
-        args.out, model, name=args.name or args.method, horizon=tuples.horizon, train_config=config,
+        args.out, model, name=args.name or config.method, horizon=tuples.horizon, train_config=config,
         data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
     )
     policy = load_policy(args.out)
@@ -147,10 +142,10 @@ def main(argv: list[str] | None = None) -> dict:
             om = open_loop_metrics(policy, part, safe_set)
             metrics.update({f"open_loop_{split}_{k}": om[k] for k in SUMMARY_KEYS})
     save_checkpoint(
-        args.out, model, name=args.name or args.method, horizon=tuples.horizon, train_config=config,
+        args.out, model, name=args.name or config.method, horizon=tuples.horizon, train_config=config,
         data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
     )
-    print(f"trained {args.method} in {history.seconds:.1f} s ({len(history.epochs)} epochs, "
+    print(f"trained {config.method} in {history.seconds:.1f} s ({len(history.epochs)} epochs, "
           f"{history.samples_per_s:,.0f} samples/s), best epoch {history.best_epoch}")
     print(json.dumps({"config": dataclasses.asdict(config), "metrics": metrics}, indent=1))
     print(f"wrote {args.out}.safetensors and {args.out}.json")

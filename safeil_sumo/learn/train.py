@@ -10,6 +10,7 @@ returned.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -108,6 +109,18 @@ class TrainConfig:
             raise ValueError("monotone_weight acts on the envelope states: set envelope_weight > 0")
         if self.max_epochs < 1 or self.batch_size < 0 or self.patience < 1:
             raise ValueError("max_epochs and patience must be >= 1, batch_size >= 0")
+        if not self.hidden or min(self.hidden) < 1:
+            raise ValueError(f"hidden needs layer widths >= 1, got {self.hidden}")
+        if not (math.isfinite(self.lr) and self.lr > 0) or not self.weight_decay >= 0:
+            raise ValueError(f"lr must be > 0 and weight_decay >= 0, got {self.lr}, "
+                             f"{self.weight_decay}")
+        if not (math.isfinite(self.track) and self.track > 0) or not self.barrier_k >= 0:
+            raise ValueError(f"track must be > 0 and barrier_k >= 0, got {self.track}, "
+                             f"{self.barrier_k}")
+        if not (self.gap_min >= 0 and self.time_gap >= 0 and self.monotone_margin_m >= 0):
+            raise ValueError("gap_min, time_gap and monotone_margin_m must be >= 0")
+        if self.seed < 0 or self.num_threads < 1 or self.barrier_samples < 0:
+            raise ValueError("seed and barrier_samples must be >= 0, num_threads >= 1")
         _ = self.barrier  # validates the barrier settings
 
     @property
