@@ -330,3 +330,15 @@ def test_fit_recovers_parameters_from_one_start(monkeypatch) -> None:
     assert not np.array_equal(calls[5], calls[1])
     idm.fit_idm(ms, seed=3, starts=1)
     assert len(calls) == 7
+
+
+def test_equilibrium_gap_at_and_above_the_desired_speed_is_inf_without_warnings() -> None:
+    """At v0 the free-road term is 0 and above it negative: no steady following exists, the gap
+    is inf, and no division or square-root warning escapes (mutation testing)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gaps = idm.equilibrium_gap(np.array([P.v0_mps, P.v0_mps + 5.0, 20.0]), P)
+    assert np.isinf(gaps[0]) and np.isinf(gaps[1])
+    assert gaps[2] == pytest.approx(26.0 / math.sqrt(65.0 / 81.0))
