@@ -14,6 +14,8 @@ Sections (``--only`` picks some; every sweep is resumable, its task files live i
 - ``whole``: the same held-out maneuvers replayed whole (start to end), beside the
   ``constant_speed`` baseline: gap RMSE median, mean and worst, spacing RMSPE, time-gap error,
   per planner and per driver;
+- ``lodo``: ``training/leave_one_driver_out.py``: the shipped recipe trained without each
+  OpenACC driver (and a quarter of the NGSIM drivers), the left-out drivers replayed whole;
 - ``ablation``: ``training/leader_following_ablation.py`` (one lever at a time);
 - ``instrument``: the replay's own error: the ``recorded`` pseudo-planner (the human's path)
   over every whole maneuver of OpenACC, NGSIM and the synthetic drives;
@@ -72,7 +74,7 @@ COLORS = {"safeil": "tab:green", "safeil_openloop": "tab:cyan", "safeil_paper": 
           "analytic": "tab:gray", "idm": "tab:blue"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
-            "humanlike", "whole", "ablation", "instrument", "n74")
+            "humanlike", "whole", "lodo", "ablation", "instrument", "n74")
 # the whole-maneuver replays: the planners, the naive baseline and the instrument's floor
 WHOLE_POLICIES = ("safeil", "safeil_openloop", "idm", "analytic", "bc", "constant_speed",
                   "recorded")
@@ -557,6 +559,29 @@ def _n74_readme(n74: dict) -> list[str]:
         "", "![n74 time gaps](n74_time_gap.png)", ""]
 
 
+def _lodo_readme(out: Path) -> list[str]:
+    """The leave-one-driver-out section (``results/lodo/summary.md``)."""
+    summary = out / "lodo" / "summary.md"
+    text = ("`python training/leave_one_driver_out.py`: 4 folds; fold k trains the shipped "
+            "two-stage recipe and calibrates the IDM without OpenACC driver f(k+2) and a quarter "
+            "of the NGSIM follower vehicles, then replays those drivers' maneuvers whole; the "
+            "OpenACC ones also adapted (`--adapt-first-s 60`, scored after the first 60 s). "
+            "Per driver: `lodo/per_driver.csv`; every run: `lodo/windows.csv`.")
+    return ["## Drivers never seen in training: leave one driver out", "", text, "",
+            summary.read_text() if summary.is_file() else "", ""]
+
+
+def _ablation_readme(out: Path) -> list[str]:
+    """The one-lever-at-a-time section (``results/leader_ablation.md``)."""
+    table = out / "leader_ablation.md"
+    text = ("`python training/leader_following_ablation.py` (seed 0; held-out imitation "
+            "error of the x control points per source [m²]; the probe; the closed-loop "
+            "validation battery of `safeil_sumo/experiments/selection.py`; the replay of "
+            "every 11 s window of the held-out OpenACC maneuvers).")
+    return ["## Why the earlier planners ignored the leader: one lever at a time", "", text, "",
+            table.read_text() if table.is_file() else "", ""]
+
+
 def write_readme(out: Path, facts: dict) -> None:
     """``results/README.md``: our numbers beside the paper's, from ``facts.json``."""
     args = facts.get("args", {})
@@ -711,14 +736,10 @@ def write_readme(out: Path, facts: dict) -> None:
                                    "min time gap [s]", "max_decel_mps2": "max decel [m/s²]",
                                    "max_jerk_mps3": "max jerk [m/s³]"}),
                   "", "![suite](leader_suite.png)", ""]
+    if facts.get("lodo"):
+        lines += _lodo_readme(out)
     if facts.get("ablation"):
-        lines += ["## Why the earlier planners ignored the leader: one lever at a time", "",
-                  "`python training/leader_following_ablation.py` (seed 0; held-out imitation "
-                  "error of the x control points per source [m²]; the probe; the closed-loop "
-                  "validation battery of `safeil_sumo/experiments/selection.py`; the replay of "
-                  "every 11 s window of the held-out OpenACC maneuvers).", "",
-                  (out / "leader_ablation.md").read_text() if (out / "leader_ablation.md")
-                  .is_file() else "", ""]
+        lines += _ablation_readme(out)
     if facts.get("openloop"):
         rows = [dict(r, planner=LABELS.get(r["method"], r["method"])) for r in facts["openloop"]]
         lines += ["## Open loop: held-out maneuvers", "",
@@ -1033,6 +1054,16 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
             "time_gap": table.to_dict(orient="records"), "flags": len(events)}
 
 
+def lodo(out: Path, workers: int) -> list[dict]:
+    """``training/leave_one_driver_out.py`` (fold models cached in ``data/lodo``)."""
+    import subprocess
+
+    script = REPO / "training" / "leave_one_driver_out.py"
+    subprocess.run([sys.executable, str(script), "--workers", str(workers), "--out",
+                    str(out / "lodo")], check=True)
+    return pd.read_csv(out / "lodo" / "summary.csv").to_dict(orient="records")
+
+
 def ablation(out: Path, workers: int) -> list[dict]:
     """``training/leader_following_ablation.py`` (checkpoints cached in ``data/ablation``)."""
     import subprocess
@@ -1107,6 +1138,8 @@ def main(argv: list[str] | None = None) -> int:
     if "whole" in args.only:
         facts["whole"] = timed("whole", whole, args.out, args.work, args.workers, args.seed,
                                args.quick)
+    if "lodo" in args.only:
+        facts["lodo"] = timed("lodo", lodo, args.out, args.workers)
     if "ablation" in args.only:
         facts["ablation"] = timed("ablation", ablation, args.out, args.workers)
     if "instrument" in args.only:

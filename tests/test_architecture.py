@@ -37,7 +37,7 @@ ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
 # functions over 100 lines today, with their length then: they may shrink, not grow, and no
 # other may join them (issue 21 splits them)
 LONG_FUNCTIONS = {
-    "results.py::write_readme": 212,
+    "results.py::write_readme": 208,
     "sim/runner.py::run_scenario": 204,
     "sim/batch.py::_loop": 165,
     "data/recorder.py::record_drive": 109,
