@@ -2,8 +2,8 @@
 
     python -m safeil_sumo.replay --source openacc --maneuver auto --policies analytic safeil bc
 
-Imports the source (``openacc``/``ngsim`` from the shared data folder, or a drive file in the
-schema of :mod:`safeil_sumo.data.schema`, e.g. a synthetic recording), runs the processing
+Imports the source (``openacc``/``zalazone``/``ngsim`` from the shared data folder, or a drive
+file in the schema of :mod:`safeil_sumo.data.schema`, e.g. a synthetic recording), runs the processing
 pipeline (maneuvers), rebuilds the chosen maneuver in SUMO, drives it closed-loop with each policy
 and prints the comparison with the human. Writes into ``--out``: ``metrics.csv/json``,
 ``steps.parquet``, ``human.parquet``, ``compared.parquet``, ``replay.png``, ``manifest.json``,
@@ -17,6 +17,8 @@ The maneuver should be one left out of the policies' training (``training/train.
 from __future__ import annotations
 
 import argparse
+import functools
+import re
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -39,30 +41,63 @@ from safeil_sumo.sim.sumo_api import SumoError
 DEFAULT_DATA_DIR = Path(__file__).resolve().parents[2] / "shared" / "data"
 NGSIM_FILE = Path("ngsim_i80") / "i80_pairs.parquet"
 OPENACC_GLOB = "openacc_vicolungo/JRC-VC_280219_*.csv.gz"  # the all-human day
+ZALAZONE_GLOB = "openacc_zalazone/handling_part*.csv.gz"  # the handling course, all human
+# [1/m] lane-curvature clip of the handling course (median radius ~150 m, 1 % of rows below
+# 50 m): the importer's motorway default (1/250 m) would bend its lanes far too little
+ZALAZONE_MAX_CURVATURE = 1.0 / 40.0
+# an OpenACC recording id "<file>_f<k>" or, one of several runs of follower k, "<file>_f<k>_s<i>"
+_OPENACC_RECORDING = re.compile(r"^(?P<file>.+)_f(?P<k>\d+)(?:_s\d+)?$")
 
 
 def load_source(source: str, data_dir: Path = DEFAULT_DATA_DIR) -> pd.DataFrame:
-    """A validated drive frame of ``openacc``, ``ngsim`` or a drive file path."""
+    """A validated drive frame of ``openacc`` (Vicolungo, the all-human day), ``zalazone`` (the
+    ZalaZone handling course, lane curvature clipped at :data:`ZALAZONE_MAX_CURVATURE`),
+    ``ngsim`` or a drive file path."""
     from safeil_sumo.data.importers import import_ngsim_pairs, import_openacc
 
     if source == "ngsim":
         return import_ngsim_pairs(data_dir / NGSIM_FILE)
-    if source == "openacc":
-        files = sorted(data_dir.glob(OPENACC_GLOB))
+    if source in ("openacc", "zalazone"):
+        pattern = OPENACC_GLOB if source == "openacc" else ZALAZONE_GLOB
+        files = sorted(data_dir.glob(pattern))
         if not files:
-            raise SchemaError(f"no OpenACC files {OPENACC_GLOB} in {data_dir}")
-        frames = [import_openacc(f) for f in files]
+            raise SchemaError(f"no {source} files {pattern} in {data_dir}")
+        frames = [import_openacc(f) if source == "openacc"
+                  else import_openacc(f, max_curvature=ZALAZONE_MAX_CURVATURE) for f in files]
         return pd.concat([f for f in frames if len(f)], ignore_index=True)
     return load_drive(source)
 
 
-def driver_of(source: str, maneuver_id: str) -> str:
+@functools.lru_cache(maxsize=32)
+def _zalazone_cars(path: Path) -> dict[int, str]:
+    """Platoon position -> car name of one ZalaZone file (its metadata row, read once)."""
+    from safeil_sumo.data.importers import openacc_vehicle_names, read_openacc_metadata
+
+    return openacc_vehicle_names(read_openacc_metadata(path))
+
+
+def driver_of(source: str, maneuver_id: str, data_dir: Path = DEFAULT_DATA_DIR) -> str:
     """The driver a maneuver of ``source`` belongs to, where the data identify drivers: OpenACC
     ``openacc/f<k>``, the platoon position of one campaign day (the same car and driver in every
-    part); NGSIM ``ngsim/<id>``, the follower's vehicle id; else ``<source>/<recording>``."""
+    part); ZalaZone ``zalazone/<car>``, the follower's car named by its file's metadata row
+    ``Vehicle_order`` (read from ``data_dir``): the platoon order differs between the files, so
+    the position ``k`` alone would mix cars; the car is the finest identity the files give (no
+    driver names), and a recording whose file or position has no name keeps
+    ``zalazone/<file>_f<k>``; NGSIM ``ngsim/<id>``, the follower's vehicle id; else
+    ``<source>/<recording>``."""
     recording = maneuver_id.split("#")[0]
     if source == "openacc":
         return f"openacc/{recording.rsplit('_', 1)[-1]}"
+    if source == "zalazone":
+        m = _OPENACC_RECORDING.match(recording)
+        if m is None:
+            return f"zalazone/{recording}"
+        path = data_dir / ZALAZONE_GLOB.split("/")[0] / f"{m['file']}.csv.gz"
+        try:
+            car = _zalazone_cars(path).get(int(m["k"]))
+        except SchemaError:  # the file is not there: identify by file and position
+            car = None
+        return f"zalazone/{car or m['file'] + '_f' + m['k']}"
     if source == "ngsim":
         return f"ngsim/{recording.split('-')[0]}"
     return f"{source}/{recording}"
@@ -73,7 +108,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                 description="Replay a recorded maneuver in SUMO and compare "
                                             "the closed loop with the human.")
     p.add_argument("--source", default="openacc",
-                   help="openacc, ngsim, or a drive file (Parquet/CSV in the drive schema)")
+                   help="openacc (Vicolungo), zalazone (the ZalaZone handling course), ngsim, or a "
+                        "drive file (Parquet/CSV in the drive schema)")
     p.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR,
                    help=f"folder of the real data (default {DEFAULT_DATA_DIR})")
     p.add_argument("--maneuver", default="auto",
