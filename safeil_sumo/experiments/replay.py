@@ -76,6 +76,9 @@ class ReplayConfig:
     # rr.REPLAY_SAGITTA_M, smoothing, heading noise): a body less than this over its line is
     # within that error, not a departure [m] (MonitorConfig.lane_margin_m)
     lane_margin_m: float = 0.05
+    # when the recorded heading is believed (rr.plausible_heading): a GNSS heading glitch, or a
+    # heading at standstill, would turn the replayed body (and the planners' start) across lines
+    heading: rr.HeadingCheck = field(default_factory=rr.HeadingCheck)
 
 
 @dataclass(frozen=True)
@@ -212,7 +215,8 @@ def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame,
     car's size from ``vehicle``)."""
     t = rows["time"].to_numpy(float)
     xy = frame.points(rows["x"].to_numpy(float), rows["y"].to_numpy(float))
-    s, d = road.lanes[road.ego_lane].centre.project(xy)
+    # along the lane from the recorded start: on a closed course the nearest pass may be a lap's
+    s, d = rr.recorded_stations(road.lanes[road.ego_lane].centre, xy, road.path_start_s)
     v = rows["v_x"].to_numpy(float)
     gap = rows["lead_x"].to_numpy(float)
     lead_v = rr.drift_corrected_speed(t, rr.leader_speed(rows), s + gap, leader_drift_window_s)
@@ -241,28 +245,56 @@ def human_flag(human: pd.DataFrame, monitors: mon.MonitorConfig = mon.MonitorCon
                           np.zeros(len(human), dtype=bool))
 
 
-def recorded_path(rows: pd.DataFrame, frame: rr.LocalFrame) -> RecordedPath:
-    """The human's own path in the replay frame: the ``recorded`` pseudo-planner."""
+def recorded_heading(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The recorded ego's heading on the rebuilt road: ``(local yaw (N,) [rad], heading relative
+    to the ego lane (N,) [rad])``.
+
+    Relative to its lane the recording states it through its lane lines, ``-atan(c1)`` (mean of
+    the left and right line), where they are given; elsewhere the recorded ``yaw`` minus the
+    lane's heading. The local yaw is the rebuilt lane's heading at the recorded position
+    (walked, :func:`rr.recorded_stations`) plus that. The lines, not the yaw, because the
+    recording's own lane departures (:func:`human_flag`) are judged from them: the body then
+    stands in the rebuilt lane as it stood between the recorded lines. For NGSIM, whose lines
+    come from its yaw, both agree to round-off; for OpenACC (lines centred on the path,
+    ``c1 = 0``) the GNSS heading differs from the smoothed lane by <= 0.016 rad on Vicolungo,
+    and is noise where the car stands or the receiver has just reacquired (ZalaZone).
+    """
+    centre = road.lanes[road.ego_lane].centre
+    xy = frame.points(rows["x"].to_numpy(float), rows["y"].to_numpy(float))
+    s, _ = rr.recorded_stations(centre, xy, road.path_start_s)
+    _, lane_yaw = centre.point_at(s)
+    c1 = 0.5 * (rows["left_c1"].to_numpy(float) + rows["right_c1"].to_numpy(float)) \
+        if {"left_c1", "right_c1"} <= set(rows.columns) else np.full(len(rows), np.nan)
+    from_yaw = (frame.yaw(rows["yaw"].to_numpy(float)) - lane_yaw + math.pi) % (2 * math.pi) \
+        - math.pi
+    relative = np.where(np.isfinite(c1), -np.arctan(c1), from_yaw)
+    return lane_yaw + relative, relative
+
+
+def recorded_path(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame) -> RecordedPath:
+    """The human's own path in the replay frame: the ``recorded`` pseudo-planner (positions as
+    recorded, heading :func:`recorded_heading`)."""
     t = rows["time"].to_numpy(float)
     return RecordedPath(t - t[0], frame.points(rows["x"].to_numpy(float),
                                                rows["y"].to_numpy(float)),
-                        frame.yaw(rows["yaw"].to_numpy(float)), rows["v_x"].to_numpy(float))
+                        recorded_heading(rows, road, frame)[0], rows["v_x"].to_numpy(float))
 
 
 def replay_scenario(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame, name: str,
                     seed: int = 0, leader_speed_mps: np.ndarray | None = None,
                     monitors: mon.MonitorConfig = mon.MonitorConfig()) -> Scenario:
     """The closed-loop scenario of the recorded maneuver on its rebuilt road; the leader drives
-    ``leader_speed_mps`` (default: the recorded speed, ``rr.leader_speed``)."""
+    ``leader_speed_mps`` (default: the recorded speed, ``rr.leader_speed``). The ego starts at
+    the recorded position and the recorded heading relative to its lane
+    (:func:`recorded_heading`)."""
     t = rows["time"].to_numpy(float)
     lead_v = rr.leader_speed(rows) if leader_speed_mps is None else leader_speed_mps
     leader = SpeedProfile(t - t[0], lead_v, f"recorded leader of {name}")
     centre = road.lanes[road.ego_lane].centre
     start = frame.points(rows["x"].iloc[0], rows["y"].iloc[0])
-    s0, d0 = centre.project(start)
-    _, lane_yaw = centre.point_at(float(s0))
-    yaw0 = float(frame.yaw(float(rows["yaw"].iloc[0])))  # local heading
-    heading = (yaw0 - float(lane_yaw) + math.pi) % (2.0 * math.pi) - math.pi
+    _, d0 = (float(v[0]) for v in rr.recorded_stations(centre, start, road.path_start_s))
+    heading = float(recorded_heading(rows.iloc[:1], road, frame)[1][0])
     return Scenario(
         name=name, road=road, leader=leader,
         ego_speed_mps=float(rows["v_x"].iloc[0]), initial_gap_m=float(rows["lead_x"].iloc[0]),
@@ -337,6 +369,9 @@ def prepare_replay(drive_rows: pd.DataFrame, out_dir: Path,
     Raises :class:`ReplayError` for unusable rows; SUMO/netconvert errors propagate.
     """
     rows = _check_rows(drive_rows)
+    rows = rows.assign(yaw=rr.plausible_heading(
+        rows["time"].to_numpy(float), rows["x"].to_numpy(float), rows["y"].to_numpy(float),
+        rows["yaw"].to_numpy(float), config.heading))
     if maneuver_id is None:
         maneuver_id = str(rows["maneuver_id"].iloc[0]) if "maneuver_id" in rows else "maneuver"
     name = rr.safe_name(maneuver_id)
@@ -365,7 +400,7 @@ def replay_policy(prep: ReplayPrep, policy: Policy) -> Policy:
     pseudo-planners ``recorded`` the human's own path and ``constant_speed`` the initial speed
     held on the lane centre, in this replay's frame."""
     if isinstance(policy, RecordedPath):
-        return recorded_path(prep.rows, prep.frame)
+        return recorded_path(prep.rows, prep.road, prep.frame)
     if isinstance(policy, ConstantSpeedPath):
         return constant_speed_path(prep)
     return policy

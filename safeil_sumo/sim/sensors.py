@@ -228,16 +228,24 @@ class LaneCamera:
 
     Same lines, bit for bit, but each projection on a lane polyline walks from the segment of the
     previous call instead of scanning all N segments. Keeps that memory, so use one camera per run.
+
+    ``start_s`` [m along the ego lane]: where the car starts. The first look at a line then walks
+    from there (scaled to the line's length) instead of taking the line's nearest point, which
+    on a road that passes the same place again (a closed course's laps) may be another lap's.
     """
 
-    def __init__(self, road: Road, config: SensorConfig) -> None:
+    def __init__(self, road: Road, config: SensorConfig, start_s: float | None = None) -> None:
         self.road = road
         self.config = config
         self._segment: dict[int, int] = {}  # id(polyline) -> segment of the last projection
+        self._start_s = start_s
 
     def _project(self, line: Polyline, x: float, y: float) -> tuple[float, float]:
         hint = self._segment.get(id(line))
-        if hint is None:  # first look at this line: one full projection finds the segment
+        if hint is None and self._start_s is not None:  # first look: from the start's station
+            ego = self.road.lanes[self.road.ego_lane].centre
+            hint = line.segment_index(self._start_s * line.length / ego.length)
+        elif hint is None:  # first look at this line: one full projection finds the segment
             s_full, _ = line.project(np.array([x, y]))
             hint = line.segment_index(float(s_full))
         s, d, _, self._segment[id(line)] = line.project_near(x, y, hint)
