@@ -36,6 +36,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.data.importers import MIN_GAP
 from safeil_sumo.data.pipeline import body_outside_lines
 from safeil_sumo.experiments import metrics as hm
 from safeil_sumo.policy import Policy
@@ -236,13 +237,14 @@ def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame,
 
 def human_flag(human: pd.DataFrame, monitors: mon.MonitorConfig = mon.MonitorConfig()
                ) -> mon.FirstFlag:
-    """The recording's own first flag (TTC <= threshold, or the body over a recorded lane line)
-    at the recorded samples: a replay flag the human also has is not the instrument's, and a
-    policy's flag there may be one the recording left no room to avoid."""
+    """The recording's own first flag (TTC <= threshold, the body over a recorded lane line, or
+    contact: a bumper gap at the importers' floor, ``MIN_GAP``, where the recording measured
+    that little or less) at the recorded samples: a replay flag the human also has is not the
+    instrument's, and a policy's flag there may be one the recording left no room to avoid."""
     ttc_flag = human["ttc"].to_numpy(float) <= monitors.ttc_threshold_s
+    contact = human["gap"].to_numpy(float) <= MIN_GAP
     return mon.first_flag(human["t"].to_numpy(float), np.zeros(len(human)),
-                          human["lane_departure"].to_numpy(bool), ttc_flag,
-                          np.zeros(len(human), dtype=bool))
+                          human["lane_departure"].to_numpy(bool), ttc_flag, contact)
 
 
 def recorded_heading(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame
@@ -274,11 +276,12 @@ def recorded_heading(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame
 
 def recorded_path(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame) -> RecordedPath:
     """The human's own path in the replay frame: the ``recorded`` pseudo-planner (positions as
-    recorded, heading :func:`recorded_heading`)."""
+    recorded, heading relative to the ego lane :func:`recorded_heading`, turning with it)."""
     t = rows["time"].to_numpy(float)
     return RecordedPath(t - t[0], frame.points(rows["x"].to_numpy(float),
                                                rows["y"].to_numpy(float)),
-                        recorded_heading(rows, road, frame)[0], rows["v_x"].to_numpy(float))
+                        recorded_heading(rows, road, frame)[1], rows["v_x"].to_numpy(float),
+                        lane=road.lanes[road.ego_lane].centre, lane_start_s=road.path_start_s)
 
 
 def replay_scenario(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame, name: str,

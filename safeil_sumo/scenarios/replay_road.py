@@ -101,6 +101,9 @@ class ReplayRoadConfig:
     # points, finer fits hold it (smooth_path); None: the smooth_window_m fit alone. 0.1 m: the
     # OpenACC, NGSIM and synthetic recordings stay within 0.06 m of the 41 m fit (unchanged)
     path_tolerance_m: float | None = 0.1
+    # [1/m] the finer fits never bend the lane tighter than a car turns (R = 5 m, a turning
+    # circle of ~10 m): tighter, the recorded path is receiver wander (smooth_path)
+    max_curvature: float | None = 0.2
     run_in_m: float = 30.0  # straight behind the recorded start [m] (ego insertion)
     run_out_extra_m: float = 200.0  # straight past the farthest leader position [m] (radar/camera)
     path_end_margin_m: float = 100.0  # test path end = recorded end + this [m]
@@ -119,7 +122,7 @@ class ReplayRoadConfig:
         for name in ("run_in_m", "run_out_extra_m", "path_end_margin_m", "min_speed_mps"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"ReplayRoadConfig.{name} must be >= 0")
-        for name in ("path_tolerance_m", "max_turn_rad"):
+        for name in ("path_tolerance_m", "max_turn_rad", "max_curvature"):
             if getattr(self, name) is not None and not getattr(self, name) > 0:
                 raise ValueError(f"ReplayRoadConfig.{name} must be > 0 (or None)")
 
@@ -215,7 +218,8 @@ def resample_path(points: np.ndarray, spacing_m: float) -> np.ndarray:
 
 
 def smooth_path(points: np.ndarray, spacing_m: float, window_m: float,
-                tolerance_m: float | None = None) -> np.ndarray:
+                tolerance_m: float | None = None, max_curvature: float | None = None
+                ) -> np.ndarray:
     """Resampled every ``spacing_m`` and Savitzky-Golay smoothed (order 3, ``window_m``).
 
     ``tolerance_m`` [m]: where that fit strays further than this from a resampled point, finer
@@ -226,6 +230,9 @@ def smooth_path(points: np.ndarray, spacing_m: float, window_m: float,
     be a kink in the lane's heading). A path every fit holds gets the ``window_m`` fit exactly.
     Tight turns at walking pace (R < 20 m, which a cubic over 41 m cannot follow) and GNSS
     wander that the recording's own lane (centred on its path) follows are what take finer fits.
+    ``max_curvature`` [1/m]: a fit bending tighter than this at a point (no car turns so
+    tightly: receiver wander) does not hold it; where no fit is both within the tolerance and
+    below it, the finest one below it does (the widest where none is).
     """
     p = resample_path(points, spacing_m)
     windows = smoothing_windows(len(p), window_m / spacing_m)
@@ -235,18 +242,36 @@ def smooth_path(points: np.ndarray, spacing_m: float, window_m: float,
         return p
     if tolerance_m is None or len(fits) == 1:
         return fits[0]
-    strays = np.stack([np.linalg.norm(f - p, axis=1) > tolerance_m for f in fits])  # (F, M)
-    # the widest fit within the tolerance (the finest where none is)
-    level = np.where(strays.all(axis=0), len(fits) - 1, np.argmin(strays, axis=0))
+    near = np.stack([np.linalg.norm(f - p, axis=1) <= tolerance_m for f in fits])  # (F, M)
+    drivable = np.ones_like(near) if max_curvature is None else np.stack(
+        [np.abs(path_curvature(f)) <= max_curvature for f in fits])
+    # the widest fit that holds the point; else the finest drivable one; else the widest
+    finest_drivable = len(fits) - 1 - np.argmax(drivable[::-1], axis=0)
+    level = np.where((near & drivable).any(axis=0), np.argmax(near & drivable, axis=0),
+                     np.where(drivable.any(axis=0), finest_drivable, 0))
     if not level.any():
         return fits[0]
-    level = maximum_filter1d(level, size=windows[0], mode="nearest")
+    # widened, but never to a fit that bends too tightly there
+    cap = np.where(drivable.any(axis=0), finest_drivable, 0)
+    level = np.minimum(maximum_filter1d(level, size=windows[0], mode="nearest"), cap)
     blend = uniform_filter1d(level.astype(float), size=windows[0], mode="nearest")
     lo = np.minimum(np.floor(blend).astype(int), len(fits) - 2)
     frac = (blend - lo)[:, None]
     stacked = np.stack(fits)  # (F, M, 2)
     idx = np.arange(len(p))
     return (1.0 - frac) * stacked[lo, idx] + frac * stacked[lo + 1, idx]
+
+
+def path_curvature(points: np.ndarray) -> np.ndarray:
+    """Signed curvature ``(N,)`` [1/m, left +] of the polyline ``points (N >= 3, 2)`` at each
+    point: the turn of the heading between its neighbouring segments over their mean length
+    (the ends take their neighbour's)."""
+    p = np.asarray(points, float)
+    seg = np.diff(p, axis=0)
+    heading = np.unwrap(np.arctan2(seg[:, 1], seg[:, 0]))
+    length = np.linalg.norm(seg, axis=1)
+    inner = np.diff(heading) / np.maximum(0.5 * (length[1:] + length[:-1]), 1e-9)
+    return np.r_[inner[0], inner, inner[-1]]
 
 
 def smoothing_windows(n: int, window: float) -> list[int]:
@@ -377,7 +402,7 @@ def replay_geometry(rows: pd.DataFrame, config: ReplayRoadConfig = ReplayRoadCon
     c0l, c0r = rows["left_c0"].to_numpy(float), rows["right_c0"].to_numpy(float)
     pts = lane_centre_points(x - x[0], y - y[0], rows["yaw"].to_numpy(float), c0l, c0r)
     smooth = smooth_path(pts[moving_points(rows, config)], config.spacing_m,
-                         config.smooth_window_m, config.path_tolerance_m)
+                         config.smooth_window_m, config.path_tolerance_m, config.max_curvature)
     heading = math.atan2(smooth[1, 1] - smooth[0, 1], smooth[1, 0] - smooth[0, 0])
     frame = LocalFrame(float(x[0]), float(y[0]), heading)
     smooth = frame.points(smooth[:, 0] + x[0], smooth[:, 1] + y[0])
