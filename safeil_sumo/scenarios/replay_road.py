@@ -427,13 +427,28 @@ def replay_geometry(rows: pd.DataFrame, config: ReplayRoadConfig = ReplayRoadCon
 def moving_points(rows: pd.DataFrame, config: ReplayRoadConfig = ReplayRoadConfig()
                   ) -> np.ndarray:
     """``(N,)`` True at the samples whose lane-centre point builds the road: where the car moves
-    at least ``config.min_speed_mps`` (:func:`course_over_ground`, +-0.5 s); every sample when
-    fewer than 2 do. A recorded start or end at a standstill then lies on the straight run-in
-    or run-out (:func:`extend_path`), within the receiver's wander."""
-    _, speed = course_over_ground(rows["time"].to_numpy(float), rows["x"].to_numpy(float),
-                                  rows["y"].to_numpy(float), 0.5)
-    keep = speed >= config.min_speed_mps
+    at least ``config.min_speed_mps`` over the 0.5 s before AND the 0.5 s after the sample
+    (at the ends, the one there is), so the last
+    positions of a standstill, whose centred window already sees the car leave, are not kept;
+    every sample when fewer than 2 qualify. A recorded start or end at a standstill then lies
+    on the straight run-in or run-out (:func:`extend_path`), within the receiver's wander."""
+    t = rows["time"].to_numpy(float)
+    x, y = rows["x"].to_numpy(float), rows["y"].to_numpy(float)
+    before, after = _half_window_speed(t, x, y, -0.5), _half_window_speed(t, x, y, 0.5)
+    keep = np.minimum(before, after) >= config.min_speed_mps
     return keep if keep.sum() >= 2 else np.ones(len(rows), dtype=bool)
+
+
+def _half_window_speed(t: np.ndarray, x: np.ndarray, y: np.ndarray, window_s: float
+                       ) -> np.ndarray:
+    """Mean speed [m/s] ``(N,)`` over ``[t, t + window_s]`` (``window_s < 0``: before ``t``),
+    positions linearly interpolated; where that window is cut to nothing by the recording's
+    end, the one on the other side."""
+    other = np.clip(t - window_s, t[0], t[-1])
+    end = np.clip(t + window_s, t[0], t[-1])
+    end = np.where(end == t, other, end)
+    span = np.maximum(np.abs(end - t), 1e-9)
+    return np.hypot(np.interp(end, t, x) - x, np.interp(end, t, y) - y) / span
 
 
 def recorded_stations(centre: Polyline, path_xy: np.ndarray, s_start: float
