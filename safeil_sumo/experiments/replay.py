@@ -7,7 +7,8 @@ The digital twin of a maneuver left out of training:
   the speed's slow drift from the recorded positions removed (``leader_drift_window_s``, see
   :func:`safeil_sumo.scenarios.replay_road.drift_corrected_speed`): over a long maneuver the
   leader stays where it was recorded, not metres off;
-- the ego: starts exactly at the recorded front-bumper position, heading and speed (the lateral
+- the ego: starts exactly at the recorded front-bumper position and speed, with the recorded
+  heading relative to its lane (from the lane lines, :func:`recorded_heading`; the lateral
   offset is the recorded position's offset from the rebuilt lane centre, i.e.
   ``-(c0l + c0r) / 2`` up to the smoothing of the lane centre);
 - the duration: the maneuver's.
@@ -367,7 +368,8 @@ def prepare_replay(drive_rows: pd.DataFrame, out_dir: Path,
                    config: ReplayConfig = ReplayConfig(), maneuver_id: str | None = None
                    ) -> ReplayPrep:
     """Rebuild the maneuver in SUMO (net written to ``out_dir/net``) and set up its scenario
-    and human trace; the first half of :func:`replay_maneuver`.
+    and human trace; the first half of :func:`replay_maneuver`. The recorded ``yaw`` is first
+    checked against the direction of travel (:func:`rr.plausible_heading`, ``config.heading``).
 
     Raises :class:`ReplayError` for unusable rows; SUMO/netconvert errors propagate.
     """

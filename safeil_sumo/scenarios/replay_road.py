@@ -4,14 +4,18 @@ From the drive rows of one maneuver (schema of :mod:`safeil_sumo.data.schema`):
 
 1. the world points of the ego's LANE CENTRE: the ego's front bumper plus the midpoint of the
    left/right lane lines at ``x = 0`` in the ego frame, ``(c0l + c0r) / 2``, rotated by ``yaw``;
+   only where the car moves (:func:`moving_points`): a standing car's receiver wanders;
 2. smoothed: resampled every ``spacing_m`` along the path, then a Savitzky-Golay filter (order 3,
    window ``smooth_window_m``) on x and y — a cubic over 41 m reproduces any motorway radius
-   (R = 800 m: < 1 mm off) while removing the per-sample noise of GNSS and lane-line fits;
+   (R = 800 m: < 1 mm off) while removing the per-sample noise of GNSS and lane-line fits; where
+   it strays more than ``path_tolerance_m`` from the points (walking-pace turns, GNSS wander of a
+   test track), finer fits hold them, never tighter than ``max_curvature`` (:func:`smooth_path`);
 3. extended by a straight run-in behind (room to insert the ego) and a straight run-out ahead,
    long enough for the leader driven by the recorded speed (and for a policy faster than the
    human) to stay on the road;
-4. decimated (Ramer-Douglas-Peucker) to a chord tolerance of :data:`REPLAY_SAGITTA_M`: SUMO shapes
-   stay lean (``moveToXY`` cost grows with shape points, see ``network.py``).
+4. decimated (Ramer-Douglas-Peucker) to a chord tolerance of :data:`REPLAY_SAGITTA_M` and chords
+   turning at most ``max_turn_rad``: SUMO shapes stay lean (``moveToXY`` cost grows with shape
+   points, see ``network.py``).
 
 The net: ONE edge ``"road"``, 3 lanes of the recorded lane width (median of ``c0l - c0r``,
 clipped to [2.8, 4.5] m), ego in the middle lane, ``spreadType="center"`` so the edge shape IS
@@ -21,8 +25,13 @@ Coordinates are LOCAL (:class:`LocalFrame`): origin at the recorded ego position
 start, x along the lane's initial heading (sidecar: ``origin_x/origin_y/rotation_rad``), so the
 road runs along +x as in the paper's plots and large GNSS coordinates never reach SUMO.
 
-The sidecar ``<name>.track.json`` holds ``ego_lane``, ``path_start_s`` (the projection of the
-recorded start on the SUMO ego lane) and ``path_end_s`` (the recorded end plus
+A recording of a closed course driven in laps passes the same place again: its road crosses its
+own start node (2 cm custom node shapes keep netconvert from cutting it there, and a check raises
+if netconvert changes its length), and the nearest point of the road may be another lap's, so the
+recorded path's stations are walked along the road from the start (:func:`recorded_stations`).
+
+The sidecar ``<name>.track.json`` holds ``ego_lane``, ``path_start_s`` (the station of the
+recorded start on the SUMO ego lane) and ``path_end_s`` (the recorded end's plus
 ``path_end_margin_m``: a policy faster than the human is not stopped by the runner's "completed"
 check; the replay ends on time), read by :func:`safeil_sumo.scenarios.road.load_road`. It has no
 ``generator_version`` key on purpose: that key makes ``load_road`` rebuild a TrackSpec arc; a
@@ -50,7 +59,7 @@ from safeil_sumo.scenarios.road import NetworkError, Road, load_road
 
 EDGE_ID = network.EDGE_ID
 ROUTE_ID = network.ROUTE_ID
-REPLAY_GENERATOR_VERSION = 1
+REPLAY_GENERATOR_VERSION = 2  # 2: node shapes, walked stations, finer fits (ZalaZone)
 # Chord tolerance [m] of the SUMO shape: ~11 m chords at R = 800 m. Finer than network.py's 10 cm
 # because here the SUMO polygon is also what the camera and the monitors measure against: the
 # recorded human replayed on it (sim/recorded_ego.py) must stay in its lane (5 cm let the chords
@@ -93,8 +102,8 @@ class ReplayRoadConfig:
     lanes: int = 3  # number of lanes [-]; the ego lane is the middle one (lanes must be odd)
     spacing_m: float = 1.0  # resampling step of the lane centre [m]
     # [m/s] the lane centre is built from the samples where the car moves at least this fast
-    # (course_over_ground over +-0.5 s): a standing car's receiver wanders by centimetres to
-    # decimetres, and that wander, resampled, makes the path double back on itself
+    # over the 0.5 s before and after (moving_points): a standing car's receiver wanders by
+    # centimetres to decimetres, and that wander, resampled, makes the path double back
     min_speed_mps: float = 1.0
     smooth_window_m: float = 41.0  # Savitzky-Golay window (order 3) along the path [m]
     # [m] where the smoothed lane centre strays further than this from the recorded centre
@@ -427,11 +436,11 @@ def replay_geometry(rows: pd.DataFrame, config: ReplayRoadConfig = ReplayRoadCon
 def moving_points(rows: pd.DataFrame, config: ReplayRoadConfig = ReplayRoadConfig()
                   ) -> np.ndarray:
     """``(N,)`` True at the samples whose lane-centre point builds the road: where the car moves
-    at least ``config.min_speed_mps`` over the 0.5 s before AND the 0.5 s after the sample
-    (at the ends, the one there is), so the last
-    positions of a standstill, whose centred window already sees the car leave, are not kept;
-    every sample when fewer than 2 qualify. A recorded start or end at a standstill then lies
-    on the straight run-in or run-out (:func:`extend_path`), within the receiver's wander."""
+    at least ``config.min_speed_mps`` over the 0.5 s before AND the 0.5 s after the sample (at
+    the ends, the one there is), so the last positions of a standstill, whose centred window
+    already sees the car leave, are not kept; every sample when fewer than 2 qualify. A
+    recorded start or end at a standstill then lies on the straight run-in or run-out
+    (:func:`extend_path`), within the receiver's wander."""
     t = rows["time"].to_numpy(float)
     x, y = rows["x"].to_numpy(float), rows["y"].to_numpy(float)
     before, after = _half_window_speed(t, x, y, -0.5), _half_window_speed(t, x, y, 0.5)
