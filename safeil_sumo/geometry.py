@@ -198,6 +198,22 @@ class Polyline:
         _, along, d = self._foot(x, y, best)
         return s_at[best] + along, d, heading[best], best
 
+    def project_along(self, xy: np.ndarray, s_start: float) -> tuple[np.ndarray, np.ndarray]:
+        """Frenet ``s, d`` ``(N,)`` of the points ``(N, 2)`` of a path that runs along this
+        polyline: each found by :meth:`project_near`, walking from the previous point's segment,
+        the first from the segment at arc length ``s_start`` [m].
+
+        Where the polyline passes the same place more than once (the laps of a closed course),
+        :meth:`project` takes the nearest pass, which may be another lap's; this keeps the
+        path's own. Elsewhere both agree.
+        """
+        p = np.asarray(xy, dtype=float).reshape(-1, 2)
+        s, d = np.empty(len(p)), np.empty(len(p))
+        hint = self.segment_index(s_start)
+        for i, (x, y) in enumerate(p.tolist()):
+            s[i], d[i], _, hint = self.project_near(x, y, hint)
+        return s, d
+
     def project_near_many(self, x: np.ndarray, y: np.ndarray, hint: np.ndarray
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`project_near` of N points ``(N,)`` from their hints ``(N,)``: the same walk

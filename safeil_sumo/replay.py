@@ -2,8 +2,8 @@
 
     python -m safeil_sumo.replay --source openacc --maneuver auto --policies analytic safeil bc
 
-Imports the source (``openacc``/``ngsim`` from the shared data folder, or a drive file in the
-schema of :mod:`safeil_sumo.data.schema`, e.g. a synthetic recording), runs the processing
+Imports the source (``openacc``/``zalazone``/``ngsim`` from the shared data folder, or a drive
+file in the schema of :mod:`safeil_sumo.data.schema`, e.g. a synthetic recording), runs the processing
 pipeline (maneuvers), rebuilds the chosen maneuver in SUMO, drives it closed-loop with each policy
 and prints the comparison with the human. Writes into ``--out``: ``metrics.csv/json``,
 ``steps.parquet``, ``human.parquet``, ``compared.parquet``, ``replay.png``, ``manifest.json``,
@@ -34,6 +34,8 @@ from safeil_sumo.data.sources import (  # noqa: F401
     DEFAULT_DATA_DIR,
     NGSIM_FILE,
     OPENACC_GLOB,
+    ZALAZONE_GLOB,
+    ZALAZONE_MAX_CURVATURE,
     driver_of,
     load_source,
 )
@@ -51,7 +53,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                 description="Replay a recorded maneuver in SUMO and compare "
                                             "the closed loop with the human.")
     p.add_argument("--source", default="openacc",
-                   help="openacc, ngsim, or a drive file (Parquet/CSV in the drive schema)")
+                   help="openacc (Vicolungo), zalazone (the ZalaZone handling course), ngsim, or a "
+                        "drive file (Parquet/CSV in the drive schema)")
     p.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR,
                    help=f"folder of the real data (default {DEFAULT_DATA_DIR})")
     p.add_argument("--maneuver", default="auto",

@@ -61,6 +61,7 @@ def test_compare_reports_spacing_rmspe_and_time_gap_errors():
 @pytest.mark.parametrize(("maneuver", "driver"), [
     ("JRC-VC_280219_part3_f2#1", "JRC-VC_280219_part3_f2"),  # OpenACC: file + follower
     ("handling_part22_f3#0", "handling_part22_f3"),
+    ("handling_part22_f7_s2#0", "handling_part22_f7"),  # one run of a follower with dropouts
     ("773-764#1", "773"),  # NGSIM: the follower vehicle
     ("773-770#0", "773"),  # ... behind another leader
     ("47-39_2#0", "47"),  # a pair that recurs (import_ngsim_csv)

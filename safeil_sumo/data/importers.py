@@ -424,6 +424,19 @@ def read_openacc(path: str | Path) -> tuple[pd.DataFrame, list[str]]:
     return raw, meta
 
 
+def read_openacc_metadata(path: str | Path) -> dict[str, list[str]]:
+    """The metadata rows of an OpenACC file (:func:`openacc_metadata` of its first 5 lines),
+    without reading its table."""
+    return openacc_metadata(_head_lines(Path(path), 5))
+
+
+def openacc_vehicle_names(meta: dict[str, list[str]]) -> dict[int, str]:
+    """Vehicle number ``k`` -> its name in the metadata row ``Vehicle_order`` (``k = 1`` is the
+    first name): ``{2: "TESLA_MODELX", ...}``; ``{}`` without the row. The column numbers are
+    platoon positions, so the same number names different cars in files of other orders."""
+    return {k: name for k, name in enumerate(meta.get("Vehicle_order", []), start=1)}
+
+
 def openacc_metadata(lines: list[str]) -> dict[str, list[str]]:
     """Metadata lines as ``{key: values}``, empty fields dropped: ``"ACC, 1"`` -> ``{"ACC": ["1"]}``."""
     out: dict[str, list[str]] = {}

@@ -378,7 +378,7 @@ def load_human_rows(data_dir: Path, sources: Sequence[str] = HUMAN_SOURCES) -> p
     frames = []
     for source in sources:
         rows, _ = process_drive(load_source(source, Path(data_dir)), PipelineConfig(rate_hz=10.0))
-        drivers = {m: driver_of(source, m) for m in rows["maneuver_id"].unique()}
+        drivers = {m: driver_of(source, m, Path(data_dir)) for m in rows["maneuver_id"].unique()}
         frames.append(rows.assign(source=source, driver=rows["maneuver_id"].map(drivers)))
     return pd.concat(frames, ignore_index=True)
 

@@ -7,7 +7,8 @@ The digital twin of a maneuver left out of training:
   the speed's slow drift from the recorded positions removed (``leader_drift_window_s``, see
   :func:`safeil_sumo.scenarios.replay_road.drift_corrected_speed`): over a long maneuver the
   leader stays where it was recorded, not metres off;
-- the ego: starts exactly at the recorded front-bumper position, heading and speed (the lateral
+- the ego: starts exactly at the recorded front-bumper position and speed, with the recorded
+  heading relative to its lane (from the lane lines, :func:`recorded_heading`; the lateral
   offset is the recorded position's offset from the rebuilt lane centre, i.e.
   ``-(c0l + c0r) / 2`` up to the smoothing of the lane centre);
 - the duration: the maneuver's.
@@ -36,6 +37,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.data.importers import MIN_GAP
 from safeil_sumo.data.pipeline import body_outside_lines
 from safeil_sumo.experiments import metrics as hm
 from safeil_sumo.policy import Policy
@@ -76,6 +78,9 @@ class ReplayConfig:
     # rr.REPLAY_SAGITTA_M, smoothing, heading noise): a body less than this over its line is
     # within that error, not a departure [m] (MonitorConfig.lane_margin_m)
     lane_margin_m: float = 0.05
+    # when the recorded heading is believed (rr.plausible_heading): a GNSS heading glitch, or a
+    # heading at standstill, would turn the replayed body (and the planners' start) across lines
+    heading: rr.HeadingCheck = field(default_factory=rr.HeadingCheck)
 
 
 @dataclass(frozen=True)
@@ -212,7 +217,8 @@ def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame,
     car's size from ``vehicle``)."""
     t = rows["time"].to_numpy(float)
     xy = frame.points(rows["x"].to_numpy(float), rows["y"].to_numpy(float))
-    s, d = road.lanes[road.ego_lane].centre.project(xy)
+    # along the lane from the recorded start: on a closed course the nearest pass may be a lap's
+    s, d = rr.recorded_stations(road.lanes[road.ego_lane].centre, xy, road.path_start_s)
     v = rows["v_x"].to_numpy(float)
     gap = rows["lead_x"].to_numpy(float)
     lead_v = rr.drift_corrected_speed(t, rr.leader_speed(rows), s + gap, leader_drift_window_s)
@@ -232,37 +238,67 @@ def human_trace(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame,
 
 def human_flag(human: pd.DataFrame, monitors: mon.MonitorConfig = mon.MonitorConfig()
                ) -> mon.FirstFlag:
-    """The recording's own first flag (TTC <= threshold, or the body over a recorded lane line)
-    at the recorded samples: a replay flag the human also has is not the instrument's, and a
-    policy's flag there may be one the recording left no room to avoid."""
+    """The recording's own first flag (TTC <= threshold, the body over a recorded lane line, or
+    contact: a bumper gap at the importers' floor, ``MIN_GAP``, where the recording measured
+    that little or less) at the recorded samples: a replay flag the human also has is not the
+    instrument's, and a policy's flag there may be one the recording left no room to avoid."""
     ttc_flag = human["ttc"].to_numpy(float) <= monitors.ttc_threshold_s
+    contact = human["gap"].to_numpy(float) <= MIN_GAP
     return mon.first_flag(human["t"].to_numpy(float), np.zeros(len(human)),
-                          human["lane_departure"].to_numpy(bool), ttc_flag,
-                          np.zeros(len(human), dtype=bool))
+                          human["lane_departure"].to_numpy(bool), ttc_flag, contact)
 
 
-def recorded_path(rows: pd.DataFrame, frame: rr.LocalFrame) -> RecordedPath:
-    """The human's own path in the replay frame: the ``recorded`` pseudo-planner."""
+def recorded_heading(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The recorded ego's heading on the rebuilt road: ``(local yaw (N,) [rad], heading relative
+    to the ego lane (N,) [rad])``.
+
+    Relative to its lane the recording states it through its lane lines, ``-atan(c1)`` (mean of
+    the left and right line), where they are given; elsewhere the recorded ``yaw`` minus the
+    lane's heading. The local yaw is the rebuilt lane's heading at the recorded position
+    (walked, :func:`rr.recorded_stations`) plus that. The lines, not the yaw, because the
+    recording's own lane departures (:func:`human_flag`) are judged from them: the body then
+    stands in the rebuilt lane as it stood between the recorded lines. For NGSIM, whose lines
+    come from its yaw, both agree to round-off; for OpenACC (lines centred on the path,
+    ``c1 = 0``) the GNSS heading differs from the smoothed lane by <= 0.016 rad on Vicolungo,
+    and is noise where the car stands or the receiver has just reacquired (ZalaZone).
+    """
+    centre = road.lanes[road.ego_lane].centre
+    xy = frame.points(rows["x"].to_numpy(float), rows["y"].to_numpy(float))
+    s, _ = rr.recorded_stations(centre, xy, road.path_start_s)
+    _, lane_yaw = centre.point_at(s)
+    c1 = 0.5 * (rows["left_c1"].to_numpy(float) + rows["right_c1"].to_numpy(float)) \
+        if {"left_c1", "right_c1"} <= set(rows.columns) else np.full(len(rows), np.nan)
+    from_yaw = (frame.yaw(rows["yaw"].to_numpy(float)) - lane_yaw + math.pi) % (2 * math.pi) \
+        - math.pi
+    relative = np.where(np.isfinite(c1), -np.arctan(c1), from_yaw)
+    return lane_yaw + relative, relative
+
+
+def recorded_path(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame) -> RecordedPath:
+    """The human's own path in the replay frame: the ``recorded`` pseudo-planner (positions as
+    recorded, heading relative to the ego lane :func:`recorded_heading`, turning with it)."""
     t = rows["time"].to_numpy(float)
     return RecordedPath(t - t[0], frame.points(rows["x"].to_numpy(float),
                                                rows["y"].to_numpy(float)),
-                        frame.yaw(rows["yaw"].to_numpy(float)), rows["v_x"].to_numpy(float))
+                        recorded_heading(rows, road, frame)[1], rows["v_x"].to_numpy(float),
+                        lane=road.lanes[road.ego_lane].centre, lane_start_s=road.path_start_s)
 
 
 def replay_scenario(rows: pd.DataFrame, road: Road, frame: rr.LocalFrame, name: str,
                     seed: int = 0, leader_speed_mps: np.ndarray | None = None,
                     monitors: mon.MonitorConfig = mon.MonitorConfig()) -> Scenario:
     """The closed-loop scenario of the recorded maneuver on its rebuilt road; the leader drives
-    ``leader_speed_mps`` (default: the recorded speed, ``rr.leader_speed``)."""
+    ``leader_speed_mps`` (default: the recorded speed, ``rr.leader_speed``). The ego starts at
+    the recorded position and the recorded heading relative to its lane
+    (:func:`recorded_heading`)."""
     t = rows["time"].to_numpy(float)
     lead_v = rr.leader_speed(rows) if leader_speed_mps is None else leader_speed_mps
     leader = SpeedProfile(t - t[0], lead_v, f"recorded leader of {name}")
     centre = road.lanes[road.ego_lane].centre
     start = frame.points(rows["x"].iloc[0], rows["y"].iloc[0])
-    s0, d0 = centre.project(start)
-    _, lane_yaw = centre.point_at(float(s0))
-    yaw0 = float(frame.yaw(float(rows["yaw"].iloc[0])))  # local heading
-    heading = (yaw0 - float(lane_yaw) + math.pi) % (2.0 * math.pi) - math.pi
+    _, d0 = (float(v[0]) for v in rr.recorded_stations(centre, start, road.path_start_s))
+    heading = float(recorded_heading(rows.iloc[:1], road, frame)[1][0])
     return Scenario(
         name=name, road=road, leader=leader,
         ego_speed_mps=float(rows["v_x"].iloc[0]), initial_gap_m=float(rows["lead_x"].iloc[0]),
@@ -332,11 +368,15 @@ def prepare_replay(drive_rows: pd.DataFrame, out_dir: Path,
                    config: ReplayConfig = ReplayConfig(), maneuver_id: str | None = None
                    ) -> ReplayPrep:
     """Rebuild the maneuver in SUMO (net written to ``out_dir/net``) and set up its scenario
-    and human trace; the first half of :func:`replay_maneuver`.
+    and human trace; the first half of :func:`replay_maneuver`. The recorded ``yaw`` is first
+    checked against the direction of travel (:func:`rr.plausible_heading`, ``config.heading``).
 
     Raises :class:`ReplayError` for unusable rows; SUMO/netconvert errors propagate.
     """
     rows = _check_rows(drive_rows)
+    rows = rows.assign(yaw=rr.plausible_heading(
+        rows["time"].to_numpy(float), rows["x"].to_numpy(float), rows["y"].to_numpy(float),
+        rows["yaw"].to_numpy(float), config.heading))
     if maneuver_id is None:
         maneuver_id = str(rows["maneuver_id"].iloc[0]) if "maneuver_id" in rows else "maneuver"
     name = rr.safe_name(maneuver_id)
@@ -365,7 +405,7 @@ def replay_policy(prep: ReplayPrep, policy: Policy) -> Policy:
     pseudo-planners ``recorded`` the human's own path and ``constant_speed`` the initial speed
     held on the lane centre, in this replay's frame."""
     if isinstance(policy, RecordedPath):
-        return recorded_path(prep.rows, prep.frame)
+        return recorded_path(prep.rows, prep.road, prep.frame)
     if isinstance(policy, ConstantSpeedPath):
         return constant_speed_path(prep)
     return policy

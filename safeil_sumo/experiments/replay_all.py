@@ -61,6 +61,8 @@ INSTRUMENT_KEYS = ("max_abs_lane_rebuild_error_m", "max_abs_leader_drift_m",
 DEFAULT_BATCH = 32
 # an NGSIM pair recording "<follower>-<leader>", "_<n>" when the pair recurs (data.importers)
 NGSIM_PAIR = re.compile(r"^(\d+)-\d+(?:_\d+)?$")
+# one of several runs of an OpenACC follower "<file>_f<k>_s<i>" (data.importers)
+OPENACC_RUN = re.compile(r"^(.+_f\d+)_s\d+$")
 
 
 @dataclass(frozen=True)
@@ -87,11 +89,15 @@ class Window:
 def driver_id(maneuver_id: str) -> str:
     """The driver of a maneuver ``"<recording>#<k>"`` (the processing pipeline's ids): the
     follower's vehicle id of an NGSIM pair ``"<follower>-<leader>"`` (one vehicle follows
-    several leaders in turn), else the recording: an OpenACC follower ``"<file>_f<k>"``, a
-    synthetic drive ``"n74_d<k>"``."""
+    several leaders in turn), else the recording: an OpenACC follower ``"<file>_f<k>"`` (the
+    runs ``"<file>_f<k>_s<i>"`` of one follower between receiver dropouts are that follower),
+    a synthetic drive ``"n74_d<k>"``."""
     recording = maneuver_id.rsplit("#", 1)[0]
     pair = NGSIM_PAIR.match(recording)
-    return pair.group(1) if pair else recording
+    if pair:
+        return pair.group(1)
+    run = OPENACC_RUN.match(recording)
+    return run.group(1) if run else recording
 
 
 def window_id(maneuver_id: str, start_s: float) -> str:

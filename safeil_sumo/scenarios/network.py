@@ -75,15 +75,39 @@ def _fmt(v: float) -> str:
     return f"{v:.4f}"
 
 
-def nodes_xml(shape: np.ndarray) -> str:
-    """netconvert node file: a start and an end node at the ends of ``shape (N, 2)`` [m]."""
-    (xs, ys), (xe, ye) = shape[0], shape[-1]
+def nodes_xml(shape: np.ndarray, node_shape_m: float | None = None) -> str:
+    """netconvert node file: a start and an end node at the ends of ``shape (N, 2)`` [m].
+
+    ``node_shape_m`` [m]: give each node a custom shape, a segment that long across the road's
+    end segment, centred on the node (:func:`node_shape`), instead of netconvert's own (a
+    segment across all lanes). netconvert cuts each lane at its LAST crossing of the start
+    node's shape and its FIRST crossing of the end node's (``NBEdge::startShapeAt``), so a road
+    that passes its own ends again (laps of a closed course, a run-out over the run-in) keeps
+    only the stub between those crossings; a node shape of 2 cm is crossed by the ego lane
+    where it starts and ends, and by nothing else. None: netconvert's shape (tracks stay
+    byte-identical).
+    """
+    p = np.asarray(shape, float)
+    (xs, ys), (xe, ye) = p[0], p[-1]
+    custom = ["", ""]
+    if node_shape_m is not None:
+        for i, (at, towards) in enumerate(((p[0], p[1]), (p[-1], p[-2]))):
+            custom[i] = ' shape="' + " ".join(
+                f"{_fmt(x)},{_fmt(y)}" for x, y in node_shape(at, towards, node_shape_m)) + '"'
     return (
         "<nodes>\n"
-        f'    <node id="start" x="{_fmt(xs)}" y="{_fmt(ys)}"/>\n'
-        f'    <node id="end" x="{_fmt(xe)}" y="{_fmt(ye)}"/>\n'
+        f'    <node id="start" x="{_fmt(xs)}" y="{_fmt(ys)}"{custom[0]}/>\n'
+        f'    <node id="end" x="{_fmt(xe)}" y="{_fmt(ye)}"{custom[1]}/>\n'
         "</nodes>\n"
     )
+
+
+def node_shape(at: np.ndarray, towards: np.ndarray, length_m: float) -> np.ndarray:
+    """The 2 ends ``(2, 2)`` [m] of a segment ``length_m`` long through ``at (2,)``,
+    perpendicular to the direction from ``at`` to ``towards (2,)`` (the road's end segment)."""
+    t = np.asarray(towards, float) - np.asarray(at, float)
+    n = np.array([-t[1], t[0]]) / np.linalg.norm(t)
+    return np.asarray(at, float) + np.outer([-0.5, 0.5], length_m * n)
 
 
 def edges_xml(shape: np.ndarray, lanes: int, lane_width_m: float, speed_mps: float) -> str:

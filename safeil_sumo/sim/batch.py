@@ -60,6 +60,7 @@ from safeil_sumo.sim.runner import (
     start_positions,
     sumo_args,
     sumo_lane_position,
+    xy_placement_is_unambiguous,
 )
 from safeil_sumo.sim.xp import ARRAYS
 
@@ -108,9 +109,9 @@ class _Scenario:
         self.centre = self.lane.centre
         self.multi_piece = len(road.ego_pieces) > 1
         self.rng = np.random.default_rng(scenario.seed)
-        self.camera = sen.LaneCamera(road, scenario.sensors)
         self.n_max = max_steps(scenario, loop)
         self.s_ego0, self.s_lead0 = start_positions(scenario, vehicle)
+        self.camera = sen.LaneCamera(road, scenario.sensors, self.s_ego0)
         self.state0 = initial_state(scenario, vehicle)
         self.has_leader = scenario.leader is not None
         self.lead_speeds = leader_speeds(scenario, self.n_max, loop.step_s)
@@ -129,8 +130,12 @@ class _Scenario:
         road, i = self.road, self.i
         ego_k, ego_lane, _, self.lead_scale = insert_vehicles(
             api, self.scenario, vehicle, self.ego, self.leader_id, partial(prefixed, i), f"_{i}")
-        place_ego(api, self.state0, vehicle, self.ego, self.dx,
-                  prefixed(i, road.route_edges[ego_k]), int(ego_lane))
+        front = veh.front_bumper(self.state0, vehicle)
+        if xy_placement_is_unambiguous(road, front, self.s_ego0):
+            place_ego(api, self.state0, vehicle, self.ego, self.dx,
+                      prefixed(i, road.route_edges[ego_k]), int(ego_lane))
+        else:  # a closed course's other lap is nearer: keep the insertion on the ego's station
+            api.vehicle.setSpeed(self.ego, veh.speed(self.state0))
 
     def read_leader(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
         """The leader after a step, in the original track's coordinates."""

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from safeil_sumo.geometry import Polyline
+
 RECORDED_NAME = "recorded"
 
 
@@ -31,9 +33,15 @@ class RecordedPath:
 
     ``times`` (N,) [s from the replay start, increasing], ``front_xy`` (N, 2) [m] the recorded
     front bumper, ``yaw`` (N,) [rad] the recorded heading (unwrapped), ``speed`` (N,) [m/s] the
-    recorded longitudinal speed. An unbound instance (no samples) is what ``policies.load
-    ("recorded")`` returns; :func:`safeil_sumo.experiments.replay.replay_maneuver` binds it to
-    the maneuver it replays.
+    recorded longitudinal speed. With a ``lane`` (the ego lane's centre), ``yaw`` is the heading
+    RELATIVE to that lane and the heading at ``t`` is the lane's where the front bumper is then
+    plus that (interpolated): between two samples the body turns with the lane, vertex by
+    vertex, as the monitors see it (interpolating world headings would lag a lane vertex by up
+    to a sample: 0.2 rad on the 4 m radii of GNSS wander at walking pace). ``lane_start_s``
+    [m]: where along the lane the first sample lies (the walk starts there: a closed course
+    passes the same place on every lap). An unbound instance (no samples) is what
+    ``policies.load("recorded")`` returns; :func:`safeil_sumo.experiments.replay.replay_maneuver`
+    binds it to the maneuver it replays.
     """
 
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -42,6 +50,8 @@ class RecordedPath:
     speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
     name: str = RECORDED_NAME
     horizon: float = 5.0  # [s] unused (nothing is planned); kept for the Policy protocol
+    lane: Polyline | None = None
+    lane_start_s: float = 0.0  # [m]
 
     def __post_init__(self) -> None:
         t = np.asarray(self.times, float)
@@ -56,6 +66,12 @@ class RecordedPath:
             raise RecordedPathError("the recorded path has NaN/inf positions, headings or speeds")
         for name, value in (("times", t), ("front_xy", xy), ("yaw", yaw), ("speed", v)):
             object.__setattr__(self, name, value)
+        # the lane segment under each sample: where pose_at's walk starts between samples
+        segments = np.zeros(0, dtype=int)
+        if self.lane is not None and len(t):
+            s, _ = self.lane.project_along(xy, self.lane_start_s)
+            segments = np.array([self.lane.segment_index(v) for v in s.tolist()], dtype=int)
+        object.__setattr__(self, "_segments", segments)
 
     @property
     def bound(self) -> bool:
@@ -69,10 +85,13 @@ class RecordedPath:
                 "the 'recorded' planner replays a recorded maneuver's own path: use it with "
                 "python -m safeil_sumo.replay, not with run or sweep")
         ts = self.times
-        return (float(np.interp(t, ts, self.front_xy[:, 0])),
-                float(np.interp(t, ts, self.front_xy[:, 1])),
-                float(np.interp(t, ts, self.yaw)),
-                max(float(np.interp(t, ts, self.speed)), 0.0))
+        x = float(np.interp(t, ts, self.front_xy[:, 0]))
+        y = float(np.interp(t, ts, self.front_xy[:, 1]))
+        yaw = float(np.interp(t, ts, self.yaw))
+        if self.lane is not None:
+            i = min(max(int(np.searchsorted(ts, t, side="right")) - 1, 0), len(ts) - 1)
+            yaw += self.lane.project_near(x, y, int(self._segments[i]))[2]
+        return x, y, yaw, max(float(np.interp(t, ts, self.speed)), 0.0)
 
     def plan(self, features: np.ndarray) -> np.ndarray:
         """Not a planner: the closed loop calls :meth:`pose_at` instead."""

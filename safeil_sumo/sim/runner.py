@@ -47,6 +47,9 @@ LEADER_ID = "leader"
 ROUTE_ID = "r_ego"
 LEADER_ROUTE_ID = "r_leader"  # the route's edges from the leader's first edge (when not the ego's)
 GUI_VIEW_WIDTH_M = 150.0  # sumo-gui's view width around the ego: it and a leader 50 m ahead [m]
+# [m] two projections of one point on a lane this close along it are the same pass of the road
+# (xy_placement_is_unambiguous)
+SAME_STATION_M = 1.0
 ApiFactory = Callable[[Sequence[str]], sumo_api.SumoApi]
 
 
@@ -123,7 +126,7 @@ def run_scenario(
         if traffic is not None:
             trf.prefill(api, traffic, road.route_edges[ego_k], float(ego_pos),
                         road.route_edges[-1], np.random.default_rng([scenario.seed, 1]))
-        place_ego(api, state, vehicle)
+        place_ego_at_start(api, road, state, vehicle, s_ego0)
         api.simulation.step()
         if loop.gui:  # the ego exists only after the first step
             sumo_api.track_in_gui(api, EGO_ID, GUI_VIEW_WIDTH_M)
@@ -136,7 +139,7 @@ def run_scenario(
         st = (state.x, state.y, state.yaw, state.vx, state.vy, state.yaw_rate, state.steer,
               state.drive_force)
         d_front = vehicle.cog_to_front_bumper_m
-        camera = sen.LaneCamera(road, scenario.sensors)
+        camera = sen.LaneCamera(road, scenario.sensors, s_ego0)
         move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
         on_lane = loop.ego_placement == "lane" and not loop.gui
         move_to = api.vehicle.moveTo if on_lane else None
@@ -460,6 +463,40 @@ def place_ego(api: sumo_api.SumoApi, state: veh.VehicleState, vehicle: veh.Vehic
     x, y = veh.front_bumper(state, vehicle)
     api.vehicle.moveToXY(ego_id, edge, lane, x + dx, y, yaw_to_sumo_angle(state.yaw), 2)
     api.vehicle.setSpeed(ego_id, veh.speed(state))
+
+
+def place_ego_at_start(api: sumo_api.SumoApi, road: Road, state: veh.VehicleState,
+                       vehicle: veh.VehicleParams, s_front: float) -> None:
+    """:func:`place_ego` at the start, unless a closed course's other lap is nearer there
+    (:func:`xy_placement_is_unambiguous`): then the insertion on the ego's station is kept."""
+    if xy_placement_is_unambiguous(road, veh.front_bumper(state, vehicle), s_front):
+        place_ego(api, state, vehicle)
+    else:
+        api.vehicle.setSpeed(EGO_ID, veh.speed(state))
+
+
+def xy_placement_is_unambiguous(road: Road, front_xy: tuple[float, float], s_front: float,
+                                tolerance_m: float = SAME_STATION_M) -> bool:
+    """Whether ``moveToXY`` puts a front bumper at ``front_xy`` [m] on its own station
+    ``s_front`` [m along the ego lane]: SUMO maps a position to the NEAREST point of any lane,
+    so where the road passes the same place again (the laps of a closed course) and another
+    pass of some lane is nearer than the ego lane's own, it would put the ego there (and see a
+    collision with a leader it overlaps). Own pass of each lane: walked from the ego's station
+    scaled to that lane's length (:meth:`Polyline.project_near`)."""
+    xy = np.asarray(front_xy, float)
+    centre = road.lanes[road.ego_lane].centre
+    _, own_d, _, _ = centre.project_near(float(xy[0]), float(xy[1]),
+                                         centre.segment_index(s_front))
+    for lane in road.lanes:
+        line = lane.centre
+        s_near, d_near = (float(v) for v in line.project(xy))
+        if abs(d_near) >= abs(own_d):
+            continue
+        hint = line.segment_index(s_front * line.length / centre.length)
+        s_own = line.project_near(float(xy[0]), float(xy[1]), hint)[0]
+        if abs(s_near - s_own) > tolerance_m:
+            return False
+    return True
 
 
 def _kinematic_state(pose: tuple[float, float, float, float], vehicle: veh.VehicleParams

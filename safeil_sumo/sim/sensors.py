@@ -228,16 +228,29 @@ class LaneCamera:
 
     Same lines, bit for bit, but each projection on a lane polyline walks from the segment of the
     previous call instead of scanning all N segments. Keeps that memory, so use one camera per run.
+
+    ``start_s`` [m along the ego lane]: where the car starts. The first look at a line then walks
+    from there (scaled to the line's length) instead of taking the line's nearest point, which
+    on a road that passes the same place again (a closed course's laps) may be another lap's.
     """
 
-    def __init__(self, road: Road, config: SensorConfig) -> None:
+    def __init__(self, road: Road, config: SensorConfig, start_s: float | None = None) -> None:
         self.road = road
         self.config = config
         self._segment: dict[int, int] = {}  # id(polyline) -> segment of the last projection
+        self._start_s = start_s
 
-    def _project(self, line: Polyline, x: float, y: float) -> tuple[float, float]:
+    def _project(self, line: Polyline, x: float, y: float, near_s: float | None = None
+                 ) -> tuple[float, float]:
+        """``s, d`` of ``(x, y)`` on ``line``, walking from the last look at it; a first look
+        walks from ``near_s`` [m along the ego lane] scaled to the line's length, else from
+        the start (``start_s``), else takes the nearest point of the whole line."""
         hint = self._segment.get(id(line))
-        if hint is None:  # first look at this line: one full projection finds the segment
+        near_s = self._start_s if near_s is None else near_s
+        if hint is None and near_s is not None:
+            ego = self.road.lanes[self.road.ego_lane].centre
+            hint = line.segment_index(near_s * line.length / ego.length)
+        elif hint is None:  # first look at this line: one full projection finds the segment
             s_full, _ = line.project(np.array([x, y]))
             hint = line.segment_index(float(s_full))
         s, d, _, self._segment[id(line)] = line.project_near(x, y, hint)
@@ -261,8 +274,10 @@ class LaneCamera:
         road = self.road
         s, d = self._project(road.lanes[road.ego_lane].centre, x, y)
         lane = road.lanes[_lane_index_at(road, d, s)]
-        return (lane, self._project(lane.left_boundary, x, y)[0],
-                self._project(lane.right_boundary, x, y)[0])
+        # a neighbour's lines first seen mid-run: walked from the ego's station, not the start
+        near_s = s if self._start_s is not None else None
+        return (lane, self._project(lane.left_boundary, x, y, near_s)[0],
+                self._project(lane.right_boundary, x, y, near_s)[0])
 
 
 def ego_points_many(line: Polyline, s0: np.ndarray, ego_x: np.ndarray, ego_y: np.ndarray,
