@@ -187,6 +187,7 @@ def markdown(summary: pd.DataFrame, per_driver: pd.DataFrame) -> str:
                                   values="gap_rmse_mean_m").reset_index()
     a, b = POLICY_LABELS["safeil.safetensors"], POLICY_LABELS["idm.json"]
     if a in wide and b in wide:
+        wide = wide.dropna(subset=[a, b])  # drivers both planners were replayed for
         better = wide[a] <= wide[b]
         for s, g in wide.groupby("source"):
             lines.append(f"\n{s}: `safeil` (fold) at or below the fold IDM's mean gap RMSE for "

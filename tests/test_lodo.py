@@ -1,0 +1,67 @@
+"""training/leave_one_driver_out.py: its summary of the left-out drivers' replays, by hand."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def lodo():
+    sys.path.insert(0, str(REPO / "training"))
+    spec = importlib.util.spec_from_file_location("lodo", REPO / "training" /
+                                                  "leave_one_driver_out.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_summary_by_hand(lodo) -> None:
+    """Per source and planner (the fold's checkpoint and IDM file named by their role): gap
+    RMSE median / mean / worst over the maneuvers, flags beyond the human's, collisions (flag OR
+    end reason, each run once), runs ended early; per driver the mean; failed runs left out."""
+    runs = pd.DataFrame({
+        "status": ["ok"] * 6 + ["failed"],
+        "source": ["openacc"] * 4 + ["ngsim"] * 3,
+        "driver": ["openacc/f2", "openacc/f2", "openacc/f3", "openacc/f2", "ngsim/7",
+                   "ngsim/7", "ngsim/7"],
+        "policy": ["data/lodo/fold0/safeil.safetensors"] * 3 + ["data/lodo/fold0/idm.json"]
+        + ["constant_speed", "data/lodo/fold1/safeil.safetensors", "constant_speed"],
+        "rmse_gap": [2.0, 4.0, 9.0, 5.0, 30.0, 3.0, 99.0],
+        "rmspe_gap": [0.1, 0.2, 0.3, 0.2, 1.0, 0.1, 9.0],
+        "bias_headway": [0.5, -0.1, 0.2, 0.0, 3.0, 0.0, 9.0],
+        "flag": ["", "ttc", "", "", "collision", "", "collision"],
+        "human_flag": ["", "ttc", "", "", "", "", ""],
+        "end_reason": ["timeout", "timeout", "timeout", "timeout", "timeout", "timeout",
+                       "collision"],
+        "coverage": [1.0, 1.0, 1.0, 1.0, 0.4, 1.0, 0.1],
+    })
+    summary, per_driver = lodo.summarise(runs)
+    s = summary.set_index(["source", "policy"])
+    row = s.loc[("openacc", "safeil (fold)")]
+    assert (row["maneuvers"], row["drivers"]) == (3, 2)
+    assert (row["gap_rmse_median_m"], row["gap_rmse_mean_m"], row["gap_rmse_max_m"]) == \
+        (4.0, 5.0, 9.0)
+    assert row["spacing_rmspe_median"] == pytest.approx(0.2)
+    assert row["time_gap_error_median_s"] == pytest.approx(0.2)
+    assert (row["flags"], row["flags_beyond_human"], row["collisions"]) == (1, 0, 0)
+    idm = s.loc[("openacc", "idm (fold)")]
+    assert (idm["maneuvers"], idm["gap_rmse_mean_m"]) == (1, 5.0)
+    cs = s.loc[("ngsim", "constant_speed")]  # the failed run (99 m) is left out
+    assert (cs["maneuvers"], cs["gap_rmse_max_m"], cs["collisions"], cs["ended_early"]) == \
+        (1, 30.0, 1, 1)
+    d = per_driver.set_index(["driver", "policy"])
+    assert d.loc[("openacc/f2", "safeil (fold)"), "gap_rmse_mean_m"] == 3.0
+    assert d.loc[("openacc/f2", "safeil (fold)"), "maneuvers"] == 2
+    text = lodo.markdown(summary, per_driver)
+    assert "| openacc | safeil (fold) | 3 (2) | 4.00 / 5.00 / 9.0 |" in text
+    # f2: safeil 3.0 <= idm 5.0; f3 has no IDM run: compared where both exist
+    assert "openacc: `safeil` (fold) at or below the fold IDM's mean gap RMSE for 1 of 1 " in text
+    assert np.isfinite(summary["gap_rmse_mean_m"]).all()
