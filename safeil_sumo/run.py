@@ -35,7 +35,7 @@ from safeil_sumo.cli_args import (
 from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
-from safeil_sumo.scenarios.spec import LEADER_KINDS
+from safeil_sumo.scenarios.spec import LEADER_KINDS, ScenarioSpec
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig
 from safeil_sumo.sim.sumo_api import SumoError
@@ -83,24 +83,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.scenarios < 1:
         p.error("--scenarios must be >= 1")
-    if (args.ego_speed is not None and not 0 <= args.ego_speed <= 100) or args.gap <= 0:
-        p.error("--ego-speed must be in [0, 100] m/s and --gap > 0")
-    lo, hi = args.leader_speed
-    if not 0 <= lo <= hi <= 100:
-        p.error("--leader-speed needs 0 <= LOW <= HIGH <= 100 m/s")
-    if not 0 < args.plan_rate <= 100:
+    if not 0 < args.plan_rate <= 100:  # the loop's step is 0.01 s
         p.error("--plan-rate must be in (0, 100] Hz")
-    if args.leader_profile is not None and args.leader != "recorded":
-        p.error("--leader-profile needs --leader recorded")
-    if (args.from_km is not None or args.to_km is not None) and args.net != "n74":
-        p.error("--from-km/--to-km need --net n74")
-    if args.traffic != "none" and args.net != "n74":
-        p.error("--traffic needs --net n74 (the net with traffic route files)")
     if args.net == "n74" and args.route:
         p.error("--net n74 drives a stretch of --from-km/--to-km; --route needs a .net.xml path "
                 "(e.g. sumo_scenarios/n74/n74.net.xml)")
-    try:
+    try:  # the scenario's rules (speeds, gap, leader, stretch, traffic, lane): ScenarioSpec's
         args.lane = lane_for_net(args.net, args.lane)
+        ScenarioSpec(net=args.net, leader_kind=args.leader,
+                     leader_speed_range_mps=tuple(args.leader_speed),
+                     ego_speed_mps=args.ego_speed, initial_gap_m=args.gap,
+                     plan_rate_hz=args.plan_rate, leader_profile=args.leader_profile or "",
+                     route=tuple(args.route), **_stretch(args))
     except ValueError as exc:
         p.error(str(exc))
     if args.gui_screenshot is not None and not args.gui:

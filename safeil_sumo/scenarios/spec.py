@@ -153,7 +153,7 @@ class ScenarioSpec:
         if not self.plan_rate_hz > 0:
             raise ValueError(f"plan rate must be > 0 Hz, got {self.plan_rate_hz}")
         if (self.from_km is not None or self.to_km is not None) and self.net != "n74":
-            raise ValueError("--from-km/--to-km apply to --net n74 only")
+            raise ValueError("--from-km/--to-km need --net n74")
         if self.traffic:
             from safeil_sumo.sim.traffic import DENSITIES
 
