@@ -303,8 +303,12 @@ class ClosedLoop:
         self._plan_every = max(round(1.0 / (loop.plan_rate_hz * loop.step_s)), 1)
         self._plant = veh.Plant.of(vehicle, loop.step_s)
         self._api: sumo_api.SumoApi | None = None
-        self._runs: list[_Scenario] = []
-        self._live: _Live | None = None
+        self._runs: list[_Scenario] = []  # every scenario of the last reset, in order
+        self._live: _Live | None = None  # the running ones; None: nothing to step
+        self._k = 0  # the next physics step
+        self._last = np.empty((0, len(_Log.COLUMNS)))  # (N, 44) each scenario's latest row
+        self._features = np.empty((0, 9))  # (N, 9) each scenario's latest features
+        self._running = np.empty(0, dtype=bool)  # (N,)
 
     # -- the public loop ----------------------------------------------------------------------
 
@@ -341,7 +345,7 @@ class ClosedLoop:
         self._api = self.api_factory(args)
         self._runs, self._k = runs, 0
         n = len(runs)
-        self._last = np.full((n, len(_Log.COLUMNS)), np.nan)  # each scenario's latest log row
+        self._last = np.full((n, len(_Log.COLUMNS)), np.nan)
         self._features = np.full((n, 9), np.nan)
         self._running = np.ones(n, dtype=bool)
         try:
@@ -570,9 +574,10 @@ class ClosedLoop:
         length, width = vehicle.length_m, vehicle.width_m
         # the leaders, read per scenario and projected at once (NaN: none)
         lead_x, lead_y, v_lead_true = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+        api = self._api
         for j, r in enumerate(live.runs):
             if r.leader is not None:
-                r.read_leader(self._api, vehicle)
+                r.read_leader(api, vehicle)
                 if r.leader is not None:
                     (lead_x[j], lead_y[j]), v_sumo = r.leader[0], r.leader[1]
                     v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
