@@ -39,7 +39,6 @@ ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
 LONG_FUNCTIONS = {
     "results.py::write_readme": 208,
     "sim/runner.py::run_scenario": 204,
-    "sim/batch.py::_loop": 165,
     "data/recorder.py::record_drive": 109,
     "scenarios/route.py::load_route": 102,
 }
