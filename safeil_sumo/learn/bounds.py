@@ -125,10 +125,10 @@ def relax(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray
     - ReLU: exact when the interval is on one side of 0; else the chord above, and below the
       line through the origin of slope 1 if ``u >= -l`` else 0 (CROWN's adaptive choice);
     - tanh (convex below 0, concave above): on ``[l, u]`` with ``l >= 0`` the chord below and
-      the tangent at the midpoint above; with ``u <= 0`` the mirror; across 0 both lines have
-      the slope ``min(tanh'(l), tanh'(u))`` and pass through ``(l, tanh l)`` (below) and
-      ``(u, tanh u)`` (above), sound because ``tanh'`` on ``[l, u]`` is at least its smaller
-      endpoint value (tanh' is unimodal).
+      the tangent at the midpoint above; with ``u <= 0`` the mirror; across 0 the line through
+      ``(l, tanh l)`` tangent to tanh in the concave part (or the chord, if the tangent point
+      lies beyond u) above, and its mirror through ``(u, tanh u)`` below
+      (:func:`_tangent_from`).
     Each line is loosened by :data:`RELAX_SLACK` against float rounding.
     """
     lo = np.asarray(lo, float)
@@ -158,14 +158,18 @@ def relax(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray
         chord = np.where(narrow, 0.0, (tu - tl) / np.where(narrow, 1.0, width))
         mid = 0.5 * (l + u)
         tm, dm = np.tanh(mid), _dtanh(mid)
-        lam = np.minimum(_dtanh(l), _dtanh(u))
         pos, neg = l >= 0.0, u <= 0.0
+        cross = ~pos & ~neg
+        s_up, s_lo = np.zeros_like(l), np.zeros_like(l)
+        if cross.any():
+            s_up[cross] = _tangent_from(l[cross], u[cross])
+            s_lo[cross] = _tangent_from(-u[cross], -l[cross])
         # lower line
-        al = np.where(pos, chord, np.where(neg, dm, lam))
-        bl = np.where(pos, tl - chord * l, np.where(neg, tm - dm * mid, tl - lam * l))
+        al = np.where(pos, chord, np.where(neg, dm, s_lo))
+        bl = np.where(pos, tl - chord * l, np.where(neg, tm - dm * mid, tu - s_lo * u))
         # upper line
-        au = np.where(pos, dm, np.where(neg, chord, lam))
-        bu = np.where(pos, tm - dm * mid, np.where(neg, tu - chord * u, tu - lam * u))
+        au = np.where(pos, dm, np.where(neg, chord, s_up))
+        bu = np.where(pos, tm - dm * mid, np.where(neg, tu - chord * u, tl - s_up * l))
         # a narrow interval: the tangent at the midpoint, shifted by the curvature term
         # (|tanh''| <= 0.77, so |tanh(p) - tangent| <= 0.39 width^2)
         curv = 0.39 * width * width
@@ -184,6 +188,27 @@ def relax(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray
     return a_l, b_l, a_u, b_u
 
 
+def _tangent_from(l: np.ndarray, u: np.ndarray, iterations: int = 24) -> np.ndarray:
+    """For ``l < 0 < u``: a slope ``s`` at least every secant slope of tanh from ``l`` to a
+    point of ``(l, u]``, so the line through ``(l, tanh l)`` of slope ``s`` lies above tanh on
+    ``[l, u]`` (the CROWN upper line for an interval across 0). The largest secant is the chord
+    to ``u``, or, when the tangent from ``(l, tanh l)`` touches tanh at ``d* <= u``, tanh'(d*);
+    bisection brackets ``d*`` from below and returns ``tanh'`` there (tanh' falls on [0, inf),
+    so that is ``>= tanh'(d*)``: sound however few iterations)."""
+    tl = np.tanh(l)
+
+    def g(d: np.ndarray) -> np.ndarray:  # > 0 below the tangent point, < 0 beyond it
+        return _dtanh(d) * (d - l) - (np.tanh(d) - tl)
+
+    chord = (np.tanh(u) - tl) / (u - l)
+    a, b = np.zeros_like(l), u.copy()
+    for _ in range(iterations):
+        m = 0.5 * (a + b)
+        above = g(m) > 0.0
+        a, b = np.where(above, m, a), np.where(above, b, m)
+    return np.where(g(u) >= 0.0, chord, np.maximum(_dtanh(a), chord))
+
+
 def _widen(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (lo - INTERVAL_SLACK * (1.0 + np.abs(lo)),
             hi + INTERVAL_SLACK * (1.0 + np.abs(hi)))
@@ -193,11 +218,14 @@ def _widen(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class LinearBound:
     """``objective(x) >= coef @ x + const`` on the box, and its minimum ``lower`` over it.
 
-    ``coef (N, m, n_in)``, ``const (N, m)``, ``lower (N, m)``."""
+    ``coef (N, m, n_in)``, ``const (N, m)``, ``lower (N, m)``; ``layer_coefs``, when recorded:
+    per layer, the objective's coefficients on that layer's output ``(N, m, n_k)`` met on the
+    way down (what :func:`split_scores` weighs the relaxation gaps with)."""
 
     coef: np.ndarray
     const: np.ndarray
     lower: np.ndarray
+    layer_coefs: tuple = ()
 
 
 def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -206,21 +234,25 @@ def _rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _backsubstitute(layers: list[Layer], relaxations: list, objective: np.ndarray,
-                    const: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> LinearBound:
+                    const: np.ndarray, lo: np.ndarray, hi: np.ndarray, record: bool = False
+                    ) -> LinearBound:
     """Lower bound of ``objective @ y_K + const (N, m)``, ``y_K`` the output of ``layers`` (the
     first K), by back-substitution of the relaxations (one per layer). ``objective``: shared
     ``(m, n_K)`` (then the first step is factored: ``C+ (a_L W) + C- (a_U W)``, BLAS-sized) or
     per box ``(N, m, n_K)``."""
     c = np.array(const, dtype=float)
     steps = list(zip(reversed(layers), reversed(relaxations), strict=True))
-    if objective.ndim == 2:
+    recorded = []
+    if objective.ndim == 2 and not record:
         (layer, (a_l, b_l, a_u, b_u)), steps = steps[0], steps[1:]
         pos, neg = np.maximum(objective, 0.0), np.minimum(objective, 0.0)
         c += b_l @ pos.T + b_u @ neg.T + (a_l * layer.bias) @ pos.T + (a_u * layer.bias) @ neg.T
         lam = pos @ (a_l[:, :, None] * layer.weight) + neg @ (a_u[:, :, None] * layer.weight)
     else:
-        lam = objective
+        lam = np.broadcast_to(objective, (len(c), *objective.shape[-2:]))
     for layer, (a_l, b_l, a_u, b_u) in steps:
+        if record:
+            recorded.append(lam)
         pos, neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
         c += _rowdot(pos, b_l) + _rowdot(neg, b_u)
         lam = pos * a_l[:, None, :] + neg * a_u[:, None, :]
@@ -228,7 +260,7 @@ def _backsubstitute(layers: list[Layer], relaxations: list, objective: np.ndarra
         lam = lam @ layer.weight
     pos, neg = np.maximum(lam, 0.0), np.minimum(lam, 0.0)
     lower = c + _rowdot(pos, lo) + _rowdot(neg, hi)
-    return LinearBound(lam, c, lower)
+    return LinearBound(lam, c, lower, tuple(reversed(recorded)))
 
 
 @dataclass(frozen=True)
@@ -241,6 +273,8 @@ class NetworkBounds:
     pre: list
     relaxations: list
     last_activation: np.ndarray
+    sensitivity: list  # per layer: |d pre-activation / d input| estimate, (N, n_k, n_in) or
+    # (n_k, n_in) for the first layer
 
     def output_interval(self) -> tuple[np.ndarray, np.ndarray]:
         """The last layer's output interval (post-activation), by interval propagation."""
@@ -267,7 +301,7 @@ def propagate(layers: list[Layer], lo: np.ndarray, hi: np.ndarray, *, method: st
         raise ValueError(f"boxes must be (N, n_in) twice, got {lo.shape} and {hi.shape}")
     if np.any(hi < lo):
         raise ValueError("box with hi < lo")
-    pre, relaxations = [], []
+    pre, relaxations, sensitivity = [], [], [np.abs(layers[0].weight)]
     a, b = lo, hi
     n = len(lo)
     for k, layer in enumerate(layers):
@@ -281,16 +315,22 @@ def propagate(layers: list[Layer], lo: np.ndarray, hi: np.ndarray, *, method: st
                                     lo, hi)
             pl[:, rows] = np.maximum(pl[:, rows], bound.lower[:, : len(rows)])
             pu[:, rows] = np.minimum(pu[:, rows], -bound.lower[:, len(rows):])
+            sens = np.zeros((n, layer.weight.shape[0], lo.shape[1]))
+            sens[:, rows] = 0.5 * (np.abs(bound.coef[:, : len(rows)])
+                                   + np.abs(bound.coef[:, len(rows):]))
+            sensitivity.append(sens)
+        elif k > 0:
+            sensitivity.append(None)
         pl, pu = _widen(pl, pu)
         pu = np.maximum(pu, pl)
         pre.append((pl, pu))
         relaxations.append(relax(layer.activation, pl, pu))
         a, b = _post(pl, pu, layer.activation)
-    return NetworkBounds(lo, hi, pre, relaxations, layers[-1].activation)
+    return NetworkBounds(lo, hi, pre, relaxations, layers[-1].activation, sensitivity)
 
 
 def crown(bounds: NetworkBounds, layers: list[Layer], objective: np.ndarray,
-          const: np.ndarray | None = None) -> LinearBound:
+          const: np.ndarray | None = None, record: bool = False) -> LinearBound:
     """CROWN lower bound of ``objective @ y + const`` over each box, ``y`` the network's output.
 
     ``objective``: ``(m, n_out)`` or per box ``(N, m, n_out)``; ``const``: ``(m,)`` or
@@ -299,7 +339,7 @@ def crown(bounds: NetworkBounds, layers: list[Layer], objective: np.ndarray,
     obj = np.asarray(objective, float)
     shape = (n, obj.shape[-2])
     c = np.zeros(shape) if const is None else np.broadcast_to(np.asarray(const, float), shape)
-    return _backsubstitute(layers, bounds.relaxations, obj, c, bounds.lo, bounds.hi)
+    return _backsubstitute(layers, bounds.relaxations, obj, c, bounds.lo, bounds.hi, record)
 
 
 def output_bounds(layers: list[Layer], lo: np.ndarray, hi: np.ndarray, *,
@@ -315,3 +355,31 @@ def output_bounds(layers: list[Layer], lo: np.ndarray, hi: np.ndarray, *,
         low = np.maximum(low, bound.lower[:, :n_out])
         high = np.minimum(high, -bound.lower[:, n_out:])
     return low, high
+
+
+def relaxation_gaps(bounds: NetworkBounds) -> list[np.ndarray]:
+    """Per layer ``(N, n_k)``: the largest vertical distance between each unit's upper and lower
+    relaxation lines over its interval (0 for identity units)."""
+    out = []
+    for (l, u), (a_l, b_l, a_u, b_u) in zip(bounds.pre, bounds.relaxations, strict=True):
+        out.append(np.maximum((a_u - a_l) * l + b_u - b_l, (a_u - a_l) * u + b_u - b_l))
+    return out
+
+
+def split_scores(bounds: NetworkBounds, bound: LinearBound) -> np.ndarray:
+    """Per box, objective row and input dimension ``(N, m, n_in)``: an estimate of how much the
+    lower bound would gain from splitting the box along that dimension: ``|coef| width`` (the
+    linear part) plus every unit's relaxation gap weighted by the objective's coefficient on it,
+    shared among the inputs by their part in its pre-activation's width. ``bound`` must come
+    from :func:`crown` with ``record=True``."""
+    width = bounds.hi - bounds.lo
+    score = np.abs(bound.coef) * width[:, None, :]
+    gaps = relaxation_gaps(bounds)
+    for k, lam in enumerate(bound.layer_coefs):
+        sens = bounds.sensitivity[k]
+        if sens is None or not np.any(gaps[k] > 0):
+            continue
+        share = sens * width[:, None, :]  # (N, n_k, n_in)
+        share = share / np.maximum(share.sum(axis=-1, keepdims=True), 1e-300)
+        score += (np.abs(lam) * gaps[k][:, None, :]) @ share
+    return score

@@ -1,378 +1,386 @@
-"""Certified margins of a planner network over its operating envelope (issue 23, part 1).
+"""Certify a planner network's margins over its operating envelope (issue 23, part 1).
 
-What is proved, for every state of a box of the envelope (:class:`CertEnvelope`): the plan the
-network outputs (one plan, open loop, exact features) keeps
+For each margin (the leader margin and the lane margin, :mod:`safeil_sumo.learn.certify_margins`)
+a branch and bound over the envelope's boxes: boxes are taken largest share of the envelope
+first (ties by creation order), bounded in batches (IBP + CROWN), searched for counterexamples
+where unproven (the bound's minimising corner, the centre and seeded random points, each
+evaluated with :class:`MLPPolicy` and the numpy reference margins) and split in half along the
+dimension whose split promises the most (:func:`safeil_sumo.learn.bounds.split_scores`), until
+every box is proven, or the budget (time or boxes, shared equally by the margins) runs out.
 
-- the **leader margin** ``d + v_lead t_i - x_i [- (gap_min + time_gap v_x)] >= 0`` at the three
-  control points' Greville times ``t_i = i T_h / 3`` (the leader at constant speed; since
-  ``d + v_lead t`` is linear in tau, these are the margin's exact Bernstein coefficients, so the
-  whole spline stays behind the predicted leader), the bracket as in training
-  (:func:`safeil_sumo.learn.losses.envelope_barrier_terms`: only where braking can reach it);
-- the **lane margin**: the 2 x 6 degree-6 Bernstein coefficients k = 1..6 of the left and right
-  lateral margins along the spline (:func:`safeil_sumo.bspline.lateral_margin_bernstein`, vehicle
-  track T from the checkpoint's training config) are >= 0, so the whole planned path is inside the
-  lane (k = 0, the car itself, does not depend on the plan; the envelope keeps it >= 0.17 m).
-
-How (all pure numpy, :mod:`safeil_sumo.learn.bounds`): the envelope coordinates ``z`` (lane
-width, lateral offset, heading, curvature, ego speed, relative speed, gap[, style]) map to the
-network's inputs by one affine layer with a ReLU on the leader speed (``v_lead = max(v + dv,
-0)``); the features ride along the hidden layers as identity units and the residual output
-mode's ``v_x t_i`` is folded into the output layer, so the margins are functions of one network's
-output. The leader margin is linear in it; the lane margins contain the products ``c1 x`` and
-``c2 x_i x_j``, enclosed by McCormick planes (centred: ``a b >= a_m b + b_m a - a_m b_m - Δa Δb
-/ 4``, squares by tangents and chords) over the intervals CROWN gives the outputs. The resulting
-linear objective is bounded by CROWN back-substitution (and by intervals; the larger lower bound
-wins). A margin counts as proven on a box when its lower bound is at least
-:data:`FLOAT_MARGIN_M`, an explicit float margin (no outward rounding).
-
-Branch and bound (:func:`certify`): boxes are taken largest share of the envelope first (ties by
-creation order), bounded in batches, searched for counterexamples (the bound's minimising corner,
-the centre and seeded random points, each evaluated with :class:`MLPPolicy` and the numpy
-reference margins), and split in half along the dimension of largest estimated influence on the
-worst open margin, until proven, or the budget (time or boxes) runs out.
+The result is the certified fraction of the envelope's volume per margin (a lower bound: boxes
+cut by the recoverable condition count by a lower Riemann sum of their recoverable volume, the
+envelope's by an upper one), the volume holding a confirmed counterexample, the rest (unknown),
+where the unproven volume lies, and the worst counterexamples.
 """
 
 from __future__ import annotations
 
+import heapq
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo.bspline import ELEVATE_3_TO_6, PRODUCT_WEIGHTS, lateral_margin_bernstein
-from safeil_sumo.features import N_FEATURES
-from safeil_sumo.learn import bounds as bnd
-from safeil_sumo.learn.envelope import EnvelopeConfig
+from safeil_sumo.learn.certify_margins import (
+    DV,
+    FLOAT_MARGIN_M,
+    GAP,
+    MARGIN_ROWS,
+    MARGINS,
+    ROW_NAMES,
+    BoxBounds,
+    CertEnvelope,
+    CertifyError,
+    Properties,
+    V,
+    bound_boxes,
+    box_shares,
+    envelope_volume,
+    planner_layers,
+    reference_margins,
+)
 from safeil_sumo.learn.inference import MLPPolicy
 
-FLOAT_MARGIN_M = 1e-6  # a margin is proven where its sound lower bound is at least this [m]
-MARGINS = ("leader", "lane")
-ROW_NAMES = (*(f"leader_{i}" for i in (1, 2, 3)), *(f"left_b{k}" for k in range(1, 7)),
-             *(f"right_b{k}" for k in range(1, 7)))
-MARGIN_ROWS = {"leader": slice(0, 3), "lane": slice(3, 15)}
-DIM_NAMES = ("lane_width_m", "lateral_offset_m", "heading_error", "curvature_1pm",
-             "ego_speed_mps", "relative_speed_mps", "gap_m")
-STYLE_DIM = "time_gap_s"
-W, OFF, HEAD, CURV, V, DV, GAP = range(7)
-_SAMPLING = EnvelopeConfig()
-
-
-class CertifyError(ValueError):
-    """A checkpoint or setting that cannot be certified (one line for the command line)."""
+__all__ = ["Budget", "CertEnvelope", "CertifyError", "CertifyResult", "MarginResult",
+           "Properties", "certify"]
+PARTS = ("leader", "free")
 
 
 @dataclass(frozen=True)
-class CertEnvelope:
-    """The states the certificate covers: those :func:`safeil_sumo.learn.envelope.sample_states`
-    draws for the envelope barrier (defaults read from :class:`EnvelopeConfig`, so they cannot
-    drift apart). States outside are not claimed.
+class Budget:
+    """When branch and bound stops (whichever comes first), shared equally by the margins."""
 
-    Lane lines in the ego frame: ``c0l = w/2 - offset``, ``c0r = -w/2 - offset``, both lines'
-    ``c1 = heading_error`` and ``c2 = curvature / 2``. Leader: ``v_lead = max(v_x + dv, 0)``.
-    """
-
-    lane_width_m: tuple[float, float] = _SAMPLING.lane_width_m  # lane width w [m]
-    lateral_offset_m: tuple[float, float] = _SAMPLING.lateral_offset_m  # ego left of centre [m]
-    heading_error: tuple[float, float] = _SAMPLING.heading_error  # lane slope c1 [-]
-    curvature_1pm: tuple[float, float] = _SAMPLING.curvature_1pm  # lane curvature 2 c2 [1/m]
-    ego_speed_mps: tuple[float, float] = _SAMPLING.ego_speed_mps  # ego speed v_x [m/s]
-    relative_speed_mps: tuple[float, float] = _SAMPLING.relative_speed_mps  # dv = v_lead - v_x
-    # before clipping at a stopped leader [m/s]
-    gap_m: tuple[float, float] = _SAMPLING.gap_m  # bumper gap d [m]; volume measured in log d,
-    # as the sampler draws it log-uniform
-    brake_mps2: float = _SAMPLING.brake_mps2  # recoverable: d > closing^2 / (2 brake), closing
-    # = max(v_x - v_lead, 0) [m/s^2]
-    radar_range_m: float = _SAMPLING.radar_range_m  # "no leader": the leader at this gap at the
-    # ego's speed [m]
-    no_leader_share: float = _SAMPLING.no_leader_share  # weight of the no-leader part [-]
-    time_gap_s: tuple[float, float] | None = None  # style input range [s]; None: the
-    # checkpoint's default setting (a style-conditioned checkpoint only)
+    seconds: float = 600.0  # wall time for all margins [s]
+    boxes: int | None = None  # boxes bounded for all margins [-]; None: no limit (set it for a
+    # reproducible run: the time limit depends on the machine)
+    batch: int = 512  # boxes bounded together [-]
+    cex_min_share: float = 1e-7  # a box holding a counterexample is split further only while
+    # its share of the envelope exceeds this [-]
+    n_random: int = 4  # random points per unproven box tried as counterexamples [-]
+    seed: int = 0  # seeds the random points [-]
 
     def __post_init__(self) -> None:
-        for name in (*DIM_NAMES, "time_gap_s"):
-            r = getattr(self, name)
-            if r is None:
-                continue
-            if len(r) != 2 or not (np.isfinite(r[0]) and np.isfinite(r[1])) or r[1] < r[0]:
-                raise CertifyError(f"envelope {name} must be a finite (lo, hi) with lo <= hi, "
-                                   f"got {r}")
-        if self.gap_m[0] <= 0:
-            raise CertifyError(f"envelope gap_m must be > 0, got {self.gap_m}")
-        if not 0.0 <= self.no_leader_share <= 1.0:
-            raise CertifyError(f"no_leader_share must be in [0, 1], got {self.no_leader_share}")
-
-    @property
-    def dims(self) -> tuple[str, ...]:
-        return DIM_NAMES + ((STYLE_DIM,) if self.time_gap_s is not None else ())
-
-    def root_boxes(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """``{"leader": (lo, hi), "free": (lo, hi)}``: the leader states and the no-leader
-        states (relative speed 0 and gap at the radar range: zero-width dimensions)."""
-        lo = np.array([getattr(self, n)[0] for n in self.dims], float)
-        hi = np.array([getattr(self, n)[1] for n in self.dims], float)
-        free_lo, free_hi = lo.copy(), hi.copy()
-        free_lo[DV] = free_hi[DV] = 0.0
-        free_lo[GAP] = free_hi[GAP] = self.radar_range_m
-        return {"leader": (lo, hi), "free": (free_lo, free_hi)}
-
-    def part_weights(self) -> dict[str, float]:
-        return {"leader": 1.0 - self.no_leader_share, "free": self.no_leader_share}
-
-    def features(self, z: np.ndarray) -> np.ndarray:
-        """Planner features ``(..., 9)`` at envelope coordinates ``z (..., len(dims))``."""
-        z = np.asarray(z, float)
-        w, off, c1, c2 = z[..., W], z[..., OFF], z[..., HEAD], 0.5 * z[..., CURV]
-        v = z[..., V]
-        return np.stack([0.5 * w - off, c1, c2, -0.5 * w - off, c1, c2, v,
-                         np.maximum(v + z[..., DV], 0.0), z[..., GAP]], axis=-1)
-
-    def recoverable(self, z: np.ndarray) -> np.ndarray:
-        """``(...)`` bool: braking at ``brake_mps2`` keeps the ego behind the leader."""
-        z = np.asarray(z, float)
-        closing = np.clip(np.minimum(-z[..., DV], z[..., V]), 0.0, None)
-        return z[..., GAP] > closing * closing / (2.0 * self.brake_mps2)
+        if not self.seconds > 0:
+            raise CertifyError(f"the time budget must be > 0 s, got {self.seconds}")
+        if self.boxes is not None and self.boxes < 1:
+            raise CertifyError(f"the box budget must be >= 1, got {self.boxes}")
+        if self.batch < 1 or self.n_random < 0:
+            raise CertifyError("batch must be >= 1 and n_random >= 0")
 
 
 @dataclass(frozen=True)
-class Properties:
-    """The margins' settings, from the checkpoint's training config (losses.BarrierConfig)."""
+class MarginResult:
+    """One margin's outcome; shares of the envelope's volume, mass-weighted over its leader and
+    no-leader parts (``certified`` is a lower bound)."""
 
-    horizon_s: float  # plan horizon T_h [s]; control point i at t_i = i T_h / 3
-    track_m: float = 1.76  # vehicle track T [m]: the lane margin keeps T/2 to each line
-    gap_min_m: float = 0.0  # extra leader gap [m] (where braking can reach it)
-    time_gap_margin_s: float = 0.0  # extra leader gap per ego speed [s] (idem)
-    brake_mps2: float = 6.0  # the feasibility of that extra gap, as in training [m/s^2]
-
-    @classmethod
-    def from_metadata(cls, meta: dict, brake_mps2: float = 6.0) -> Properties:
-        tc = meta.get("train_config") or {}
-        return cls(horizon_s=float(meta["horizon_s"]), track_m=float(tc.get("track", 1.76)),
-                   gap_min_m=float(tc.get("gap_min", 0.0)),
-                   time_gap_margin_s=float(tc.get("time_gap", 0.0)), brake_mps2=brake_mps2)
-
-    @property
-    def times(self) -> np.ndarray:
-        return np.arange(1, 4) * (self.horizon_s / 3.0)
-
-
-# ------------------------------------------------------------------ the network to bound
+    margin: str
+    certified: float  # certified share of the envelope [-]
+    certified_by_part: dict  # per part ("leader", "free") [-]
+    with_counterexample: float  # share in final boxes holding a confirmed violation [-]
+    unknown: float  # the rest: neither proven nor refuted within the budget [-]
+    boxes_bounded: int  # [-]
+    proven_boxes: int  # boxes on which the margin was proven (the certificate's leaves) [-]
+    counterexample_boxes: int  # unproven boxes holding a confirmed violation [-]
+    open_boxes: int  # unproven boxes left [-]
+    seconds: float  # wall time of this margin's branch and bound [s]
+    stopped_by: str  # "proven", "seconds", "boxes" or "small" (only counterexample boxes left)
+    unproven_by_dim: dict  # per dimension: share of the unproven volume in each quarter of its
+    # range (the gap's in log d) [-]
+    counterexamples: list  # the worst confirmed violations (dicts, worst first)
+    unproven_boxes: list  # the largest unproven boxes (dicts)
+    proven_summary: dict  # proven boxes: count, smallest and median share, depth range
 
 
-def planner_layers(policy: MLPPolicy, style_range: bool) -> list[bnd.Layer]:
-    """The planner as one network of envelope coordinates ``z`` -> ``[plan (6); features (9)]``.
+@dataclass(frozen=True)
+class CertifyResult:
+    """What :func:`certify` measured; :mod:`safeil_sumo.learn.certificate` writes it out."""
 
-    Layer 0 maps ``z`` to the features (+ style) with a ReLU on the leader speed; every hidden
-    layer carries the 9 features along as identity units; the output layer adds the residual
-    ``v_x t_i`` to the x control points. The plan's order is ``x1, y1, x2, y2, x3, y3`` [m].
-    """
-    n_z = len(DIM_NAMES) + int(style_range)
-    n_in = N_FEATURES + int(style_range)
-    a0 = np.zeros((n_in, n_z))
-    a0[0, W], a0[0, OFF] = 0.5, -1.0
-    a0[1, HEAD] = a0[4, HEAD] = 1.0
-    a0[2, CURV] = a0[5, CURV] = 0.5
-    a0[3, W], a0[3, OFF] = -0.5, -1.0
-    a0[6, V] = 1.0
-    a0[7, V] = a0[7, DV] = 1.0
-    a0[8, GAP] = 1.0
-    if style_range:
-        a0[9, len(DIM_NAMES)] = 1.0
-    codes0 = np.zeros(n_in, np.int8)
-    codes0[7] = bnd.RELU
-    layers = [bnd.Layer(a0, np.zeros(n_in), codes0)]
-    act = bnd.ACTIVATIONS[policy.activation]
-    affine = policy.affine_layers(style_input=style_range)
-    eye = np.eye(N_FEATURES)
-    prev = n_in  # width of the previous layer's output
-    for j, (w, b) in enumerate(affine[:-1]):
-        n_h = w.shape[0]
-        top = w if j == 0 else np.concatenate([w, np.zeros((n_h, N_FEATURES))], axis=1)
-        carry = np.zeros((N_FEATURES, prev))
-        carry[:, -N_FEATURES:] = eye if j > 0 else 0.0
-        if j == 0:
-            carry[:, :N_FEATURES] = eye
-        layers.append(bnd.Layer(np.concatenate([top, carry]), np.concatenate(
-            [b, np.zeros(N_FEATURES)]), np.concatenate([np.full(n_h, act, np.int8),
-                                                        np.zeros(N_FEATURES, np.int8)])))
-        prev = n_h + N_FEATURES
-    w, b = affine[-1]
-    residual = np.zeros((6, N_FEATURES))
-    times = policy.residual_times
-    if times is not None:
-        residual[[0, 2, 4], 6] = times
-    if len(affine) == 1:  # no hidden layer: the features are the input itself
-        top = np.concatenate([w[:, :N_FEATURES] + residual, w[:, N_FEATURES:]], axis=1)
-        carry = np.concatenate([eye, np.zeros((N_FEATURES, prev - N_FEATURES))], axis=1)
+    policy: str
+    envelope: CertEnvelope
+    properties: Properties
+    style: dict  # the style setting certified (a range with --time-gap), {} without style
+    margins: dict  # margin name -> MarginResult
+    seconds: float  # [s]
+    budget: Budget
+    volumes: dict  # part -> (lower, upper) bound of its volume in the envelope's coordinates
+    float_margin_m: float = FLOAT_MARGIN_M  # [m]
+
+
+def _style_setting(policy: MLPPolicy, env: CertEnvelope) -> tuple[bool, dict]:
+    if env.time_gap_s is not None:
+        if "time_gap_s" not in policy.style_names:
+            raise CertifyError(f"{policy.name} has no style input: --time-gap applies only to "
+                               "style-conditioned checkpoints")
+        return True, {"time_gap_s": [float(v) for v in env.time_gap_s]}
+    return False, {k: float(v) for k, v in policy.style.items()}
+
+
+@dataclass
+class _Tree:
+    """Boxes by id for one margin: bounds, part, shares, proof, counterexample."""
+
+    n_z: int
+    cap: int = 4096
+    n: int = 0
+    FIELDS = (("lo", "z"), ("hi", "z"), ("part", np.int8), ("share_lo", float),
+              ("share_hi", float), ("proven", bool), ("cex_val", float), ("cex_z", "z"),
+              ("depth", np.int32), ("lower", float))
+
+    def __post_init__(self) -> None:
+        for name, kind in self.FIELDS:
+            shape = (self.cap, self.n_z) if kind == "z" else (self.cap,)
+            setattr(self, name, np.empty(shape, float if kind == "z" else kind))
+
+    def add(self, **cols) -> np.ndarray:
+        k = len(cols["lo"])
+        if self.n + k > self.cap:
+            cap = max(self.n + k, 2 * self.cap)
+            for name, _ in self.FIELDS:
+                old = getattr(self, name)
+                new = np.empty((cap, *old.shape[1:]), old.dtype)
+                new[: self.n] = old[: self.n]
+                setattr(self, name, new)
+            self.cap = cap
+        ids = np.arange(self.n, self.n + k)
+        for name, value in cols.items():
+            getattr(self, name)[ids] = value
+        self.lower[ids] = -np.inf
+        self.n += k
+        return ids
+
+
+def _candidates(env: CertEnvelope, lo, hi, part, coef, rng, n_random):
+    """Points ``(N, K, n_z)`` to try as counterexamples and whether each is in the envelope:
+    the corner minimising the bound's linear part, the centre, random points; a leader state
+    below the recoverable gap is lifted onto it (if still inside the box)."""
+    n, d = lo.shape
+    vertex = np.where(coef > 0, lo, hi)
+    pts = np.concatenate([vertex[:, None], 0.5 * (lo + hi)[:, None],
+                          lo[:, None] + rng.uniform(size=(n, n_random, d)) * (hi - lo)[:, None]],
+                         axis=1)
+    lead = (part == 0)[:, None]
+    closing = np.clip(np.minimum(-pts[..., DV], pts[..., V]), 0.0, None)
+    floor = closing * closing / (2.0 * env.brake_mps2)
+    lift = lead & (pts[..., GAP] <= floor)
+    pts[..., GAP] = np.where(lift, floor * (1 + 1e-9) + 1e-9, pts[..., GAP])
+    ok = (~lead | env.recoverable(pts)) & (pts[..., GAP] <= hi[:, None, GAP])
+    return pts, ok
+
+
+def _search(policy, env, props, tree, ids, bb, margin, rng, n_random) -> None:
+    """Counterexample search in the boxes ``ids``: records the worst violation found per box."""
+    rows = bb.lower.argmin(axis=1)
+    coef = bb.coef[np.arange(len(ids)), rows]
+    pts, ok = _candidates(env, tree.lo[ids], tree.hi[ids], tree.part[ids], coef, rng, n_random)
+    n, k, d = pts.shape
+    m = reference_margins(policy, env.features(pts.reshape(-1, d)), props).reshape(n, k, 15)
+    worst = np.where(ok, m[..., MARGIN_ROWS[margin]].min(axis=2), np.inf)  # (N, K)
+    best = worst.argmin(axis=1)
+    val = worst[np.arange(n), best]
+    hit = (val < 0.0) & (val < tree.cex_val[ids])
+    tree.cex_val[ids[hit]] = val[hit]
+    tree.cex_z[ids[hit]] = pts[np.arange(n), best][hit]
+
+
+def _split(env, tree, ids, dims, weights) -> np.ndarray:
+    """Split each box in two along ``dims`` (the gap at its geometric mean); returns the new
+    ids (children with no recoverable state are dropped). A counterexample stays with the
+    child holding it."""
+    lo, hi = tree.lo[ids], tree.hi[ids]
+    r = np.arange(len(ids))
+    cut = 0.5 * (lo[r, dims] + hi[r, dims])
+    gap = dims == GAP
+    cut[gap] = np.sqrt(lo[r, dims][gap] * hi[r, dims][gap])
+    hi_a, lo_b = hi.copy(), lo.copy()
+    hi_a[r, dims] = cut
+    lo_b[r, dims] = cut
+    c_lo, c_hi = np.concatenate([lo, lo_b]), np.concatenate([hi_a, hi])
+    parent = np.concatenate([ids, ids])
+    part = tree.part[parent]
+    s_lo, s_hi = np.empty(len(parent)), np.empty(len(parent))
+    for p, name in enumerate(PARTS):
+        sel = part == p
+        if sel.any():
+            a, b = box_shares(env, c_lo[sel], c_hi[sel], name)
+            s_lo[sel], s_hi[sel] = a / weights[name][1], b / weights[name][1]
+    keep = s_hi > 0
+    cz = tree.cex_z[parent]
+    inside = np.all((cz >= c_lo) & (cz <= c_hi), axis=1)
+    return tree.add(lo=c_lo[keep], hi=c_hi[keep], part=part[keep], share_lo=s_lo[keep],
+                    share_hi=s_hi[keep], proven=False,
+                    cex_val=np.where(inside, tree.cex_val[parent], np.inf)[keep],
+                    cex_z=np.where(inside[:, None], cz, np.nan)[keep],
+                    depth=tree.depth[parent][keep] + 1)
+
+
+def _roots(env: CertEnvelope, tree: _Tree, weights: dict, heap: list) -> None:
+    for p, (name, (lo, hi)) in enumerate(env.root_boxes().items()):
+        if weights[name][0] <= 0:
+            continue
+        s_lo, s_hi = box_shares(env, lo[None], hi[None], name)
+        (i,) = tree.add(lo=lo[None], hi=hi[None], part=p, share_lo=s_lo / weights[name][1],
+                        share_hi=s_hi / weights[name][1], proven=False, cex_val=np.inf,
+                        cex_z=np.nan, depth=0)
+        heapq.heappush(heap, (-weights[name][0] * tree.share_hi[i], int(i)))
+
+
+def _branch_and_bound(policy, env, props, layers, margin, seconds, max_boxes, budget,
+                      progress) -> MarginResult:
+    """One margin's branch and bound; see the module docstring."""
+    from tqdm import tqdm
+
+    weights = {name: (w, envelope_volume(env, name)[1])
+               for name, w in env.part_weights().items()}
+    w_part = np.array([weights[p][0] for p in PARTS])
+    tree, heap = _Tree(len(env.dims)), []
+    _roots(env, tree, weights, heap)
+    proven_mass, finished = np.zeros(len(PARTS)), []
+    start, bounded, it, stopped_by = time.perf_counter(), 0, 0, "proven"
+    bar = tqdm(desc=f"{policy.name} {margin}", unit="box", disable=not progress or None,
+               total=max_boxes)
+    while heap:
+        if time.perf_counter() - start > seconds:
+            stopped_by = "seconds"
+            break
+        if max_boxes is not None and bounded >= max_boxes:
+            stopped_by = "boxes"
+            break
+        take = budget.batch if max_boxes is None else min(budget.batch, max_boxes - bounded)
+        ids = np.array([heapq.heappop(heap)[1] for _ in range(min(take, len(heap)))])
+        bounded += len(ids)
+        bb = bound_boxes(layers, props, tree.lo[ids], tree.hi[ids], margin)
+        lower = bb.lower.min(axis=1)
+        tree.lower[ids] = lower
+        proven = lower >= FLOAT_MARGIN_M
+        tree.proven[ids] = proven
+        np.add.at(proven_mass, tree.part[ids[proven]],
+                  tree.share_lo[ids[proven]] * w_part[tree.part[ids[proven]]])
+        todo = ~proven
+        if todo.any():
+            rng = np.random.default_rng([budget.seed, MARGINS.index(margin), it])
+            sub = BoxBounds(bb.lower[todo], bb.coef[todo], bb.score[todo])
+            _search(policy, env, props, tree, ids[todo], sub, margin, rng, budget.n_random)
+            small = w_part[tree.part[ids]] * tree.share_hi[ids] <= budget.cex_min_share
+            final = todo & small & np.isfinite(tree.cex_val[ids])
+            finished.extend(ids[final].tolist())
+            split = todo & ~final
+            if split.any():
+                width = tree.hi[ids[split]] - tree.lo[ids[split]]
+                score = bb.score[split][np.arange(split.sum()), bb.lower[split].argmin(axis=1)]
+                dims = np.where(width > 0, score + 1e-12 * width, -1.0).argmax(axis=1)
+                for c in _split(env, tree, ids[split], dims, weights):
+                    heapq.heappush(heap, (-w_part[tree.part[c]] * tree.share_hi[c], int(c)))
+        it += 1
+        bar.update(len(ids))
+        bar.set_postfix(certified=f"{proven_mass.sum():.4f}", refresh=False)
     else:
-        top = np.concatenate([w, residual], axis=1)
-        carry = np.concatenate([np.zeros((N_FEATURES, w.shape[1])), eye], axis=1)
-    layers.append(bnd.Layer(np.concatenate([top, carry]), np.concatenate(
-        [b, np.zeros(N_FEATURES)]), np.zeros(6 + N_FEATURES, np.int8)))
-    return layers
+        stopped_by = "proven" if not finished else "small"
+    bar.close()
+    open_ids = np.array(finished + [i for _, i in heap], dtype=int)
+    return _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_part,
+                          (bounded, time.perf_counter() - start, stopped_by))
 
 
-# ------------------------------------------------------------------ the margins
+def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
+            props: Properties | None = None, budget: Budget | None = None,
+            margins: tuple[str, ...] = MARGINS, progress: bool = True) -> CertifyResult:
+    """Certify ``policy`` (at its current style, or over ``env.time_gap_s``) on ``env``
+    (default :class:`CertEnvelope`): one branch and bound per margin, each with an equal share
+    of ``budget`` (default :class:`Budget`); ``props`` default from the checkpoint's
+    metadata."""
+    from threadpoolctl import threadpool_limits
+
+    env = env or CertEnvelope()
+    budget = budget or Budget()
+
+    unknown = set(margins) - set(MARGINS)
+    if unknown or not margins:
+        raise CertifyError(f"margins must be among {MARGINS}, got {list(margins)}")
+    style_range, style = _style_setting(policy, env)
+    props = props or Properties.from_metadata(policy.metadata, env.brake_mps2)
+    layers = planner_layers(policy, style_range)
+    start = time.perf_counter()
+    share = 1.0 / len(margins)
+    results = {}
+    with threadpool_limits(limits=1, user_api="blas"):
+        for m in margins:
+            results[m] = _branch_and_bound(
+                policy, env, props, layers, m, budget.seconds * share,
+                None if budget.boxes is None else max(1, int(budget.boxes * share)), budget,
+                progress)
+    volumes = {p: envelope_volume(env, p) for p in PARTS}
+    return CertifyResult(policy.name, env, props, style, results, time.perf_counter() - start,
+                         budget, volumes)
 
 
-def reference_margins(policy: MLPPolicy, features: np.ndarray, props: Properties
-                      ) -> np.ndarray:
-    """The 15 margins (:data:`ROW_NAMES`) ``(M, 15)`` [m] of the network's actual plans at
-    ``features (M, 9)``: :meth:`MLPPolicy.plan` and the numpy reference formulas."""
-    f = np.asarray(features, float)
-    cp = policy.plan(f)
-    out = np.empty((len(f), 15))
-    out[:, 0:3] = f[:, 8, None] + f[:, 7, None] * props.times - cp[..., 0]
-    extra = _lead_extra(f[:, 6], f[:, 7], f[:, 8], props)
-    out[:, 0:3] -= extra[:, None]
-    half = 0.5 * props.track_m
-    out[:, 3:9] = lateral_margin_bernstein(cp, f[:, 0:3], -half)[:, 1:]
-    out[:, 9:15] = -lateral_margin_bernstein(cp, f[:, 3:6], half)[:, 1:]
+def _zdict(env: CertEnvelope, z: np.ndarray) -> dict:
+    return {n: float(v) for n, v in zip(env.dims, z, strict=True)}
+
+
+def _unproven_by_dim(env: CertEnvelope, lo: np.ndarray, hi: np.ndarray, mass: np.ndarray,
+                     bins: int = 4) -> dict:
+    """Per dimension, the share of ``mass`` in each of ``bins`` equal parts of its range (the
+    gap's in log d), each box's mass spread uniformly over its extent."""
+    root_lo, root_hi = env.root_boxes()["leader"]
+    out = {}
+    total = max(float(mass.sum()), 1e-300)
+    for j, name in enumerate(env.dims):
+        f = np.log if j == GAP else (lambda a: a)
+        a, b = f(root_lo[j]), f(root_hi[j])
+        edges = a + (b - a) * np.arange(bins + 1) / bins
+        x0, x1 = f(lo[:, j]), f(hi[:, j])
+        width = x1 - x0
+        share = np.empty((len(lo), bins))
+        for q in range(bins):
+            overlap = np.clip(np.minimum(x1, edges[q + 1]) - np.maximum(x0, edges[q]), 0, None)
+            point = (width <= 0) & (x0 >= edges[q]) & ((x0 < edges[q + 1]) | (q == bins - 1))
+            share[:, q] = np.where(width > 0, overlap / np.where(width > 0, width, 1.0), point)
+        out[name] = [round(float(v), 4) for v in (mass[:, None] * share).sum(axis=0) / total]
     return out
 
 
-def _lead_extra(v: np.ndarray, v_lead: np.ndarray, gap: np.ndarray, props: Properties
-                ) -> np.ndarray:
-    """The extra leader gap [m] where braking can still reach it, else 0 (as in training)."""
-    margin = props.gap_min_m + props.time_gap_margin_s * v
-    closing = np.clip(v - v_lead, 0.0, None)
-    feasible = gap - margin > closing * closing / (2.0 * props.brake_mps2)
-    return np.where(feasible, margin, 0.0)
-
-
-def _interval_product(al, ah, bl, bh):
-    c = np.stack([al * bl, al * bh, ah * bl, ah * bh])
-    return c.min(0), c.max(0)
-
-
-def property_objective(props: Properties, f_lo: np.ndarray, f_hi: np.ndarray,
-                       y_lo: np.ndarray, y_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                                    np.ndarray]:
-    """Linear lower bounds of the 15 margins in the network's output ``[plan; features]``:
-    ``margin >= C @ out + const`` for every output in the box whose features lie in
-    ``[f_lo, f_hi] (N, 9)`` and plans in ``[y_lo, y_hi] (N, 6)``.
-
-    Returns ``C (N, 15, 15)``, ``const (N, 15)`` and the McCormick gap ``(N, 15, 3)`` of each row
-    (from the ``c1 x``, ``c2 Q`` and ``x_i x_j`` enclosures: what splitting can remove).
-    """
-    n = len(f_lo)
-    C = np.zeros((n, 15, 15))
-    const = np.zeros((n, 15))
-    gaps = np.zeros((n, 15, 3))
-    F = 6  # features start here in the output
-    # leader rows: d + v_lead t - x_i - extra
-    v_lo = f_lo[:, 6]
-    closing_min = np.clip(v_lo - f_hi[:, 7], 0.0, None)
-    never = (f_hi[:, 8] - props.gap_min_m - props.time_gap_margin_s * v_lo
-             <= closing_min ** 2 / (2.0 * props.brake_mps2))
-    for i, t in enumerate(props.times):
-        C[:, i, F + 8] = 1.0
-        C[:, i, F + 7] = t
-        C[:, i, 2 * i] = -1.0
-        C[:, i, F + 6] = np.where(never, 0.0, -props.time_gap_margin_s)
-        const[:, i] = np.where(never, 0.0, -props.gap_min_m)
-    x_lo, x_hi = y_lo[:, 0::2], y_hi[:, 0::2]  # (N, 3)
-    x_m, x_w = 0.5 * (x_lo + x_hi), x_hi - x_lo
-    e = ELEVATE_3_TO_6[:, 1:]  # (7, 3), >= 0
-    pw = PRODUCT_WEIGHTS[:, 1:, 1:]  # (7, 3, 3), >= 0
-    # interval of x_i x_j (squares exactly)
-    p_lo, p_hi = _interval_product(x_lo[:, :, None], x_hi[:, :, None], x_lo[:, None, :],
-                                   x_hi[:, None, :])
-    diag = np.arange(3)
-    sq_lo = np.where((x_lo > 0) | (x_hi < 0), np.minimum(x_lo ** 2, x_hi ** 2), 0.0)
-    p_lo[:, diag, diag] = sq_lo
-    p_hi[:, diag, diag] = np.maximum(x_lo ** 2, x_hi ** 2)
-    half = 0.5 * props.track_m
-    for side, (s, col, off) in enumerate(((1.0, 0, -half), (-1.0, 3, half))):
-        c1_lo, c1_hi = f_lo[:, col + 1], f_hi[:, col + 1]
-        c2_lo, c2_hi = f_lo[:, col + 2], f_hi[:, col + 2]
-        c1_m, c1_w = 0.5 * (c1_lo + c1_hi), c1_hi - c1_lo
-        c2_m, c2_w = 0.5 * (c2_lo + c2_hi), c2_hi - c2_lo
-        for k in range(1, 7):
-            r = 3 + 6 * side + (k - 1)
-            C[:, r, F + col] = s
-            const[:, r] = s * off
-            # - s y6
-            C[:, r, 1:6:2] -= s * e[k]
-            # s c1 x6 >= s c1_m x6 + s x6_m c1 - s c1_m x6_m - c1_w x6_w / 4
-            x6_lo, x6_hi = x_lo @ e[k], x_hi @ e[k]
-            x6_m, x6_w = 0.5 * (x6_lo + x6_hi), x6_hi - x6_lo
-            C[:, r, 0:6:2] += (s * c1_m)[:, None] * e[k]
-            C[:, r, F + col + 1] += s * x6_m
-            gaps[:, r, 0] = 0.25 * c1_w * x6_w
-            const[:, r] += -s * c1_m * x6_m - gaps[:, r, 0]
-            # s c2 Q >= s c2_m Q + s Q_m c2 - s c2_m Q_m - c2_w Q_w / 4
-            q_lo = np.einsum("ij,nij->n", pw[k], p_lo)
-            q_hi = np.einsum("ij,nij->n", pw[k], p_hi)
-            q_m, q_w = 0.5 * (q_lo + q_hi), q_hi - q_lo
-            C[:, r, F + col + 2] += s * q_m
-            gaps[:, r, 1] = 0.25 * c2_w * q_w
-            const[:, r] += -s * c2_m * q_m - gaps[:, r, 1]
-            # sigma Q >= sum_ij pw_ij (lower bound of sigma x_i x_j), sigma = s c2_m
-            sigma = s * c2_m
-            coef, cst, gap = _quadratic_lower(sigma, pw[k], x_lo, x_hi, x_m, x_w)
-            C[:, r, 0:6:2] += coef
-            const[:, r] += cst
-            gaps[:, r, 2] = gap
-    return C, const, gaps
-
-
-def _quadratic_lower(sigma, pw, x_lo, x_hi, x_m, x_w):
-    """Linear lower bound ``coef (N, 3) @ x + cst (N,)`` of ``sigma sum_ij pw_ij x_i x_j`` on the
-    box ``[x_lo, x_hi] (N, 3)``, and its worst-case gap ``(N,)``."""
-    n = len(sigma)
-    coef, cst, gap = np.zeros((n, 3)), np.zeros(n), np.zeros(n)
-    a = np.abs(sigma)
-    for i in range(3):
-        for j in range(3):
-            w = pw[i, j]
-            if w == 0.0:
-                continue
-            if i != j:
-                # x_i x_j = centred product +- x_w_i x_w_j / 4
-                coef[:, j] += w * sigma * x_m[:, i]
-                coef[:, i] += w * sigma * x_m[:, j]
-                cst += -w * sigma * x_m[:, i] * x_m[:, j] - w * a * x_w[:, i] * x_w[:, j] / 4
-                gap += w * a * x_w[:, i] * x_w[:, j] / 2
-            else:
-                pos = sigma >= 0
-                # sigma >= 0: tangent at the centre; sigma < 0: the chord (upper bound of x^2)
-                slope = np.where(pos, 2.0 * x_m[:, i], x_lo[:, i] + x_hi[:, i])
-                icpt = np.where(pos, -x_m[:, i] ** 2, -x_lo[:, i] * x_hi[:, i])
-                coef[:, i] += w * sigma * slope
-                cst += w * sigma * icpt
-                gap += w * a * x_w[:, i] ** 2 / 4
-    return coef, cst, gap
-
-
-@dataclass(frozen=True)
-class BoxBounds:
-    """Bounds on a batch of ``N`` boxes: ``lower (N, 15)`` of each margin row, the linear
-    bound's coefficients on ``z`` ``coef (N, 15, n_z)``, the McCormick gaps ``(N, 15, 3)``
-    and the plan outputs' sensitivity to ``z`` ``x_sens (N, n_z)`` (for branching)."""
-
-    lower: np.ndarray
-    coef: np.ndarray
-    gaps: np.ndarray
-    x_sens: np.ndarray
-
-
-def bound_boxes(layers: list[bnd.Layer], props: Properties, lo: np.ndarray, hi: np.ndarray
-                ) -> BoxBounds:
-    """Sound lower bounds of the 15 margins over each box ``[lo, hi] (N, n_z)``."""
-    nb = bnd.propagate(layers, lo, hi, method="crown")
-    y_lo, y_hi = nb.output_interval()
-    eye = np.eye(6, 15)
-    out = bnd.crown(nb, layers, np.concatenate([eye, -eye]))
-    y_lo[:, :6] = np.maximum(y_lo[:, :6], out.lower[:, :6])
-    y_hi[:, :6] = np.minimum(y_hi[:, :6], -out.lower[:, 6:])
-    f_lo, f_hi = nb.pre[0]  # the features' pre-activations: exact intervals of affine rows
-    f_lo, f_hi = f_lo.copy(), f_hi.copy()
-    f_lo[:, 7], f_hi[:, 7] = np.maximum(f_lo[:, 7], 0.0), np.maximum(f_hi[:, 7], 0.0)
-    f_lo, f_hi = f_lo[:, :N_FEATURES], f_hi[:, :N_FEATURES]
-    y_lo[:, 6:] = np.maximum(y_lo[:, 6:], f_lo)
-    y_hi[:, 6:] = np.minimum(y_hi[:, 6:], f_hi)
-    C, const, gaps = property_objective(props, f_lo, f_hi, y_lo[:, :6], y_hi[:, :6])
-    lin = bnd.crown(nb, layers, C, const)
-    interval = const + np.einsum("nmk,nk->nm", np.maximum(C, 0.0), y_lo) \
-        + np.einsum("nmk,nk->nm", np.minimum(C, 0.0), y_hi)
-    x_sens = np.abs(out.coef[:, 0:6:2]).sum(axis=1) + np.abs(out.coef[:, 6:12:2]).sum(axis=1)
-    return BoxBounds(np.maximum(lin.lower, interval), lin.coef, gaps, x_sens)
+def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_part, run
+                   ) -> MarginResult:
+    bounded, seconds, stopped_by = run
+    n = tree.n
+    mass = w_part[tree.part[open_ids]] * tree.share_hi[open_ids]
+    has = np.isfinite(tree.cex_val[open_ids])
+    certified = float(proven_mass.sum())
+    cex_share = float(mass[has].sum())
+    cexs = []
+    order = open_ids[has][np.argsort(tree.cex_val[open_ids[has]], kind="stable")][:20]
+    if len(order):
+        z = tree.cex_z[order]
+        again = reference_margins(policy, env.features(z), props)  # confirm each one
+        sl = MARGIN_ROWS[margin]
+        for k, i in enumerate(order):
+            row = sl.start + int(np.argmin(again[k, sl]))
+            cexs.append({"row": ROW_NAMES[row], "margin_m": float(again[k, row]),
+                         "confirmed": bool(again[k, row] < 0.0), "part": PARTS[tree.part[i]],
+                         "z": _zdict(env, z[k]),
+                         "features": [float(v) for v in env.features(z[k])]})
+    unproven = []
+    for i in open_ids[np.argsort(-mass, kind="stable")][:10]:
+        unproven.append({"part": PARTS[tree.part[i]],
+                         "share": float(w_part[tree.part[i]] * tree.share_hi[i]),
+                         "lower_bound_m": (float(tree.lower[i]) if np.isfinite(tree.lower[i])
+                                           else None),
+                         "counterexample_m": (float(tree.cex_val[i])
+                                              if np.isfinite(tree.cex_val[i]) else None),
+                         "lo": _zdict(env, tree.lo[i]), "hi": _zdict(env, tree.hi[i])})
+    proven = np.flatnonzero(tree.proven[:n])
+    shares = w_part[tree.part[proven]] * tree.share_lo[proven]
+    summary = {"count": len(proven),
+               "smallest_share": float(shares.min()) if len(proven) else None,
+               "median_share": float(np.median(shares)) if len(proven) else None,
+               "depth_range": ([int(tree.depth[proven].min()), int(tree.depth[proven].max())]
+                               if len(proven) else None)}
+    return MarginResult(
+        margin, certified,
+        {p: float(proven_mass[k] / w_part[k]) if w_part[k] > 0 else None
+         for k, p in enumerate(PARTS)},
+        cex_share, max(0.0, 1.0 - certified - cex_share), bounded, len(proven),
+        int(has.sum()), len(open_ids), seconds, stopped_by,
+        _unproven_by_dim(env, tree.lo[open_ids], tree.hi[open_ids], mass), cexs, unproven,
+        summary)
