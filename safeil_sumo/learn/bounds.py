@@ -125,10 +125,10 @@ def relax(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray
     - ReLU: exact when the interval is on one side of 0; else the chord above, and below the
       line through the origin of slope 1 if ``u >= -l`` else 0 (CROWN's adaptive choice);
     - tanh (convex below 0, concave above): on ``[l, u]`` with ``l >= 0`` the chord below and
-      the tangent at the midpoint above; with ``u <= 0`` the mirror; across 0 the line through
-      ``(l, tanh l)`` tangent to tanh in the concave part (or the chord, if the tangent point
-      lies beyond u) above, and its mirror through ``(u, tanh u)`` below
-      (:func:`_tangent_from`).
+      the tangent at the midpoint above; with ``u <= 0`` the mirror; across 0 above: the tangent
+      at the midpoint or, if that one cuts tanh near ``l``, at the first point whose tangent
+      clears ``(l, tanh l)`` (:func:`_tangent_point`; the chord if none in ``[0, u]`` does), and
+      the mirror image below.
     Each line is loosened by :data:`RELAX_SLACK` against float rounding.
     """
     lo = np.asarray(lo, float)
@@ -160,16 +160,25 @@ def relax(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray
         tm, dm = np.tanh(mid), _dtanh(mid)
         pos, neg = l >= 0.0, u <= 0.0
         cross = ~pos & ~neg
-        s_up, s_lo = np.zeros_like(l), np.zeros_like(l)
+        # across 0: the tangent at max(d*, midpoint) above (the chord when no tangent point
+        # qualifies), and the mirror image below (tanh is odd)
+        d_up, d_lo = np.full_like(l, np.inf), np.full_like(l, np.inf)
         if cross.any():
-            s_up[cross] = _tangent_from(l[cross], u[cross])
-            s_lo[cross] = _tangent_from(-u[cross], -l[cross])
+            d_up[cross] = _tangent_point(l[cross], u[cross])
+            d_lo[cross] = _tangent_point(-u[cross], -l[cross])
+        up_tan, lo_tan = np.isfinite(d_up), np.isfinite(d_lo)
+        d_up = np.where(up_tan, np.maximum(d_up, mid), 0.0)
+        d_lo = np.where(lo_tan, -np.maximum(d_lo, -mid), 0.0)
+        s_up = np.where(up_tan, _dtanh(d_up), chord)
+        c_up = np.where(up_tan, np.tanh(d_up) - s_up * d_up, tl - chord * l)
+        s_lo = np.where(lo_tan, _dtanh(d_lo), chord)
+        c_lo = np.where(lo_tan, np.tanh(d_lo) - s_lo * d_lo, tl - chord * l)
         # lower line
         al = np.where(pos, chord, np.where(neg, dm, s_lo))
-        bl = np.where(pos, tl - chord * l, np.where(neg, tm - dm * mid, tu - s_lo * u))
+        bl = np.where(pos, tl - chord * l, np.where(neg, tm - dm * mid, c_lo))
         # upper line
         au = np.where(pos, dm, np.where(neg, chord, s_up))
-        bu = np.where(pos, tm - dm * mid, np.where(neg, tu - chord * u, tl - s_up * l))
+        bu = np.where(pos, tm - dm * mid, np.where(neg, tu - chord * u, c_up))
         # a narrow interval: the tangent at the midpoint, shifted by the curvature term
         # (|tanh''| <= 0.77, so |tanh(p) - tangent| <= 0.39 width^2)
         curv = 0.39 * width * width
@@ -188,25 +197,24 @@ def relax(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray
     return a_l, b_l, a_u, b_u
 
 
-def _tangent_from(l: np.ndarray, u: np.ndarray, iterations: int = 12) -> np.ndarray:
-    """For ``l < 0 < u``: a slope ``s`` at least every secant slope of tanh from ``l`` to a
-    point of ``(l, u]``, so the line through ``(l, tanh l)`` of slope ``s`` lies above tanh on
-    ``[l, u]`` (the CROWN upper line for an interval across 0). The largest secant is the chord
-    to ``u``, or, when the tangent from ``(l, tanh l)`` touches tanh at ``d* <= u``, tanh'(d*);
-    bisection brackets ``d*`` from below and returns ``tanh'`` there (tanh' falls on [0, inf),
-    so that is ``>= tanh'(d*)``: sound however few iterations)."""
+def _tangent_point(l: np.ndarray, u: np.ndarray, iterations: int = 12) -> np.ndarray:
+    """For ``l < 0 < u``: the smallest ``d*`` in ``[0, u]`` whose tangent to tanh passes above
+    ``(l, tanh l)`` (every tangent at ``d`` in ``[d*, u]`` then lies above tanh on ``[l, u]``:
+    above it on the concave side ``[0, inf)``, and the line minus tanh is concave on ``[l, 0]``
+    so it is non-negative there when it is at both ends), bracketed from above by bisection
+    (sound however few iterations); ``inf`` when no tangent point in ``[0, u]`` qualifies (then
+    the chord is the upper line)."""
     tl = np.tanh(l)
 
-    def g(d: np.ndarray) -> np.ndarray:  # > 0 below the tangent point, < 0 beyond it
-        return _dtanh(d) * (d - l) - (np.tanh(d) - tl)
+    def g(d: np.ndarray) -> np.ndarray:  # tangent at d minus tanh at l: < 0 below d*
+        return np.tanh(d) + _dtanh(d) * (l - d) - tl
 
-    chord = (np.tanh(u) - tl) / (u - l)
     a, b = np.zeros_like(l), u.copy()
     for _ in range(iterations):
         m = 0.5 * (a + b)
-        above = g(m) > 0.0
-        a, b = np.where(above, m, a), np.where(above, b, m)
-    return np.where(g(u) >= 0.0, chord, np.maximum(_dtanh(a), chord))
+        ok = g(m) >= 0.0
+        a, b = np.where(ok, a, m), np.where(ok, m, b)
+    return np.where(g(u) >= 0.0, b, np.inf)
 
 
 def _widen(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
@@ -84,7 +84,7 @@ def build_certificate(result: CertifyResult, checkpoint: str | Path) -> dict:
     weights_sha, func_sha, meta = _checkpoint_hashes(checkpoint)
     margins = {}
     for name, m in result.margins.items():
-        d = asdict(m)
+        d = {f.name: getattr(m, f.name) for f in fields(m) if f.name != "boxes"}
         d["complete"] = m.stopped_by == "proven"
         margins[name] = d
     env = asdict(result.envelope)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import heapq
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -90,6 +90,8 @@ class MarginResult:
     counterexamples: list  # the worst confirmed violations (dicts, worst first)
     unproven_boxes: list  # the largest unproven boxes (dicts)
     proven_summary: dict  # proven boxes: count, smallest and median share, depth range
+    boxes: dict = field(default_factory=dict, repr=False)  # arrays (not written to JSON):
+    # proven_lo, proven_hi (K, n_z), proven_part (K,); open_lo, open_hi, open_part, open_cex_z
 
 
 @dataclass(frozen=True)
@@ -383,4 +385,7 @@ def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_pa
         cex_share, max(0.0, 1.0 - certified - cex_share), bounded, len(proven),
         int(has.sum()), len(open_ids), seconds, stopped_by,
         _unproven_by_dim(env, tree.lo[open_ids], tree.hi[open_ids], mass), cexs, unproven,
-        summary)
+        summary, {"proven_lo": tree.lo[proven], "proven_hi": tree.hi[proven],
+                  "proven_part": tree.part[proven], "open_lo": tree.lo[open_ids],
+                  "open_hi": tree.hi[open_ids], "open_part": tree.part[open_ids],
+                  "open_cex_z": tree.cex_z[open_ids]})
