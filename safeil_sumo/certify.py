@@ -52,6 +52,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="box budget for all margins (reproducible across machines)")
     p.add_argument("--batch", type=nonnegative_int, default=512, help="boxes bounded together")
     p.add_argument("--seed", type=int, default=0, help="seeds the counterexample search")
+    p.add_argument("--cex-min-share", type=finite_float, default=Budget.cex_min_share,
+                   help="split a box holding a counterexample only while its share of the "
+                        f"envelope exceeds this (default {Budget.cex_min_share:g})")
     p.add_argument("--out", type=Path, default=None,
                    help="folder for the certificate (default: next to the checkpoint; "
                         "runs/certify_<name>/ for a shipped model)")
@@ -112,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
             return 0 if status.valid else 1
         env = CertEnvelope(time_gap_s=tuple(args.time_gap) if args.time_gap else None)
         budget = Budget(seconds=args.budget_s, boxes=args.max_boxes, batch=max(args.batch, 1),
-                        seed=args.seed)
+                        seed=args.seed, cex_min_share=args.cex_min_share)
         result = certify(policy, env, budget=budget, margins=tuple(args.margins),
                          progress=not args.no_progress)
     except (CertifyError, pol.PolicyError) as exc:

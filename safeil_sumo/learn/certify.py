@@ -55,8 +55,8 @@ class Budget:
     boxes: int | None = None  # boxes bounded for all margins [-]; None: no limit (set it for a
     # reproducible run: the time limit depends on the machine)
     batch: int = 512  # boxes bounded together [-]
-    cex_min_share: float = 1e-7  # a box holding a counterexample is split further only while
-    # its share of the envelope exceeds this [-]
+    cex_min_share: float = 1e-10  # a box holding a counterexample is split further only
+    # while its share of the envelope exceeds this [-] (its other parts may be provable)
     n_random: int = 4  # random points per unproven box tried as counterexamples [-]
     seed: int = 0  # seeds the random points [-]
 
@@ -342,6 +342,29 @@ def _unproven_by_dim(env: CertEnvelope, lo: np.ndarray, hi: np.ndarray, mass: np
     return out
 
 
+def _diverse(env: CertEnvelope, tree: _Tree, ids: np.ndarray, k: int = 20,
+             min_dist: float = 0.15) -> np.ndarray:
+    """Up to ``k`` of the boxes ``ids`` (sorted worst counterexample first) whose
+    counterexamples are at least ``min_dist`` apart (max-norm, each coordinate scaled to its
+    range, the gap in log d): the worst violation of each region, not k copies of one."""
+    lo, hi = env.root_boxes()["leader"]
+    lo, hi = lo.copy(), hi.copy()
+    lo[GAP], hi[GAP] = np.log(lo[GAP]), np.log(hi[GAP])
+    scale = np.where(hi > lo, hi - lo, 1.0)
+    picked: list[int] = []
+    points: list[np.ndarray] = []
+    for i in ids[: 200 * k]:
+        z = tree.cex_z[i].copy()
+        z[GAP] = np.log(z[GAP])
+        z = (z - lo) / scale
+        if all(np.max(np.abs(z - q)) >= min_dist for q in points):
+            picked.append(int(i))
+            points.append(z)
+            if len(picked) == k:
+                break
+    return np.array(picked, dtype=int)
+
+
 def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_part, run
                    ) -> MarginResult:
     bounded, seconds, stopped_by = run
@@ -351,7 +374,8 @@ def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_pa
     certified = float(proven_mass.sum())
     cex_share = float(mass[has].sum())
     cexs = []
-    order = open_ids[has][np.argsort(tree.cex_val[open_ids[has]], kind="stable")][:20]
+    order = _diverse(env, tree, open_ids[has][np.argsort(tree.cex_val[open_ids[has]],
+                                                         kind="stable")])
     if len(order):
         z = tree.cex_z[order]
         again = reference_margins(policy, env.features(z), props)  # confirm each one
