@@ -86,6 +86,26 @@ class MLPPolicy:
         values = np.array([self.style[n] for n in self.style_names])
         self._b[0][:] = self._bias0 + values @ self._style_rows
 
+    @property
+    def residual_times(self) -> np.ndarray | None:
+        """Times ``(3,)`` [s] at which the residual output mode adds ``v_x * t_i`` to the x
+        control points (constant-speed motion), or None in the absolute mode."""
+        return None if self._residual_times is None else self._residual_times.copy()
+
+    def affine_layers(self, style_input: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The network as ``(weight (n_out, n_in), bias (n_out,))`` float64 per layer, exactly
+        the arrays :meth:`plan` uses (scaling folded in); :attr:`activation` acts between
+        layers and the residual mode adds ``v_x *`` :attr:`residual_times` to the x outputs
+        after the last. ``style_input``: the first layer takes the style inputs as columns after
+        the 9 features (bias without them); else the current style is folded into its bias."""
+        layers = [(wt.T.copy(), b.copy()) for wt, b in zip(self._wt, self._b, strict=True)]
+        if style_input:
+            if not self.style_names:
+                raise ValueError(f"{self.name} has no style inputs")
+            layers[0] = (np.concatenate([layers[0][0], self._style_rows.T], axis=1),
+                         self._bias0.copy())
+        return layers
+
     def _act(self, h: np.ndarray) -> None:
         if self._tanh:
             np.tanh(h, out=h)

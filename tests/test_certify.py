@@ -1,0 +1,398 @@
+"""Certification (issue 23, part 1): sound network bounds, the planner as one network, the
+margins' bounds, branch and bound with confirmed counterexamples, the certificate's loader.
+
+Everything here is pure numpy (no torch, no SUMO) and small: the branch-and-bound runs use box
+budgets of a few thousand boxes on the shipped checkpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from safeil_sumo import policies as pol
+from safeil_sumo.learn import bounds as bnd
+from safeil_sumo.learn import certify_margins as cm
+from safeil_sumo.learn.certificate import load_certificate, write_certificate
+from safeil_sumo.learn.certify import Budget, CertifyError, certify
+from safeil_sumo.learn.checkpoint import checkpoint_paths, load_checkpoint
+from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
+from safeil_sumo.learn.inference import MLPPolicy
+
+TOL = 1e-9  # float slack when comparing sampled outputs with sound bounds [same units]
+
+
+def random_net(rng: np.random.Generator, act: str, widths=(4, 16, 16, 3)) -> list[bnd.Layer]:
+    layers = []
+    for j in range(len(widths) - 1):
+        w = rng.normal(size=(widths[j + 1], widths[j])) / np.sqrt(widths[j]) * 1.5
+        kind = act if j < len(widths) - 2 else "identity"
+        layers.append(bnd.Layer.dense(w, rng.normal(size=widths[j + 1]) * 0.5, kind))
+    return layers
+
+
+def random_boxes(rng: np.random.Generator, n: int, d: int) -> tuple[np.ndarray, np.ndarray]:
+    centre = rng.normal(size=(n, d))
+    half = np.exp(rng.uniform(np.log(1e-3), np.log(1.0), (n, d)))
+    return centre - half, centre + half
+
+
+def inside(lo: np.ndarray, hi: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """``k`` points per box ``(N, k, d)``, corners included."""
+    pts = lo[:, None] + rng.uniform(size=(len(lo), k, lo.shape[1])) * (hi - lo)[:, None]
+    pts[:, 0], pts[:, 1] = lo, hi
+    return pts
+
+
+# ------------------------------------------------------------------ bounds of a network
+
+
+@pytest.mark.parametrize("act", ["tanh", "relu"])
+def test_ibp_and_crown_contain_the_outputs_and_crown_is_tighter(act: str) -> None:
+    rng = np.random.default_rng(23)
+    widths_ibp, widths_crown = [], []
+    for _ in range(3):
+        layers = random_net(rng, act)
+        lo, hi = random_boxes(rng, 64, 4)
+        y = bnd.forward(layers, inside(lo, hi, 300, rng))  # (64, 300, 3)
+        i_lo, i_hi = bnd.output_bounds(layers, lo, hi, method="ibp")
+        c_lo, c_hi = bnd.output_bounds(layers, lo, hi, method="crown")
+        for low, high in ((i_lo, i_hi), (c_lo, c_hi)):
+            assert np.all(y >= low[:, None] - TOL) and np.all(y <= high[:, None] + TOL)
+        # CROWN alone (not intersected with IBP) also contains them
+        nb = bnd.propagate(layers, lo, hi)
+        eye = np.eye(3)
+        raw = bnd.crown(nb, layers, np.concatenate([eye, -eye])).lower
+        assert np.all(y >= raw[:, None, :3] - TOL) and np.all(y <= -raw[:, None, 3:] + TOL)
+        widths_ibp.append(i_hi - i_lo)
+        widths_crown.append(-raw[:, 3:] - raw[:, :3])
+    mean_ibp, mean_crown = np.mean(widths_ibp), np.mean(widths_crown)
+    # measured: tanh 0.56x, relu 0.44x of IBP's mean width; assert a weak version
+    assert mean_crown < 0.9 * mean_ibp, (mean_crown, mean_ibp)
+
+
+def test_relaxation_lines_enclose_tanh_and_relu() -> None:
+    rng = np.random.default_rng(1)
+    lo = rng.uniform(-8, 3, 20000)
+    hi = lo + rng.exponential(2, 20000) * rng.choice([1e-10, 1e-3, 1.0, 1.0], 20000)
+    p = lo[:, None] + (hi - lo)[:, None] * np.linspace(0, 1, 101)
+    for code, f in ((bnd.TANH, np.tanh), (bnd.RELU, lambda x: np.maximum(x, 0.0))):
+        a_l, b_l, a_u, b_u = bnd.relax(np.full(len(lo), code), lo, hi)
+        assert np.all(a_l[:, None] * p + b_l[:, None] <= f(p))
+        assert np.all(a_u[:, None] * p + b_u[:, None] >= f(p))
+
+
+def test_one_hidden_unit_by_hand() -> None:
+    """``y = 3 tanh(2 x - 1) - 1`` on ``x in [0.5, 1.5]``: the pre-activation is in [0, 2], where
+    tanh is concave: IBP gives [-1, 3 tanh 2 - 1]; CROWN's lower line is the chord (exact at
+    p = 0: -1) and its upper line the tangent at p = 1, whose maximum at p = 2 is
+    ``3 (tanh 1 + sech^2 1) - 1``, looser than IBP there, so the combined bound is IBP's."""
+    layers = [bnd.Layer.dense([[2.0]], [-1.0], "tanh"), bnd.Layer.dense([[3.0]], [-1.0],
+                                                                        "identity")]
+    lo, hi = np.array([[0.5]]), np.array([[1.5]])
+    i_lo, i_hi = bnd.output_bounds(layers, lo, hi, method="ibp")
+    assert i_lo[0, 0] == pytest.approx(-1.0, abs=1e-9)
+    assert i_hi[0, 0] == pytest.approx(3 * np.tanh(2.0) - 1, abs=1e-9)
+    nb = bnd.propagate(layers, lo, hi)
+    raw = bnd.crown(nb, layers, np.array([[1.0], [-1.0]])).lower[0]
+    assert raw[0] == pytest.approx(-1.0, abs=1e-9)
+    t1 = np.tanh(1.0)
+    assert -raw[1] == pytest.approx(3 * (t1 + 1 - t1 ** 2) - 1, abs=1e-9)
+    c_lo, c_hi = bnd.output_bounds(layers, lo, hi, method="crown")
+    assert (c_lo[0, 0], c_hi[0, 0]) == pytest.approx((i_lo[0, 0], i_hi[0, 0]), abs=1e-9)
+    # one ReLU unit on [-1, 2]: upper chord 2/3 (x + 1) (max 2 at x = 2), lower line x (slope 1
+    # as u >= -l: min -1); IBP [0, 2]; combined [0, 2]
+    relu = [bnd.Layer.dense([[1.0]], [0.0], "relu")]
+    nb = bnd.propagate(relu, np.array([[-1.0]]), np.array([[2.0]]))
+    raw = bnd.crown(nb, relu, np.array([[1.0], [-1.0]])).lower[0]
+    assert (raw[0], -raw[1]) == pytest.approx((-1.0, 2.0), abs=1e-9)
+    assert bnd.output_bounds(relu, np.array([[-1.0]]), np.array([[2.0]]))[0][0, 0] == \
+        pytest.approx(0.0, abs=1e-9)
+    # tanh across 0 on [-3, 0.5] (midpoint below 0): the upper line is (within the bisection's
+    # tolerance) the tangent from (-3, tanh -3), i.e. of the largest secant slope from -3,
+    # passing just above that point
+    _, _, a_u, b_u = bnd.relax(np.array([bnd.TANH]), np.array([-3.0]), np.array([0.5]))
+    p = np.linspace(-3, 0.5, 300001)[1:]
+    best = np.max((np.tanh(p) - np.tanh(-3.0)) / (p + 3.0))
+    assert best - 1e-3 <= a_u[0] <= best + 1e-9
+    assert 0.0 <= -3.0 * a_u[0] + b_u[0] - np.tanh(-3.0) <= 1e-3
+    # on [-0.2, 2] the midpoint's tangent (at 0.9) clears (-0.2, tanh -0.2): it is the upper line
+    _, _, a_u, b_u = bnd.relax(np.array([bnd.TANH]), np.array([-0.2]), np.array([2.0]))
+    assert a_u[0] == pytest.approx(1 - np.tanh(0.9) ** 2, abs=1e-12)
+    assert b_u[0] == pytest.approx(np.tanh(0.9) - 0.9 * a_u[0], abs=1e-9)
+
+
+# ------------------------------------------------------------------ the planner as one network
+
+
+@pytest.fixture(scope="module")
+def safeil() -> MLPPolicy:
+    return pol.load("safeil")
+
+
+def test_the_envelope_is_what_training_samples() -> None:
+    env, cfg = cm.CertEnvelope(), EnvelopeConfig()
+    for name in cm.DIM_NAMES:
+        assert getattr(env, name) == getattr(cfg, name)
+    assert (env.brake_mps2, env.radar_range_m, env.no_leader_share) == (
+        cfg.brake_mps2, cfg.radar_range_m, cfg.no_leader_share)
+    f = sample_states(4000, np.random.default_rng(0))
+    z = np.stack([f[:, 0] - f[:, 3], -0.5 * (f[:, 0] + f[:, 3]), f[:, 1], 2 * f[:, 2], f[:, 6],
+                  f[:, 7] - f[:, 6], f[:, 8]], axis=1)
+    lo, hi = env.root_boxes()["leader"]
+    assert np.all(z >= lo - 1e-9) and np.all(z <= hi + 1e-9)
+    assert np.all(env.recoverable(z))
+    stopped = f[:, 7] == 0.0  # a clipped leader: any dv below -v_x gives the same features
+    z[stopped, 5] = -z[stopped, 4] - 1.0
+    np.testing.assert_allclose(env.features(z), f, atol=1e-12)
+    free = f[:, 8] == cfg.radar_range_m
+    assert free.mean() == pytest.approx(cfg.no_leader_share, abs=0.03)
+    assert np.all(f[free, 7] == f[free, 6])
+
+
+@pytest.mark.parametrize("name", ["safeil", "bc", "safeil_paper"])
+def test_the_composed_network_is_the_planner(name: str) -> None:
+    """The network of envelope coordinates (features carried along, residual folded in) gives
+    MLPPolicy's plans, and its bounds contain them (catches a dropped residual term)."""
+    policy = pol.load(name)
+    env = cm.CertEnvelope()
+    rng = np.random.default_rng(5)
+    root_lo, root_hi = env.root_boxes()["leader"]
+    layers = cm.planner_layers(policy, style_range=False)
+    z = root_lo + rng.uniform(size=(500, 7)) * (root_hi - root_lo)
+    y = bnd.forward(layers, z)
+    np.testing.assert_allclose(y[:, :6], policy.plan(env.features(z)).reshape(-1, 6), atol=1e-9)
+    np.testing.assert_allclose(y[:, 6:], env.features(z), atol=1e-12)
+    centre = root_lo + rng.uniform(size=(40, 7)) * (root_hi - root_lo)
+    half = (root_hi - root_lo) * rng.uniform(0.005, 0.05, (40, 7))
+    lo, hi = np.maximum(centre - half, root_lo), np.minimum(centre + half, root_hi)
+    pts = inside(lo, hi, 100, rng)
+    plans = policy.plan(env.features(pts)).reshape(40, 100, 6)
+    out_lo, out_hi = bnd.output_bounds(layers, lo, hi)
+    assert np.all(plans >= out_lo[:, None, :6] - TOL) and np.all(plans <= out_hi[:, None, :6] + TOL)
+
+
+def test_style_range_is_an_input_dimension(safeil: MLPPolicy) -> None:
+    env = cm.CertEnvelope(time_gap_s=(0.6, 3.5))
+    lo, hi = env.root_boxes()["leader"]
+    z = lo + np.random.default_rng(2).uniform(size=(50, 8)) * (hi - lo)
+    y = bnd.forward(cm.planner_layers(safeil, style_range=True), z)
+    policy = pol.load("safeil")
+    for k in range(len(z)):
+        policy.set_style(time_gap_s=z[k, 7])
+        np.testing.assert_allclose(y[k, :6], policy.plan(env.features(z[k])).ravel(), atol=1e-9)
+    with pytest.raises(CertifyError, match="no style input"):
+        certify(pol.load("bc"), env, budget=Budget(boxes=1), progress=False)
+
+
+def test_margin_bounds_contain_the_reference_margins(safeil: MLPPolicy) -> None:
+    env = cm.CertEnvelope()
+    props = cm.Properties.from_metadata(safeil.metadata)
+    layers = cm.planner_layers(safeil, False)
+    rng = np.random.default_rng(9)
+    root_lo, root_hi = env.root_boxes()["leader"]
+    centre = root_lo + rng.uniform(size=(200, 7)) * (root_hi - root_lo)
+    half = (root_hi - root_lo) * np.exp(rng.uniform(np.log(0.003), np.log(0.3), (200, 7)))
+    lo, hi = np.maximum(centre - half, root_lo), np.minimum(centre + half, root_hi)
+    bb = cm.bound_boxes(layers, props, lo, hi)
+    pts = inside(lo, hi, 100, rng)
+    m = cm.reference_margins(safeil, env.features(pts.reshape(-1, 7)), props).reshape(200, 100,
+                                                                                       15)
+    assert np.all(m >= bb.lower[:, None] - TOL)
+    for margin in cm.MARGINS:  # one margin alone (as branch and bound asks): sound too
+        alone = cm.bound_boxes(layers, props, lo, hi, margin).lower
+        assert np.all(m[..., cm.MARGIN_ROWS[margin]] >= alone[:, None] - TOL)
+
+
+def test_the_margins_linear_enclosure_holds_at_every_plan_in_the_intervals() -> None:
+    """``property_objective`` alone: for feature and plan intervals (no network), the linear
+    lower bound ``C [plan; features] + const`` is below the exact margins (Bernstein
+    coefficients from bspline, leader margin) at corners and random points of the intervals."""
+    from safeil_sumo.bspline import lateral_margin_bernstein
+
+    rng = np.random.default_rng(8)
+    props = cm.Properties(horizon_s=5.0, track_m=1.76, gap_min_m=2.0, time_gap_margin_s=0.5)
+    n, k = 300, 64
+    f_mid = np.column_stack([rng.uniform(1.0, 2.5, n), rng.uniform(-0.03, 0.03, n),
+                             rng.uniform(-0.002, 0.002, n), rng.uniform(-2.5, -1.0, n),
+                             rng.uniform(-0.03, 0.03, n), rng.uniform(-0.002, 0.002, n),
+                             rng.uniform(5, 35, n), rng.uniform(5, 35, n), rng.uniform(5, 150, n)])
+    f_half = np.abs(f_mid) * rng.uniform(0.0, 0.3, (n, 9))
+    f_half[: n // 3] = 0.0  # exact features: only the plan's products are relaxed
+    y_mid = np.column_stack([f_mid[:, 6] * t + rng.normal(0, 5, n) if j % 2 == 0
+                             else rng.normal(0, 3, n)
+                             for j, t in enumerate(np.repeat([5 / 3, 10 / 3, 5.0], 2))])
+    y_half = rng.uniform(0.0, 10.0, (n, 6))
+    f_lo, f_hi, y_lo, y_hi = f_mid - f_half, f_mid + f_half, y_mid - y_half, y_mid + y_half
+    C, const, _ = cm.property_objective(props, f_lo, f_hi, y_lo, y_hi)
+    u = rng.uniform(size=(n, k, 15))
+    u[:, : k // 2] = rng.integers(0, 2, (n, k // 2, 15))  # corners
+    lo, hi = np.concatenate([y_lo, f_lo], 1), np.concatenate([y_hi, f_hi], 1)
+    pts = lo[:, None] + u * (hi - lo)[:, None]  # (n, k, 15): plan, then features
+    f, cp = pts[..., 6:], pts[..., :6].reshape(n, k, 3, 2)
+    times = np.arange(1, 4) * 5.0 / 3.0
+    lead = f[..., 8, None] + f[..., 7, None] * times - cp[..., 0]
+    lead -= cm._lead_extra(f[..., 6], f[..., 7], f[..., 8], props)[..., None]
+    left = lateral_margin_bernstein(cp, f[..., 0:3], -0.88)[..., 1:]
+    right = -lateral_margin_bernstein(cp, f[..., 3:6], 0.88)[..., 1:]
+    exact = np.concatenate([lead, left, right], axis=-1)
+    bound = np.einsum("nmj,nkj->nkm", C, pts) + const[:, None]
+    assert np.all(exact >= bound - 1e-9)
+    # and it is not vacuous: on average within a few metres of the exact minimum
+    assert np.mean(exact.min(axis=1) - bound.min(axis=1)) < 50.0
+
+
+def test_box_volumes_bracket_a_monte_carlo_estimate() -> None:
+    env = cm.CertEnvelope()
+    rng = np.random.default_rng(4)
+    lo = np.array([3.3, -0.6, -0.03, -0.004, 5.0, -15.0, 3.0])
+    hi = np.array([3.8, 0.6, 0.03, 0.004, 25.0, 0.0, 40.0])
+    low, high = cm.box_shares(env, lo[None], hi[None], "leader")
+    u = rng.uniform(size=(400000, 7))
+    z = lo + u * (hi - lo)
+    z[:, 6] = np.exp(np.log(lo[6]) + u[:, 6] * np.log(hi[6] / lo[6]))
+    base = np.prod(hi[:6] - lo[:6]) * np.log(hi[6] / lo[6])
+    mc = base * env.recoverable(z).mean()
+    assert low[0] <= mc * 1.01 and mc <= high[0] * 1.01 and low[0] < high[0]
+    assert (high[0] - low[0]) / high[0] < 0.1
+    a, b = cm.envelope_volume(env, "leader")
+    assert a <= b and (b - a) / b < 1e-3
+
+
+# ------------------------------------------------------------------ branch and bound
+
+
+# the lane margin needs small boxes: a narrow part of the envelope proves some within budget
+NEAR_STRAIGHT = cm.CertEnvelope(ego_speed_mps=(20.0, 24.0), curvature_1pm=(-3e-4, 3e-4),
+                                heading_error=(-0.003, 0.003), lateral_offset_m=(-0.2, 0.2))
+
+
+@pytest.mark.parametrize(("margin", "env"), [("leader", cm.CertEnvelope()),
+                                             ("lane", NEAR_STRAIGHT)])
+def test_sampled_points_in_proven_boxes_never_violate(safeil: MLPPolicy, margin: str,
+                                                       env: cm.CertEnvelope) -> None:
+    result = certify(safeil, env, budget=Budget(boxes=3000, batch=256), margins=(margin,),
+                     progress=False)
+    props = result.properties
+    rng = np.random.default_rng(11)
+    for name, m in result.margins.items():
+        assert m.proven_boxes > 0 and 0.0 < m.certified < 1.0
+        lo, hi, part = (m.boxes[k] for k in ("proven_lo", "proven_hi", "proven_part"))
+        pick = rng.choice(len(lo), size=min(len(lo), 400), replace=False)
+        pts = inside(lo[pick], hi[pick], 25, rng).reshape(-1, 7)
+        ok = env.recoverable(pts) | (np.repeat(part[pick], 25) == 1)
+        margins = cm.reference_margins(safeil, env.features(pts[ok]), props)
+        assert np.all(margins[:, cm.MARGIN_ROWS[name]] >= 0.0), name
+        for c in m.counterexamples:  # every counterexample is one for the network itself
+            f = np.array(c["features"])
+            assert c["confirmed"] and cm.reference_margins(safeil, f[None], props)[
+                0, cm.MARGIN_ROWS[name]].min() < 0
+
+
+def test_a_deliberately_unsafe_network_gets_confirmed_counterexamples() -> None:
+    """The shipped safeil with its x control points pushed 300 m ahead: every plan passes the
+    leader. Each counterexample, re-evaluated here with MLPPolicy, violates the leader margin."""
+    arrays, meta = load_checkpoint(pol.shipped_checkpoint("safeil"))
+    arrays = {k: v.copy() for k, v in arrays.items()}
+    arrays["output_mean"][[0, 2, 4]] += 300.0
+    unsafe = MLPPolicy(arrays, meta["architecture"], "unsafe", meta["horizon_s"], meta)
+    result = certify(unsafe, budget=Budget(boxes=600, batch=64), margins=("leader",),
+                     progress=False)
+    m = result.margins["leader"]
+    assert m.certified == 0.0 and m.counterexample_boxes > 0 and m.counterexamples
+    for c in m.counterexamples:
+        f = np.array(c["features"])
+        plan = unsafe.plan(f)
+        leader = f[8] + f[7] * np.arange(1, 4) * meta["horizon_s"] / 3.0
+        assert np.any(plan[:, 0] > leader)
+        assert c["confirmed"] and c["margin_m"] < 0
+        assert result.envelope.recoverable(np.array(list(c["z"].values())))
+
+
+def test_bc_has_counterexamples_on_both_margins() -> None:
+    result = certify(pol.load("bc"), budget=Budget(boxes=1200, batch=128), progress=False)
+    for m in result.margins.values():
+        assert m.counterexamples and all(c["confirmed"] for c in m.counterexamples)
+
+
+def test_same_seed_same_result(safeil: MLPPolicy) -> None:
+    a, b = (certify(safeil, budget=Budget(boxes=1500, batch=256, seed=3), margins=("lane",),
+                    progress=False).margins["lane"] for _ in range(2))
+    assert (a.certified, a.counterexamples, a.unproven_by_dim) == (
+        b.certified, b.counterexamples, b.unproven_by_dim)
+
+
+# ------------------------------------------------------------------ certificates
+
+
+def _copy_checkpoint(name: str, folder) -> str:
+    weights, sidecar = checkpoint_paths(pol.shipped_checkpoint(name))
+    shutil.copy(weights, folder / weights.name)
+    shutil.copy(sidecar, folder / sidecar.name)
+    return str(folder / weights.name)
+
+
+def test_the_loader_rejects_a_modified_checkpoint(tmp_path) -> None:
+    from safetensors.numpy import load as st_load
+    from safetensors.numpy import save as st_save
+
+    path = _copy_checkpoint("safeil", tmp_path)
+    result = certify(pol.load(path), budget=Budget(boxes=100, batch=50), progress=False)
+    cert = write_certificate(result, path)
+    assert cert == tmp_path / "safeil.certificate.json"
+    status = load_certificate(path)
+    assert status.valid and status.reason == "ok" and set(status.certified) == {"leader", "lane"}
+    body = json.loads(cert.read_text())
+    assert body["checkpoint"]["weights_sha256"] == json.loads(
+        (tmp_path / "safeil.json").read_text())["weights_sha256"]
+    # another style default in the sidecar: the certified function changed
+    sidecar = tmp_path / "safeil.json"
+    original = sidecar.read_text()
+    meta = json.loads(original)
+    meta["style_default"] = {"time_gap_s": 2.5}
+    sidecar.write_text(json.dumps(meta))
+    status = load_certificate(path)
+    assert not status.valid and "sha256 mismatch" in status.reason
+    sidecar.write_text(original)
+    assert load_certificate(path).valid
+    # retrained weights, consistent with their sidecar: the certificate no longer applies
+    weights = tmp_path / "safeil.safetensors"
+    arrays = st_load(weights.read_bytes())
+    arrays["net.4.bias"] = arrays["net.4.bias"] + np.float32(0.01)
+    blob = st_save(arrays, metadata={"format": "safeil-checkpoint", "format_version": "1"})
+    weights.write_bytes(blob)
+    import hashlib
+
+    meta = json.loads(original)
+    meta["weights_sha256"] = hashlib.sha256(blob).hexdigest()
+    sidecar.write_text(json.dumps(meta))
+    status = load_certificate(path)
+    assert not status.valid and "sha256 mismatch" in status.reason and "weights" in status.reason
+    # corrupted weights: unreadable checkpoint, no valid certificate
+    weights.write_bytes(blob[:-10] + b"0123456789")
+    status = load_certificate(path)
+    assert not status.valid and "unreadable" in status.reason
+    # no certificate at all
+    assert not load_certificate(path, tmp_path / "nope.json").valid
+
+
+def test_cli_certifies_writes_and_checks(tmp_path, capsys) -> None:
+    from safeil_sumo import certify as cli
+
+    path = _copy_checkpoint("bc", tmp_path)
+    assert cli.main(["--policy", path, "--max-boxes", "200", "--batch", "50",
+                     "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "leader" in out and "lane" in out and "counterexample" in out
+    assert (tmp_path / "bc.certificate.json").is_file()
+    assert cli.main(["--policy", path, "--check"]) == 0
+    assert "valid" in capsys.readouterr().out
+    for argv, message in ((["--policy", "analytic"], "not a network checkpoint"),
+                          (["--policy", path, "--time-gap", "1", "2"], "no style input"),
+                          (["--policy", "nope.safetensors"], "unknown policy")):
+        assert cli.main([*argv, "--max-boxes", "10", "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error:") and message in err and err.count("\n") == 1
