@@ -1,9 +1,18 @@
-"""Shared fixtures: roads built in memory (no SUMO) and the committed curved500 road."""
+"""Shared fixtures: roads built in memory (no SUMO) and the committed curved500 road; the
+property tests' draws seeded."""
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
+
+# every random draw from an explicit seed: hypothesis derives each test's examples from the
+# test itself, so a run (CI's too) is repeatable; HYPOTHESIS_PROFILE=explore searches afresh
+settings.register_profile("seeded", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
 
 from safeil_sumo.geometry import Polyline
 from safeil_sumo.scenarios.road import Lane, Road
