@@ -63,9 +63,20 @@ def run_cli(out: Path, *extra: str, display: str | None = None,
         capture_output=True, text=True, timeout=120, env=env)
 
 
+def _blank(png) -> bool:
+    """A screenshot of at most two colours: saved before sumo-gui drew anything."""
+    rgb = (image.imread(png)[..., :3] * 255).round().astype(np.uint8)
+    return len(np.unique(rgb.reshape(-1, 3), axis=0)) < 3
+
+
 def test_gui_run_equals_headless_and_screenshots_the_ego(tmp_path, xvfb):
     shot = tmp_path / "view.png"
     gui = run_cli(tmp_path / "gui", "--gui", "--gui-screenshot", str(shot), display=xvfb())
+    if gui.returncode == 0 and _blank(shot):
+        # on a loaded machine sumo-gui under Xvfb can save the view before its first draw (only
+        # black and white): one more run, so the test still fails if the view is never drawn
+        shutil.rmtree(tmp_path / "gui")
+        gui = run_cli(tmp_path / "gui", "--gui", "--gui-screenshot", str(shot), display=xvfb())
     assert gui.returncode == 0, gui.stderr
     assert "1/1 scenarios completed" in gui.stdout
     headless = run_cli(tmp_path / "headless")
