@@ -57,6 +57,8 @@ class Budget:
     batch: int = 512  # boxes bounded together [-]
     cex_min_share: float = 1e-10  # a box holding a counterexample is split further only
     # while its share of the envelope exceeds this [-] (its other parts may be provable)
+    cex_priority: float = 0.1  # a box holding a counterexample is taken as if its share
+    # were this times smaller: boxes not yet refuted are refined first [-]
     n_random: int = 4  # random points per unproven box tried as counterexamples [-]
     seed: int = 0  # seeds the random points [-]
 
@@ -65,8 +67,8 @@ class Budget:
             raise CertifyError(f"the time budget must be > 0 s, got {self.seconds}")
         if self.boxes is not None and self.boxes < 1:
             raise CertifyError(f"the box budget must be >= 1, got {self.boxes}")
-        if self.batch < 1 or self.n_random < 0:
-            raise CertifyError("batch must be >= 1 and n_random >= 0")
+        if self.batch < 1 or self.n_random < 0 or not 0 < self.cex_priority <= 1:
+            raise CertifyError("batch must be >= 1, n_random >= 0 and cex_priority in (0, 1]")
 
 
 @dataclass(frozen=True)
@@ -272,7 +274,10 @@ def _branch_and_bound(policy, env, props, layers, margin, seconds, max_boxes, bu
                 score = bb.score[split][np.arange(split.sum()), bb.lower[split].argmin(axis=1)]
                 dims = np.where(width > 0, score + 1e-12 * width, -1.0).argmax(axis=1)
                 for c in _split(env, tree, ids[split], dims, weights):
-                    heapq.heappush(heap, (-w_part[tree.part[c]] * tree.share_hi[c], int(c)))
+                    rank = w_part[tree.part[c]] * tree.share_hi[c]
+                    if np.isfinite(tree.cex_val[c]):
+                        rank *= budget.cex_priority
+                    heapq.heappush(heap, (-rank, int(c)))
         it += 1
         bar.update(len(ids))
         bar.set_postfix(certified=f"{proven_mass.sum():.4f}", refresh=False)
