@@ -835,23 +835,31 @@ def leader(out: Path, work: Path, workers: int, seed: int, variants: int) -> dic
             "suite": table.to_dict(orient="records"), "variants": variants}
 
 
-def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
-    """Every 11 s window (every 20 s) of the maneuvers the shipped SafeIL held out, per source."""
+def _held_out_sources(tag: str):
+    """``(source, maneuvers, held-out ids)`` of OpenACC and NGSIM: the pipeline's maneuvers at
+    10 Hz and the ids the shipped SafeIL held out; a source that cannot be read is skipped with
+    a line naming ``tag`` (the section)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
-    from safeil_sumo.experiments import replay as rp
-    from safeil_sumo.experiments import replay_all as ra
-    from safeil_sumo.learn.checkpoint import held_out_maneuvers
     from safeil_sumo.data.sources import load_source
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers
 
     held = set(held_out_maneuvers(SHIPPED_SAFEIL))
-    rows = []
     for source in ("openacc", "ngsim"):
         try:
             maneuvers, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
         except (OSError, ValueError) as exc:
-            print(f"[humanlike] {source} skipped: {exc}")
+            print(f"[{tag}] {source} skipped: {exc}")
             continue
-        only = sorted(held & set(maneuvers["maneuver_id"].astype(str)))
+        yield source, maneuvers, sorted(held & set(maneuvers["maneuver_id"].astype(str)))
+
+
+def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
+    """Every 11 s window (every 20 s) of the maneuvers the shipped SafeIL held out, per source."""
+    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import replay_all as ra
+
+    rows = []
+    for source, maneuvers, only in _held_out_sources("humanlike"):
         wins = ra.windows(maneuvers, "sliding", rp.PAPER_DURATION_S, 20.0, only)
         folder = work / f"humanlike_{source}"
         # "recorded" (the human's own path) is the instrument's floor beside the planners
@@ -872,21 +880,11 @@ def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -
     with :data:`WHOLE_POLICIES`, per source: ``humanlike_whole.csv`` (per planner),
     ``humanlike_whole_by_driver.csv`` (per planner and driver), ``humanlike_whole_<source>.png``.
     ``quick``: the first :data:`WHOLE_QUICK_MANEUVERS` held-out maneuvers per source."""
-    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.experiments import replay as rp
     from safeil_sumo.experiments import replay_all as ra
-    from safeil_sumo.learn.checkpoint import held_out_maneuvers
-    from safeil_sumo.data.sources import load_source
 
-    held = set(held_out_maneuvers(SHIPPED_SAFEIL))
     rows, drivers = [], []
-    for source in ("openacc", "ngsim"):
-        try:
-            maneuvers, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
-        except (OSError, ValueError) as exc:
-            print(f"[whole] {source} skipped: {exc}")
-            continue
-        only = sorted(held & set(maneuvers["maneuver_id"].astype(str)))
+    for source, maneuvers, only in _held_out_sources("whole"):
         if quick:
             only = only[:WHOLE_QUICK_MANEUVERS]
         wins = ra.windows(maneuvers, "whole", only=only)
