@@ -176,7 +176,7 @@ def test_the_composed_network_is_the_planner(name: str) -> None:
 
 
 def test_style_range_is_an_input_dimension(safeil: MLPPolicy) -> None:
-    env = cm.CertEnvelope(time_gap_s=(0.6, 3.5))
+    env = cm.CertEnvelope(time_gap_s=(0.8, 3.5))  # the settings a policy accepts
     lo, hi = env.root_boxes()["leader"]
     z = lo + np.random.default_rng(2).uniform(size=(50, 8)) * (hi - lo)
     y = bnd.forward(cm.planner_layers(safeil, style_range=True), z)

@@ -11,10 +11,13 @@ from hypothesis import strategies as st
 from safeil_sumo.learn.closed_loop import (
     Episodes,
     LoopModel,
+    SettlingConfig,
     closed_loop_loss,
     episodes_from_tuples,
     plan_speed_accel,
     rollout,
+    settling_episodes,
+    settling_loss,
 )
 from safeil_sumo.sim.controller import make_target, plan_speed_and_accel
 
@@ -152,6 +155,50 @@ def test_perturbed_start_moves_the_ego_back_and_changes_its_speed():
     assert float(fast["gap"][0, -1]) < 40.0 - 2.0 * 4.0  # closing at 2 m/s for ~4.9 s
 
 
+def test_settling_episodes_start_off_the_equilibrium_of_their_setting():
+    cfg = SettlingConfig()
+    ep, gap_eq = settling_episodes(400, torch.tensor([STRAIGHT]), np.random.default_rng(1),
+                                   window_s=6.0, cfg=cfg)
+    tg, v_lead = ep.style[:, 0], ep.v_lead[:, 0]
+    assert ep.v_human.shape == (400, 60) and ep.s_lead.shape == (400, 60)
+    torch.testing.assert_close(gap_eq, torch.clamp(tg * v_lead, min=2.0))
+    assert float(tg.min()) >= 0.8 and float(tg.max()) <= 3.0
+    # the leader drives at constant speed from the ego's start gap
+    torch.testing.assert_close(ep.s_lead[:, 1] - ep.s_lead[:, 0], v_lead * 0.1, atol=1e-4, rtol=0)
+    gap0 = ep.s_lead[:, 0]
+    far = gap0 > gap_eq
+    assert 150 < int(far.sum()) < 250  # half far behind, half close
+    assert float((gap0[far] - gap_eq[far]).max()) <= cfg.far_m
+    floor = torch.clamp(0.4 * gap_eq[~far], min=1.0)
+    assert bool((gap0[~far] >= floor - 1e-4).all() and (gap0[~far] <= gap_eq[~far]).all())
+    dv = ep.v_human[:, 0] - v_lead  # the rollout's start speed, within the speed step
+    assert float(dv.abs().max()) <= cfg.speed_step_mps + 1e-5 and float(dv.abs().max()) > 2.0
+    a, _ = settling_episodes(3, torch.tensor([STRAIGHT]), np.random.default_rng(1), 6.0)
+    b, _ = settling_episodes(3, torch.tensor([STRAIGHT]), np.random.default_rng(1), 6.0)
+    torch.testing.assert_close(a.s_lead, b.s_lead)  # seeded
+
+
+def test_settling_loss_is_hand_computed():
+    cfg = SettlingConfig(settle_after_s=0.2, floor_time_gap_s=1.0)
+    # 4 steps of 0.1 s: scored from step 2; gap error 3 and 1 m there; the floor (1 s at
+    # 10 m/s: 10 m) is missed by 4 m at step 0 only
+    out = {"gap": torch.tensor([[6.0, 12.0, 23.0, 21.0]]), "v": torch.full((1, 4), 10.0)}
+    settle, floor = settling_loss(out, torch.tensor([20.0]), 0.1, cfg)
+    assert float(settle) == pytest.approx((9.0 + 1.0) / 2)
+    assert float(floor) == pytest.approx(16.0 / 4)
+
+
+def test_a_planner_that_holds_its_speed_does_not_settle():
+    """Constant speed behind an equal-speed leader keeps the start gap: from a far start the
+    settling term is the squared distance to the equilibrium; a start at it scores zero."""
+    ep = _episode(20.0, 20.0, 60.0, 50)
+    out = rollout(ConstantAccelPlanner(), ep)
+    settle, floor = settling_loss(out, torch.tensor([30.0]), 0.1, SettlingConfig(settle_after_s=2.0))
+    assert float(settle) == pytest.approx(900.0, rel=1e-4) and float(floor) == 0.0
+    settle, _ = settling_loss(out, torch.tensor([60.0]), 0.1, SettlingConfig(settle_after_s=2.0))
+    assert float(settle) == pytest.approx(0.0, abs=1e-4)
+
+
 def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
     """Two fine-tunes with one seed give the same weights, bit for bit (same machine); the
     checkpoint has the style input, its default (the training maneuvers' median) and the
@@ -180,7 +227,8 @@ def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
     spec.loader.exec_module(ft)
     args = ["--init", str(tmp_path / "init.safetensors"), "--data", str(tmp_path / "t.parquet"),
             "--iters", "2", "--batch", "4", "--window", "8", "--stride", "4", "--style",
-            "--perturb", "0.5", "--equilibrium-weight", "1", "--no-progress"]
+            "--perturb", "0.5", "--equilibrium-weight", "1", "--settle-weight", "1",
+            "--no-progress"]
     for name in ("a", "b"):
         assert ft.main([*args, "--out", str(tmp_path / name)]) == 0
     # the weights, not the file bytes: safetensors writes its metadata map in no fixed order

@@ -14,7 +14,8 @@ states, so only the longitudinal plan is re-learned. Deterministic for a seed.
 ``--style``: the planner gets the driver's preferred time gap as a 10th input
 (:mod:`safeil_sumo.learn.style`; its first-layer weights start at zero), estimated per maneuver
 from the data; envelope states draw it across the trained range, and the checkpoint stores the
-training maneuvers' median as the default setting.
+default setting: the training maneuvers' median time gap at each speed (and their overall
+median).
 """
 
 from __future__ import annotations
@@ -31,10 +32,14 @@ from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import held_out_maneuvers, load_model, save_checkpoint
 from safeil_sumo.learn.closed_loop import (
     D_LEAD,
+    V_LEAD,
     V_X,
+    SettlingConfig,
     closed_loop_loss,
     episodes_from_tuples,
     rollout,
+    settling_episodes,
+    settling_loss,
 )
 from safeil_sumo.learn.envelope import sample_states
 from safeil_sumo.learn.losses import envelope_barrier_terms
@@ -44,6 +49,7 @@ from safeil_sumo.learn.style import (
     equilibrium_residual,
     equilibrium_states,
     maneuver_time_gaps,
+    time_gap_by_speed,
 )
 from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
 
@@ -68,11 +74,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="share of episodes started off the human's state: the gap scaled by "
                          "a factor in [0.5, 1.8] and the speed changed by up to 2 m/s; the "
                          "planner must bring the gap back (default 0: none)")
+    ap.add_argument("--settle-weight", type=float, default=0.0,
+                    help="weight of the settling term: as many synthetic episodes as --batch, "
+                         "a constant-speed leader and the ego started far behind or too close "
+                         "(learn/closed_loop.py SettlingConfig); the gap is scored against the "
+                         "setting's equilibrium from 30 s on (half-way in shorter windows), and time gaps below 0.8 s "
+                         "all along (default 0: none; needs --style)")
     ap.add_argument("--style", action="store_true",
                     help="add the driver's preferred time gap as an input (learn/style.py)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
+    if args.settle_weight > 0 and not args.style:
+        ap.error("--settle-weight needs --style: the episodes draw the time-gap setting")
 
     torch.manual_seed(args.seed)
     torch.set_num_threads(1)
@@ -100,11 +114,19 @@ def main(argv: list[str] | None = None) -> int:
         median = float(np.median(list(per_maneuver.values())))
         tg = np.where(np.isfinite(tg), tg, median)
         style_default = {"time_gap_s": median}
+        train_feats = tuples.features[np.isin(tuples.maneuver_id, list(train_ids))]
+        try:  # the default setting: the training humans' median time gap at each speed
+            style_default["time_gap_by_speed"] = time_gap_by_speed(
+                train_feats[:, D_LEAD], train_feats[:, V_X], train_feats[:, V_LEAD])
+        except ValueError as err:
+            print(f"style: one default setting for all speeds ({err})")
         model = with_style_input(model, median, float(np.std(list(per_maneuver.values()))))
         eps = eps.with_style({m: per_maneuver.get(m, median) for m in set(eps.maneuver_id)})
         feats = torch.cat([feats, torch.as_tensor(tg, dtype=torch.float32)[:, None]], dim=1)
         print(f"style: time gap per training maneuver, median {median:.2f} s, quartiles "
               f"{np.quantile(list(per_maneuver.values()), [0.25, 0.75]).round(2).tolist()} s")
+    # scored from 30 s on (from half-way in shorter windows)
+    settling = SettlingConfig(settle_after_s=min(30.0, args.window / 2))
     rng = np.random.default_rng([args.seed, 3])
     gen = torch.Generator().manual_seed(args.seed)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
@@ -127,6 +149,11 @@ def main(argv: list[str] | None = None) -> int:
                                          speed_offset_mps=speed_off), ep,
                                  speed_weight=args.speed_weight, barrier_k=cfg.barrier_k,
                                  barrier_weight=cfg.envelope_weight)
+        settle = floor = torch.zeros(())
+        if args.settle_weight > 0:
+            syn, gap_eq = settling_episodes(args.batch, eps.lanes, rng, args.window, cfg=settling)
+            settle, floor = settling_loss(rollout(model, syn, horizon=horizon), gap_eq,
+                                          syn.dt_s, settling)
         env = torch.as_tensor(sample_states(cfg.envelope_batch, rng), dtype=torch.float32)
         if args.style:
             env = torch.cat([env, torch.as_tensor(rng.uniform(*TIME_GAP_RANGE_S, (len(env), 1)),
@@ -142,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
         anchor = torch.cat([feats[data_rows], env])
         lateral = (model(anchor)[..., 1] - frozen(anchor[:, :9])[..., 1]).pow(2).mean()
         loss = (terms.total + cfg.envelope_weight * env_term + cfg.monotone_weight * mono
-                + args.lateral_weight * lateral + args.equilibrium_weight * equilibrium)
+                + args.lateral_weight * lateral + args.equilibrium_weight * equilibrium
+                + args.settle_weight * (settle + floor))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -150,10 +178,12 @@ def main(argv: list[str] | None = None) -> int:
         row = {**terms.as_floats(), "envelope": float(env_term.detach()),
                "monotone": float(mono.detach()),
                "lateral": float(lateral.detach()), "equilibrium": float(equilibrium.detach()),
+               "settle": float(settle.detach()), "floor": float(floor.detach()),
                "loss": float(loss.detach())}
         log.append(row)
         bar.set_postfix(gap=f"{row['gap']:.1f}", v=f"{row['speed']:.2f}",
-                        lat=f"{row['lateral']:.2g}", refresh=False)
+                        lat=f"{row['lateral']:.2g}", settle=f"{row['settle']:.1f}",
+                        refresh=False)
     model.eval()
     seconds = time.perf_counter() - start
     metrics = {**meta.get("metrics", {}), "closed_loop": {
@@ -161,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         "iters": args.iters, "batch": args.batch, "lr": args.lr,
         "speed_weight": args.speed_weight, "lateral_weight": args.lateral_weight,
         "equilibrium_weight": args.equilibrium_weight, "perturb": args.perturb,
+        "settle_weight": args.settle_weight,
         "seed": args.seed, "episodes": len(eps), "seconds": seconds, "style": args.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,

@@ -228,3 +228,69 @@ def closed_loop_loss(out: dict[str, torch.Tensor], ep: Episodes, speed_weight: f
     barrier = barrier_k * F.softplus(-out["lead_margin"]).sum(-1).mean()
     total = gap + speed_weight * speed + barrier_weight * barrier
     return ClosedLoopTerms(gap, speed, barrier, total)
+
+
+@dataclass(frozen=True)
+class SettlingConfig:
+    """Synthetic gap-regulation episodes: a leader at constant speed, the ego started off the
+    equilibrium of its time-gap setting; the planner must settle at that equilibrium.
+
+    speed_mps: leader speeds drawn [m/s]; time_gap_s: settings drawn [s]; speed_step_mps: the
+    ego starts up to this much slower or faster than the leader [m/s] (the leader has just
+    changed speed); far_m: a "far" start is up to this much behind the equilibrium gap [m];
+    close_factor: a "close" start is at this fraction of it [-]; settle_after_s: the gap is
+    scored from this time on [s] (the transient before is free but for the floor);
+    floor_time_gap_s: time gaps below this are penalised all along [s].
+    """
+
+    speed_mps: tuple[float, float] = (5.0, 36.0)
+    time_gap_s: tuple[float, float] = (0.8, 3.0)
+    speed_step_mps: float = 3.0
+    far_m: float = 100.0
+    close_factor: tuple[float, float] = (0.4, 1.0)
+    settle_after_s: float = 30.0
+    floor_time_gap_s: float = 0.8
+
+
+def settling_episodes(n: int, lanes: torch.Tensor, rng: np.random.Generator, window_s: float,
+                      dt_s: float = 0.1, cfg: SettlingConfig = SettlingConfig()
+                      ) -> tuple[Episodes, torch.Tensor]:
+    """``n`` synthetic episodes (lane lines drawn from ``lanes (M, 6)``) and their equilibrium
+    gaps ``(n,)`` [m] ``max(T v_lead, STANDSTILL_GAP_M)``. Half start far behind (up to
+    ``far_m`` beyond the equilibrium), half close (a fraction of it). The human fields hold the
+    equilibrium (gap) and the leader's speed (the start speed first): there is no human."""
+    from safeil_sumo.learn.style import STANDSTILL_GAP_M
+
+    steps = round(window_s / dt_s)
+    v_lead = rng.uniform(*cfg.speed_mps, n)
+    time_gap = rng.uniform(*cfg.time_gap_s, n)
+    gap_eq = np.maximum(time_gap * v_lead, STANDSTILL_GAP_M)
+    far = rng.uniform(size=n) < 0.5
+    gap0 = np.where(far, gap_eq + rng.uniform(0.0, cfg.far_m, n),
+                    np.maximum(gap_eq * rng.uniform(*cfg.close_factor, n), 1.0))
+    v0 = np.maximum(v_lead + rng.uniform(-cfg.speed_step_mps, cfg.speed_step_mps, n), 0.0)
+    t = np.arange(steps) * dt_s
+
+    def f32(a) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(a), dtype=torch.float32)
+
+    v_human = np.repeat(v_lead[:, None], steps, 1)
+    v_human[:, 0] = v0  # the rollout starts at the human's first speed
+    ep = Episodes(
+        lanes=lanes[torch.as_tensor(rng.integers(len(lanes), size=n))],
+        v_human=f32(v_human), gap_human=f32(np.repeat(gap_eq[:, None], steps, 1)),
+        v_lead=f32(np.repeat(v_lead[:, None], steps, 1)),
+        s_lead=f32(gap0[:, None] + v_lead[:, None] * t),
+        maneuver_id=np.array(["settling"] * n), dt_s=dt_s, style=f32(time_gap[:, None]))
+    return ep, f32(gap_eq)
+
+
+def settling_loss(out: dict[str, torch.Tensor], gap_eq_m: torch.Tensor, dt_s: float,
+                  cfg: SettlingConfig = SettlingConfig()) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(settle, floor)`` [m^2]: the mean squared gap error to the equilibrium ``(B,)`` from
+    ``cfg.settle_after_s`` on, and the mean squared shortfall below the floor time gap
+    ``relu(floor v - gap)`` over the whole rollout."""
+    k0 = round(cfg.settle_after_s / dt_s)
+    settle = (out["gap"][:, k0:] - gap_eq_m[:, None]).pow(2).mean()
+    floor = F.relu(cfg.floor_time_gap_s * out["v"] - out["gap"]).pow(2).mean()
+    return settle, floor
