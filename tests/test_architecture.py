@@ -31,6 +31,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("the Python API", ("api",)),
     ("command lines", ("run", "sweep", "replay", "probe", "gap_probe", "results", "bench",
                        "animate", "certify", "cli_args")),
+    ("Gymnasium environments (their rgb_array frames are the animation's)", ("envs.*",)),
 )
 # upward imports allowed, each with its reason (none today: keep it so)
 ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
