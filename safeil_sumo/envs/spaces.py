@@ -32,9 +32,10 @@ from safeil_sumo.sim.vehicle import VehicleParams
 # d_lead [m] (150 m, the radar's range, when no leader is seen)
 OBS_LOW = np.array([-20.0, -2.0, -0.5, -20.0, -2.0, -0.5, 0.0, 0.0, 0.0], np.float32)
 OBS_HIGH = np.array([20.0, 2.0, 0.5, 20.0, 2.0, 0.5, 100.0, 100.0, 250.0], np.float32)
-# plan level: x in [0, 250] m ahead, y in [-10, 10] m, for each of the 3 free control points
-PLAN_LOW = np.array([0.0, -10.0] * 3)
-PLAN_HIGH = np.array([250.0, 10.0] * 3)
+# plan level: x in [0, 250] m ahead, y in [-80, 80] m (a 500 m curve is 20 m to the side 140 m
+# ahead, where the shipped safeil puts its last point at 30 m/s), for each free control point
+PLAN_LOW = np.array([0.0, -80.0] * 3)
+PLAN_HIGH = np.array([250.0, 80.0] * 3)
 ACTION_LEVELS = ("plan", "control")
 OUT_OF_SPACE = ("clip", "raise")
 INFO_KEYS = ("t", "ttc", "gap", "lateral_offset", "v", "leader_v", "path_fraction",
