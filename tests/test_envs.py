@@ -281,9 +281,14 @@ def test_a_killed_worker_leaves_nothing_behind():
         os.kill(venv.unwrapped.processes[0].pid, signal.SIGKILL)
         with pytest.raises(Exception):  # noqa: B017 - gymnasium's error of a dead worker
             venv.step(np.tile([30.0, 0.0, 60.0, 0.0, 90.0, 0.0], (2, 1)))
-    finally:  # the dead worker's pipe may raise on the way out; every worker is terminated
+    finally:
+        # gymnasium's close may raise on the dead worker's pipe before it terminates the
+        # others; closing our ends of the pipes ends them (they exit on EOF)
         with contextlib.suppress(EOFError, BrokenPipeError, ConnectionResetError):
             venv.close(terminate=True)
+        for pipe in venv.unwrapped.parent_pipes:
+            with contextlib.suppress(OSError):
+                pipe.close()
     _wait_gone(workers)
 
     code = ("import time, safeil_sumo.envs as e; v = e.SafeILVectorEnv(2, backend='traci'); "
