@@ -16,7 +16,9 @@ Measures on ``curved500`` (ego + leader, 0.01 s step, monitors on, planner at 10
 - the loop on the multi-edge n74 road against one edge (µs per step) and a 10 km n74 drive's
   wall time, with a scripted leader and among SUMO's default traffic;
 - a curved500 sweep with 1 and 2 workers (wall time, parallel efficiency, worker peak memory),
-  one scenario per simulation and batched (``sweep --batch``).
+  one scenario per simulation and batched (``sweep --batch``);
+- the Gymnasium envs (``python -m safeil_sumo.envs.bench`` in a subprocess): transitions/s of
+  the single env, the native vector env at N = 64 and an AsyncVectorEnv baseline, peak memory.
 Prints a table and writes it as JSON (``--out``). ``--quick`` shortens every measurement (CI).
 It asserts nothing about time: numbers are reported, never tested. A part whose input is
 missing (the NGSIM file) is skipped with a note.
@@ -364,6 +366,24 @@ def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: di
     rows["batched_over_scalar"] = rows[f"batched_over_scalar_n{n}"]
 
 
+def gym_rows(quick: bool, rows: dict) -> None:
+    """The Gymnasium envs (``python -m safeil_sumo.envs.bench`` in a subprocess, each part in
+    a fresh process): transitions/s of the single env, the native vector env at N = 64 (8
+    quick) and an AsyncVectorEnv of 4 single envs (a process each), and peak memory."""
+    n = 8 if quick else 64
+    out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.bench", "--n", str(n),
+                          "--seconds", "3" if quick else "20", "--json"],
+                         capture_output=True, text=True, check=True)
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    single, vector, async_ = result["rows"]
+    rows["gym_single_transitions_per_s"] = single["transitions_per_s"]
+    rows[f"gym_vector_n{n}_transitions_per_s"] = vector["transitions_per_s"]
+    rows[f"gym_async_n{async_['n']}_transitions_per_s"] = async_["transitions_per_s"]
+    rows["gym_vector_over_single"] = result["vector_over_single"]
+    rows["gym_vector_over_async"] = result["vector_over_async"]
+    rows[f"gym_vector_n{n}_peak_rss_mb"] = vector["peak_rss_mb"]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m safeil_sumo.bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -402,6 +422,7 @@ def main(argv: list[str] | None = None) -> int:
         data_and_training(args.quick, rows, notes, calls)
         rows["closed_loop_peak_rss_mb"] = closed_loop_peak_rss_mb(policy, sim_s)
         sweep_rows(args.quick, policy, rows, notes)
+        gym_rows(args.quick, rows)
 
     report = {
         "machine": {"cpus": _cpus(), "cpu": _cpu_model(), "platform": platform.platform(),

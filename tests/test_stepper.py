@@ -282,3 +282,65 @@ def test_an_error_ends_the_running_scenarios_and_bad_input_is_refused(road):
         ClosedLoop(LoopConfig(gui=True, backend="traci"))
     with pytest.raises(ValueError, match="unknown log column"):
         ClosedLoop(log_columns=("t", "speed"))
+
+
+def _alone(scenario, policy):
+    with ClosedLoop() as loop:
+        loop.reset([scenario], policy)
+        while loop.step()[0].running.any():
+            pass
+        return loop.rollout(0).log
+
+
+def test_restart_runs_a_scenario_as_it_runs_alone(road):
+    """A scenario restarted on an ended one's copy (a vector env's autoreset) gives the log it
+    gives alone, bit for bit, while the other scenario runs on; a running scenario, another
+    net and a closed SUMO are refused."""
+    analytic = AnalyticPlanner()
+    short = replace(safety_scenario(road, 0), max_time_s=1.0)
+    long_ = replace(safety_scenario(road, 1), max_time_s=4.0)
+    again = replace(_noisy(road, "again"), max_time_s=2.0)
+    with ClosedLoop() as loop:
+        loop.reset([short, long_], analytic)
+        with pytest.raises(ValueError, match="running"):
+            loop.restart(1, again, analytic)
+        while not loop.end_reasons[0]:
+            obs, _ = loop.step()
+        loop.restart(0, again, analytic)
+        obs, events = loop.step()
+        assert obs.running.all() and obs.t[0] == 0.0 and not events.ended.any()
+        assert events.sub_steps[0] == 0 and events.sub_steps[1] == PLAN_EVERY
+        while obs.running[0]:
+            obs, _ = loop.step()
+        got = loop.rollout(0).log
+        other = replace(again, road=load_road(resolve_net("straight")))
+        while obs.running.any():
+            obs, _ = loop.step()
+        with pytest.raises(RuntimeError, match="call reset"):
+            loop.restart(0, other, analytic)
+    pd.testing.assert_frame_equal(got, _alone(again, analytic), check_exact=True)
+    with ClosedLoop() as loop:
+        loop.reset([short, long_], analytic)
+        while not loop.end_reasons[0]:
+            loop.step()
+        with pytest.raises(ValueError, match="same net|stay on that net"):
+            loop.restart(0, other, analytic)
+
+
+def test_controls_drive_the_plant_without_a_plan(road):
+    """step(controls=...) holds acceleration and steering commands over the period: logged as
+    given, the ego brakes; bad shapes and NaN are refused, plans and controls together too."""
+    sc = replace(safety_scenario(road, 0), max_time_s=3.0)
+    with ClosedLoop() as loop:
+        obs = loop.reset([sc], horizon_s=3.0)
+        v0 = obs.v[0]
+        for _ in range(10):
+            obs, _ = loop.step(controls=np.array([[-3.0, 0.0]]))
+        log = loop.rollout(0).log
+        assert (log["accel_cmd"] == -3.0).all() and (log["steer_cmd"] == 0.0).all()
+        assert obs.v[0] < v0 - 2.0
+        for bad in (np.zeros((1, 3)), np.array([[np.nan, 0.0]])):
+            with pytest.raises(ValueError, match="controls"):
+                loop.step(controls=bad)
+        with pytest.raises(ValueError, match="not both"):
+            loop.step(np.zeros((1, 3, 2)), controls=np.zeros((1, 2)))

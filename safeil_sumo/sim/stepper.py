@@ -161,9 +161,14 @@ class _Scenario:
     """What is per scenario in a run: its road, noise, camera, leader and log."""
 
     def __init__(self, i: int, scenario: Scenario, policy: Policy | None, horizon: float,
-                 loop: LoopConfig, vehicle: veh.VehicleParams, dx: float, log_width: int) -> None:
+                 loop: LoopConfig, vehicle: veh.VehicleParams, dx: float, log_width: int,
+                 generation: int = 0) -> None:
         self.i, self.scenario, self.policy, self.horizon = i, scenario, policy, horizon
-        self.ego, self.leader_id = f"ego_{i}", f"leader_{i}"
+        # a restarted scenario's vehicles and routes get new SUMO ids (".<generation>")
+        self.tag = f"_{i}" if generation == 0 else f"_{i}.{generation}"
+        self.ego, self.leader_id = f"ego{self.tag}", f"leader{self.tag}"
+        self.generation = generation
+        self.k0 = 0  # the loop's physics step at which this scenario's step 0 runs
         self.dx = dx  # x offset [m] of this scenario's copy of the track in SUMO
         road = self.road = scenario.road
         self.lane = road.lanes[road.ego_lane]
@@ -189,7 +194,7 @@ class _Scenario:
         """Insert the ego and leader on this scenario's copy of the track; place the ego."""
         road, i = self.road, self.i
         ego_k, ego_lane, _, self.lead_scale = insert_vehicles(
-            api, self.scenario, vehicle, self.ego, self.leader_id, partial(prefixed, i), f"_{i}")
+            api, self.scenario, vehicle, self.ego, self.leader_id, partial(prefixed, i), self.tag)
         front = veh.front_bumper(self.state0, vehicle)
         if xy_placement_is_unambiguous(road, front, self.s_ego0):
             place_ego(api, self.state0, vehicle, self.ego, self.dx,
@@ -247,6 +252,7 @@ class _Live:
         self.feature_log = np.full((n, 8), np.nan)  # c0l..c2r, v_lead, d_lead as logged
         self.plan_log = np.full((n, 10), np.nan)  # the plan being tracked: time, pose, points
         self.target: ctl.BatchTarget | None = None
+        self.controls: np.ndarray | None = None  # (n, 2) given accel, steer commands, or None
         self.c = _Fixed.of(runs)
         self.ego_seg = np.array([r.centre.segment_index(r.s_ego0) for r in runs])
         self.lead_seg = np.array([r.centre.segment_index(r.s_lead0) for r in runs])
@@ -263,6 +269,26 @@ class _Live:
         self.ego_seg, self.lead_seg = self.ego_seg[keep], self.lead_seg[keep]
         self.feature_log, self.plan_log = self.feature_log[keep], self.plan_log[keep]
         self.target = self.target.take(keep) if self.target is not None else None
+        self.controls = self.controls[keep] if self.controls is not None else None
+
+    def join(self, other: _Live) -> None:
+        """Add ``other``'s rows (restarted scenarios, between two steps: no plan is being
+        tracked), then order every row by its scenario index."""
+        cat = np.concatenate
+        self.runs = self.runs + other.runs
+        self.idx = cat([self.idx, other.idx])
+        self.st = tuple(cat([a, b]) for a, b in zip(self.st, other.st))
+        self.integral = cat([self.integral, other.integral])
+        self.prev_error = cat([self.prev_error, other.prev_error])
+        self.t_plan, self.features = cat([self.t_plan, other.t_plan]), cat([self.features,
+                                                                             other.features])
+        self.front = (cat([self.front[0], other.front[0]]), cat([self.front[1], other.front[1]]))
+        self.ego_seg, self.lead_seg = cat([self.ego_seg, other.ego_seg]), cat([self.lead_seg,
+                                                                               other.lead_seg])
+        self.feature_log = cat([self.feature_log, other.feature_log])
+        self.plan_log = cat([self.plan_log, other.plan_log])
+        self.target, self.controls = None, None
+        self.take(np.argsort(self.idx, kind="stable"))
 
 
 class ClosedLoop:
@@ -309,6 +335,7 @@ class ClosedLoop:
         self._last = np.empty((0, len(_Log.COLUMNS)))  # (N, 44) each scenario's latest row
         self._features = np.empty((0, 9))  # (N, 9) each scenario's latest features
         self._running = np.empty(0, dtype=bool)  # (N,)
+        self._pending: list[_Scenario] = []  # restarted scenarios, started by the next step
 
     # -- the public loop ----------------------------------------------------------------------
 
@@ -325,7 +352,7 @@ class ClosedLoop:
         scenario with ``end_reason="error"``, closes SUMO and is raised.
         """
         self.close()
-        self._runs, self._live = [], None
+        self._runs, self._live, self._pending = [], None, []
         scenarios = list(scenarios)
         if not scenarios:
             raise ValueError("no scenarios to reset")
@@ -366,34 +393,49 @@ class ClosedLoop:
         self._live = live
         return self._observation()
 
-    def step(self, plans: np.ndarray | None = None) -> tuple[Observation, Events]:
+    def step(self, plans: np.ndarray | None = None,
+             controls: np.ndarray | None = None) -> tuple[Observation, Events]:
         """One decision step: plan, then the planning period's physics sub-steps.
 
         ``plans`` ``(N, 3, 2)`` (or ``(N, 6)``) [m]: each scenario's three free B-spline control
         points in its ego frame at this decision (rows of ended scenarios are ignored); None:
-        the bound policies plan from the observation's features. Returns the observation after
-        the step and what happened in it. An error ends every running scenario with
-        ``end_reason="error"``, closes SUMO and is raised.
+        the bound policies plan from the observation's features. ``controls`` ``(N, 2)``
+        instead: each ego's acceleration [m/s^2] and road-wheel steering angle [rad] commands,
+        held over the period with no plan or tracker (the plant's actuators and limits still
+        apply). Scenarios queued by :meth:`restart` start during the step (see there). Returns
+        the observation after the step and what happened in it. An error ends every running
+        scenario with ``end_reason="error"``, closes SUMO and is raised.
         """
         live = self._live
         if live is None:
             raise RuntimeError("no scenario is running: call reset first" if not self._runs
                                else "every scenario has ended: call reset")
         self._lap("outside")
-        given = self._checked_plans(live, plans)  # bad plans are refused; the run goes on
+        if plans is not None and controls is not None:
+            raise ValueError("step takes plans or controls, not both")
+        held = self._checked_controls(live, controls)
+        # bad plans are refused; the run goes on
+        given = self._checked_plans(live, plans) if held is None else None
         n_all = len(self._runs)
         ev = Events(np.zeros(n_all, bool), np.array([r.end_reason for r in self._runs], object),
                     np.zeros(n_all, bool), np.zeros(n_all, bool), np.zeros(n_all, bool),
                     np.zeros(n_all, int))
+        pending, self._pending = self._pending, []
         try:
-            self._plan(live, given)
+            self._plan(live, given, held)
             for sub in range(self._plan_every):
                 if self.clock is not None:
                     self.clock.ego_steps += len(live.runs)
-                self._sub_step(live, self._k, sub == self._plan_every - 1, ev)
+                last = sub == self._plan_every - 1
+                if last and pending:  # inserted by this step's last SUMO step, as in reset
+                    for r in pending:
+                        r.add(self._api, self.vehicle)
+                self._sub_step(live, self._k, last, ev)
                 self._k += 1
                 if not live.runs:
                     break
+            if pending:
+                self._start_restarted(live, pending, inserted=sub == self._plan_every - 1)
             if live.runs:
                 self._sense(live)
             else:  # every scenario has ended: SUMO is no longer needed
@@ -403,6 +445,57 @@ class ClosedLoop:
             self._fail(exc)
             raise
         return self._observation(), ev
+
+    def restart(self, i: int, scenario: Scenario, policy: Policy | None = None,
+                horizon_s: float | None = None) -> None:
+        """Queue ``scenario`` to start again on scenario ``i``'s copy of the track, which has
+        ended, while the others run on (a vector env's autoreset). It starts during the next
+        :meth:`step`: its vehicles enter SUMO at that step's last SUMO step (as ``reset``
+        inserts them before its one SUMO step), so the observation after that step has its
+        initial state, sensed as ``reset`` senses it, and its first decision is the step after
+        (it is not stepped in the step that starts it). Its time and log start at 0. Its road
+        must be on the same net as scenario ``i``'s (the copy is of that net). ``ValueError``
+        for a running scenario or another net; ``RuntimeError`` when SUMO has closed (every
+        scenario had ended: call ``reset``)."""
+        if self._live is None or self._api is None:
+            raise RuntimeError("every scenario has ended and SUMO is closed: call reset")
+        if not 0 <= i < len(self._runs):
+            raise ValueError(f"no scenario {i}: the reset had {len(self._runs)}")
+        old = self._runs[i]
+        if self._running[i] or any(r.i == i for r in self._pending):
+            raise ValueError(f"scenario {i} is running (or already restarting): only an ended "
+                             "scenario restarts")
+        if Path(scenario.road.net_path) != Path(old.road.net_path):
+            raise ValueError(f"scenario {i} runs on a copy of {old.road.net_path}; a restart "
+                             f"must stay on that net, got {scenario.road.net_path}")
+        check_scope([scenario], [policy], self.loop)
+        if horizon_s is None and policy is None:
+            raise ValueError("a restart without a policy needs horizon_s, the plans' horizon [s]")
+        self._runs[i] = r = _Scenario(
+            i, scenario, policy, horizon_s if horizon_s is not None else policy.horizon,
+            self.loop, self.vehicle, old.dx, len(self.columns), old.generation + 1)
+        r.lane_ids = old.lane_ids
+        self._pending.append(r)
+
+    def _start_restarted(self, live: _Live, pending: list[_Scenario], inserted: bool) -> None:
+        """The restarted scenarios after their insertion (done now with one SUMO step when
+        every other scenario ended before the last one): read the leaders, look at the start
+        and join the running ones; they are sensed with them."""
+        if not inserted:
+            for r in pending:
+                r.add(self._api, self.vehicle)
+            self._api.simulation.step()
+            self._k += 1
+        for r in pending:
+            r.k0 = self._k
+            if r.has_leader:
+                r.read_leader(self._api, self.vehicle)
+                r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
+        new = _Live(pending)
+        new.idx = np.array([r.i for r in pending])
+        self._look_at_start(new)
+        self._running[new.idx] = True
+        live.join(new)
 
     def rollout(self, i: int, wall_s: float = math.nan) -> Rollout:
         """Scenario ``i``'s log so far and its summary (``wall_s`` [s]: its share of the wall
@@ -485,10 +578,33 @@ class ClosedLoop:
                              f"shape {given.shape}")
         return given.reshape(len(self._runs), 3, 2)[live.idx]
 
-    def _plan(self, live: _Live, given: np.ndarray | None) -> None:
+    def _checked_controls(self, live: _Live, controls: np.ndarray | None
+                          ) -> np.ndarray | None:
+        """The running scenarios' rows ``(n, 2)`` of ``controls`` (finite), or None."""
+        if controls is None:
+            return None
+        given = np.asarray(controls, dtype=float)
+        if given.shape != (len(self._runs), 2):
+            raise ValueError(f"controls must be ({len(self._runs)}, 2): acceleration [m/s^2] "
+                             f"and steering angle [rad], got shape {given.shape}")
+        rows = given[live.idx]
+        if not np.isfinite(rows).all():
+            raise ValueError("controls must be finite")
+        return rows
+
+    def _plan(self, live: _Live, given: np.ndarray | None,
+              controls: np.ndarray | None = None) -> None:
         """The plans of this decision (``given`` ``(n, 3, 2)``, or the policies'), prepared for
-        tracking."""
-        n, t = len(live.runs), self._k * self._dt
+        tracking; or, with ``controls`` ``(n, 2)``, no plan: the commands are held instead."""
+        n, t = len(live.runs), (self._k - live.c.k0) * self._dt  # each scenario's own time
+        live.controls = controls
+        if controls is not None:
+            live.target = None
+            live.t_plan = t.astype(float)
+            live.plan_log = np.full((n, 10), np.nan)
+            live.plan_log[:, 0] = live.t_plan
+            self._lap("plan")
+            return
         cps = given
         if cps is None:
             cps = np.empty((n, 3, 2))
@@ -498,7 +614,7 @@ class ClosedLoop:
         fx_, fy_ = live.front
         yaw = live.st[2]
         live.target = ctl.make_targets(cps, live.c.horizon, fx_, fy_, yaw)
-        live.t_plan = np.full(n, t)
+        live.t_plan = t.astype(float)
         live.plan_log = np.column_stack([live.t_plan, fx_, fy_, yaw, cps.reshape(n, 6)])
         self._lap("plan")
 
@@ -522,11 +638,14 @@ class ClosedLoop:
         """Track the plans, step the plant, find each front bumper on its lane, move the egos
         and command the leaders in SUMO, step SUMO."""
         c, dt, lap, vehicle = live.c, self._dt, self._lap, self.vehicle
-        t = k * dt
+        t = (k - c.k0) * dt  # (n,) each scenario's own time
         x, y, yaw, vx, vy, yaw_rate = live.st[:6]
-        steer_cmd, accel_cmd, live.integral, live.prev_error = ctl.track_values(
-            live.target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, live.integral,
-            live.prev_error, self.controller, dt, ARRAYS)
+        if live.controls is None:
+            steer_cmd, accel_cmd, live.integral, live.prev_error = ctl.track_values(
+                live.target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle,
+                live.integral, live.prev_error, self.controller, dt, ARRAYS)
+        else:  # commands from outside (step(controls=...)), held over the period
+            accel_cmd, steer_cmd = live.controls[:, 0].copy(), live.controls[:, 1].copy()
         throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, ARRAYS)
         lap("track")
         live.st = st = self._plant.step(live.st, steer_cmd, throttle, brake, ARRAYS)
@@ -553,7 +672,7 @@ class ClosedLoop:
                            2)
             set_speed(r.ego, vl[j])
             if r.leader is not None:
-                v_cmd = r.lead_speeds[k] * r.lead_scale
+                v_cmd = r.lead_speeds[k - r.k0] * r.lead_scale
                 if v_cmd != r.lead_cmd:  # SUMO keeps a commanded speed until the next command
                     set_speed(r.leader_id, v_cmd)
                     r.lead_cmd = v_cmd
@@ -598,19 +717,19 @@ class ClosedLoop:
         d_min, d_max, departed, ttc, ttc_flag, fraction = _monitors(
             c, vehicle, yaw, heading, s, d, v, gap, v_lead_true, has_lead)
         rows = np.column_stack([
-            np.full(n, t + self._dt), st[0], st[1], yaw, v, st[4], st[5], st[6], front_x,
+            t + self._dt, st[0], st[1], yaw, v, st[4], st[5], st[6], front_x,
             front_y, steer_cmd, accel_cmd, s, d, d_min, d_max, live.feature_log, lead_x, lead_y,
             v_lead_true, gap, ttc, departed, ttc_flag, hit, fraction, live.plan_log,
             np.where(has_lead, 0.0, np.nan),
         ])
         logged = rows if self._col_idx is None else rows[:, self._col_idx]
         for j, r in enumerate(live.runs):
-            r.rows[k] = logged[j]
-            r.steps = k + 1
+            r.rows[k - r.k0] = logged[j]
+            r.steps = k - r.k0 + 1
         loop = self.loop
         reason = np.select(
             [s >= c.path_end, hit, np.abs(d) > 0.5 * c.lane_width + loop.offroad_stop_m,
-             (departed | ttc_flag) & loop.stop_on_flag, k + 1 >= c.n_max],
+             (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max],
             ["completed", "collision", "off_road", "flag", "timeout"], "")
         return rows, reason, departed, ttc_flag, hit
 
@@ -769,6 +888,7 @@ class _Fixed:
     # roads) walked at once on their stack; NaN points give NaN and keep their segment
     lanes: Polyline | PolylineStack
     planners: list  # (planner or None, rows): one plan call each
+    k0: np.ndarray  # (n,) int: the loop's physics step of each scenario's step 0 (restarts)
 
     @staticmethod
     def of(live: list[_Scenario]) -> _Fixed:
@@ -782,7 +902,7 @@ class _Fixed:
             col(lambda r: r.road.ego_pieces[-1].s1),
             col(lambda r: r.n_max, int), col(lambda r: r.horizon),
             col(lambda r: r.multi_piece, bool), _lanes(live),
-            _groups(live, lambda r: r.policy))
+            _groups(live, lambda r: r.policy), col(lambda r: r.k0, int))
 
 
 def _lanes(live: list[_Scenario]) -> Polyline | PolylineStack:

@@ -1,0 +1,86 @@
+"""What the single and the vector env share: the loop's settings, the one-SUMO-per-process
+guard, the options a reset takes and the rgb_array frame."""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+import pandas as pd
+
+from safeil_sumo.sim.loop_types import LoopConfig
+from safeil_sumo.sim.vehicle import VehicleParams
+
+RESET_OPTIONS = ("index",)  # reset(options={"index": i}): episode i of the task
+_OWNER: list = [None]  # a weakref to the env whose SUMO simulation runs in this process
+
+
+def loop_config(step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
+                backend: str = "libsumo") -> LoopConfig:
+    """The loop's settings (headless; ``LoopConfig`` checks the values)."""
+    if backend not in ("libsumo", "traci"):
+        raise ValueError(f"backend must be 'libsumo' or 'traci', got {backend!r}")
+    return LoopConfig(step_s=step_s, plan_rate_hz=plan_rate_hz, stop_on_flag=stop_on_flag,
+                      backend=backend)
+
+
+def claim_sumo(env) -> None:
+    """Make ``env`` the process's SUMO user. libsumo runs ONE simulation per process (a second
+    start silently replaces the first) and traci's default connection is one too: an env of
+    this process whose simulation still runs has it closed (:meth:`lose_sumo`; its next step
+    raises with the reason) before ``env`` starts its own."""
+    other = _OWNER[0]() if _OWNER[0] is not None else None
+    if other is not None and other is not env and other.holds_sumo():
+        other.lose_sumo()
+    _OWNER[0] = weakref.ref(env)
+
+
+LOST = ("this env's SUMO simulation was closed when another safeil_sumo env in the same process "
+        "started one (libsumo runs one simulation per process): call reset(), step many "
+        "scenarios in one simulation with gymnasium.make_vec(id, num_envs=N, "
+        "vectorization_mode='vector_entry_point'), or give each env its own process "
+        "(vectorization_mode='async')")
+
+
+def check_options(options: dict | None, max_index: int) -> int | None:
+    """The episode index of ``reset(options=...)`` (None: draw one)."""
+    if not options:
+        return None
+    if not isinstance(options, dict):
+        raise TypeError(f"reset options must be a dict, got {type(options).__name__}")
+    unknown = sorted(set(options) - set(RESET_OPTIONS))
+    if unknown:
+        raise ValueError(f"unknown reset option(s) {unknown}; options: {list(RESET_OPTIONS)}")
+    index = options.get("index")
+    if index is None:
+        return None
+    if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not (
+            0 <= index < max_index):
+        raise ValueError(f"options['index'] must be an int in [0, {max_index}), got {index!r}")
+    return int(index)
+
+
+def rgb_frame(log: pd.DataFrame, obs, i: int, road, vehicle: VehicleParams, name: str
+              ) -> np.ndarray:
+    """The animation's frame (``safeil_sumo.animate.FrameDrawer``) at the latest row of
+    scenario ``i``: ``(H, W, 3)`` uint8. Before the first step, a row made of the reset's
+    observation (no leader box, no plan)."""
+    from safeil_sumo.animate import Episode, FrameDrawer
+
+    if log.empty:
+        d = vehicle.cog_to_front_bumper_m
+        x, y, yaw = float(obs.x[i]), float(obs.y[i]), float(obs.yaw[i])
+        log = pd.DataFrame([{
+            "t": 0.0, "front_x": x + d * math.cos(yaw), "front_y": y + d * math.sin(yaw),
+            "yaw": yaw, "v": float(obs.v[i]), "leader_x": math.nan, "leader_y": math.nan,
+            "leader_v": float(obs.leader_v[i]), "gap": float(obs.gap[i]),
+            "ttc": float(obs.ttc[i]), "d": float(obs.d[i])}])
+    drawer = FrameDrawer(Episode(name, log.reset_index(drop=True), road, vehicle.length_m,
+                                 vehicle.width_m))
+    try:
+        drawer.draw(len(log) - 1)
+        drawer.fig.canvas.draw()
+        return np.asarray(drawer.fig.canvas.buffer_rgba())[..., :3].copy()
+    finally:
+        drawer.close()

@@ -1,0 +1,110 @@
+"""``python -m safeil_sumo.envs.bench``: transitions/s and memory of the Gymnasium envs.
+
+On ``safeil_sumo/Curved500-v0`` (10 Hz decisions, 0.01 s physics, the analytic planner's plans
+as actions, resets included), each part in a fresh process: the single env; the native vector
+env at ``--n`` (one SUMO); Gymnasium's AsyncVectorEnv of single envs (a process and a libsumo
+per sub-env: a SyncVectorEnv cannot run, libsumo and traci's default connection are one
+simulation per process) at ``--async-n``. Memory: each process's peak RSS. Reports numbers,
+asserts nothing; ``safeil_sumo.bench`` runs it in a subprocess (``--json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+
+import gymnasium as gym
+import numpy as np
+
+ENV_ID = "safeil_sumo/Curved500-v0"
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _children_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+
+
+def measure(part: str, n: int, seconds: float) -> dict:
+    """Transitions/s of one part over ``seconds`` of stepping (after a warm-up reset)."""
+    import safeil_sumo.envs  # noqa: F401 - registers the ids
+    from safeil_sumo.analytic import AnalyticPlanner
+
+    planner = AnalyticPlanner()
+    if part == "single":
+        env = gym.make(ENV_ID)
+        obs, _ = env.reset(seed=0)
+        count, t0 = 0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            a = np.asarray(planner.plan(np.asarray(obs, float)[None]), float).reshape(6)
+            obs, _, te, tr, _ = env.step(a)
+            count += 1
+            if te or tr:
+                obs, _ = env.reset()
+        wall = time.perf_counter() - t0
+        env.close()
+        return {"part": part, "n": 1, "transitions_per_s": count / wall, "peak_rss_mb": _rss_mb()}
+    mode = "vector_entry_point" if part == "vector" else "async"
+    venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode)
+    obs, _ = venv.reset(seed=0)
+    count, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        a = np.asarray(planner.plan(np.asarray(obs, float)), float).reshape(n, 6)
+        obs, _, _, _, _ = venv.step(a)
+        count += n
+    wall = time.perf_counter() - t0
+    venv.close()
+    out = {"part": part, "n": n, "transitions_per_s": count / wall, "peak_rss_mb": _rss_mb()}
+    if part == "async":
+        out["worker_peak_rss_mb"] = _children_rss_mb()
+    return out
+
+
+def run_part(part: str, n: int, seconds: float) -> dict:
+    """One part in a fresh process (its own libsumo, its own peak RSS)."""
+    out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.bench", "--part", part,
+                          "--n", str(n), "--seconds", str(seconds), "--json"],
+                         capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--part", choices=("all", "single", "vector", "async"), default="all")
+    ap.add_argument("--n", type=int, default=64, help="sub-envs of the native vector env")
+    ap.add_argument("--async-n", type=int, default=4,
+                    help="sub-envs (processes) of the AsyncVectorEnv baseline")
+    ap.add_argument("--seconds", type=float, default=20.0, help="stepping time per part [s]")
+    ap.add_argument("--json", action="store_true", help="print one JSON line")
+    args = ap.parse_args(argv)
+    if args.part != "all":
+        row = measure(args.part, args.n, args.seconds)
+        print(json.dumps(row) if args.json else row)
+        return 0
+    rows = [run_part("single", 1, args.seconds), run_part("vector", args.n, args.seconds),
+            run_part("async", args.async_n, args.seconds)]
+    single = rows[0]["transitions_per_s"]
+    result = {"rows": rows,
+              "vector_over_single": rows[1]["transitions_per_s"] / single,
+              "vector_over_async": rows[1]["transitions_per_s"] / rows[2]["transitions_per_s"]}
+    if args.json:
+        print(json.dumps(result))
+    else:
+        for r in rows:
+            extra = (f", workers' peak {r['worker_peak_rss_mb']:.0f} MB"
+                     if "worker_peak_rss_mb" in r else "")
+            print(f"{r['part']:>7} N={r['n']:<3} {r['transitions_per_s']:9.0f} transitions/s  "
+                  f"peak RSS {r['peak_rss_mb']:.0f} MB{extra}")
+        print(f"vector / single: {result['vector_over_single']:.1f}x; vector / async: "
+              f"{result['vector_over_async']:.1f}x")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

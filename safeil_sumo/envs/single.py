@@ -1,0 +1,124 @@
+"""One scenario per episode as a ``gymnasium.Env`` (docs/gymnasium.md)."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import gymnasium as gym
+import numpy as np
+
+from safeil_sumo.envs import base
+from safeil_sumo.envs import spaces as sp
+from safeil_sumo.envs.tasks import make_task
+from safeil_sumo.sim.loop_types import Rollout
+from safeil_sumo.sim.stepper import ClosedLoop
+from safeil_sumo.sim.vehicle import VehicleParams
+
+
+class SafeILEnv(gym.Env):
+    """The closed loop of one task's scenario, one decision (``1 / plan_rate_hz``) per step.
+
+    ``task`` and ``task_options`` (``net``, ``master_seed``, ``max_time_s``, ``profile``,
+    ScenarioSpec fields): :func:`safeil_sumo.envs.tasks.make_task`. ``action_level``:
+    ``"plan"`` (B-spline control points, tracked) or ``"control"`` (acceleration, steering).
+    ``horizon_s`` [s]: the plans' horizon. ``reward``: a :class:`RewardConfig` or a dict of its
+    terms. ``out_of_space``: ``"clip"`` or ``"raise"``. ``step_s`` [s], ``plan_rate_hz`` [Hz],
+    ``stop_on_flag``, ``backend``: the loop's settings. ``render_mode``: None or
+    ``"rgb_array"``.
+    """
+
+    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, task: str = "curved500", action_level: str = "plan",
+                 horizon_s: float = 5.0, reward: sp.RewardConfig | dict | None = None,
+                 out_of_space: str = "clip", render_mode: str | None = None,
+                 step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
+                 backend: str = "libsumo", **task_options) -> None:
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be None or one of "
+                             f"{self.metadata['render_modes']}, got {render_mode!r} (sumo-gui "
+                             "('human') waits for the stepper's sumo-gui support)")
+        if out_of_space not in sp.OUT_OF_SPACE:
+            raise ValueError(f"out_of_space must be one of {sp.OUT_OF_SPACE}, got "
+                             f"{out_of_space!r}")
+        if not (np.isfinite(horizon_s) and horizon_s > 0):
+            raise ValueError(f"horizon_s must be > 0 s, got {horizon_s}")
+        self.task = make_task(task, **task_options)
+        self.action_level = action_level
+        self.vehicle = VehicleParams()
+        self.observation_space = sp.observation_space()
+        self.action_space = sp.action_space(action_level, self.vehicle)
+        self.reward_config = sp.RewardConfig.of(reward)
+        self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
+        self.loop_config = base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend)
+        self._loop: ClosedLoop | None = None
+        self._obs = None
+        self._done = True
+        self._reset_once = self._lost = False
+        self.index: int | None = None  # the episode's index in its task
+
+    def holds_sumo(self) -> bool:
+        return self._loop is not None and not self._done
+
+    def lose_sumo(self) -> None:
+        """Another env of this process takes SUMO: the episode ends here."""
+        self._loop.close()
+        self._done, self._lost = True, True
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        index = base.check_options(options, self.task.max_index)
+        self.index = index if index is not None else self.task.draw_index(self.np_random)
+        scenario = self.task.scenario(self.index)
+        base.claim_sumo(self)
+        if self._loop is None:
+            self._loop = ClosedLoop(self.loop_config, self.vehicle)
+        self._done = True
+        self._obs = self._loop.reset([scenario], horizon_s=self.horizon_s)
+        self._done, self._reset_once, self._lost = False, True, False
+        info = {k: v[0] for k, v in sp.infos(self._obs).items()}
+        return sp.observe(self._obs.features[0]), info | {"index": self.index}
+
+    def step(self, action):
+        if self._lost:
+            raise RuntimeError(base.LOST)
+        if self._done:
+            raise RuntimeError("step after the episode ended (terminated or truncated): call "
+                               "reset()" if self._reset_once else "call reset() before step()")
+        a = sp.checked_actions(action, self.action_space, self.out_of_space)[None]
+        before = self._obs.s
+        try:
+            if self.action_level == "plan":
+                obs, ev = self._loop.step(a)
+            else:
+                obs, ev = self._loop.step(controls=a)
+        except Exception:
+            self._done = True
+            raise
+        self._obs = obs
+        reward = float(self.reward_config.rewards(before, obs, ev)[0])
+        terminated, truncated = bool(ev.terminated[0]), bool(ev.truncated[0])
+        self._done = terminated or truncated
+        info = {k: v[0] for k, v in sp.infos(obs, ev).items()}
+        return sp.observe(obs.features[0]), reward, terminated, truncated, info
+
+    def rollout(self) -> Rollout:
+        """The episode's per-step log and summary so far (as ``python -m safeil_sumo.run``'s)."""
+        if self._loop is None or not self._reset_once:
+            raise RuntimeError("no episode yet: call reset()")
+        return self._loop.rollout(0)
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        if self._loop is None or not self._reset_once:
+            raise RuntimeError("call reset() before render()")
+        return base.rgb_frame(self._loop.rollout(0).log, self._obs, 0,
+                              self.task.scenario(self.index).road, self.vehicle,
+                              f"{self.task.name} #{self.index}")
+
+    def close(self) -> None:
+        if self._loop is not None:
+            self._loop.close()
+        self._done = True
+        super().close()

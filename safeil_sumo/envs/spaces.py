@@ -1,0 +1,140 @@
+"""The envs' spaces, reward and ``info``, on arrays over N scenarios (one env is N = 1).
+
+Observation: the planner's 9 features (:mod:`safeil_sumo.features`, ego frame, SI units), as
+``float32``, clipped to :data:`OBS_LOW` / :data:`OBS_HIGH` (the unclipped ``float64`` features are
+``info["features"]``).
+
+Actions (``action_level``):
+
+- ``"plan"``: the 3 free control points of the cubic B-spline plan, ``(x1, y1, x2, y2, x3, y3)``
+  [m] in the ego frame at the decision (x forward from the front bumper, y left), tracked over
+  the decision period by the project's pure pursuit + PID; the plan spans ``horizon_s``;
+- ``"control"``: ``(acceleration [m/s^2], road-wheel steering angle [rad])`` held over the
+  period (the plant's actuator lags and limits apply).
+
+An action outside the space is clipped into it (``out_of_space="clip"``, the default) or
+refused with ``ValueError`` (``"raise"``); a NaN or a wrong shape is always refused.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+from gymnasium import spaces
+
+from safeil_sumo.features import FEATURE_NAMES
+from safeil_sumo.sim.controller import ControllerParams
+from safeil_sumo.sim.vehicle import VehicleParams
+
+# the observation's bounds: c0l, c1l, c2l, c0r, c1r, c2r [m, -, 1/m], v_x, v_lead [m/s],
+# d_lead [m] (150 m, the radar's range, when no leader is seen)
+OBS_LOW = np.array([-20.0, -2.0, -0.5, -20.0, -2.0, -0.5, 0.0, 0.0, 0.0], np.float32)
+OBS_HIGH = np.array([20.0, 2.0, 0.5, 20.0, 2.0, 0.5, 100.0, 100.0, 250.0], np.float32)
+# plan level: x in [0, 250] m ahead, y in [-80, 80] m (a 500 m curve is 20 m to the side 140 m
+# ahead, where the shipped safeil puts its last point at 30 m/s), for each free control point
+PLAN_LOW = np.array([0.0, -80.0] * 3)
+PLAN_HIGH = np.array([250.0, 80.0] * 3)
+ACTION_LEVELS = ("plan", "control")
+OUT_OF_SPACE = ("clip", "raise")
+INFO_KEYS = ("t", "ttc", "gap", "lateral_offset", "v", "leader_v", "path_fraction",
+             "lane_departure", "ttc_flag", "collision", "end_reason")
+
+
+def observation_space() -> spaces.Box:
+    return spaces.Box(OBS_LOW, OBS_HIGH, dtype=np.float32)
+
+
+def action_space(level: str, vehicle: VehicleParams = VehicleParams(),
+                 controller: ControllerParams = ControllerParams()) -> spaces.Box:
+    if level == "plan":
+        return spaces.Box(PLAN_LOW, PLAN_HIGH, dtype=np.float64)
+    if level == "control":
+        return spaces.Box(np.array([controller.accel_min_mps2, -vehicle.max_steer_rad]),
+                          np.array([controller.accel_max_mps2, vehicle.max_steer_rad]),
+                          dtype=np.float64)
+    raise ValueError(f"unknown action_level {level!r}; levels: {', '.join(ACTION_LEVELS)}")
+
+
+def observe(features: np.ndarray) -> np.ndarray:
+    """Features ``(..., 9)`` -> the observation (float32, clipped to the space)."""
+    return np.clip(np.nan_to_num(features, nan=0.0), OBS_LOW, OBS_HIGH).astype(np.float32)
+
+
+def checked_actions(actions, space: spaces.Box, out_of_space: str, n: int | None = None
+                    ) -> np.ndarray:
+    """Actions ``(n, dim)`` (or ``(dim,)`` when ``n`` is None) as float64, inside the space."""
+    a = np.asarray(actions, dtype=float)
+    shape = space.shape if n is None else (n, *space.shape)
+    if a.shape != shape:
+        raise ValueError(f"action must have shape {shape}, got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ValueError("action must be finite (no NaN/inf)")
+    inside = (a >= space.low) & (a <= space.high)
+    if inside.all():
+        return a
+    if out_of_space == "raise":
+        raise ValueError(f"action outside the action space [{space.low}, {space.high}]: {a} "
+                         "(out_of_space='clip' clips it)")
+    return np.clip(a, space.low, space.high)
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """The default reward per decision step: progress along the ego lane, penalties for the
+    safety flags (at any physics step of the decision) and for the ends that terminate."""
+
+    progress_per_m: float = 0.01  # [1/m] times the metres gained along the ego lane
+    ttc_flag: float = -1.0  # TTC <= the threshold (1 s) during the step
+    lane_departure: float = -1.0  # the footprint left its lane during the step
+    collision: float = -10.0  # once, the step of the collision (terminates)
+    off_road: float = -10.0  # once, when the ego is too far off its lane (terminates)
+    # replay tasks: times the distance [m] between the ego's front bumper and the human's at the
+    # step's end (0 elsewhere)
+    human_distance_per_m: float = -0.1
+
+    @classmethod
+    def of(cls, value: RewardConfig | dict | None) -> RewardConfig:
+        if value is None:
+            return cls()
+        if isinstance(value, cls):
+            return value
+        if not isinstance(value, dict):
+            raise TypeError(f"reward must be a RewardConfig or a dict, got "
+                            f"{type(value).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(value) - known)
+        if unknown:
+            raise ValueError(f"unknown reward term(s) {unknown}; terms: {sorted(known)}")
+        out = cls(**{k: float(v) for k, v in value.items()})
+        if not all(math.isfinite(getattr(out, k)) for k in known):
+            raise ValueError("reward weights must be finite")
+        return out
+
+    def rewards(self, s_before: np.ndarray, obs, events) -> np.ndarray:
+        """``(N,)`` rewards of one step (``obs``: the Observation after it, ``events``: its
+        Events); a scenario that did not run in the step gets 0."""
+        gained = np.nan_to_num(obs.s - s_before)
+        r = (self.progress_per_m * gained + self.ttc_flag * events.ttc_flag
+             + self.lane_departure * events.lane_departure + self.collision * events.collision
+             + self.off_road * (events.end_reason == "off_road"))
+        return np.where(events.sub_steps > 0, r, 0.0)
+
+
+def infos(obs, events=None) -> dict[str, np.ndarray]:
+    """``info`` arrays ``(N,)``: time [s], TTC [s] (inf: not closing), gap [m] (inf: no
+    leader), lateral offset of the front bumper from the lane centre [m, left +], speed and the
+    leader's [m/s], path fraction [-], the flags (during the step, or at the reset's state), the
+    end reason ("" while running) and the raw features ``(N, 9)``."""
+    flags = (events.lane_departure, events.ttc_flag, events.collision) if events is not None \
+        else (obs.lane_departure, obs.ttc_flag, obs.collision)
+    reason = (events.end_reason.astype(str) if events is not None
+              else np.full(len(obs.t), "", dtype=object).astype(str))
+    return {"t": obs.t, "ttc": obs.ttc, "gap": obs.gap, "lateral_offset": obs.d, "v": obs.v,
+            "leader_v": obs.leader_v, "path_fraction": obs.path_fraction,
+            "lane_departure": flags[0], "ttc_flag": flags[1], "collision": flags[2],
+            "end_reason": reason, "features": obs.features}
+
+
+FEATURES = FEATURE_NAMES  # the observation's order

@@ -1,0 +1,332 @@
+"""The Gymnasium environments (safeil_sumo/envs, docs/gymnasium.md), on real libsumo runs.
+
+Every registered id passes Gymnasium's env checker; a seed gives the same episode; the shipped
+``safeil`` driven through the env reproduces ``python -m safeil_sumo.run``'s results; the native
+vector env gives the trajectories of N single envs (autoreset included); bad input fails
+clearly; closing or killing ends SUMO; PPO trains on the vector env (when SB3 is installed).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from safeil_sumo import api, envs, policies
+from safeil_sumo.data.sources import DEFAULT_DATA_DIR
+
+pytest.importorskip("libsumo")
+psutil = pytest.importorskip("psutil")
+
+CURVED = "safeil_sumo/Curved500-v0"
+HAS_DATA = (DEFAULT_DATA_DIR / "ngsim_i80").is_dir()
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _plan(policy, features: np.ndarray) -> np.ndarray:
+    return np.asarray(policy.plan(np.atleast_2d(features)), float).reshape(-1, 6)
+
+
+@pytest.mark.parametrize("env_id", list(envs.IDS))
+def test_check_env_passes_for_every_id(env_id):
+    if env_id in envs.DATA_IDS and not HAS_DATA:
+        if os.environ.get("CI"):
+            pytest.fail(f"{env_id} needs the shared data ({DEFAULT_DATA_DIR})")
+        pytest.skip(f"{env_id} needs the shared data ({DEFAULT_DATA_DIR})")
+    env = gym.make(env_id, max_time_s=3.0)
+    try:
+        check_env(env.unwrapped, skip_render_check=env_id != CURVED)
+        obs, info = env.reset(seed=1)
+        assert env.observation_space.contains(obs)
+        assert {"ttc", "gap", "lateral_offset", "lane_departure", "ttc_flag",
+                "collision"} <= set(info)
+    finally:
+        env.close()
+
+
+def _episode(env, seed, actions):
+    obs, _ = env.reset(seed=seed)
+    out = [obs]
+    rewards = []
+    for a in actions:
+        obs, r, te, tr, _ = env.step(a)
+        out.append(obs)
+        rewards.append(r)
+        if te or tr:
+            break
+    return np.array(out), np.array(rewards), env.unwrapped.rollout().log
+
+
+def test_reset_with_a_seed_gives_the_same_episode():
+    """Twice in one process: the same index, observations, rewards and SUMO state (the leader
+    read back from SUMO, in the log); another seed another episode."""
+    env = gym.make(CURVED, max_time_s=2.0, lane_noise_c0_m=0.05, radar_noise_m=0.5)
+    rng = np.random.default_rng(0)
+    actions = [np.array([30.0, 0.0, 60.0, 0.0, 90.0, 0.0]) + rng.normal(0, 0.5, 6)
+               for _ in range(25)]
+    try:
+        o1, r1, log1 = _episode(env, 7, actions)
+        i1 = env.unwrapped.index
+        o2, r2, log2 = _episode(env, 7, actions)
+        assert env.unwrapped.index == i1
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(r1, r2)
+        np.testing.assert_array_equal(log1[["leader_x", "leader_y", "x", "y"]].to_numpy(),
+                                      log2[["leader_x", "leader_y", "x", "y"]].to_numpy())
+        _episode(env, 8, actions[:1])
+        assert env.unwrapped.index != i1
+    finally:
+        env.close()
+
+
+def test_safeil_through_the_env_reproduces_run():
+    """The shipped safeil planning from info["features"] gives run's flags and path."""
+    policy = policies.load("safeil")
+    ref = api.run("curved500", policy, scenarios=2).summary
+    env = gym.make(CURVED)
+    try:
+        for i in range(2):
+            _, info = env.reset(options={"index": i})
+            done = False
+            while not done:
+                _, _, te, tr, info = env.step(_plan(policy, info["features"])[0])
+                done = te or tr
+            got = env.unwrapped.rollout().summary
+            want = ref.iloc[i]
+            for key in ("scenario", "end_reason", "flag", "completed", "path_completed",
+                        "steps"):
+                assert got[key] == want[key], key
+            # the stepper against run_scenario: within tests/test_batch.py's tolerances
+            assert got["min_ttc_s"] == pytest.approx(want["min_ttc_s"], rel=1e-6)
+            assert got["min_gap_m"] == pytest.approx(want["min_gap_m"], abs=1e-6)
+            assert info["end_reason"] == "completed" and info["path_fraction"] == 1.0
+    finally:
+        env.close()
+
+
+def test_vector_env_gives_the_single_envs_trajectories():
+    """make_vec(vector_entry_point): sub-env i with seed s + i, through an autoreset, steps as a
+    single env reset with seed s + i then reset again (golden tolerance: bit for bit here)."""
+    policy = policies.load("analytic")
+    n, steps = 3, 30
+    venv = gym.make_vec(CURVED, num_envs=n, vectorization_mode="vector_entry_point",
+                        max_time_s=1.5)
+    assert isinstance(venv, envs.SafeILVectorEnv)
+    assert venv.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
+    obs, info = venv.reset(seed=5)
+    episodes = [[[o]] for o in obs]
+    rewards = [[[]] for _ in range(n)]
+    try:
+        for _ in range(steps):
+            obs, r, te, tr, info = venv.step(_plan(policy, info["features"]))
+            for i in range(n):
+                episodes[i][-1].append(obs[i])
+                rewards[i][-1].append(r[i])
+                if te[i] or tr[i]:
+                    episodes[i].append([])
+                    rewards[i].append([])
+    finally:
+        venv.close()
+    env = gym.make(CURVED, max_time_s=1.5)
+    try:
+        for i in range(n):
+            o, inf = env.reset(seed=5 + i)
+            single, single_r = [[o]], [[]]
+            while len(single) < len(episodes[i]) or len(single[-1]) < len(episodes[i][-1]):
+                o, r, te, tr, inf = env.step(_plan(policy, inf["features"])[0])
+                single[-1].append(o)
+                single_r[-1].append(r)
+                if te or tr:
+                    o, inf = env.reset()
+                    single.append([o])
+                    single_r.append([])
+            assert len(episodes[i]) >= 2  # an autoreset happened
+            for k, ep in enumerate(episodes[i]):
+                np.testing.assert_allclose(np.array(ep), np.array(single[k][:len(ep)]),
+                                           rtol=0, atol=1e-9)
+            # the vector env's reward of an autoreset step is 0: the single env has no step
+            got_r = [r for ep in rewards[i] for r in ep]
+            want_r = []
+            for k, ep in enumerate(rewards[i]):
+                want_r += ([0.0] if k else []) + single_r[k][:len(ep) - (1 if k else 0)]
+            np.testing.assert_allclose(got_r, want_r, rtol=0, atol=1e-9)
+    finally:
+        env.close()
+
+
+def test_control_level_brakes():
+    env = gym.make(CURVED, action_level="control", max_time_s=3.0)
+    try:
+        assert env.action_space.shape == (2,)
+        _, info = env.reset(seed=0)
+        v0 = info["v"]
+        for _ in range(10):
+            _, _, _, _, info = env.step(np.array([-4.0, 0.0]))
+        assert info["v"] < v0 - 3.0
+        log = env.unwrapped.rollout().log
+        assert (log["accel_cmd"] == -4.0).all()
+    finally:
+        env.close()
+
+
+def test_bad_input_fails_clearly():
+    with pytest.raises(gym.error.Error):
+        gym.make("safeil_sumo/NoSuchTask-v0")
+    with pytest.raises(ValueError, match="unknown scenario option"):
+        gym.make(CURVED, no_such_option=1)
+    with pytest.raises(ValueError, match="unknown task"):
+        envs.SafeILEnv(task="nope")
+    with pytest.raises(ValueError, match="action_level"):
+        gym.make(CURVED, action_level="pedals")
+    with pytest.raises(ValueError, match="render_mode"):
+        envs.SafeILEnv(render_mode="human")
+    for bad in (0, -1):
+        with pytest.raises(ValueError, match="num_envs"):
+            gym.make_vec(CURVED, num_envs=bad, vectorization_mode="vector_entry_point")
+    env = envs.SafeILEnv(max_time_s=0.2)
+    strict = envs.SafeILEnv(max_time_s=0.2, out_of_space="raise")
+    try:
+        with pytest.raises(RuntimeError, match="reset"):
+            env.step(env.action_space.sample())
+        with pytest.raises(ValueError, match="unknown reset option"):
+            env.reset(options={"seed": 3})
+        env.reset(seed=0)
+        with pytest.raises(ValueError, match="finite"):
+            env.step(np.full(6, np.nan))
+        with pytest.raises(ValueError, match="shape"):
+            env.step(np.zeros(4))
+        far = np.array([30.0, 0.0, 60.0, 0.0, 900.0, 0.0])  # x3 past the space: clipped
+        done = False
+        while not done:
+            _, _, te, tr, _ = env.step(far)
+            done = te or tr
+        with pytest.raises(RuntimeError, match="ended"):
+            env.step(far)
+        strict.reset(seed=0)
+        with pytest.raises(ValueError, match="outside the action space"):
+            strict.step(far)
+    finally:
+        env.close()
+        strict.close()
+
+
+def test_render_rgb_array():
+    env = gym.make(CURVED, render_mode="rgb_array", max_time_s=1.0)
+    try:
+        env.reset(seed=0)
+        first = env.render()
+        env.step(np.array([30.0, 0.0, 60.0, 0.0, 90.0, 0.0]))
+        frame = env.render()
+        assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+        assert first.shape == frame.shape and frame.std() > 0
+    finally:
+        env.close()
+
+
+def _sumo_running() -> bool:
+    import libsumo
+
+    try:
+        libsumo.simulation.getTime()
+    except Exception:  # noqa: BLE001 - "not connected": no simulation
+        return False
+    return True
+
+
+def test_close_ends_sumo_and_a_second_env_takes_it_over():
+    a, b = envs.SafeILEnv(max_time_s=2.0), envs.SafeILEnv(max_time_s=2.0)
+    try:
+        a.reset(seed=0)
+        assert _sumo_running()
+        b.reset(seed=1)  # libsumo: one simulation per process; a's ends, clearly
+        with pytest.raises(RuntimeError, match="one simulation per process"):
+            a.step(a.action_space.sample())
+        b.step(np.array([30.0, 0.0, 60.0, 0.0, 90.0, 0.0]))
+        b.close()
+        assert not _sumo_running()
+        venv = envs.SafeILVectorEnv(2, max_time_s=2.0)
+        venv.reset(seed=0)
+        assert _sumo_running()
+        venv.close()
+        assert not _sumo_running()
+    finally:
+        a.close()
+        b.close()
+
+
+def _descendants() -> list:
+    return [p for p in psutil.Process().children(recursive=True) if p.is_running()
+            and p.status() != psutil.STATUS_ZOMBIE]
+
+
+def test_a_killed_worker_leaves_nothing_behind():
+    """Async (a libsumo per worker process): kill a worker, the next step fails (no hang),
+    close leaves no process. A native vector env on traci in a child process: kill the child,
+    its sumo ends."""
+    before = {p.pid for p in _descendants()}
+    venv = gym.make_vec(CURVED, num_envs=2, vectorization_mode="async", max_time_s=2.0)
+    try:
+        venv.reset(seed=0)
+        workers = [p for p in _descendants() if p.pid not in before]
+        assert workers
+        os.kill(venv.unwrapped.processes[0].pid, signal.SIGKILL)
+        with pytest.raises(Exception):  # noqa: B017 - gymnasium's error of a dead worker
+            venv.step(np.tile([30.0, 0.0, 60.0, 0.0, 90.0, 0.0], (2, 1)))
+    finally:
+        # gymnasium's close may raise on the dead worker's pipe before it terminates the
+        # others; closing our ends of the pipes ends them (they exit on EOF)
+        with contextlib.suppress(EOFError, BrokenPipeError, ConnectionResetError):
+            venv.close(terminate=True)
+        for pipe in venv.unwrapped.parent_pipes:
+            with contextlib.suppress(OSError):
+                pipe.close()
+    _wait_gone(workers)
+
+    code = ("import time, safeil_sumo.envs as e; v = e.SafeILVectorEnv(2, backend='traci'); "
+            "v.reset(seed=0); print('up', flush=True); time.sleep(60)")
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                             cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        for _ in range(10):  # traci may print its connection retries first
+            line = child.stdout.readline().strip()
+            if line in ("up", ""):
+                break
+        assert line == "up"
+        sumo = psutil.Process(child.pid).children(recursive=True)
+        assert any("sumo" in p.name() for p in sumo)
+        child.send_signal(signal.SIGKILL)
+        child.wait(10)
+        _wait_gone(sumo)
+    finally:
+        if child.poll() is None:
+            child.kill()
+
+
+def _wait_gone(procs: list, timeout_s: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        alive = [p for p in procs if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+        if not alive:
+            return
+        time.sleep(0.2)
+    pytest.fail(f"processes survived: {[p.pid for p in alive]}")
+
+
+def test_ppo_trains_on_the_vector_env():
+    pytest.importorskip("stable_baselines3")
+    sys.path.insert(0, str(REPO / "training"))
+    try:
+        from ppo_vector_env import train
+    finally:
+        sys.path.remove(str(REPO / "training"))
+    model = train(num_envs=4, total_steps=512, n_steps=64, max_time_s=3.0)
+    assert model.num_timesteps >= 512
