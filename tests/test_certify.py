@@ -188,20 +188,6 @@ def test_style_range_is_an_input_dimension(safeil: MLPPolicy) -> None:
         certify(pol.load("bc"), env, budget=Budget(boxes=1), progress=False)
 
 
-def test_a_default_by_speed_is_certified_over_its_settings(tmp_path) -> None:
-    import json
-
-    path = _copy_checkpoint("safeil", tmp_path)
-    sidecar = tmp_path / "safeil.json"
-    meta = json.loads(sidecar.read_text())
-    meta["style_default"]["time_gap_by_speed"] = {"speed_mps": [10.0, 30.0],
-                                                  "time_gap_s": [1.4, 0.9]}
-    sidecar.write_text(json.dumps(meta))
-    result = certify(pol.load(path), budget=Budget(boxes=4, batch=4), progress=False)
-    assert result.envelope.time_gap_s == (0.9, 1.4)
-    assert result.style == {"time_gap_s": [0.9, 1.4]}
-
-
 def test_margin_bounds_contain_the_reference_margins(safeil: MLPPolicy) -> None:
     env = cm.CertEnvelope()
     props = cm.Properties.from_metadata(safeil.metadata)

@@ -13,10 +13,8 @@ from safeil_sumo.learn.style import (
     SETTING_RANGE_S,
     TIME_GAP_RANGE_S,
     clip_time_gap,
-    default_time_gap,
     estimate_time_gap,
     maneuver_time_gaps,
-    time_gap_by_speed,
 )
 
 STATE = np.array([1.75, 0.0, 0.0, -1.75, 0.0, 0.0, 25.0, 24.0, 40.0])
@@ -44,27 +42,6 @@ def test_settings_are_clipped_to_the_iso_floor_and_the_trained_range():
     assert lo == 0.8  # ISO 15622's smallest selectable ACC time gap
     assert TIME_GAP_RANGE_S[0] <= lo and hi <= TIME_GAP_RANGE_S[1]  # settings were trained
     assert clip_time_gap(0.1) == lo and clip_time_gap(9.0) == hi and clip_time_gap(1.7) == 1.7
-
-
-def test_time_gap_by_speed_takes_binned_medians_of_steady_following():
-    # bin 10-12 m/s: time gaps 1.0, 1.2, 1.4 (steady), plus one closing fast (dv 2 m/s: out);
-    # bin 20-22 m/s: 2.0, 2.0, 2.4; bin 30-32: only 2 samples (below min_samples=3: no point)
-    v = np.array([11.0, 11.0, 11.0, 11.0, 21.0, 21.0, 21.0, 31.0, 31.0, 3.0, 11.0])
-    vl = v + np.array([0.0, 0.2, -0.3, 2.0, 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0])
-    tg = np.array([1.0, 1.2, 1.4, 0.3, 2.0, 2.0, 2.4, 1.0, 1.0, 1.0, 7.0])  # 7 s: not following
-    curve = time_gap_by_speed(tg * v, v, vl, bin_mps=2.0, min_samples=3)
-    # medians 1.2 and 2.0; the 3-bin running median with padded ends keeps both
-    assert curve == {"speed_mps": [11.0, 21.0], "time_gap_s": [1.2, 2.0]}
-    np.testing.assert_allclose(default_time_gap(curve, [5.0, 16.0, 40.0]), [1.2, 1.6, 2.0])
-    with pytest.raises(ValueError, match="no speed bin"):
-        time_gap_by_speed(tg * v, v, vl, min_samples=10)
-
-
-def test_time_gap_by_speed_smooths_a_lone_outlier_bin():
-    v = np.repeat([7.0, 9.0, 11.0], 3)
-    tg = np.repeat([1.5, 0.9, 1.5], 3)
-    curve = time_gap_by_speed(tg * v, v, v, min_samples=3)
-    assert curve["time_gap_s"] == [1.5, 1.5, 1.5]
 
 
 def _style_model(seed: int = 0) -> PlannerMLP:
@@ -110,33 +87,6 @@ def test_numpy_policy_folds_the_style_into_the_first_layer(tmp_path):
     assert np.abs(torch_plan(2.6) - torch_plan(1.3)).max() > 1e-2  # the input matters
     model, meta = load_model(tmp_path / "m")
     assert model.n_features == 10 and meta["feature_names"][-1] == "time_gap_s"
-
-
-def test_numpy_policy_follows_the_default_curve_by_speed(tmp_path):
-    styled = with_style_input(_style_model(), 1.5, 0.5)
-    with torch.no_grad():
-        styled.net[0].weight[:, 9].normal_(0.0, 0.5)
-    curve = {"speed_mps": [10.0, 30.0], "time_gap_s": [1.0, 2.0]}
-    save_checkpoint(tmp_path / "m", styled, name="styled", horizon=5.0,
-                    style_default={"time_gap_s": 1.5, "time_gap_by_speed": curve})
-    policy = load_policy(tmp_path / "m")
-    assert policy.style_by_speed == curve
-
-    def torch_plan(state, tg):
-        f10 = torch.as_tensor(np.r_[state, tg][None], dtype=torch.float32)
-        with torch.no_grad():
-            return styled(f10)[0].numpy()
-
-    fast = STATE.copy()
-    fast[6] = 40.0  # beyond the curve's end: its last value
-    for state, tg in ((STATE, 1.75), (fast, 2.0)):  # 25 m/s: 1.0 + 15/20 * 1.0
-        np.testing.assert_allclose(policy.plan(state), torch_plan(state, tg), atol=1e-4)
-    batch = policy.plan(np.stack([STATE, fast]))  # the batched path reads each row's speed
-    np.testing.assert_allclose(batch[0], torch_plan(STATE, 1.75), atol=1e-4)
-    np.testing.assert_allclose(batch[1], torch_plan(fast, 2.0), atol=1e-4)
-    policy.set_style(time_gap_s=2.6)  # an explicit setting holds at every speed
-    assert policy.style_by_speed is None
-    np.testing.assert_allclose(policy.plan(fast), torch_plan(fast, 2.6), atol=1e-4)
 
 
 def test_a_policy_without_style_inputs_refuses_a_style(tmp_path):

@@ -14,8 +14,7 @@ states, so only the longitudinal plan is re-learned. Deterministic for a seed.
 ``--style``: the planner gets the driver's preferred time gap as a 10th input
 (:mod:`safeil_sumo.learn.style`; its first-layer weights start at zero), estimated per maneuver
 from the data; envelope states draw it across the trained range, and the checkpoint stores the
-default setting: the training maneuvers' median time gap at each speed (and their overall
-median).
+training maneuvers' median as the default setting.
 """
 
 from __future__ import annotations
@@ -32,7 +31,6 @@ from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import held_out_maneuvers, load_model, save_checkpoint
 from safeil_sumo.learn.closed_loop import (
     D_LEAD,
-    V_LEAD,
     V_X,
     SettlingConfig,
     closed_loop_loss,
@@ -49,7 +47,6 @@ from safeil_sumo.learn.style import (
     equilibrium_residual,
     equilibrium_states,
     maneuver_time_gaps,
-    time_gap_by_speed,
 )
 from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
 
@@ -114,12 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         median = float(np.median(list(per_maneuver.values())))
         tg = np.where(np.isfinite(tg), tg, median)
         style_default = {"time_gap_s": median}
-        train_feats = tuples.features[np.isin(tuples.maneuver_id, list(train_ids))]
-        try:  # the default setting: the training humans' median time gap at each speed
-            style_default["time_gap_by_speed"] = time_gap_by_speed(
-                train_feats[:, D_LEAD], train_feats[:, V_X], train_feats[:, V_LEAD])
-        except ValueError as err:
-            print(f"style: one default setting for all speeds ({err})")
+
         model = with_style_input(model, median, float(np.std(list(per_maneuver.values()))))
         eps = eps.with_style({m: per_maneuver.get(m, median) for m in set(eps.maneuver_id)})
         feats = torch.cat([feats, torch.as_tensor(tg, dtype=torch.float32)[:, None]], dim=1)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import heapq
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -292,8 +292,7 @@ def _branch_and_bound(policy, env, props, layers, margin, seconds, max_boxes, bu
 def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
             props: Properties | None = None, budget: Budget | None = None,
             margins: tuple[str, ...] = MARGINS, progress: bool = True) -> CertifyResult:
-    """Certify ``policy`` (at its current style, or over ``env.time_gap_s``; a default setting
-    by speed is certified over the range of settings it takes) on ``env``
+    """Certify ``policy`` (at its current style, or over ``env.time_gap_s``) on ``env``
     (default :class:`CertEnvelope`): one branch and bound per margin, each with an equal share
     of ``budget`` (default :class:`Budget`); ``props`` default from the checkpoint's
     metadata."""
@@ -301,10 +300,6 @@ def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
 
     env = env or CertEnvelope()
     budget = budget or Budget()
-    if env.time_gap_s is None and getattr(policy, "style_by_speed", None):
-        # the default setting varies with speed: certify every setting it takes, at every speed
-        curve = policy.style_by_speed["time_gap_s"]
-        env = replace(env, time_gap_s=(float(min(curve)), float(max(curve))))
 
     unknown = set(margins) - set(MARGINS)
     if unknown or not margins:

@@ -62,15 +62,9 @@ class MLPPolicy:
         self._hidden = ((self._wt[0], self._b[0], self._hidden[0][2]), *self._hidden[1:]) \
             if self._hidden else ()
         self.style: dict[str, float] = {}
-        # the default setting by speed (learn/style.py time_gap_by_speed), None: one setting
-        self.style_by_speed: dict[str, list[float]] | None = None
         if self.style_names:
             default = (self.metadata.get("style_default") or {})
             self.set_style(**{n: float(default.get(n, 1.5)) for n in self.style_names})
-            if default.get("time_gap_by_speed") is not None:
-                self.style_by_speed = default["time_gap_by_speed"]
-                self._curve = tuple(np.asarray(self.style_by_speed[k], np.float64)
-                                    for k in ("speed_mps", "time_gap_s"))
         # residual output mode: x_i += v_x * t_i (constant-speed motion added back)
         mode = architecture.get("output_mode", "absolute")
         if mode not in ("absolute", "residual"):
@@ -89,7 +83,6 @@ class MLPPolicy:
             raise ValueError(f"{self.name}: style inputs are {list(self.style_names) or 'none'}"
                              f", got {sorted(style)}")
         self.style = {n: clip_time_gap(style[n]) for n in self.style_names}
-        self.style_by_speed = None  # an explicit setting holds at every speed
         values = np.array([self.style[n] for n in self.style_names])
         self._b[0][:] = self._bias0 + values @ self._style_rows
 
@@ -121,10 +114,6 @@ class MLPPolicy:
 
     def _plan_one(self, f: np.ndarray) -> np.ndarray:
         """``(9,)`` float64 -> ``(3, 2)``: ~4 numpy calls per layer, no temporaries."""
-        if self.style_by_speed is not None:  # the setting at this speed, into the bias
-            tg = np.interp(f[6], *self._curve)
-            np.multiply(self._style_rows[0], tg, out=self._b[0])
-            self._b[0] += self._bias0
         h = f
         tanh = self._tanh
         for wt, b, buf in self._hidden:
@@ -152,13 +141,9 @@ class MLPPolicy:
         if f.ndim == 1:
             return self._plan_one(f)
         h = f.reshape(-1, N_FEATURES)
-        for j, (wt, b) in enumerate(zip(self._wt[:-1], self._b[:-1], strict=True)):
+        for wt, b in zip(self._wt[:-1], self._b[:-1], strict=True):
             h = h @ wt
-            if j == 0 and self.style_by_speed is not None:  # the setting at each row's speed
-                h += self._bias0 + np.interp(f.reshape(-1, N_FEATURES)[:, 6],
-                                             *self._curve)[:, None] * self._style_rows[0]
-            else:
-                h += b
+            h += b
             self._act(h)
         out = h @ self._wt[-1]
         out += self._b[-1]

@@ -6,10 +6,8 @@ so a style-conditioned planner takes one more input after the paper's 9 features
 ``time_gap_s``, the driver's preferred time gap [s].
 
 - in training it is estimated per maneuver from the data (:func:`estimate_time_gap`);
-- in use it is a setting (``run``/``sweep --time-gap``); without one, the planner keeps the
-  humans' median time gap at its current speed (:func:`time_gap_by_speed`, stored in the
-  checkpoint; drivers keep different time gaps at different speeds), or, in older checkpoints,
-  one median for all speeds;
+- in use it is a setting (``run``/``sweep --time-gap``, default the humans' median stored in the
+  checkpoint; clipped at ISO 15622's 0.8 s floor);
 - in replay it is estimated from the first seconds of the recording only
   (``replay --adapt-first-s``), which are then left out of the score.
 
@@ -56,46 +54,6 @@ def maneuver_time_gaps(gap_m: np.ndarray, speed_mps: np.ndarray, maneuver_id: np
         if np.isfinite(tg):
             out[rows] = tg
     return out
-
-
-SPEED_BIN_MPS = 2.0  # [m/s] width of the speed bins of the default time-gap curve
-MIN_BIN_SAMPLES = 50  # a speed bin with fewer steady-following samples gets no point
-STEADY_DV_MPS = 0.5  # [m/s] steady following: the leader within this of the ego's speed
-
-
-def time_gap_by_speed(gap_m: np.ndarray, speed_mps: np.ndarray, lead_speed_mps: np.ndarray,
-                      bin_mps: float = SPEED_BIN_MPS, min_samples: int = MIN_BIN_SAMPLES
-                      ) -> dict[str, list[float]]:
-    """The humans' median time gap [s] against speed [m/s] in steady following (leader within
-    :data:`STEADY_DV_MPS` of the ego, speed above :data:`MIN_SPEED_MPS`, time gap below
-    :data:`MAX_TIME_GAP_S`), per ``bin_mps`` speed bin with at least ``min_samples`` samples,
-    smoothed by a running median of 3 bins: ``{"speed_mps": [...], "time_gap_s": [...]}``
-    (bin centres, increasing). Raises ValueError when no bin has enough samples."""
-    gap, v, vl = (np.asarray(a, float) for a in (gap_m, speed_mps, lead_speed_mps))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        tg = gap / v
-        ok = (np.abs(vl - v) < STEADY_DV_MPS) & (v > MIN_SPEED_MPS) & (tg > 0) \
-            & (tg < MAX_TIME_GAP_S)
-    bins = np.floor(v[ok] / bin_mps).astype(int)
-    centres, medians = [], []
-    for b in np.unique(bins):
-        sel = bins == b
-        if sel.sum() >= min_samples:
-            centres.append((b + 0.5) * bin_mps)
-            medians.append(float(np.median(tg[ok][sel])))
-    if not centres:
-        raise ValueError(f"no speed bin has {min_samples} steady-following samples")
-    med = np.asarray(medians)
-    padded = np.concatenate([med[:1], med, med[-1:]])
-    smooth = np.median(np.stack([padded[:-2], padded[1:-1], padded[2:]]), axis=0)
-    return {"speed_mps": [float(c) for c in centres],
-            "time_gap_s": [clip_time_gap(x) for x in smooth]}
-
-
-def default_time_gap(curve: dict[str, list[float]], speed_mps: np.ndarray | float) -> np.ndarray:
-    """The default setting [s] at ``speed_mps`` from a :func:`time_gap_by_speed` curve: linear
-    between its points, its end values beyond them."""
-    return np.interp(speed_mps, curve["speed_mps"], curve["time_gap_s"])
 
 
 def clip_time_gap(time_gap_s: float) -> float:
