@@ -75,8 +75,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="weight of the settling term: as many synthetic episodes as --batch, "
                          "a constant-speed leader and the ego started far behind or too close "
                          "(learn/closed_loop.py SettlingConfig); the gap is scored against the "
-                         "setting's equilibrium from 30 s on (half-way in shorter windows), and time gaps below 0.8 s "
+                         "setting's equilibrium from --settle-after on, and time gaps below 0.8 s "
                          "all along (default 0: none; needs --style)")
+    ap.add_argument("--settle-after", type=float, default=30.0,
+                    help="the settling term scores the gap from this time on [s] (at most "
+                         "half the window)")
     ap.add_argument("--style", action="store_true",
                     help="add the driver's preferred time gap as an input (learn/style.py)")
     ap.add_argument("--seed", type=int, default=0)
@@ -117,8 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         feats = torch.cat([feats, torch.as_tensor(tg, dtype=torch.float32)[:, None]], dim=1)
         print(f"style: time gap per training maneuver, median {median:.2f} s, quartiles "
               f"{np.quantile(list(per_maneuver.values()), [0.25, 0.75]).round(2).tolist()} s")
-    # scored from 30 s on (from half-way in shorter windows)
-    settling = SettlingConfig(settle_after_s=min(30.0, args.window / 2))
+    settling = SettlingConfig(settle_after_s=min(args.settle_after, args.window / 2))
     rng = np.random.default_rng([args.seed, 3])
     gen = torch.Generator().manual_seed(args.seed)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
@@ -183,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
         "iters": args.iters, "batch": args.batch, "lr": args.lr,
         "speed_weight": args.speed_weight, "lateral_weight": args.lateral_weight,
         "equilibrium_weight": args.equilibrium_weight, "perturb": args.perturb,
-        "settle_weight": args.settle_weight,
+        "settle_weight": args.settle_weight, "settle_after_s": settling.settle_after_s,
         "seed": args.seed, "episodes": len(eps), "seconds": seconds, "style": args.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,
