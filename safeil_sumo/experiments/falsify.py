@@ -445,3 +445,38 @@ def study_configs(run: StudyRun) -> list[SearchConfig]:
 def study_folder(work: Path, policy: str, config: SearchConfig) -> Path:
     """Where a study search is kept (resumable: :func:`run_or_load`)."""
     return Path(work) / f"{policy}_{config.method}_s{config.seed}"
+
+
+def first_at_or_below(result: SearchResult, threshold_s: float) -> int | None:
+    """Simulations spent up to and including the first score <= ``threshold_s`` [s] (0: an
+    avoidable run that reached TTC 0, a collision)."""
+    hit = np.flatnonzero(result.scores <= threshold_s)
+    return int(hit[0]) + 1 if len(hit) else None
+
+
+def study_rows(runs: Sequence[tuple[str, SearchResult]]) -> pd.DataFrame:
+    """One row per search: planner, method, seed, budget, batch, simulations to the first
+    failure and to the first avoidable TTC 0, failures, the lowest score and its run."""
+    rows = []
+    for policy, res in runs:
+        s = summary(res, policy)
+        rows.append({"policy": policy, "method": s["method"], "seed": s["seed"],
+                     "budget": res.config.budget, "batch": res.config.batch,
+                     "simulations": s["simulations"], "first_failure": s["first_failure"],
+                     "first_ttc0": first_at_or_below(res, 0.0),
+                     "failures": s["failures"], "avoidable": s["avoidable"],
+                     "errors": s["errors"], "best_min_ttc_s": s.get("best_min_ttc_s"),
+                     "best_flag": s.get("best_flag"), "best_sim": s.get("best_sim")})
+    return pd.DataFrame(rows)
+
+
+def median_to_first(rows: pd.DataFrame, column: str = "first_failure") -> pd.DataFrame:
+    """Per planner x method: the median over seeds of ``column`` (a search without one counts
+    as more than its budget: inf), the seeds, and how many found one."""
+    out = []
+    for (policy, method), g in rows.groupby(["policy", "method"], sort=False):
+        got = g[column].astype(float)
+        out.append({"policy": policy, "method": method, "seeds": len(g),
+                    "found": int(got.notna().sum()),
+                    "median": float(np.median(got.fillna(math.inf)))})
+    return pd.DataFrame(out)
