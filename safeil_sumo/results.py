@@ -1154,11 +1154,14 @@ def _falsify_readme(f: dict) -> list[str]:
         lows = {m: min((r["best_min_ttc_s"] for r in mine if r["method"] == m
                         and r["best_min_ttc_s"] is not None), default=None)
                 for m in ("cem", "random")}
+        found = " / ".join(f"{np.median([r['failures'] for r in mine if r['method'] == m]):.0f}"
+                           for m in ("cem", "random"))
         rows.append({"planner": LABELS.get(p, p), "budget": f"{st['budget']} x {len(st['seeds'])} "
                      f"seeds (batch {st['batch']})",
                      "cem": med("first_failure", p, "cem"),
                      "random": med("first_failure", p, "random"),
                      "cem0": med("first_ttc0", p, "cem"), "random0": med("first_ttc0", p, "random"),
+                     "found": found,
                      "low": " / ".join("-" if v is None else f"{v:.2f}" for v in lows.values())})
     worst = [f"- {LABELS.get(p, p)}: min TTC {w['best_min_ttc_s']:.2f} s "
              f"({w['best_flag'] or 'no flag'}; {w['method']} seed {w['seed']}, simulation "
@@ -1171,11 +1174,14 @@ def _falsify_readme(f: dict) -> list[str]:
             "simulation. Only scenarios that braking at 6 m/s² from the start avoids count; a "
             "failure is a flag (TTC ≤ 1 s, lane departure, collision) in one of them. Columns: "
             "simulations to the first failure and to the first avoidable run reaching TTC 0, "
-            "median over seeds (in order of draw); the lowest min TTC found, CEM / random.")
+            "median over seeds (in order of draw); the failures each search found; the lowest min "
+            "TTC found, CEM / random. Per search: `falsify.csv`; every simulation: "
+            "`runs/results_work/falsify/*/evaluations.csv` (not committed).")
     return ["## Falsification: searching for failures", "", text, "",
             _md_table(rows, {"planner": "planner", "budget": "simulations per search",
                              "cem": "CEM: to 1st failure", "random": "random: to 1st failure",
                              "cem0": "CEM: to TTC 0", "random0": "random: to TTC 0",
+                             "found": "failures found CEM / random (median)",
                              "low": "lowest min TTC [s] CEM / random"}),
             "", "Worst avoidable case per planner (one command reruns each):", "", *worst, "",
             "![falsification curves](falsify.png)", ""]
