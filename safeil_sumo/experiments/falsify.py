@@ -432,7 +432,7 @@ class StudyRun:
 STUDY: tuple[StudyRun, ...] = (
     StudyRun("bc", 200, 20, (0, 1, 2)),
     StudyRun("safeil_paper", 200, 20, (0, 1, 2)),
-    StudyRun("safeil", 2000, 50, (0,)),
+    StudyRun("safeil", 2000, 50, (0, 1, 2)),
 )
 
 
