@@ -1106,30 +1106,33 @@ def falsify(out: Path, work: Path) -> dict:
 
 
 def _plot_falsify(runs: list, path: Path) -> None:
-    """Per planner: the lowest score (min TTC of an avoidable run, flags at <= 1 s) against the
-    simulations spent, each search a line (CEM solid, random dashed), first failures dotted."""
+    """Per planner (columns): the lowest score (min TTC of an avoidable run, flags at <= 1 s;
+    top) and the failures found (bottom) against the simulations spent, each search a line (CEM
+    solid, random dashed); first failures dotted."""
     policies = list(dict.fromkeys(p for p, _ in runs))
-    fig, axes = plt.subplots(1, len(policies), figsize=(4.5 * len(policies), 3.8), sharey=True)
-    for ax, policy in zip(np.atleast_1d(axes), policies, strict=True):
-        for p, res in runs:
-            if p != policy:
-                continue
+    fig, axes = plt.subplots(2, len(policies), figsize=(4.5 * len(policies), 6.5), squeeze=False)
+    for col, policy in enumerate(policies):
+        top, bottom = axes[0, col], axes[1, col]
+        for res in (r for p, r in runs if p == policy):
             cem = res.config.method == "cem"
-            color = COLORS.get(policy, "k") if cem else "tab:gray"
+            style = {"color": COLORS.get(policy, "k") if cem else "tab:gray",
+                     "ls": "-" if cem else "--", "lw": 1.2, "alpha": 0.8}
+            label = f"{res.config.method}" if res.config.seed == 0 else None
             sims = np.arange(1, len(res.outcomes) + 1)
             best = np.where(np.isfinite(res.best_so_far), res.best_so_far, np.nan)
-            label = f"{res.config.method} (seed {res.config.seed})"
-            ax.step(sims, best, where="post", color=color, ls="-" if cem else "--", lw=1.2,
-                    alpha=0.8, label=label if res.config.seed == 0 else None)
+            top.step(sims, best, where="post", label=label, **style)
             if res.first_failure:
-                k = res.first_failure
-                ax.plot(k, best[k - 1], "o", color=color, ms=4)
-        ax.axhline(1.0, color="k", lw=0.6, ls=":")
-        ax.set_xscale("log")
-        ax.set_xlabel("simulations spent")
-        ax.set_title(LABELS.get(policy, policy), fontsize=9)
-        ax.legend(fontsize=7)
-    np.atleast_1d(axes)[0].set_ylabel("worst min TTC found [s] (avoidable runs)")
+                top.plot(res.first_failure, best[res.first_failure - 1], "o", ms=4,
+                         color=style["color"])
+            bottom.plot(sims, np.cumsum([o.failure for o in res.outcomes]), label=label, **style)
+        top.axhline(1.0, color="k", lw=0.6, ls=":")
+        top.set_xscale("log")
+        top.set_title(LABELS.get(policy, policy), fontsize=9)
+        top.legend(fontsize=7)
+        bottom.set_xlabel("simulations spent")
+        bottom.legend(fontsize=7)
+    axes[0, 0].set_ylabel("worst min TTC found [s]\n(avoidable runs; flagged <= 1 s)")
+    axes[1, 0].set_ylabel("failures found")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -382,10 +383,11 @@ def write_worst(result: SearchResult, policy: str, folder: Path, stem: str = "wo
     (folder / f"{stem}.json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
     toml = folder / f"{stem}.toml"
     flag = s["best_flag"] or "no flag"
+    shown = Path(os.path.relpath(toml)).as_posix()  # from where the command runs
     toml.write_text(sweep_toml(spec, (
         f"{policy}: worst avoidable case of a {s['method']} search (seed {s['seed']}, "
         f"simulation {s['best_sim']} of {s['simulations']}): min TTC {s['best_min_ttc_s']:.3f} s, "
-        f"{flag}\nrerun: python -m safeil_sumo.sweep --config {toml.as_posix()} "
+        f"{flag}\nrerun: python -m safeil_sumo.sweep --config {shown} "
         f"--out runs/{stem}")))
     return toml
 
