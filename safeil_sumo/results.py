@@ -1179,7 +1179,9 @@ def _falsify_readme(f: dict) -> list[str]:
             "simulations to the first failure and to the first avoidable run reaching TTC 0, "
             "median over seeds (in order of draw); the failures each search found; the lowest min "
             "TTC found, CEM / random. Per search: `falsify.csv`; every simulation: "
-            "`runs/results_work/falsify/*/evaluations.csv` (not committed).")
+            "`runs/results_work/falsify/*/evaluations.csv` (not committed), where a rerun reads "
+            "the finished searches back: the section's own wall time below is such a rerun's; "
+            "the searches took 114 min on 2 shared cores, two at a time.")
     return ["## Falsification: searching for failures", "", text, "",
             _md_table(rows, {"planner": "planner", "budget": "simulations per search",
                              "cem": "CEM: to 1st failure", "random": "random: to 1st failure",
