@@ -1,0 +1,103 @@
+"""``python -m safeil_sumo.falsify``: search the closed-loop scenarios where a planner fails.
+
+    python -m safeil_sumo.falsify --policy bc --method cem --budget 2000 --batch 50 --seed 0
+    python -m safeil_sumo.falsify --policy safeil --method random --budget 2000 --out runs/f
+
+Searches leader braking (onset, deceleration, duration), cut-ins (gap, speed), recorded NGSIM
+leader windows, the track's radius and sensor noise for the lowest min TTC among scenarios that
+braking at 6 m/s^2 could still avoid (docs/falsification.md), in batches of ``--batch``
+scenarios per SUMO simulation, with the cross-entropy method or uniform random sampling.
+
+Writes into ``--out`` (default ``runs/falsify_<policy>_<method>_s<seed>``): ``evaluations.csv``
+(every simulation: its parameters, min TTC, flag, avoidability, score and spec),
+``summary.json``, and the worst avoidable case as ``worst.json`` (its ScenarioSpec) and
+``worst.toml``, which ``python -m safeil_sumo.sweep --config worst.toml`` reruns. A finished
+search with the same options in ``--out`` is read back, not rerun.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args
+from safeil_sumo.experiments import falsify as fz
+from safeil_sumo.experiments import outputs
+from safeil_sumo.sweep import check_inputs
+
+HELPS = {
+    "method": "cem (cross-entropy method) or random (uniform sampling)",
+    "budget": "simulations (closed-loop scenarios) to spend",
+    "batch": "scenarios per SUMO simulation and per CEM update",
+    "seed": "seeds every draw of the search (same seed: same scenarios, same result)",
+    "elite_fraction": "CEM: share of a batch (lowest scores) its Gaussian is refit to",
+    "smoothing": "CEM: weight of the refit against the previous mean and std",
+    "min_std": "CEM: floor of each coordinate's std (the box is [0, 1] per coordinate)",
+    "max_time_s": "scenario duration [s]",
+    "stop_at_failure": "end the search after the batch holding its first failure",
+}
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m safeil_sumo.falsify",
+                                description=__doc__.split("\n")[0])
+    p.add_argument("--policy", default="safeil",
+                   help="a planner name (safeil, safeil_paper, bc, idm, analytic, ...) or a "
+                        "checkpoint path (default safeil)")
+    add_dataclass_options(p, fz.SearchConfig, helps=HELPS, choices={"method": fz.METHODS})
+    p.add_argument("--out", type=Path, default=None,
+                   help="results folder (default runs/falsify_<policy>_<method>_s<seed>)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    try:
+        args.config = dataclass_from_args(fz.SearchConfig, args)
+    except ValueError as exc:
+        p.error(str(exc))
+    if args.out is None:
+        name = Path(args.policy).name.removesuffix(".safetensors")
+        args.out = Path("runs") / f"falsify_{name}_{args.method}_s{args.seed}"
+    return args
+
+
+def report(s: dict, toml: Path | None) -> str:
+    """The lines printed at the end of a search."""
+    first = s["first_failure"]
+    lines = [f"{s['policy']} {s['method']} seed {s['seed']}: {s['simulations']} simulations, "
+             f"{s['avoidable']} avoidable, {s['failures']} failures"
+             + (f", {s['errors']} failed to run" if s["errors"] else ""),
+             "first failure at simulation " + (str(first) if first else "- (none)")]
+    if toml is not None:
+        worst = (f"worst avoidable case: min TTC {s['best_min_ttc_s']:.3f} s "
+                 f"({s['best_flag'] or 'no flag'}), simulation {s['best_sim']}")
+        rerun = f"python -m safeil_sumo.sweep --config {toml} --out runs/worst_{s['policy']}"
+        lines += [worst, f"rerun it: {rerun}"]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:  # every net, the planner and the NGSIM library before SUMO starts
+        check_inputs(list(fz.NETS), [args.policy], ["ngsim"])
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        result = fz.run_or_load(args.policy, args.config, args.out,
+                                progress=not args.no_progress)
+    except KeyboardInterrupt:
+        print("\ninterrupted: nothing saved (a search is saved when it ends)", file=sys.stderr)
+        return 130
+    s = fz.summary(result, args.policy)
+    toml = fz.write_worst(result, args.policy, args.out)
+    config = {"policy": args.policy, **asdict(args.config)}
+    outputs.write_json(args.out / "summary.json",
+                       {**s, "manifest": outputs.manifest(config, [args.config.seed])})
+    print(report(s, toml))
+    print(f"results: {args.out}")
+    return 1 if s["errors"] else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,253 @@
+"""Falsification (issue 23 part 2): the search box, the objective and its avoidability filter,
+the cross-entropy method against random sampling, seeded determinism, the replayable worst case
+and a real libsumo run at a tiny budget."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from safeil_sumo.experiments import falsify as fz
+from safeil_sumo.experiments.suite import braking_avoids
+from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.sim.leaders import constant, piecewise
+
+# ------------------------------------------------------------------------- the CEM's update
+
+
+def test_cem_update_by_hand() -> None:
+    """4 points in the box, elite fraction 0.5 -> the 2 lowest scores; smoothing 0.5."""
+    cfg = fz.SearchConfig(elite_fraction=0.5, smoothing=0.5, min_std=0.02)
+    u = np.zeros((4, fz.DIM))
+    u[:, 0] = [0.1, 0.9, 0.3, 0.5]
+    u[:, 1] = [0.2, 0.2, 0.6, 0.6]
+    u[:, 2] = 0.4  # equal in the elite: its std 0 -> floored
+    scores = np.array([1.0, 5.0, 2.0, math.inf])  # elite: points 0 and 2
+    mean, std = np.full(fz.DIM, 0.5), np.full(fz.DIM, 0.3)
+    new_mean, new_std = fz.cem_update(u, scores, mean, std, cfg)
+    # elite mean of coordinate 0: (0.1 + 0.3) / 2 = 0.2, std 0.1 -> 0.5*0.2 + 0.5*0.5 = 0.35,
+    # 0.5*0.1 + 0.5*0.3 = 0.2; coordinate 1: (0.2 + 0.6) / 2 = 0.4, std 0.2 -> 0.45, 0.25
+    assert new_mean[0] == pytest.approx(0.35) and new_std[0] == pytest.approx(0.2)
+    assert new_mean[1] == pytest.approx(0.45) and new_std[1] == pytest.approx(0.25)
+    # coordinate 2: 0.5*0.4 + 0.5*0.5 = 0.45; std 0.5*0 + 0.5*0.3 = 0.15
+    assert new_mean[2] == pytest.approx(0.45) and new_std[2] == pytest.approx(0.15)
+    # the rest: elite at 0 -> mean 0.25, std 0.15
+    assert new_mean[3:] == pytest.approx(0.25) and new_std[3:] == pytest.approx(0.15)
+
+
+def test_cem_update_floors_the_std_and_ignores_excluded_points() -> None:
+    cfg = fz.SearchConfig(elite_fraction=0.5, smoothing=1.0, min_std=0.05)
+    u = np.full((4, fz.DIM), 0.7)
+    mean, std = np.full(fz.DIM, 0.5), np.full(fz.DIM, 0.3)
+    new_mean, new_std = fz.cem_update(u, np.array([1.0, 2.0, 3.0, 4.0]), mean, std, cfg)
+    assert new_mean == pytest.approx(0.7) and new_std == pytest.approx(0.05)
+    # fewer than 2 avoidable (finite) scores: unchanged
+    same = fz.cem_update(u, np.array([1.0, math.inf, math.inf, math.inf]), mean, std, cfg)
+    assert same[0] is mean and same[1] is std
+
+
+# ----------------------------------------------------------------------- the objective
+
+
+def test_score_excludes_unavoidable_caps_and_counts_flags() -> None:
+    assert fz.score(0.3, "collision", avoidable=False) == math.inf
+    assert fz.score(0.3, "ttc", avoidable=True) == 0.3
+    assert fz.score(4.0, "lane_departure", avoidable=True) == fz.TTC_FLAG_S  # a flag is <= 1 s
+    assert fz.score(math.inf, "", avoidable=True) == fz.TTC_CAP_S  # never closing
+    assert fz.score(math.nan, "", avoidable=True) == fz.TTC_CAP_S  # no leader seen
+    assert fz.score(2.5, "", avoidable=True) == 2.5
+
+
+def test_avoidability_filter() -> None:
+    # a slower leader 60 m ahead: braking at 6 m/s^2 matches its speed long before
+    assert fz.avoidable(constant(20.0).speed_at, 60.0, 30.0, 30.0)
+    # a cut-in 5 m ahead, 10 m/s slower: TTC 0.5 s from the first step
+    assert not fz.avoidable(constant(20.0).speed_at, 5.0, 30.0, 30.0)
+    # a leader 10 m ahead at the ego's speed braking to a stop at 9 m/s^2: the ego stops in
+    # 75 m, the leader in 50 m: no braking at 6 m/s^2 saves it; at 4 m/s^2 the leader needs
+    # 112.5 m and the ego keeps behind
+    hard = piecewise([0.0, 2.0, 2.0 + 30.0 / 9.0], [30.0, 30.0, 0.0])
+    soft = piecewise([0.0, 2.0, 2.0 + 30.0 / 4.0], [30.0, 30.0, 0.0])
+    assert not fz.avoidable(hard.speed_at, 10.0, 30.0, 20.0)
+    assert fz.avoidable(soft.speed_at, 10.0, 30.0, 20.0)
+    # it is the suite's notion: the same answer as braking_avoids at the same steps
+    t = np.arange(0.0, 20.0 + 0.005, 0.01)
+    for prof, gap in ((hard, 10.0), (soft, 10.0), (hard, 40.0)):
+        assert fz.avoidable(prof.speed_at, gap, 30.0, 20.0) == braking_avoids(
+            t, gap, 30.0, prof.speed_at(t))
+
+
+# -------------------------------------------------------------------------- the search box
+
+
+def test_decode_maps_the_box_onto_valid_specs() -> None:
+    rng = np.random.default_rng(0)
+    for u in [np.zeros(fz.DIM), np.ones(fz.DIM), *rng.random((200, fz.DIM))]:
+        spec = fz.decode(u, "bc")
+        assert isinstance(spec, ScenarioSpec) and spec.index == 0 and spec.policy == "bc"
+        assert spec.net in fz.NETS and 0 <= spec.master_seed < fz.SCENARIO_SEEDS
+        assert 0 <= spec.radar_noise_m <= 1.5 and 0 <= spec.lane_noise_c0_m <= 0.2
+        if spec.leader_kind == "braking":
+            lo, hi = spec.leader_speed_range_mps
+            assert lo == hi and 10.0 <= lo <= 35.0 and 5.0 <= spec.initial_gap_m <= 80.0
+            assert 0.0 <= spec.brake_to_mps <= lo and spec.ego_speed_mps == fz.EGO_SPEED_MPS
+        else:
+            assert spec.leader_kind == "recorded" and spec.leader_profile == "ngsim"
+    u = np.full(fz.DIM, 0.5)
+    v = fz.values(u)
+    assert v["gap_m"] == pytest.approx(42.5) and v["brake_onset_s"] == pytest.approx(7.5)
+    assert fz.decode(u, "bc").net == fz.NETS[2]  # 0.5 of 5 tracks: the middle one
+    u[0] = fz.RECORDED_FROM
+    assert fz.decode(u, "bc").leader_kind == "recorded"
+    with pytest.raises(ValueError, match="coordinates"):
+        fz.values(np.zeros(3))
+
+
+@pytest.mark.parametrize("source", [0.1, 0.9])  # a scripted and a recorded leader
+def test_the_worst_case_reruns_from_its_sweep_file(tmp_path, source: float) -> None:
+    """``sweep --config worst.toml`` builds exactly the spec the search ran."""
+    from safeil_sumo import sweep
+
+    u = np.random.default_rng(3).random(fz.DIM)
+    u[0] = source
+    spec = fz.decode(u, "safeil", 25.0)
+    path = tmp_path / "worst.toml"
+    path.write_text(fz.sweep_toml(spec, "a comment\non two lines"))
+    assert sweep.build_specs(sweep.parse_args(["--config", str(path)])) == [spec]
+
+
+def test_search_config_is_checked() -> None:
+    with pytest.raises(ValueError, match="method"):
+        fz.SearchConfig(method="bayes")
+    with pytest.raises(ValueError, match="budget"):
+        fz.SearchConfig(budget=0)
+    with pytest.raises(ValueError, match="elite"):
+        fz.SearchConfig(elite_fraction=0.0)
+
+
+# ------------------------------------------------------- the search on a planted failure
+
+
+TARGET = np.array([0.85, 0.1, 0.9, 0.2, 0.8, 0.7, 0.3, 0.9, 0.15, 0.6])
+
+
+def planted(u: np.ndarray) -> list[fz.Outcome]:
+    """A toy objective: the distance to a point; a failure within 0.25 of it (a ball of
+    ~2e-6 of the box's volume: random sampling almost never lands there)."""
+    d = np.linalg.norm(u - TARGET, axis=1)
+    return [fz.Outcome(float(x), bool(x < 0.25)) for x in d]
+
+
+def test_cem_finds_a_planted_failure_far_sooner_than_random() -> None:
+    firsts = {}
+    for method in fz.METHODS:
+        runs = [fz.search(fz.SearchConfig(method=method, budget=1500, batch=50, seed=s,
+                                          stop_at_failure=True), planted).first_failure
+                for s in range(5)]
+        firsts[method] = float(np.median([r if r is not None else math.inf for r in runs]))
+    assert firsts["cem"] <= 600
+    assert firsts["random"] == math.inf  # none within 1,500 simulations
+    assert firsts["cem"] <= firsts["random"] / 5
+
+
+def test_search_is_seeded_and_spends_its_budget() -> None:
+    cfg = fz.SearchConfig(method="cem", budget=130, batch=50, seed=7)
+    a, b = fz.search(cfg, planted), fz.search(cfg, planted)
+    assert a.u.shape == (130, fz.DIM) and len(a.outcomes) == 130  # 50 + 50 + 30
+    assert np.array_equal(a.u, b.u) and a.outcomes == b.outcomes
+    other = fz.search(fz.SearchConfig(method="cem", budget=130, batch=50, seed=8), planted)
+    assert not np.array_equal(a.u, other.u)
+    # random and CEM share their first (uniform) batch: the comparison starts level
+    r = fz.search(fz.SearchConfig(method="random", budget=130, batch=50, seed=7), planted)
+    assert np.array_equal(r.u[:50], a.u[:50]) and not np.array_equal(r.u[50:], a.u[50:])
+    assert np.all(np.diff(a.best_so_far) <= 0)
+
+
+def test_stop_at_failure_ends_after_the_batch_of_the_first_failure() -> None:
+    def fails_at_7(u: np.ndarray) -> list[fz.Outcome]:
+        fails_at_7.n += len(u)
+        return [fz.Outcome(1.0, fails_at_7.n - len(u) + k + 1 == 7) for k in range(len(u))]
+
+    fails_at_7.n = 0
+    res = fz.search(fz.SearchConfig(method="random", budget=100, batch=5, seed=0,
+                                    stop_at_failure=True), fails_at_7)
+    assert res.first_failure == 7 and len(res.outcomes) == 10
+
+
+def test_table_round_trips(tmp_path) -> None:
+    res = fz.search(fz.SearchConfig(method="cem", budget=12, batch=4, seed=1), planted)
+    df = fz.table(res, "bc")
+    df.to_csv(tmp_path / "e.csv", index=False)
+    back = fz.from_table(pd.read_csv(tmp_path / "e.csv", keep_default_na=False,
+                                     na_values={"min_ttc_s": ["nan", "NaN", ""]}), res.config)
+    assert np.allclose(back.u, res.u, rtol=0, atol=1e-15)
+    assert [o.score for o in back.outcomes] == [o.score for o in res.outcomes]
+    assert ScenarioSpec.from_json(json.loads(df["spec"].iloc[0])) == fz.decode(res.u[0], "bc")
+
+
+# ----------------------------------------------------------------------- real libsumo
+
+
+def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
+    """A tiny CEM search of the analytic planner in SUMO, twice: the same scenarios and
+    outcomes; its worst case is written as a spec and a sweep file; a rerun reads it back."""
+    pytest.importorskip("libsumo")
+    from fixtures_data import NGSIM_PAIRS, require_file
+
+    require_file(NGSIM_PAIRS)  # the search box holds recorded NGSIM leaders
+    from safeil_sumo import falsify
+
+    args = ["--policy", "analytic", "--method", "cem", "--budget", "6", "--batch", "3",
+            "--seed", "2", "--max-time-s", "4", "--no-progress"]
+    tables = []
+    for name in ("a", "b"):
+        assert falsify.main([*args, "--out", str(tmp_path / name)]) == 0
+        tables.append(pd.read_csv(tmp_path / name / "evaluations.csv"))
+    out = capsys.readouterr().out
+    assert "first failure at simulation" in out and "rerun it: python -m safeil_sumo.sweep" in out
+    a, b = tables
+    assert len(a) == 6 and a["error"].isna().all()
+    pd.testing.assert_frame_equal(a, b)
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["simulations"] == 6 and summary["avoidable"] == a["avoidable"].sum()
+    if summary.get("best_spec"):
+        spec = ScenarioSpec.from_json(json.loads((tmp_path / "a" / "worst.json").read_text()))
+        assert spec == ScenarioSpec.from_json(summary["best_spec"])
+        assert (tmp_path / "a" / "worst.toml").is_file()
+    before = (tmp_path / "a" / "evaluations.csv").stat().st_mtime_ns
+    assert falsify.main([*args, "--out", str(tmp_path / "a")]) == 0  # read back, not rerun
+    assert (tmp_path / "a" / "evaluations.csv").stat().st_mtime_ns == before
+
+
+def test_cli_refuses_bad_options(capsys) -> None:
+    from safeil_sumo import falsify
+
+    for bad in (["--method", "bayes"], ["--budget", "0"], ["--batch", "-1"]):
+        with pytest.raises(SystemExit) as exit_:
+            falsify.parse_args(bad)
+        assert exit_.value.code == 2
+
+
+def test_results_section_from_toy_searches(tmp_path, monkeypatch) -> None:
+    """``results --only falsify``'s table, curves, worst cases and README lines (searches on
+    the planted objective instead of SUMO)."""
+    from safeil_sumo import results
+
+    study = (fz.StudyRun("bc", 300, 50, (0, 1)), fz.StudyRun("safeil", 200, 50, (0,)))
+    monkeypatch.setattr(fz, "STUDY", study)
+    monkeypatch.setattr(fz, "run_or_load",
+                        lambda policy, cfg, folder, progress=False: fz.search(cfg, planted))
+    facts = json.loads(json.dumps(results.falsify(tmp_path, tmp_path / "work")))
+    rows = pd.read_csv(tmp_path / "falsify.csv")
+    assert len(rows) == 6 and set(rows["method"]) == {"cem", "random"}
+    assert (tmp_path / "falsify.png").stat().st_size > 0
+    assert set(facts["worst"]) == {"bc", "safeil"}
+    toml = tmp_path / facts["worst"]["bc"]["toml"]
+    assert toml.is_file() and (toml.with_suffix(".json")).is_file()
+    text = "\n".join(results._falsify_readme(facts))
+    assert "## Falsification" in text and "falsify.png" in text
+    assert "python -m safeil_sumo.sweep --config results/falsify/worst_bc.toml" in text
