@@ -65,8 +65,12 @@ SAFEIL_CANDIDATES = {
     "safeil_margin2m": [*SAFEIL, "--gap-min", "2"],
 }
 # closed-loop stage (docs/human_likeness.md): 400 iterations of 64 episodes of 60 s
+# plus the settling term: synthetic constant-speed leaders, the gap scored against the setting's
+# equilibrium from 20 s on, weight 3 (docs/human_likeness.md: weight 1 from 30 s settled 7 of 12
+# probe responses within 45 s, this 10)
 CLOSED_LOOP = ["--window", "60", "--iters", "400", "--style", "--equilibrium-weight", "1",
-               "--perturb", "0.5", "--seed", str(SEED)]
+               "--perturb", "0.5", "--settle-weight", "3", "--settle-after", "20",
+               "--seed", str(SEED)]
 OTHERS = {
     "safeil_paper": [*MIXED, "--method", "safeil", "--barrier-lateral", "control_points"],
     "bc": [*MIXED, "--method", "bc", "--output-mode", "residual"],
