@@ -15,6 +15,11 @@ states, so only the longitudinal plan is re-learned. Deterministic for a seed.
 (:mod:`safeil_sumo.learn.style`; its first-layer weights start at zero), estimated per maneuver
 from the data; envelope states draw it across the trained range, and the checkpoint stores the
 training maneuvers' median as the default setting.
+
+``--settle-weight``: synthetic episodes behind a constant-speed leader, the ego started far
+behind or too close, scored against the setting's equilibrium gap once the transient is over
+(:class:`safeil_sumo.learn.closed_loop.SettlingConfig`): the setting then means the gap the
+planner settles at, whatever the start.
 """
 
 from __future__ import annotations
@@ -114,7 +119,6 @@ def main(argv: list[str] | None = None) -> int:
         median = float(np.median(list(per_maneuver.values())))
         tg = np.where(np.isfinite(tg), tg, median)
         style_default = {"time_gap_s": median}
-
         model = with_style_input(model, median, float(np.std(list(per_maneuver.values()))))
         eps = eps.with_style({m: per_maneuver.get(m, median) for m in set(eps.maneuver_id)})
         feats = torch.cat([feats, torch.as_tensor(tg, dtype=torch.float32)[:, None]], dim=1)
