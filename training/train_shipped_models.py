@@ -17,7 +17,8 @@ Models, all on the same data and split:
   :mod:`safeil_sumo.learn.style`): the planner drives a differentiable model of the longitudinal
   loop for 60 s behind the recorded leaders of the training maneuvers (OpenACC and NGSIM, half
   of the episodes from perturbed starts) and learns the human's gap and speed; a 10th input, the
-  driver's preferred time gap (estimated per maneuver), with an equilibrium term; the envelope
+  driver's preferred time gap (estimated per maneuver), with an equilibrium term and a settling
+  term (synthetic constant-speed leaders: the gap must settle at the setting's); the envelope
   barrier and the monotonicity penalty stay in the loss, and the lane-keeping outputs are held to
   ``safeil_openloop``'s.
 - ``safeil_openloop``: SafeIL with the exact Bernstein lane bound, the network predicting the
