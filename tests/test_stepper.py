@@ -10,13 +10,14 @@ references); here the logs are compared exactly.
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 from bad_policies import DriftLeft, blind_cruise
 
-from safeil_sumo import policies
+from safeil_sumo import api, policies
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
@@ -278,7 +279,12 @@ def test_an_error_ends_the_running_scenarios_and_bad_input_is_refused(road):
         sim.reset([crash, clean], [blind_cruise()])
     with pytest.raises(ValueError, match="no scenarios"):
         sim.reset([], blind_cruise())
-    with pytest.raises(ValueError, match="headless"):
-        ClosedLoop(LoopConfig(gui=True, backend="traci"))
+    # sumo-gui, SSM output and traffic name the original net and the vehicle "ego": N = 1
+    for config in (LoopConfig(gui=True, backend="traci"), LoopConfig(ssm_file=Path("ssm.xml"))):
+        with pytest.raises(ValueError, match="one by one"):
+            ClosedLoop(config).reset([crash, clean], blind_cruise())
+    traffic = api.scenario("n74", 0, 0, from_km=4.0, to_km=5.0, traffic="light")
+    with pytest.raises(ValueError, match="traffic runs one scenario at a time"):
+        sim.reset([traffic, traffic], blind_cruise())
     with pytest.raises(ValueError, match="unknown log column"):
         ClosedLoop(log_columns=("t", "speed"))

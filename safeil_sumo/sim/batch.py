@@ -29,10 +29,10 @@ from safeil_sumo.policy import Policy
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import LoopConfig, Rollout, Scenario
-from safeil_sumo.sim.runner import ApiFactory
 
 # re-exported: they were defined here before the stepper
 from safeil_sumo.sim.stepper import SPACING_M, ClosedLoop, StageClock  # noqa: F401
+from safeil_sumo.sim.sumo_setup import ApiFactory
 
 
 def run_batch(

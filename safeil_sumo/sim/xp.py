@@ -10,6 +10,16 @@ expression finite on both sides (e.g. a divisor floored at a tiny number where t
 uses it is not taken). ``+ - * /`` and ``sqrt`` round identically in both namespaces;
 ``cos``/``sin``/``exp``/``atan``... may differ by an ulp between libm and numpy, which is why a
 batched run equals a scalar run to ~1e-12 m rather than bit for bit.
+
+The loop itself (:class:`.stepper.ClosedLoop`) is written against a namespace too: its values
+are per running scenario, one float each with :data:`FLOATS` (N = 1) or arrays ``(n,)`` with
+:data:`ARRAYS`, and what is per scenario by nature (SUMO's calls, the radar) goes through
+Python lists of the rows: ``rows(value)`` is such a list, ``from_rows(list)`` the value again,
+``full(n, value)`` a constant, ``nonzero(mask)`` the rows where a flag is set, ``put(value,
+rows, new)`` a value with those rows replaced, ``select`` numpy's ``select``, ``any`` whether
+any row is set, ``columns(parts)`` the log's rows (a flat sequence of floats at N = 1, an
+array ``(n, columns)`` else; parts are values or ``(n, k)`` blocks, tuples at N = 1) and
+``records(table)`` one per row.
 """
 
 from __future__ import annotations
@@ -40,20 +50,55 @@ def _isnan(value):
     return math.isnan(value)
 
 
+def _select(conditions, choices, default):
+    for condition, choice in zip(conditions, choices):
+        if condition:
+            return choice
+    return default
+
+
+def _columns(parts):
+    out = []
+    for part in parts:
+        if type(part) is tuple:
+            out.extend(part)
+        else:
+            out.append(part)
+    return out
+
+
 FLOATS = SimpleNamespace(
     where=_where, minimum=min, maximum=max, clip=_clip, abs=abs,
-    logical_or=_or, logical_and=_and, isnan=_isnan,
+    logical_or=_or, logical_and=_and, isnan=_isnan, isfinite=math.isfinite,
     cos=math.cos, sin=math.sin, tan=math.tan, atan=math.atan, atan2=math.atan2,
     sqrt=math.sqrt, hypot=math.hypot, exp=math.exp,
+    # the loop's rows (one scenario)
+    rows=lambda value: [value], from_rows=lambda values: values[0],
+    full=lambda n, value: value, nonzero=lambda mask: [0] if mask else [],
+    put=lambda value, rows, new: new[0] if len(rows) else value,
+    select=_select, any=bool, columns=_columns, records=lambda table: (table,),
 )
 
 def _clip_arrays(value, lo, hi):
     return np.minimum(np.maximum(value, lo), hi)  # np.clip's overhead is ~10x on small arrays
 
 
+def _put(value, rows, new):
+    if not len(rows):
+        return value
+    out = np.array(value)
+    out[rows] = new
+    return out
+
+
 ARRAYS = SimpleNamespace(
     where=np.where, minimum=np.minimum, maximum=np.maximum, clip=_clip_arrays, abs=np.abs,
-    logical_or=np.logical_or, logical_and=np.logical_and, isnan=np.isnan,
+    logical_or=np.logical_or, logical_and=np.logical_and, isnan=np.isnan, isfinite=np.isfinite,
     cos=np.cos, sin=np.sin, tan=np.tan, atan=np.arctan, atan2=np.arctan2,
     sqrt=np.sqrt, hypot=np.hypot, exp=np.exp,
+    # the loop's rows (n scenarios)
+    rows=np.ndarray.tolist, from_rows=np.array,
+    full=lambda n, value: np.full(n, value, dtype=float), nonzero=np.flatnonzero,
+    put=_put, select=np.select, any=np.any, columns=np.column_stack,
+    records=lambda table: table,
 )
