@@ -191,8 +191,9 @@ def test_reset_with_a_seed_repeats_the_episode(road):
 
 def test_a_scenario_that_ends_stops_while_the_others_go_on(road):
     """A collision a few decision steps in: events say which scenario ended and why, in the
-    step it happened (part way through the step's physics steps); afterwards it takes no
-    step and its observation stays as it ended, while the other one drives on."""
+    step it happened (part way through the step's physics steps); its observation is sensed
+    at its end state, and afterwards it takes no step and its observation stays as it ended,
+    while the other one drives on."""
     crash = Scenario("crash", road, constant(10.0), 30.0, 20.0, seed=0)
     clean = replace(safety_scenario(road, 1), max_time_s=5.0)
     with ClosedLoop(LoopConfig()) as sim:
@@ -211,6 +212,10 @@ def test_a_scenario_that_ends_stops_while_the_others_go_on(road):
         assert events.collision[0] and obs.collision[0] and obs.running.tolist() == [False, True]
         assert 0 < events.sub_steps[0] <= PLAN_EVERY and events.sub_steps[1] == PLAN_EVERY
         ended_at = obs
+        # its final observation is sensed at its end state (the speed feature is its speed
+        # there), the running one's at the next decision
+        assert ended_at.features[0, 6] == ended_at.v[0]
+        assert ended_at.features[1, 6] == ended_at.v[1]
         obs, events = sim.step()
         assert events.sub_steps.tolist() == [0, PLAN_EVERY] and not events.ended.any()
         assert events.end_reason.tolist() == ["collision", ""]

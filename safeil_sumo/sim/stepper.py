@@ -203,7 +203,10 @@ class _Scenario:
             else ScriptedLeader(scenario, vehicle, self.leader_id, self.n_max, loop.step_s, dx)
             if scenario.leader is not None else None)
         self.end_reason, self.error = "", ""
-        self.rows = np.empty((self.n_max, log_width))  # the log, row k = step k; None: freed
+        # the log, row k = step k: a list of rows at N = 1 (an append per step), else an array
+        # filled row by row; None: freed
+        self.rows: list | np.ndarray | None = [] if not copies else np.empty((self.n_max,
+                                                                                log_width))
         self.steps = 0  # rows filled
         self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this run
 
@@ -283,7 +286,7 @@ class PlanAndTrack:
                     cps[rows_of] = np.asarray(policy.plan(live.features[rows_of]),
                                               float).reshape(-1, 3, 2)
             live.target = ctl.make_targets(cps, live.c.horizon, fx, fy, yaw)
-            live.plan_log = np.column_stack([np.full(n, t), fx, fy, yaw, cps.reshape(n, 6)])
+            live.plan_log = (np.full(n, t), fx, fy, yaw, *cps.reshape(n, 6).T)
         live.t_plan = xp.full(n, t)
 
     def move(self, live: _Live, t: float, xp) -> tuple:
@@ -316,9 +319,9 @@ class Kinematic:
         return xp.full(n, math.nan), xp.full(n, math.nan)
 
 
-def _block(xp, n: int, k: int):
-    """``k`` NaN columns of ``n`` rows: a tuple at N = 1, an array ``(n, k)`` else."""
-    return (math.nan,) * k if xp is FLOATS else np.full((n, k), math.nan)
+def _block(xp, n: int, k: int) -> tuple:
+    """``k`` NaN log columns: floats at N = 1, arrays ``(n,)`` else."""
+    return (xp.full(n, math.nan),) * k
 
 
 class _Live:
@@ -336,8 +339,9 @@ class _Live:
         self.t_plan = xp.full(n, 0.0)  # when the tracked plans were made [s]
         self.features = np.full((n, 9) if xp is ARRAYS else 9, np.nan)  # the last decision's
         self.front = (xp.full(n, math.nan), xp.full(n, math.nan))  # front bumper then [m]
-        self.feature_log = _block(xp, n, 8)  # c0l..c2r, v_lead, d_lead as logged
-        self.plan_log = _block(xp, n, 10)  # the plan being tracked: time, pose, points
+        # log columns: c0l..c2r, v_lead, d_lead as logged; the plan being tracked (time, pose,
+        # control points)
+        self.feature_log, self.plan_log = _block(xp, n, 8), _block(xp, n, 10)
         self.target: ctl.TrackingTarget | ctl.BatchTarget | None = None
         self.c = _Fixed.of(runs, xp)
         self.ego_seg = xp.from_rows([r.centre.segment_index(r.s_ego0) for r in runs])
@@ -372,7 +376,8 @@ class _Live:
         self.t_plan, self.features = self.t_plan[keep], self.features[keep]
         self.front = (self.front[0][keep], self.front[1][keep])
         self.ego_seg, self.lead_seg = self.ego_seg[keep], self.lead_seg[keep]
-        self.feature_log, self.plan_log = self.feature_log[keep], self.plan_log[keep]
+        self.feature_log = tuple(col[keep] for col in self.feature_log)
+        self.plan_log = tuple(col[keep] for col in self.plan_log)
         self.target = self.target.take(keep) if self.target is not None else None
         self.departed, self.ttc_flag = self.departed[keep], self.ttc_flag[keep]
         self.collision = self.collision[keep]
@@ -530,7 +535,9 @@ class ClosedLoop:
         r = self._runs[i]
         if r.rows is None:
             raise ValueError(f"the log of scenario {i} has been freed")
-        log = _Log.to_frame(r.rows[:r.steps].copy(), self.columns)
+        data = (np.array(r.rows, dtype=float).reshape(-1, len(self.columns))
+                if isinstance(r.rows, list) else r.rows[:r.steps].copy())
+        log = _Log.to_frame(data, self.columns)
         name = r.policy.name if r.policy is not None else EXTERNAL
         traffic = r.lead if isinstance(r.lead, TrafficLeader) else None
         return finish(r.scenario, log, r.end_reason or "running", r.error, wall_s, name,
@@ -631,7 +638,7 @@ class ClosedLoop:
             f = feats.tolist()
             feature_log = (*f[:6], f[7], f[8])
         else:
-            feature_log = feats[:, _LOGGED_FEATURES]
+            feature_log = tuple(feats[:, _LOGGED_FEATURES].T)
         return feats, feature_log, (fx_, fy_)
 
     def _checked_plans(self, live: _Live, plans: np.ndarray | None) -> np.ndarray | None:
@@ -767,13 +774,17 @@ class ClosedLoop:
                    if c.any_traffic else xp.where(has_lead, 0.0, math.nan))
         rows = xp.columns([
             xp.full(n, t + self._dt), st[0], st[1], yaw, v, st[4], st[5], st[6], front_x,
-            front_y, steer_cmd, accel_cmd, s, d, d_min, d_max, live.feature_log, lead_x, lead_y,
-            v_lead, gap, ttc, departed, ttc_flag, hit, fraction, live.plan_log, lead_no,
+            front_y, steer_cmd, accel_cmd, s, d, d_min, d_max, *live.feature_log, lead_x, lead_y,
+            v_lead, gap, ttc, departed, ttc_flag, hit, fraction, *live.plan_log, lead_no,
         ])
         logged = rows if self._col_idx is None else np.asarray(rows)[..., self._col_idx]
-        for r, row in zip(live.runs, xp.records(logged)):
-            r.rows[k] = row
-            r.steps = k + 1
+        if xp is FLOATS:  # one scenario: a list append per step
+            live.runs[0].rows.append(logged)
+            live.runs[0].steps = k + 1
+        else:
+            for r, row in zip(live.runs, logged):
+                r.rows[k] = row
+                r.steps = k + 1
         loop = self.loop
         reason = xp.select(
             [s >= c.path_end, hit, xp.abs(d) > 0.5 * c.lane_width + loop.offroad_stop_m,

@@ -15,11 +15,9 @@ The loop itself (:class:`.stepper.ClosedLoop`) is written against a namespace to
 are per running scenario, one float each with :data:`FLOATS` (N = 1) or arrays ``(n,)`` with
 :data:`ARRAYS`, and what is per scenario by nature (SUMO's calls, the radar) goes through
 Python lists of the rows: ``rows(value)`` is such a list, ``from_rows(list)`` the value again,
-``full(n, value)`` a constant, ``nonzero(mask)`` the rows where a flag is set, ``put(value,
-rows, new)`` a value with those rows replaced, ``select`` numpy's ``select``, ``any`` whether
-any row is set, ``columns(parts)`` the log's rows (a flat sequence of floats at N = 1, an
-array ``(n, columns)`` else; parts are values or ``(n, k)`` blocks, tuples at N = 1) and
-``records(table)`` one per row.
+``full(n, value)`` a constant, ``nonzero(mask)`` the rows where a flag is set, ``select``
+numpy's ``select``, ``any`` whether any row is set and ``columns(values)`` the log's rows (a
+list of floats at N = 1, an array ``(n, columns)`` else).
 """
 
 from __future__ import annotations
@@ -57,16 +55,6 @@ def _select(conditions, choices, default):
     return default
 
 
-def _columns(parts):
-    out = []
-    for part in parts:
-        if type(part) is tuple:
-            out.extend(part)
-        else:
-            out.append(part)
-    return out
-
-
 FLOATS = SimpleNamespace(
     where=_where, minimum=min, maximum=max, clip=_clip, abs=abs,
     logical_or=_or, logical_and=_and, isnan=_isnan, isfinite=math.isfinite,
@@ -75,20 +63,11 @@ FLOATS = SimpleNamespace(
     # the loop's rows (one scenario)
     rows=lambda value: [value], from_rows=lambda values: values[0],
     full=lambda n, value: value, nonzero=lambda mask: [0] if mask else [],
-    put=lambda value, rows, new: new[0] if len(rows) else value,
-    select=_select, any=bool, columns=_columns, records=lambda table: (table,),
+    select=_select, any=bool, columns=list,
 )
 
 def _clip_arrays(value, lo, hi):
     return np.minimum(np.maximum(value, lo), hi)  # np.clip's overhead is ~10x on small arrays
-
-
-def _put(value, rows, new):
-    if not len(rows):
-        return value
-    out = np.array(value)
-    out[rows] = new
-    return out
 
 
 ARRAYS = SimpleNamespace(
@@ -99,6 +78,5 @@ ARRAYS = SimpleNamespace(
     # the loop's rows (n scenarios)
     rows=np.ndarray.tolist, from_rows=np.array,
     full=lambda n, value: np.full(n, value, dtype=float), nonzero=np.flatnonzero,
-    put=_put, select=np.select, any=np.any, columns=np.column_stack,
-    records=lambda table: table,
+    select=np.select, any=np.any, columns=lambda parts: np.array(parts).T,
 )
