@@ -28,7 +28,7 @@ from safeil_sumo.geometry import sumo_angle_to_yaw
 from safeil_sumo.sim import traffic as trf
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import Scenario
-from safeil_sumo.sim.sumo_setup import leader_speeds, read_leader
+from safeil_sumo.sim.sumo_setup import leader_speeds
 
 
 class ScriptedLeader:
@@ -70,15 +70,20 @@ class ScriptedLeader:
         """Its pose and true speed after a step (in the original track's coordinates)."""
         if self.gone:
             return False
-        lead = read_leader(api, self.vehicle, self.veh_id)
-        if lead is None:
+        try:
+            fx, fy = api.vehicle.getPosition(self.veh_id)
+            yaw = sumo_angle_to_yaw(api.vehicle.getAngle(self.veh_id))
+            v = api.vehicle.getSpeed(self.veh_id)
+        # libsumo/traci raise TraCIException for a vehicle that has arrived
+        except Exception:  # noqa: BLE001
             self.gone, self.leader = True, None
             return False
-        if self.dx:
-            (rx, ry), v, yaw, (fx, fy) = lead
-            lead = (rx - self.dx, ry), v, yaw, (fx - self.dx, fy)
-        self.leader = lead
-        self.v = lead[1] / self.scale
+        length = self.length
+        rx, ry = fx - length * math.cos(yaw), fy - length * math.sin(yaw)
+        if self.dx:  # in the original track's coordinates
+            rx, fx = rx - self.dx, fx - self.dx
+        self.leader = (rx, ry), v, yaw, (fx, fy)
+        self.v = v / self.scale
         return True
 
     def located(self, s_rear: float, gap: float, count: bool = True) -> float:

@@ -97,6 +97,10 @@ TERMINAL_REASONS = ("collision", "off_road", "flag")
 LIMIT_REASONS = ("completed", "timeout")
 _COL = {name: i for i, name in enumerate(_Log.COLUMNS)}
 _LOGGED_FEATURES = [0, 1, 2, 3, 4, 5, 7, 8]  # c0l..c2r, v_lead, d_lead: the features logged
+# the log's columns in an Observation: floats, then flags
+_OBS_FLOATS = [_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc", "leader_v",
+                                 "path_fraction")]
+_OBS_FLAGS = [_COL[c] for c in ("lane_departure", "ttc_flag", "collision")]
 
 
 class StageClock:
@@ -267,7 +271,7 @@ class PlanAndTrack:
     def __init__(self, loop: ClosedLoop) -> None:
         self.vehicle, self.controller, self.dt = loop.vehicle, loop.controller, loop.loop.step_s
         self.plant = veh.Plant.of(loop.vehicle, loop.loop.step_s)
-        self.lap = loop._lap
+        self.lap = loop._sub_lap
 
     def plan(self, live: _Live, given: np.ndarray | None, t: float, xp) -> None:
         """The plans of the decision at ``t`` [s] (``given`` ``(n, 3, 2)``, or the policies')."""
@@ -297,7 +301,8 @@ class PlanAndTrack:
             live.target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle, live.integral,
             live.prev_error, self.controller, self.dt, xp)
         throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, xp)
-        self.lap("track")
+        if self.lap is not None:
+            self.lap("track")
         live.st = self.plant.step(live.st, steer_cmd, throttle, brake, xp)
         return steer_cmd, accel_cmd
 
@@ -417,6 +422,8 @@ class ClosedLoop:
         self._col_idx = (None if columns == _Log.COLUMNS
                          else np.array([_Log.COLUMNS.index(c) for c in columns]))
         self._lap = clock.lap if clock is not None else _no_lap
+        self._sub_lap = clock.lap if clock is not None else None  # every physics step's
+        self._d_front = vehicle.cog_to_front_bumper_m  # [m]
         self._dt = loop.step_s
         self._plan_every = max(round(1.0 / (loop.plan_rate_hz * loop.step_s)), 1)
         # sumo-gui shows the true pose: always moveToXY there
@@ -611,7 +618,7 @@ class ClosedLoop:
         xp = self._xp
         x, y, yaw, vx, vy = st[:5]
         v = xp.hypot(vx, vy)
-        d_front = self.vehicle.cog_to_front_bumper_m
+        d_front = self._d_front
         fx_, fy_ = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
         if xp is FLOATS:  # the camera: one scenario's lines, its own noise
             r = runs[0]
@@ -668,23 +675,26 @@ class ClosedLoop:
             self._last[live.idx] = rows
         if any_ended:
             self._end(live, ended, reason, ev)
-        self._lap("monitor")
+        if self._sub_lap is not None:
+            self._sub_lap("monitor")
 
     def _drive(self, live: _Live, k: int) -> tuple:
         """Drive the egos (track and plant, or their recorded poses), find each front bumper on
         its lane, move the egos and command the leaders in SUMO, step SUMO."""
-        c, dt, lap, xp = live.c, self._dt, self._lap, self._xp
+        c, dt, lap, xp = live.c, self._dt, self._sub_lap, self._xp
         t = k * dt
         steer_cmd, accel_cmd = self._driver.move(live, t, xp)
         x, y, yaw, vx, vy = live.st[:5]
         v = xp.hypot(vx, vy)
-        d_front = self.vehicle.cog_to_front_bumper_m
+        d_front = self._d_front
         front_x, front_y = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
-        lap("plant")
+        if lap is not None:
+            lap("plant")
 
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
-        s, d, heading, live.ego_seg = _project(c.lanes, xp, front_x, front_y, live.ego_seg)
-        lap("project")
+        s, d, heading, live.ego_seg = c.project(front_x, front_y, live.ego_seg)
+        if lap is not None:
+            lap("project")
         n = len(live.runs)
         inside = (xp.rows(lane_placeable(d, s, v * dt, 0.5 * c.lane_width, c.route_end))
                   if self._on_lane else [False] * n)
@@ -701,13 +711,15 @@ class ClosedLoop:
             set_speed(r.ego, vl[j])
             if r.lead is not None:
                 r.lead.command(api, k)
-        lap("sumo_move")
+        if lap is not None:
+            lap("sumo_move")
         if k == self._shot_k:  # sumo-gui saves it during this step
             sumo_api.gui_screenshot(api, self.loop.gui_screenshot)
         api.simulation.step()
         colliding = set(api.simulation.getCollidingVehiclesIDList())
         hit = xp.from_rows([r.ego in colliding for r in live.runs])
-        lap("sumo_step")
+        if lap is not None:
+            lap("sumo_step")
         return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl
 
     def _read_leaders(self, live: _Live) -> tuple:
@@ -757,7 +769,9 @@ class ClosedLoop:
         c, st, n, xp = live.c, live.st, len(live.runs), self._xp
         lead_x, lead_y, v_lead = self._read_leaders(live)
         has_lead = xp.isfinite(lead_x)  # NaN: no leader
-        self._lap("sumo_read")
+        lap = self._sub_lap
+        if lap is not None:
+            lap("sumo_read")
         s_rear, _, _, live.lead_seg = _project(c.lanes, xp, lead_x, lead_y, live.lead_seg)
         gap = xp.where(has_lead, s_rear - s, math.inf)
         yaw = st[2]
@@ -765,7 +779,8 @@ class ClosedLoop:
         if len(fix):
             v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit, (fxl, fyl),
                                                yaw)
-        self._lap("project")
+        if lap is not None:
+            lap("project")
 
         d_min, d_max, departed, ttc, ttc_flag, fraction = _monitors(
             c, self.vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead, xp)
@@ -818,9 +833,9 @@ class ClosedLoop:
         n = len(live.runs)
         x, y, yaw, vx, vy = live.st[:5]
         v = xp.hypot(vx, vy)
-        d_front = vehicle.cog_to_front_bumper_m
+        d_front = self._d_front
         front_x, front_y = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
-        s, d, heading, _ = _project(c.lanes, xp, front_x, front_y, live.ego_seg)
+        s, d, heading, _ = c.project(front_x, front_y, live.ego_seg)
         lx, ly, lv = [], [], []
         for r in live.runs:
             lead = r.lead.leader if r.lead is not None else None
@@ -848,16 +863,11 @@ class ClosedLoop:
             self._last[live.idx, _COL[name]] = values
 
     def _observation(self) -> Observation:
-        last = self._last
-
-        def col(name: str, dtype=float) -> np.ndarray:
-            return last[:, _COL[name]].astype(dtype)  # a copy
-
-        return Observation(
-            col("t"), self._features.copy(), col("x"), col("y"), col("yaw"), col("v"), col("s"),
-            col("d"), col("gap"), col("ttc"), col("leader_v"), col("path_fraction"),
-            col("lane_departure", bool), col("ttc_flag", bool), col("collision", bool),
-            self._running.copy())
+        # copies: fancy indexing makes new arrays, each field a row of one of them
+        t, x, y, yaw, v, s, d, gap, ttc, leader_v, fraction = self._last[:, _OBS_FLOATS].T
+        departed, ttc_flag, collision = self._last[:, _OBS_FLAGS].T.astype(bool)
+        return Observation(t, self._features.copy(), x, y, yaw, v, s, d, gap, ttc, leader_v,
+                           fraction, departed, ttc_flag, collision, self._running.copy())
 
     def _fail(self, exc: Exception) -> None:
         """Every scenario still running ends with the error; SUMO is closed."""
@@ -974,6 +984,7 @@ class _Fixed:
     # roads) walked at once on their stack; NaN points give NaN and keep their segment
     lanes: Polyline | PolylineStack
     planners: list  # (planner or None, rows): one plan call each
+    project: Callable  # (x, y, segment) -> s, d, heading, segment on lanes (no NaN at N = 1)
 
     @staticmethod
     def of(live: list[_Scenario], xp) -> _Fixed:
@@ -981,6 +992,7 @@ class _Fixed:
             return xp.from_rows([get(r) for r in live])
 
         traffic = [isinstance(r.lead, TrafficLeader) for r in live]
+        lanes = live[0].centre if xp is FLOATS else _lanes(live)
         return _Fixed(
             col(lambda r: r.lane.width), col(lambda r: r.scenario.monitors.lane_margin_m),
             col(lambda r: r.scenario.monitors.ttc_threshold_s),
@@ -988,9 +1000,8 @@ class _Fixed:
             col(lambda r: r.road.ego_pieces[-1].s1),
             col(lambda r: r.n_max), col(lambda r: r.horizon),
             col(lambda r: r.lead is not None and r.lead.needs_location),
-            xp.from_rows(traffic), any(traffic),
-            live[0].centre if xp is FLOATS else _lanes(live),
-            _groups(live, lambda r: r.policy))
+            xp.from_rows(traffic), any(traffic), lanes, _groups(live, lambda r: r.policy),
+            lanes.project_near if xp is FLOATS else lanes.project_near_many)
 
 
 def _lanes(live: list[_Scenario]) -> Polyline | PolylineStack:

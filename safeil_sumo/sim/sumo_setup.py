@@ -3,7 +3,8 @@ depart, how the ego is placed (``moveToXY`` or ``moveTo`` on its lane), the lead
 commands, and what the monitors read back from SUMO (the leader's pose, footprint overlap).
 
 Shared by every driver of the loop (:class:`.stepper.ClosedLoop`); names and functions are
-re-exported by :mod:`.runner`, where they were defined before.
+re-exported by :mod:`.runner`, where they were defined before. The leader is read back by
+its provider (:mod:`.providers`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,6 @@ import numpy as np
 from safeil_sumo.geometry import (
     rectangle_corners,
     rectangles_overlap,
-    sumo_angle_to_yaw,
     yaw_to_sumo_angle,
 )
 from safeil_sumo.scenarios.road import Road
@@ -225,18 +225,3 @@ def footprints_overlap(front: tuple[float, float], yaw: float, vehicle: veh.Vehi
     return rectangles_overlap(
         rectangle_corners(centre, yaw, vehicle.length_m, vehicle.width_m),
         rectangle_corners(lead_centre, lead_yaw, lead_length, lead_width))
-
-
-def read_leader(api: sumo_api.SumoApi, vehicle: veh.VehicleParams, veh_id: str = LEADER_ID):
-    """``(rear_xy, speed, yaw, front_xy)`` of the leader, or None once it has left the network."""
-    try:
-        fx, fy = api.vehicle.getPosition(veh_id)
-        yaw = sumo_angle_to_yaw(api.vehicle.getAngle(veh_id))
-        v = api.vehicle.getSpeed(veh_id)
-    # libsumo/traci raise TraCIException for a vehicle that has arrived
-    except Exception:  # noqa: BLE001
-        return None
-    rear = (fx - vehicle.length_m * math.cos(yaw), fy - vehicle.length_m * math.sin(yaw))
-    return rear, v, yaw, (fx, fy)
-
-
