@@ -1,10 +1,10 @@
 """The loop's SUMO seam at the start of a run: SUMO's options, where the ego and the scripted leader
-depart, how the ego is placed (``moveToXY`` or ``moveTo`` on its lane), the leader's speed
-commands, and what the monitors read back from SUMO (the leader's pose, footprint overlap).
+depart, how the ego is placed (``moveToXY`` or ``moveTo`` on its lane), the run's length and the
+leader's speed commands, and the footprint overlap the monitors check.
 
 Shared by every driver of the loop (:class:`.stepper.ClosedLoop`); names and functions are
-re-exported by :mod:`.runner`, where they were defined before. The leader is read back by
-its provider (:mod:`.providers`).
+re-exported by :mod:`.runner`, where they were defined before. The leader is read back by its
+provider (:mod:`.providers`).
 """
 
 from __future__ import annotations
