@@ -189,7 +189,10 @@ def test_bad_input_fails_clearly():
     with pytest.raises(ValueError, match="action_level"):
         gym.make(CURVED, action_level="pedals")
     with pytest.raises(ValueError, match="render_mode"):
-        envs.SafeILEnv(render_mode="human")
+        envs.SafeILEnv(render_mode="ansi")
+    with pytest.raises(ValueError, match="render_mode"):
+        gym.make_vec(CURVED, num_envs=2, vectorization_mode="vector_entry_point",
+                     render_mode="human")
     for bad in (0, -1):
         with pytest.raises(ValueError, match="num_envs"):
             gym.make_vec(CURVED, num_envs=bad, vectorization_mode="vector_entry_point")
