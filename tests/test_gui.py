@@ -117,3 +117,42 @@ def test_broken_opengl_fails_fast_with_one_error_line(tmp_path, xvfb, xvfb_optio
     assert len(errors) == 1 and "sumo-gui failed to start" in errors[0], proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "o").exists()
+
+
+def _env_episode(**kwargs):
+    """One Curved500 episode of the single env (seed 3, 1 s) planned by the analytic planner:
+    its observations and log."""
+    import gymnasium as gym
+
+    import safeil_sumo.envs  # noqa: F401 - registers the ids
+    from safeil_sumo.analytic import AnalyticPlanner
+
+    planner = AnalyticPlanner()
+    env = gym.make("safeil_sumo/Curved500-v0", max_time_s=1.0, **kwargs)
+    try:
+        obs, info = env.reset(seed=3)
+        if kwargs.get("render_mode") == "human":  # a sumo-gui view is there, following the ego
+            import traci
+
+            assert traci.gui.getTrackedVehicle(sumo_api.GUI_VIEW) == "ego"
+        trace, done = [obs], False
+        while not done:
+            plan = np.asarray(planner.plan(info["features"][None]), float).reshape(6)
+            obs, _, terminated, truncated, info = env.step(plan)
+            trace.append(obs)
+            done = terminated or truncated
+        assert env.render() is None or kwargs.get("render_mode") != "human"
+        return np.array(trace), env.unwrapped.rollout().log
+    finally:
+        env.close()
+
+
+def test_single_env_renders_in_sumo_gui(xvfb, monkeypatch):
+    """render_mode="human": the single env's episode runs in sumo-gui (traci) as it runs
+    headless (libsumo), observation for observation and log row for row."""
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setenv("DISPLAY", xvfb())
+    shown, shown_log = _env_episode(render_mode="human")
+    headless, headless_log = _env_episode()
+    np.testing.assert_array_equal(shown, headless)
+    pd.testing.assert_frame_equal(shown_log, headless_log)

@@ -10,13 +10,15 @@ references); here the logs are compared exactly.
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 from bad_policies import DriftLeft, blind_cruise
+from test_golden import GOLDEN_COLUMNS, compare_with_reference
 
-from safeil_sumo import policies
+from safeil_sumo import api, policies
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
@@ -25,6 +27,7 @@ from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim.batch import run_batch
 from safeil_sumo.sim.leaders import constant, piecewise
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.recorded_ego import RecordedPath
 from safeil_sumo.sim.stepper import ClosedLoop
 
 pytest.importorskip("libsumo")
@@ -190,8 +193,9 @@ def test_reset_with_a_seed_repeats_the_episode(road):
 
 def test_a_scenario_that_ends_stops_while_the_others_go_on(road):
     """A collision a few decision steps in: events say which scenario ended and why, in the
-    step it happened (part way through the step's physics steps); afterwards it takes no
-    step and its observation stays as it ended, while the other one drives on."""
+    step it happened (part way through the step's physics steps); its observation is sensed
+    at its end state, and afterwards it takes no step and its observation stays as it ended,
+    while the other one drives on."""
     crash = Scenario("crash", road, constant(10.0), 30.0, 20.0, seed=0)
     clean = replace(safety_scenario(road, 1), max_time_s=5.0)
     with ClosedLoop(LoopConfig()) as sim:
@@ -210,6 +214,10 @@ def test_a_scenario_that_ends_stops_while_the_others_go_on(road):
         assert events.collision[0] and obs.collision[0] and obs.running.tolist() == [False, True]
         assert 0 < events.sub_steps[0] <= PLAN_EVERY and events.sub_steps[1] == PLAN_EVERY
         ended_at = obs
+        # its final observation is sensed at its end state (the speed feature is its speed
+        # there), the running one's at the next decision
+        assert ended_at.features[0, 6] == ended_at.v[0]
+        assert ended_at.features[1, 6] == ended_at.v[1]
         obs, events = sim.step()
         assert events.sub_steps.tolist() == [0, PLAN_EVERY] and not events.ended.any()
         assert events.end_reason.tolist() == ["collision", ""]
@@ -278,24 +286,32 @@ def test_an_error_ends_the_running_scenarios_and_bad_input_is_refused(road):
         sim.reset([crash, clean], [blind_cruise()])
     with pytest.raises(ValueError, match="no scenarios"):
         sim.reset([], blind_cruise())
-    with pytest.raises(ValueError, match="headless"):
-        ClosedLoop(LoopConfig(gui=True, backend="traci"))
+    # sumo-gui, SSM output and traffic name the original net and the vehicle "ego": N = 1
+    for config in (LoopConfig(gui=True, backend="traci"), LoopConfig(ssm_file=Path("ssm.xml"))):
+        with pytest.raises(ValueError, match="one by one"):
+            ClosedLoop(config).reset([crash, clean], blind_cruise())
+    traffic = api.scenario("n74", 0, 0, from_km=4.0, to_km=5.0, traffic="light")
+    with pytest.raises(ValueError, match="traffic runs one scenario at a time"):
+        sim.reset([traffic, traffic], blind_cruise())
     with pytest.raises(ValueError, match="unknown log column"):
         ClosedLoop(log_columns=("t", "speed"))
 
 
-def _alone(scenario, policy):
+def _first(scenarios, policy):
+    """Scenario 0's rollout, run from a reset of ``scenarios`` until it ends."""
     with ClosedLoop() as loop:
-        loop.reset([scenario], policy)
-        while loop.step()[0].running.any():
-            pass
-        return loop.rollout(0).log
+        loop.reset(scenarios, policy)
+        while not loop.end_reasons[0]:
+            loop.step()
+        return loop.rollout(0)
 
 
 def test_restart_runs_a_scenario_as_it_runs_alone(road):
-    """A scenario restarted on an ended one's copy (a vector env's autoreset) gives the log it
-    gives alone, bit for bit, while the other scenario runs on; a running scenario, another
-    net and a closed SUMO are refused."""
+    """A scenario restarted on an ended one's copy (a vector env's autoreset), while the other
+    scenario runs on, gives the log it gives from a reset with that other one, bit for bit (the
+    same arrays loop), and the log it gives alone (N = 1: the floats loop, libm's cos/sin
+    against numpy's) within the golden tolerances (tests/test_golden.py); a running scenario,
+    another net, another kind of ego and a closed SUMO are refused."""
     analytic = AnalyticPlanner()
     short = replace(safety_scenario(road, 0), max_time_s=1.0)
     long_ = replace(safety_scenario(road, 1), max_time_s=4.0)
@@ -306,25 +322,56 @@ def test_restart_runs_a_scenario_as_it_runs_alone(road):
             loop.restart(1, again, analytic)
         while not loop.end_reasons[0]:
             obs, _ = loop.step()
+        with pytest.raises(ValueError, match="all kinematic"):
+            loop.restart(0, again, RecordedPath(np.array([0.0, 1.0]), np.array(
+                [[0.0, 0.0], [30.0, 0.0]]), np.zeros(2), np.full(2, 30.0)))
         loop.restart(0, again, analytic)
         obs, events = loop.step()
         assert obs.running.all() and obs.t[0] == 0.0 and not events.ended.any()
         assert events.sub_steps[0] == 0 and events.sub_steps[1] == PLAN_EVERY
         while obs.running[0]:
             obs, _ = loop.step()
-        got = loop.rollout(0).log
+        got = loop.rollout(0)
         other = replace(again, road=load_road(resolve_net("straight")))
         while obs.running.any():
             obs, _ = loop.step()
         with pytest.raises(RuntimeError, match="call reset"):
             loop.restart(0, other, analytic)
-    pd.testing.assert_frame_equal(got, _alone(again, analytic), check_exact=True)
+    pd.testing.assert_frame_equal(got.log, _first([again, long_], analytic).log,
+                                  check_exact=True)
+    alone = _first([again], analytic)
+    reference = {c: alone.log[c].to_numpy(dtype=np.float64) for c in GOLDEN_COLUMNS}
+    reference |= {"rows": len(alone.log), "end_reason": alone.summary["end_reason"]}
+    assert compare_with_reference(got.log, got.summary["end_reason"], reference) == []
     with ClosedLoop() as loop:
         loop.reset([short, long_], analytic)
         while not loop.end_reasons[0]:
             loop.step()
         with pytest.raises(ValueError, match="same net|stay on that net"):
             loop.restart(0, other, analytic)
+
+
+def test_restart_when_the_others_end_during_the_step(road):
+    """The other scenario ends part way through the step that starts a restarted one: the
+    restarted one is inserted with a SUMO step of its own after it and runs on alone (its log
+    still the one a reset gives it, bit for bit)."""
+    analytic = AnalyticPlanner()
+    short = replace(safety_scenario(road, 0), max_time_s=1.2)
+    long_ = replace(safety_scenario(road, 1), max_time_s=1.25)  # ends 5 steps into a decision
+    again = replace(_noisy(road, "again"), max_time_s=1.0)
+    with ClosedLoop() as loop:
+        loop.reset([short, long_], analytic)
+        while not loop.end_reasons[0]:
+            loop.step()
+        loop.restart(0, again, analytic)
+        obs, events = loop.step()
+        assert obs.running.tolist() == [True, False] and obs.t[0] == 0.0
+        assert events.sub_steps.tolist() == [0, 5] and events.end_reason.tolist() == ["",
+                                                                                      "timeout"]
+        while obs.running.any():
+            obs, _ = loop.step()
+        got = loop.rollout(0).log
+    pd.testing.assert_frame_equal(got, _first([again, long_], analytic).log, check_exact=True)
 
 
 def test_controls_drive_the_plant_without_a_plan(road):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import ClassVar
 
 import gymnasium as gym
@@ -23,11 +24,13 @@ class SafeILEnv(gym.Env):
     ``"plan"`` (B-spline control points, tracked) or ``"control"`` (acceleration, steering).
     ``horizon_s`` [s]: the plans' horizon. ``reward``: a :class:`RewardConfig` or a dict of its
     terms. ``out_of_space``: ``"clip"`` or ``"raise"``. ``step_s`` [s], ``plan_rate_hz`` [Hz],
-    ``stop_on_flag``, ``backend``: the loop's settings. ``render_mode``: None or
-    ``"rgb_array"``.
+    ``stop_on_flag``, ``backend``: the loop's settings. ``render_mode``: None,
+    ``"rgb_array"`` (:meth:`render` draws the animation's frame) or ``"human"`` (sumo-gui shows
+    the episode as it runs, following the ego; it needs a display and runs SUMO through traci,
+    whatever ``backend`` says; :meth:`render` does nothing).
     """
 
-    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10}
+    metadata: ClassVar[dict] = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
 
     def __init__(self, task: str = "curved500", action_level: str = "plan",
                  horizon_s: float = 5.0, reward: sp.RewardConfig | dict | None = None,
@@ -36,8 +39,7 @@ class SafeILEnv(gym.Env):
                  backend: str = "libsumo", **task_options) -> None:
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or one of "
-                             f"{self.metadata['render_modes']}, got {render_mode!r} (sumo-gui "
-                             "('human') waits for the stepper's sumo-gui support)")
+                             f"{self.metadata['render_modes']}, got {render_mode!r}")
         if out_of_space not in sp.OUT_OF_SPACE:
             raise ValueError(f"out_of_space must be one of {sp.OUT_OF_SPACE}, got "
                              f"{out_of_space!r}")
@@ -51,6 +53,8 @@ class SafeILEnv(gym.Env):
         self.reward_config = sp.RewardConfig.of(reward)
         self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
         self.loop_config = base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend)
+        if render_mode == "human":  # sumo-gui: a process of its own, reached through traci
+            self.loop_config = replace(self.loop_config, gui=True, backend="traci")
         self._loop: ClosedLoop | None = None
         self._obs = None
         self._done = True

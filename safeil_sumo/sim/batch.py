@@ -12,8 +12,9 @@ from libm's by an ulp). SUMO has one ``--seed`` per simulation; the loop draws n
 number from SUMO (speed mode 0, every speed commanded) and each scenario keeps its own
 ``np.random.Generator(scenario.seed)`` for the sensor noise.
 
-Not here (use ``run_scenario``): traffic, sumo-gui, SSM output, kinematic (``pose_at``) egos.
-An exception inside the loop ends every scenario still running with ``end_reason="error"``.
+Traffic, sumo-gui and SSM output run one scenario at a time (``run_scenario``, N = 1); a
+batch's egos are all planned or all kinematic (``pose_at``). An exception inside the loop ends
+every scenario still running with ``end_reason="error"``.
 """
 
 from __future__ import annotations
@@ -29,10 +30,10 @@ from safeil_sumo.policy import Policy
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import LoopConfig, Rollout, Scenario
-from safeil_sumo.sim.runner import ApiFactory
 
 # re-exported: they were defined here before the stepper
 from safeil_sumo.sim.stepper import SPACING_M, ClosedLoop, StageClock  # noqa: F401
+from safeil_sumo.sim.sumo_setup import ApiFactory
 
 
 def run_batch(
@@ -58,10 +59,10 @@ def run_batch(
     ``net_dir``: where the batch's net is written (default: the shared cache of
     :mod:`.batch_net`).
 
-    Scenarios may be on different networks (each on its own copy of its net); every one must
-    have a scripted leader or none (no traffic) and a planner that is no kinematic (``pose_at``)
-    ego; ``loop`` must not ask for sumo-gui or SSM output. SUMO's ``--seed`` is the first
-    scenario's.
+    Scenarios may be on different networks (each on its own copy of its net); with more than
+    one, every one must have a scripted leader or none (no traffic) and ``loop`` must not ask
+    for sumo-gui or SSM output; the egos are all planned or all kinematic (``pose_at``). SUMO's
+    ``--seed`` is the first scenario's.
     """
     if not scenarios:
         return []

@@ -1,31 +1,49 @@
-"""The closed loop as a stepper: N scenarios in ONE SUMO simulation, stepped from outside.
+"""The closed loop, written once: N scenarios in ONE SUMO simulation, stepped from outside.
 
-:class:`ClosedLoop` is the loop of docs/architecture.md ("Where the closed loop is going"),
-opened up: ``reset(scenarios, policies)`` starts one SUMO simulation with every scenario on its
-own renamed copy of its track (:mod:`.batch_net`, each copy shifted along x by its ``dx``) and
-returns the first :class:`Observation`; ``step(plans)`` is one decision step, one planning period
+:class:`ClosedLoop` is the project's one closed loop (docs/architecture.md, "The closed loop"):
+``reset(scenarios, policies)`` starts one SUMO simulation with the scenarios and returns the
+first :class:`Observation`; ``step(plans)`` is one decision step, one planning period
 (``1 / LoopConfig.plan_rate_hz``): the plans (given, or made by the bound policies from the
 features of the observation) are tracked for the period's physics sub-steps (``step_s``), and
-the next :class:`Observation` comes back with the step's :class:`Events`. Gymnasium envs,
-closed-loop training rollouts and falsification call it; :func:`.batch.run_batch` is a driver
-that steps until every scenario has ended and builds the rollouts.
+the next :class:`Observation` comes back with the step's :class:`Events`; ``step(controls=...)``
+holds acceleration and steering commands over the period instead (no plan or tracker).
+``restart(i, scenario)`` starts an ended scenario again on its copy of the track while the
+others run (N > 1; each scenario counts its time, leader commands, log rows and time limit from
+its own start step ``k0``). Every other loop is a driver of it: :func:`.runner.run_scenario` (N = 1, to the end), :func:`.batch.run_batch` (N, to
+the end, each rollout as it ends), the replays, Gymnasium envs, closed-loop training rollouts
+and falsification.
 
-Each sub-step is the stage sequence of :func:`.runner.run_scenario`, track -> plant -> move in
-SUMO -> step -> monitor, called ONCE for all running scenarios on arrays ``(n,)`` (the same stage
-functions, with the array namespace :data:`.xp.ARRAYS`); sensing and planning happen once per
-decision step on features ``(n, 9)``. What is per scenario by nature stays per scenario: the
-camera and radar (each scenario's own road and noise generator), the walks along each lane,
-SUMO's per-vehicle commands and reads. A scenario that ends (end of path, collision, off road,
-a flag with ``stop_on_flag``, its time limit) leaves SUMO at that sub-step; the others go on.
+It is composed per scenario of a leader provider (:mod:`.providers`: a scripted or recorded
+speed profile on a SUMO vehicle of its own, or whichever of SUMO's traffic leads) and an ego
+driver (:class:`PlanAndTrack`: the policy's plan tracked by the controller on our vehicle
+plant; :class:`Kinematic`: moved to a recorded pose every step, ``pose_at``, with no plan,
+tracker or plant), and of the stages every scenario shares: the sensors (camera, radar), the
+monitors and the SUMO seam (:mod:`.sumo_setup`, :mod:`.sumo_api`).
+
+Each sub-step is the stage sequence drive (track -> plant) -> move in SUMO -> step -> monitor,
+called ONCE for all running scenarios; sensing and planning happen once per decision step. The
+loop's body is written against an array namespace (:mod:`.xp`): at N = 1 it runs on Python
+floats (:data:`.xp.FLOATS`: the stages' scalar paths, about 5x faster than numpy on one
+number), at N > 1 on arrays ``(n,)`` of the running scenarios (:data:`.xp.ARRAYS`). What is
+per scenario by nature stays per scenario: the camera and radar (each scenario's own road and
+noise generator), the walks along each lane, SUMO's per-vehicle commands and reads. A scenario
+that ends (end of path, collision, off road, a flag with ``stop_on_flag``, its time limit) is
+sensed once more at its end state (its final observation) and leaves SUMO at that sub-step;
+the others go on.
+
+SUMO's names: N = 1 runs on the scenario's own net with the vehicles ``ego`` and ``leader``
+(what SSM output, sumo-gui and the traffic's route files name); N > 1 puts every scenario on
+its own renamed copy of its track (:mod:`.batch_net`: ``ego_i``, ``c{i}_...``, each copy
+shifted along x by its ``dx``).
 
 Randomness: each scenario keeps its own ``np.random.Generator(scenario.seed)`` for the sensor
 noise; SUMO's ``--seed`` is the first scenario's and the loop draws nothing from SUMO (speed mode
-0, every speed commanded). ``reset(seed=s)`` gives scenario ``i`` the seed ``s + i`` (Gymnasium's
-vector envs seed their sub-envs so).
+0, every speed commanded; traffic draws from SUMO, N = 1). ``reset(seed=s)`` gives scenario
+``i`` the seed ``s + i`` (Gymnasium's vector envs seed their sub-envs so).
 
-Scope (step 3a): scripted leaders (or none) and plan-and-track egos, headless, no SSM output.
-Traffic, sumo-gui, SSM output and kinematic (``pose_at``) egos run on ``run_scenario`` (step 3b
-folds them in: docs/architecture.md).
+Scope: every scenario and ego of the project. Traffic, sumo-gui and SSM output run at N = 1
+(they name the original net's edges and the vehicle ``ego``); a run's egos are all planned or
+all kinematic.
 """
 
 from __future__ import annotations
@@ -50,18 +68,19 @@ from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.batch_net import mixed_batch_net, prefixed
-from safeil_sumo.sim.loop_types import LoopConfig, Rollout, Scenario
-from safeil_sumo.sim.runner import (
+from safeil_sumo.sim.loop_types import GUI_SCREENSHOT_AT_S, LoopConfig, Rollout, Scenario
+from safeil_sumo.sim.providers import ScriptedLeader, TrafficLeader
+from safeil_sumo.sim.rollout_log import _Log, finish
+from safeil_sumo.sim.sumo_setup import (
+    EGO_ID,
+    GUI_VIEW_WIDTH_M,
+    LEADER_ID,
     ApiFactory,
-    _default_factory,
-    _Log,
-    _read_leader,
-    finish,
+    default_factory,
     footprints_overlap,
     initial_state,
     insert_vehicles,
     lane_placeable,
-    leader_speeds,
     max_steps,
     place_ego,
     start_positions,
@@ -69,7 +88,7 @@ from safeil_sumo.sim.runner import (
     sumo_lane_position,
     xy_placement_is_unambiguous,
 )
-from safeil_sumo.sim.xp import ARRAYS
+from safeil_sumo.sim.xp import ARRAYS, FLOATS
 
 # empty space [m] between neighbouring copies of the track: beyond moveToXY's lane search
 # radius, so each ego's search sees its own copy only (coincident copies made every moveToXY
@@ -80,6 +99,11 @@ EXTERNAL = "external"  # the policy name in the summary of a scenario planned fr
 TERMINAL_REASONS = ("collision", "off_road", "flag")
 LIMIT_REASONS = ("completed", "timeout")
 _COL = {name: i for i, name in enumerate(_Log.COLUMNS)}
+_LOGGED_FEATURES = [0, 1, 2, 3, 4, 5, 7, 8]  # c0l..c2r, v_lead, d_lead: the features logged
+# the log's columns in an Observation: floats, then flags
+_OBS_FLOATS = [_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc", "leader_v",
+                                 "path_fraction")]
+_OBS_FLAGS = [_COL[c] for c in ("lane_departure", "ttc_flag", "collision")]
 
 
 class StageClock:
@@ -113,8 +137,8 @@ def _no_lap(stage: str) -> None:
 @dataclass(frozen=True)
 class Observation:
     """The N scenarios after ``reset`` or a ``step``; row ``i`` is scenario ``i``. A scenario
-    that has ended keeps the values of its last sub-step (its features: those of its last
-    decision). Positions are the original track's (a copy's shift taken off)."""
+    that has ended keeps the values of its last sub-step (its features: sensed at that end
+    state). Positions are the original track's (a copy's shift taken off)."""
 
     t: np.ndarray  # (N,) simulation time of the row's state [s]
     features: np.ndarray  # (N, 9) the planner's features (safeil_sumo.features) for the next plan
@@ -158,135 +182,260 @@ class Events:
 
 
 class _Scenario:
-    """What is per scenario in a run: its road, noise, camera, leader and log."""
+    """What is per scenario in a run: its road, noise, camera, leader provider and log.
+    ``copies``: the run puts every scenario on its own renamed copy of its track (N > 1).
+    ``generation``: how often scenario ``i``'s copy has been restarted (:meth:`ClosedLoop.restart`,
+    N > 1): a restarted scenario's vehicles and routes get new SUMO ids (``ego_i.generation``)."""
 
     def __init__(self, i: int, scenario: Scenario, policy: Policy | None, horizon: float,
                  loop: LoopConfig, vehicle: veh.VehicleParams, dx: float, log_width: int,
-                 generation: int = 0) -> None:
+                 copies: bool, generation: int = 0) -> None:
         self.i, self.scenario, self.policy, self.horizon = i, scenario, policy, horizon
-        # a restarted scenario's vehicles and routes get new SUMO ids (".<generation>")
-        self.tag = f"_{i}" if generation == 0 else f"_{i}.{generation}"
-        self.ego, self.leader_id = f"ego{self.tag}", f"leader{self.tag}"
         self.generation = generation
-        self.k0 = 0  # the loop's physics step at which this scenario's step 0 runs
+        self.k0 = 0  # the loop's physics step at which this scenario's step 0 runs (restarts)
+        self.rename = partial(prefixed, i) if copies else str  # SUMO id -> its id in this run
+        # this scenario's vehicle and route ids end so
+        self.tag = "" if not copies else f"_{i}" if generation == 0 else f"_{i}.{generation}"
+        self.ego = f"ego{self.tag}" if copies else EGO_ID
+        self.leader_id = f"leader{self.tag}" if copies else LEADER_ID
         self.dx = dx  # x offset [m] of this scenario's copy of the track in SUMO
         road = self.road = scenario.road
         self.lane = road.lanes[road.ego_lane]
         self.centre = self.lane.centre
-        self.multi_piece = len(road.ego_pieces) > 1
         self.rng = np.random.default_rng(scenario.seed)
         self.n_max = max_steps(scenario, loop)
         self.s_ego0, self.s_lead0 = start_positions(scenario, vehicle)
         self.camera = sen.LaneCamera(road, scenario.sensors, self.s_ego0)
-        self.state0 = initial_state(scenario, vehicle)
-        self.has_leader = scenario.leader is not None
-        self.lead_speeds = leader_speeds(scenario, self.n_max, loop.step_s)
-        self.lead_scale = 1.0
-        self.lead_cmd = math.nan  # the leader's last speed command to SUMO [m/s]
-        self.leader = None  # (rear_xy, v_sumo, yaw, front_xy) as read after the last step
-        self.lead_v = 0.0
+        # a policy with pose_at(t) (the recorded pseudo-planner) is a kinematic ego
+        self.pose_at = getattr(policy, "pose_at", None)
+        self.state0 = (initial_state(scenario, vehicle) if self.pose_at is None
+                       else veh.state_from_front_bumper(*self.pose_at(0.0), vehicle))
+        self.lead: ScriptedLeader | TrafficLeader | None = (
+            TrafficLeader(scenario, self.ego) if scenario.traffic is not None
+            else ScriptedLeader(scenario, vehicle, self.leader_id, self.n_max, loop.step_s, dx)
+            if scenario.leader is not None else None)
         self.end_reason, self.error = "", ""
-        self.rows = np.empty((self.n_max, log_width))  # the log, row k = step k; None: freed
+        # the log, row k = step k: a list of rows at N = 1 (an append per step), else an array
+        # filled row by row; None: freed
+        self.rows: list | np.ndarray | None = [] if not copies else np.empty((self.n_max,
+                                                                                log_width))
         self.steps = 0  # rows filled
-        self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this copy
+        self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this run
 
     def add(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
-        """Insert the ego and leader on this scenario's copy of the track; place the ego."""
-        road, i = self.road, self.i
-        ego_k, ego_lane, _, self.lead_scale = insert_vehicles(
-            api, self.scenario, vehicle, self.ego, self.leader_id, partial(prefixed, i), self.tag)
+        """Insert the ego (and the scripted leader, or the traffic) on this scenario's track;
+        place the ego."""
+        road = self.road
+        ego_k, ego_lane, ego_pos, lead_scale = insert_vehicles(
+            api, self.scenario, vehicle, self.ego, self.leader_id, self.rename, self.tag)
+        ego_edge = self.rename(road.route_edges[ego_k])
+        if self.lead is not None:
+            self.lead.start(api, lead_scale, ego_edge, float(ego_pos))
         front = veh.front_bumper(self.state0, vehicle)
         if xy_placement_is_unambiguous(road, front, self.s_ego0):
-            place_ego(api, self.state0, vehicle, self.ego, self.dx,
-                      prefixed(i, road.route_edges[ego_k]), int(ego_lane))
+            place_ego(api, self.state0, vehicle, self.ego, self.dx, ego_edge, int(ego_lane))
         else:  # a closed course's other lap is nearer: keep the insertion on the ego's station
             api.vehicle.setSpeed(self.ego, veh.speed(self.state0))
 
-    def read_leader(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
-        """The leader after a step, in the original track's coordinates."""
-        lead = _read_leader(api, vehicle, self.leader_id)
-        if lead is not None and self.dx:
-            (rx, ry), v, yaw, (fx, fy) = lead
-            lead = (rx - self.dx, ry), v, yaw, (fx - self.dx, fy)
-        self.leader = lead
-
 
 def _lane_position(sc: _Scenario, s: float, advance_m: float) -> tuple[str, float]:
-    """:func:`.runner.sumo_lane_position` on the scenario's copy of the track."""
+    """:func:`.sumo_setup.sumo_lane_position` on the scenario's track in this run."""
     lane, pos = sumo_lane_position(sc.road, s, advance_m)
     copy = sc.lane_ids.get(lane)
     if copy is None:
-        copy = sc.lane_ids[lane] = prefixed(sc.i, lane)
+        copy = sc.lane_ids[lane] = sc.rename(lane)
     return copy, pos
+
+
+def _kinematic_state(pose: tuple[float, float, float, float], vehicle: veh.VehicleParams
+                     ) -> tuple:
+    """The loop's state tuple of an ego at front bumper ``pose[:2]``, heading ``pose[2]``,
+    speed ``pose[3]``."""
+    s = veh.state_from_front_bumper(*pose, vehicle)
+    return (s.x, s.y, s.yaw, s.vx, s.vy, s.yaw_rate, s.steer, s.drive_force)
 
 
 def check_scope(scenarios: Sequence[Scenario], policies: Sequence[Policy | None],
                 loop: LoopConfig) -> None:
-    """Refuse what the stepper does not run yet (step 3b): kinematic egos, sumo-gui, SSM
-    output, traffic."""
-    if any(getattr(p, "pose_at", None) is not None for p in policies):
-        raise ValueError("the batched loop does not run kinematic (pose_at) egos: use "
-                         "run_scenario")
-    if loop.gui or loop.ssm_file is not None:
-        raise ValueError("the batched loop runs headless without SSM output: use run_scenario")
-    if any(sc.traffic is not None for sc in scenarios):
-        raise ValueError("the batched loop runs scripted leaders only (no traffic): use "
-                         "run_scenario")
+    """Refuse what the loop does not run: kinematic and planned egos in one run; traffic,
+    sumo-gui or SSM output with more than one scenario."""
+    kinematic = [getattr(p, "pose_at", None) is not None for p in policies]
+    if any(kinematic) and not all(kinematic):
+        raise ValueError("a run's egos are all kinematic (pose_at) or all planned: run the "
+                         "kinematic ones apart")
+    if len(scenarios) > 1:
+        if loop.gui or loop.ssm_file is not None:
+            raise ValueError("sumo-gui and SSM output follow the vehicle 'ego' of ONE scenario: "
+                             "run them one by one (N = 1), or headless without SSM output")
+        if any(sc.traffic is not None for sc in scenarios):
+            raise ValueError("traffic runs one scenario at a time (N = 1): its route files "
+                             "name the original net's edges")
+
+
+class PlanAndTrack:
+    """The ego driver of planned egos: each decision's plans are prepared for tracking; every
+    physics step the controller tracks them and our vehicle plant integrates the commands. A
+    decision may give the commands instead (``step(controls=...)``): they are held over the
+    period, with no plan or tracker (the plant's actuators and limits still apply)."""
+
+    def __init__(self, loop: ClosedLoop) -> None:
+        self.vehicle, self.controller, self.dt = loop.vehicle, loop.controller, loop.loop.step_s
+        self.plant = veh.Plant.of(loop.vehicle, loop.loop.step_s)
+        self.lap = loop._sub_lap
+
+    def plan(self, live: _Live, given: np.ndarray | None, t, xp, controls=None) -> None:
+        """The plans of the decision at ``t`` [s] (each scenario's own time: a float at N = 1,
+        ``(n,)`` else) (``given`` ``(n, 3, 2)``, or the policies'); or, with ``controls``
+        (acceleration, steering: floats at N = 1, columns ``(n,)`` else), no plan."""
+        live.controls = controls
+        n = len(live.runs)
+        if controls is not None:  # the commands are held: no plan, its log columns NaN
+            live.target = None
+            live.t_plan = xp.full(n, t)
+            live.plan_log = (xp.full(n, t), *_block(xp, n, 9))
+            return
+        fx, fy = live.front
+        yaw = live.st[2]
+        if xp is FLOATS:
+            cp = given[0] if given is not None else live.runs[0].policy.plan(live.features)
+            live.target = ctl.make_target(cp, live.c.horizon, (fx, fy, yaw))
+            live.plan_log = (t, fx, fy, yaw, *np.asarray(cp, float).reshape(6).tolist())
+        else:
+            cps = given
+            if cps is None:
+                cps = np.empty((n, 3, 2))
+                for policy, rows_of in live.c.planners:  # one call per planner object
+                    cps[rows_of] = np.asarray(policy.plan(live.features[rows_of]),
+                                              float).reshape(-1, 3, 2)
+            live.target = ctl.make_targets(cps, live.c.horizon, fx, fy, yaw)
+            live.plan_log = (np.full(n, t), fx, fy, yaw, *cps.reshape(n, 6).T)
+        live.t_plan = xp.full(n, t)
+
+    def move(self, live: _Live, t: float, xp) -> tuple:
+        """Track the plans and step the plant; the steering and acceleration commands."""
+        vehicle = self.vehicle
+        x, y, yaw, vx, vy, yaw_rate = live.st[:6]
+        if live.controls is None:
+            steer_cmd, accel_cmd, live.integral, live.prev_error = ctl.track_values(
+                live.target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle,
+                live.integral, live.prev_error, self.controller, self.dt, xp)
+        else:  # commands from outside, held over the period
+            accel_cmd, steer_cmd = live.controls
+        throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, xp)
+        if self.lap is not None:
+            self.lap("track")
+        live.st = self.plant.step(live.st, steer_cmd, throttle, brake, xp)
+        return steer_cmd, accel_cmd
+
+
+class Kinematic:
+    """The ego driver of kinematic egos (the recorded pseudo-planner): every step each ego is
+    moved to its pose ``pose_at(t)``; no plan, tracker or plant (NaN commands in the log)."""
+
+    def __init__(self, loop: ClosedLoop) -> None:
+        self.vehicle, self.dt = loop.vehicle, loop.loop.step_s
+
+    def plan(self, live: _Live, given: np.ndarray | None, t, xp, controls=None) -> None:
+        pass  # nothing is planned (nor held): the log's plan columns stay NaN
+
+    def move(self, live: _Live, t, xp) -> tuple:
+        states = [_kinematic_state(r.pose_at(tj), self.vehicle)
+                  for r, tj in zip(live.runs, xp.rows(t + self.dt))]
+        live.st = tuple(xp.from_rows(col) for col in zip(*states))
+        n = len(live.runs)
+        return xp.full(n, math.nan), xp.full(n, math.nan)
+
+
+def _block(xp, n: int, k: int) -> tuple:
+    """``k`` NaN log columns: floats at N = 1, arrays ``(n,)`` else."""
+    return (xp.full(n, math.nan),) * k
 
 
 class _Live:
-    """The loop's state over the running scenarios: row ``j`` of every array is ``runs[j]``,
-    scenario ``idx[j]`` of the reset."""
+    """The loop's state over the running scenarios, in the run's namespace ``xp``: row ``j``
+    of every value is ``runs[j]``, scenario ``idx[j]`` of the reset."""
 
-    def __init__(self, runs: list[_Scenario]) -> None:
+    def __init__(self, runs: list[_Scenario], xp) -> None:
         n = len(runs)
-        self.runs = runs
+        self.runs, self.xp = runs, xp
         self.idx = np.arange(n)
-        self.st = tuple(np.array(col, dtype=float) for col in zip(*(
+        self.st = tuple(xp.from_rows([float(v) for v in col]) for col in zip(*(
             (r.state0.x, r.state0.y, r.state0.yaw, r.state0.vx, r.state0.vy, r.state0.yaw_rate,
-             r.state0.steer, r.state0.drive_force) for r in runs)))  # the plant's state, (n,) each
-        self.integral, self.prev_error = np.zeros(n), np.full(n, np.nan)  # PID memory
-        self.t_plan = np.zeros(n)  # when the tracked plans were made [s]
-        self.features = np.full((n, 9), np.nan)  # the last decision's features
-        self.front = (np.full(n, np.nan), np.full(n, np.nan))  # front bumper then [m]
-        self.feature_log = np.full((n, 8), np.nan)  # c0l..c2r, v_lead, d_lead as logged
-        self.plan_log = np.full((n, 10), np.nan)  # the plan being tracked: time, pose, points
-        self.target: ctl.BatchTarget | None = None
-        self.controls: np.ndarray | None = None  # (n, 2) given accel, steer commands, or None
-        self.c = _Fixed.of(runs)
-        self.ego_seg = np.array([r.centre.segment_index(r.s_ego0) for r in runs])
-        self.lead_seg = np.array([r.centre.segment_index(r.s_lead0) for r in runs])
+             r.state0.steer, r.state0.drive_force) for r in runs)))  # the plant's state
+        self.integral, self.prev_error = xp.full(n, 0.0), xp.full(n, math.nan)  # PID memory
+        self.t_plan = xp.full(n, 0.0)  # when the tracked plans were made [s]
+        self.features = np.full((n, 9) if xp is ARRAYS else 9, np.nan)  # the last decision's
+        self.front = (xp.full(n, math.nan), xp.full(n, math.nan))  # front bumper then [m]
+        # log columns: c0l..c2r, v_lead, d_lead as logged; the plan being tracked (time, pose,
+        # control points)
+        self.feature_log, self.plan_log = _block(xp, n, 8), _block(xp, n, 10)
+        self.target: ctl.TrackingTarget | ctl.BatchTarget | None = None
+        # the held commands (acceleration, steering) of step(controls=...), or None
+        self.controls: tuple | None = None
+        self.c = _Fixed.of(runs, xp)
+        self.ego_seg = xp.from_rows([r.centre.segment_index(r.s_ego0) for r in runs])
+        # the leader's walk starts at its front; among traffic at the ego's (no leader yet)
+        self.lead_seg = xp.from_rows([r.centre.segment_index(
+            r.s_ego0 if isinstance(r.lead, TrafficLeader) else r.s_lead0) for r in runs])
+        self.clear_flags()
 
-    def take(self, keep: np.ndarray) -> None:
+    def clear_flags(self) -> None:
+        """A new decision step: no flag, no sub-step yet."""
+        false = self.xp.from_rows([False] * len(self.runs))
+        self.departed = self.ttc_flag = self.collision = false
+        self.sub_steps = 0
+
+    def flush(self, ev: Events) -> None:
+        """The decision step's flags and sub-steps so far into ``ev``."""
+        idx = self.idx
+        ev.lane_departure[idx], ev.ttc_flag[idx] = self.departed, self.ttc_flag
+        ev.collision[idx], ev.sub_steps[idx] = self.collision, self.sub_steps
+
+    def take(self, keep: Sequence[int]) -> None:
         """Keep the rows ``keep`` (indices) only: the others have ended."""
+        if not len(keep):
+            self.runs, self.idx = [], self.idx[:0]
+            return
+        keep = np.asarray(keep)
         self.runs = [self.runs[j] for j in keep]
         self.idx = self.idx[keep]
-        self.c = _Fixed.of(self.runs) if self.runs else self.c
+        self.c = _Fixed.of(self.runs, self.xp)
         self.st = tuple(col[keep] for col in self.st)
         self.integral, self.prev_error = self.integral[keep], self.prev_error[keep]
         self.t_plan, self.features = self.t_plan[keep], self.features[keep]
         self.front = (self.front[0][keep], self.front[1][keep])
         self.ego_seg, self.lead_seg = self.ego_seg[keep], self.lead_seg[keep]
-        self.feature_log, self.plan_log = self.feature_log[keep], self.plan_log[keep]
+        self.feature_log = tuple(col[keep] for col in self.feature_log)
+        self.plan_log = tuple(col[keep] for col in self.plan_log)
         self.target = self.target.take(keep) if self.target is not None else None
-        self.controls = self.controls[keep] if self.controls is not None else None
+        self.controls = (tuple(col[keep] for col in self.controls)
+                         if self.controls is not None else None)
+        self.departed, self.ttc_flag = self.departed[keep], self.ttc_flag[keep]
+        self.collision = self.collision[keep]
 
     def join(self, other: _Live) -> None:
-        """Add ``other``'s rows (restarted scenarios, between two steps: no plan is being
-        tracked), then order every row by its scenario index."""
+        """Add ``other``'s rows (restarted scenarios, after a step: the next decision plans
+        anew), then order every row by its scenario index (N > 1: arrays)."""
         cat = np.concatenate
+
+        def cols(a: tuple, b: tuple) -> tuple:
+            return tuple(cat([x, y]) for x, y in zip(a, b))
+
         self.runs = self.runs + other.runs
         self.idx = cat([self.idx, other.idx])
-        self.st = tuple(cat([a, b]) for a, b in zip(self.st, other.st))
+        self.st = cols(self.st, other.st)
         self.integral = cat([self.integral, other.integral])
         self.prev_error = cat([self.prev_error, other.prev_error])
-        self.t_plan, self.features = cat([self.t_plan, other.t_plan]), cat([self.features,
-                                                                             other.features])
-        self.front = (cat([self.front[0], other.front[0]]), cat([self.front[1], other.front[1]]))
-        self.ego_seg, self.lead_seg = cat([self.ego_seg, other.ego_seg]), cat([self.lead_seg,
-                                                                               other.lead_seg])
-        self.feature_log = cat([self.feature_log, other.feature_log])
-        self.plan_log = cat([self.plan_log, other.plan_log])
+        self.t_plan, self.features = (cat([self.t_plan, other.t_plan]),
+                                      cat([self.features, other.features]))
+        self.front = cols(self.front, other.front)
+        self.ego_seg, self.lead_seg = (cat([self.ego_seg, other.ego_seg]),
+                                       cat([self.lead_seg, other.lead_seg]))
+        self.feature_log = cols(self.feature_log, other.feature_log)
+        self.plan_log = cols(self.plan_log, other.plan_log)
+        self.departed, self.ttc_flag, self.collision = cols(
+            (self.departed, self.ttc_flag, self.collision),
+            (other.departed, other.ttc_flag, other.collision))
         self.target, self.controls = None, None
         self.take(np.argsort(self.idx, kind="stable"))
 
@@ -294,11 +443,12 @@ class _Live:
 class ClosedLoop:
     """N scenarios side by side in one SUMO simulation, one decision step at a time.
 
-    ``loop``, ``vehicle``, ``controller``: as for ``run_scenario`` (``loop`` headless, no SSM
-    output). ``api_factory``: SUMO options -> the SUMO API (default: libsumo/traci per
-    ``loop.backend``). ``log_columns``: the per-step log keeps only these columns of
-    ``runner._Log.COLUMNS`` (None: all). ``net_dir``: where the run's net is written (default:
-    the shared cache of :mod:`.batch_net`). ``clock``: filled with the time per stage.
+    ``loop``, ``vehicle``, ``controller``: as for ``run_scenario`` (sumo-gui and SSM output
+    with one scenario). ``api_factory``: SUMO options -> the SUMO API (default: libsumo/traci
+    per ``loop.backend``, sumo-gui per ``loop.gui``). ``log_columns``: the per-step log keeps
+    only these columns of ``_Log.COLUMNS`` (None: all). ``net_dir``: where the net of N > 1
+    scenarios is written (default: the shared cache of :mod:`.batch_net`). ``clock``: filled
+    with the time per stage.
 
     SUMO runs from ``reset`` until every scenario has ended or :meth:`close` (also a context
     manager). libsumo runs one simulation per process: one ClosedLoop at a time per process.
@@ -312,22 +462,28 @@ class ClosedLoop:
                  api_factory: ApiFactory | None = None, *,
                  log_columns: Sequence[str] | None = None, net_dir: Path | None = None,
                  clock: StageClock | None = None) -> None:
-        check_scope([], [], loop)
         columns = tuple(log_columns) if log_columns is not None else _Log.COLUMNS
         unknown = sorted(set(columns) - set(_Log.COLUMNS))
         if unknown:
             raise ValueError(f"unknown log column(s) {unknown}; the log has "
                              f"{', '.join(_Log.COLUMNS)}")
         self.loop, self.vehicle, self.controller = loop, vehicle, controller
-        self.api_factory = api_factory or _default_factory(loop)
+        self.api_factory = api_factory or default_factory(loop)
         self.net_dir, self.clock = net_dir, clock
         self.columns = columns
         self._col_idx = (None if columns == _Log.COLUMNS
                          else np.array([_Log.COLUMNS.index(c) for c in columns]))
         self._lap = clock.lap if clock is not None else _no_lap
+        self._sub_lap = clock.lap if clock is not None else None  # every physics step's
+        self._d_front = vehicle.cog_to_front_bumper_m  # [m]
         self._dt = loop.step_s
         self._plan_every = max(round(1.0 / (loop.plan_rate_hz * loop.step_s)), 1)
-        self._plant = veh.Plant.of(vehicle, loop.step_s)
+        # sumo-gui shows the true pose: always moveToXY there
+        self._on_lane = loop.ego_placement == "lane" and not loop.gui
+        self._shot_k = (round(GUI_SCREENSHOT_AT_S / loop.step_s)
+                        if loop.gui_screenshot is not None else -1)  # the screenshot's step
+        self._xp = FLOATS  # the run's namespace: FLOATS at N = 1, ARRAYS else
+        self._driver: PlanAndTrack | Kinematic = PlanAndTrack(self)
         self._api: sumo_api.SumoApi | None = None
         self._runs: list[_Scenario] = []  # every scenario of the last reset, in order
         self._live: _Live | None = None  # the running ones; None: nothing to step
@@ -336,6 +492,7 @@ class ClosedLoop:
         self._features = np.empty((0, 9))  # (N, 9) each scenario's latest features
         self._running = np.empty(0, dtype=bool)  # (N,)
         self._pending: list[_Scenario] = []  # restarted scenarios, started by the next step
+        self.sumo_started_s = math.nan  # time.perf_counter() when the last reset started SUMO
 
     # -- the public loop ----------------------------------------------------------------------
 
@@ -345,11 +502,13 @@ class ClosedLoop:
         """Start SUMO with ``scenarios`` at their initial states; the first observation.
 
         ``policies``: one planner for all, one per scenario, or None (then every ``step`` gets
-        its plans); scenarios sharing a planner object are planned in one call. ``seed``: None
-        keeps each scenario's seed, else scenario ``i`` gets ``seed + i``. ``horizon_s`` [s]: the
-        plans' horizon (default: each policy's ``horizon``; needed without policies).
-        Bad input raises ``ValueError`` before SUMO starts; an error after it ends every
-        scenario with ``end_reason="error"``, closes SUMO and is raised.
+        its plans); scenarios sharing a planner object are planned in one call; a policy with
+        ``pose_at(t)`` is a kinematic ego (all or none of a run's). ``seed``: None keeps each
+        scenario's seed, else scenario ``i`` gets ``seed + i``. ``horizon_s`` [s]: the plans'
+        horizon (default: each policy's ``horizon``; needed without policies).
+        Bad input raises ``ValueError`` before SUMO starts, as does SUMO failing to start; an
+        error after it ends every scenario with ``end_reason="error"``, closes SUMO and is
+        raised.
         """
         self.close()
         self._runs, self._live, self._pending = [], None, []
@@ -362,31 +521,27 @@ class ClosedLoop:
         check_scope(scenarios, pols, self.loop)
         if horizon_s is None and any(p is None for p in pols):
             raise ValueError("reset without a policy needs horizon_s, the plans' horizon [s]")
-        net, shifts = mixed_batch_net([sc.road.net_path for sc in scenarios], SPACING_M,
-                                      self.net_dir)
-        runs = [_Scenario(i, sc, p, horizon_s if horizon_s is not None else p.horizon,
-                          self.loop, self.vehicle, dx, len(self.columns))
-                for i, (sc, p, dx) in enumerate(zip(scenarios, pols, shifts))]
+        copies = len(scenarios) > 1
         args = sumo_args(scenarios[0], self.loop)
-        args[args.index("-n") + 1] = str(net)
+        shifts = [0.0]
+        if copies:
+            net, shifts = mixed_batch_net([sc.road.net_path for sc in scenarios], SPACING_M,
+                                          self.net_dir)
+            args[args.index("-n") + 1] = str(net)
+        runs = [_Scenario(i, sc, p, horizon_s if horizon_s is not None else p.horizon,
+                          self.loop, self.vehicle, dx, len(self.columns), copies)
+                for i, (sc, p, dx) in enumerate(zip(scenarios, pols, shifts))]
+        self._xp = ARRAYS if copies else FLOATS
+        self._driver = Kinematic(self) if runs[0].pose_at is not None else PlanAndTrack(self)
         self._api = self.api_factory(args)
+        self.sumo_started_s = time.perf_counter()
         self._runs, self._k = runs, 0
         n = len(runs)
         self._last = np.full((n, len(_Log.COLUMNS)), np.nan)
         self._features = np.full((n, 9), np.nan)
         self._running = np.ones(n, dtype=bool)
         try:
-            for r in runs:
-                r.add(self._api, self.vehicle)
-            self._api.simulation.step()
-            for r in runs:
-                if r.has_leader:
-                    r.read_leader(self._api, self.vehicle)
-                    r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
-            live = _Live(runs)
-            self._lap("outside")
-            self._look_at_start(live)
-            self._sense(live)
+            live = self._start(runs)
         except Exception as exc:
             self._fail(exc)
             raise
@@ -398,13 +553,14 @@ class ClosedLoop:
         """One decision step: plan, then the planning period's physics sub-steps.
 
         ``plans`` ``(N, 3, 2)`` (or ``(N, 6)``) [m]: each scenario's three free B-spline control
-        points in its ego frame at this decision (rows of ended scenarios are ignored); None:
-        the bound policies plan from the observation's features. ``controls`` ``(N, 2)``
-        instead: each ego's acceleration [m/s^2] and road-wheel steering angle [rad] commands,
-        held over the period with no plan or tracker (the plant's actuators and limits still
-        apply). Scenarios queued by :meth:`restart` start during the step (see there). Returns
-        the observation after the step and what happened in it. An error ends every running
-        scenario with ``end_reason="error"``, closes SUMO and is raised.
+        points in its ego frame at this decision (rows of ended scenarios are ignored, as are
+        all of kinematic egos); None: the bound policies plan from the observation's features.
+        ``controls`` ``(N, 2)`` instead: each ego's acceleration [m/s^2] and road-wheel steering
+        angle [rad] commands, held over the period with no plan or tracker (the plant's
+        actuators and limits still apply; ignored for kinematic egos). Scenarios queued by
+        :meth:`restart` start during the step (see there). Returns the observation after the
+        step and what happened in it. An error ends every running scenario with
+        ``end_reason="error"``, closes SUMO and is raised.
         """
         live = self._live
         if live is None:
@@ -413,8 +569,8 @@ class ClosedLoop:
         self._lap("outside")
         if plans is not None and controls is not None:
             raise ValueError("step takes plans or controls, not both")
+        # bad plans or controls are refused; the run goes on
         held = self._checked_controls(live, controls)
-        # bad plans are refused; the run goes on
         given = self._checked_plans(live, plans) if held is None else None
         n_all = len(self._runs)
         ev = Events(np.zeros(n_all, bool), np.array([r.end_reason for r in self._runs], object),
@@ -422,7 +578,11 @@ class ClosedLoop:
                     np.zeros(n_all, int))
         pending, self._pending = self._pending, []
         try:
-            self._plan(live, given, held)
+            # each scenario's own time (a restarted one's starts at its k0)
+            self._driver.plan(live, given, (self._k - live.c.k0) * self._dt, self._xp, held)
+            self._lap("plan")
+            live.clear_flags()
+            last = False
             for sub in range(self._plan_every):
                 if self.clock is not None:
                     self.clock.ego_steps += len(live.runs)
@@ -434,8 +594,11 @@ class ClosedLoop:
                 self._k += 1
                 if not live.runs:
                     break
+            if live.runs:
+                live.flush(ev)
             if pending:
-                self._start_restarted(live, pending, inserted=sub == self._plan_every - 1)
+                self._start_restarted(live, pending, inserted=last)
+                live = self._live
             if live.runs:
                 self._sense(live)
             else:  # every scenario has ended: SUMO is no longer needed
@@ -449,14 +612,15 @@ class ClosedLoop:
     def restart(self, i: int, scenario: Scenario, policy: Policy | None = None,
                 horizon_s: float | None = None) -> None:
         """Queue ``scenario`` to start again on scenario ``i``'s copy of the track, which has
-        ended, while the others run on (a vector env's autoreset). It starts during the next
-        :meth:`step`: its vehicles enter SUMO at that step's last SUMO step (as ``reset``
-        inserts them before its one SUMO step), so the observation after that step has its
-        initial state, sensed as ``reset`` senses it, and its first decision is the step after
-        (it is not stepped in the step that starts it). Its time and log start at 0. Its road
-        must be on the same net as scenario ``i``'s (the copy is of that net). ``ValueError``
-        for a running scenario or another net; ``RuntimeError`` when SUMO has closed (every
-        scenario had ended: call ``reset``)."""
+        ended, while the others run on (a vector env's autoreset; N > 1: one scenario's end
+        ends the run). It starts during the next :meth:`step`: its vehicles enter SUMO at that
+        step's last SUMO step (as ``reset`` inserts them before its one SUMO step), so the
+        observation after that step has its initial state, sensed as ``reset`` senses it, and
+        its first decision is the step after (it is not stepped in the step that starts it).
+        Its time and log start at 0. Its road must be on the same net as scenario ``i``'s (the
+        copy is of that net), its ego planned or kinematic as the run's. ``ValueError`` for a
+        running scenario, another net or another kind of ego; ``RuntimeError`` when SUMO has
+        closed (every scenario had ended: call ``reset``)."""
         if self._live is None or self._api is None:
             raise RuntimeError("every scenario has ended and SUMO is closed: call reset")
         if not 0 <= i < len(self._runs):
@@ -469,18 +633,23 @@ class ClosedLoop:
             raise ValueError(f"scenario {i} runs on a copy of {old.road.net_path}; a restart "
                              f"must stay on that net, got {scenario.road.net_path}")
         check_scope([scenario], [policy], self.loop)
+        if scenario.traffic is not None:
+            raise ValueError("traffic runs one scenario at a time (N = 1): it does not restart")
+        if (getattr(policy, "pose_at", None) is not None) != isinstance(self._driver, Kinematic):
+            raise ValueError("a run's egos are all kinematic (pose_at) or all planned: a restart "
+                             "keeps the run's kind")
         if horizon_s is None and policy is None:
             raise ValueError("a restart without a policy needs horizon_s, the plans' horizon [s]")
         self._runs[i] = r = _Scenario(
             i, scenario, policy, horizon_s if horizon_s is not None else policy.horizon,
-            self.loop, self.vehicle, old.dx, len(self.columns), old.generation + 1)
-        r.lane_ids = old.lane_ids
+            self.loop, self.vehicle, old.dx, len(self.columns), True, old.generation + 1)
+        r.lane_ids = old.lane_ids  # the same copy of the track
         self._pending.append(r)
 
     def _start_restarted(self, live: _Live, pending: list[_Scenario], inserted: bool) -> None:
         """The restarted scenarios after their insertion (done now with one SUMO step when
-        every other scenario ended before the last one): read the leaders, look at the start
-        and join the running ones; they are sensed with them."""
+        every other scenario ended before the step's last one): read the leaders, look at the
+        start and join the running ones; they are sensed with them."""
         if not inserted:
             for r in pending:
                 r.add(self._api, self.vehicle)
@@ -488,14 +657,16 @@ class ClosedLoop:
             self._k += 1
         for r in pending:
             r.k0 = self._k
-            if r.has_leader:
-                r.read_leader(self._api, self.vehicle)
-                r.lead_v = r.leader[1] / r.lead_scale if r.leader is not None else 0.0
-        new = _Live(pending)
+            if r.lead is not None:
+                r.lead.read(self._api)
+        new = _Live(pending, self._xp)
         new.idx = np.array([r.i for r in pending])
         self._look_at_start(new)
         self._running[new.idx] = True
-        live.join(new)
+        if live.runs:
+            live.join(new)
+        else:  # every other scenario has ended: the restarted ones are the loop's rows
+            self._live = new
 
     def rollout(self, i: int, wall_s: float = math.nan) -> Rollout:
         """Scenario ``i``'s log so far and its summary (``wall_s`` [s]: its share of the wall
@@ -503,9 +674,13 @@ class ClosedLoop:
         r = self._runs[i]
         if r.rows is None:
             raise ValueError(f"the log of scenario {i} has been freed")
-        log = _Log.to_frame(r.rows[:r.steps].copy(), self.columns)
+        data = (np.array(r.rows, dtype=float).reshape(-1, len(self.columns))
+                if isinstance(r.rows, list) else r.rows[:r.steps].copy())
+        log = _Log.to_frame(data, self.columns)
         name = r.policy.name if r.policy is not None else EXTERNAL
-        return finish(r.scenario, log, r.end_reason or "running", r.error, wall_s, name)
+        traffic = r.lead if isinstance(r.lead, TrafficLeader) else None
+        return finish(r.scenario, log, r.end_reason or "running", r.error, wall_s, name,
+                      len(traffic.met) if traffic else 0, traffic.cut_ins if traffic else 0)
 
     def free_log(self, i: int) -> None:
         """Drop scenario ``i``'s log buffer (a sweep keeps only the running scenarios' logs)."""
@@ -539,31 +714,71 @@ class ClosedLoop:
 
     # -- the stages ---------------------------------------------------------------------------
 
-    def _sense(self, live: _Live) -> None:
-        """Camera and radar of every running scenario at its current state: the features of
-        the next decision."""
-        x, y, yaw, vx, vy = live.st[:5]
-        v = np.hypot(vx, vy)
-        d_front = self.vehicle.cog_to_front_bumper_m
-        fx_, fy_ = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
-        # the camera: each scenario's lines, sampled per line and fitted all at once, then
-        # each scenario's noise
-        left, right = _camera_fits(live.runs, fx_, fy_, yaw)
-        n = len(live.runs)
-        v_lead, d_lead = np.empty(n), np.empty(n)
-        for j, r in enumerate(live.runs):
-            sen.add_lane_noise(left[j], right[j], r.scenario.sensors, r.rng)
-            lead = r.leader
-            radar = sen.radar_leader(np.array((fx_[j], fy_[j])), float(yaw[j]),
-                                     None if lead is None else lead[0],
-                                     0.0 if lead is None else r.lead_v, left[j], right[j],
-                                     r.scenario.sensors, r.rng)
-            v_lead[j], d_lead[j] = sen.leader_features(radar, float(v[j]), r.scenario.sensors)
-        live.features = feats = planner_features(left, right, v, v_lead, d_lead)
-        live.feature_log = feats[:, [0, 1, 2, 3, 4, 5, 7, 8]]
-        live.front = (fx_, fy_)
-        self._features[live.idx] = feats
+    def _start(self, runs: list[_Scenario]) -> _Live:
+        """Insert every scenario, take SUMO's first step, read the leaders, look at the
+        initial states and sense them."""
+        api = self._api
+        for r in runs:
+            r.add(api, self.vehicle)
+        api.simulation.step()
+        if self.loop.gui:  # the ego exists only after the first step
+            sumo_api.track_in_gui(api, runs[0].ego, GUI_VIEW_WIDTH_M)
+        for r in runs:
+            if r.lead is not None:
+                r.lead.read(api)
+        live = _Live(runs, self._xp)
+        self._lap("outside")
+        self._look_at_start(live)
+        self._sense(live)
+        return live
+
+    def _sense(self, live: _Live, rows: Sequence[int] | None = None) -> None:
+        """Camera and radar of the running scenarios (or of their ``rows``) at their current
+        state: the features of the next decision (or, for ended rows, the final ones)."""
+        whole = rows is None or len(rows) == len(live.runs)
+        runs = live.runs if whole else [live.runs[j] for j in rows]
+        st = live.st if whole else tuple(col[rows] for col in live.st)
+        feats, feature_log, front = self._features_at(runs, st)
+        self._features[live.idx if whole else live.idx[rows]] = feats
+        if rows is None:
+            live.features, live.feature_log, live.front = feats, feature_log, front
         self._lap("sense")
+
+    def _features_at(self, runs: list[_Scenario], st: tuple) -> tuple:
+        """The planner's features of ``runs`` at states ``st``: ``(features (n, 9) or (9,),
+        their logged columns, the front bumpers (x, y))``."""
+        xp = self._xp
+        x, y, yaw, vx, vy = st[:5]
+        v = xp.hypot(vx, vy)
+        d_front = self._d_front
+        fx_, fy_ = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+        if xp is FLOATS:  # the camera: one scenario's lines, its own noise
+            r = runs[0]
+            left, right, _ = r.camera.lane_lines(np.array((fx_, fy_)), yaw, r.rng)
+            lefts, rights = [left], [right]
+        else:  # each scenario's lines, sampled per line and fitted all at once, then its noise
+            lefts, rights = _camera_fits(runs, fx_, fy_, yaw)
+            for j, r in enumerate(runs):
+                sen.add_lane_noise(lefts[j], rights[j], r.scenario.sensors, r.rng)
+        fxl, fyl, yl, vl = xp.rows(fx_), xp.rows(fy_), xp.rows(yaw), xp.rows(v)
+        v_lead, d_lead = [], []
+        for j, r in enumerate(runs):
+            lead = r.lead.leader if r.lead is not None else None
+            radar = sen.radar_leader(np.array((fxl[j], fyl[j])), yl[j],
+                                     None if lead is None else lead[0],
+                                     0.0 if lead is None else r.lead.v, lefts[j], rights[j],
+                                     r.scenario.sensors, r.rng)
+            vj, dj = sen.leader_features(radar, vl[j], r.scenario.sensors)
+            v_lead.append(vj)
+            d_lead.append(dj)
+        feats = planner_features(xp.from_rows(lefts), xp.from_rows(rights), v,
+                                 xp.from_rows(v_lead), xp.from_rows(d_lead))
+        if xp is FLOATS:
+            f = feats.tolist()
+            feature_log = (*f[:6], f[7], f[8])
+        else:
+            feature_log = tuple(feats[:, _LOGGED_FEATURES].T)
+        return feats, feature_log, (fx_, fy_)
 
     def _checked_plans(self, live: _Live, plans: np.ndarray | None) -> np.ndarray | None:
         """The running scenarios' rows ``(n, 3, 2)`` of ``plans`` (None: their policies
@@ -578,9 +793,10 @@ class ClosedLoop:
                              f"shape {given.shape}")
         return given.reshape(len(self._runs), 3, 2)[live.idx]
 
-    def _checked_controls(self, live: _Live, controls: np.ndarray | None
-                          ) -> np.ndarray | None:
-        """The running scenarios' rows ``(n, 2)`` of ``controls`` (finite), or None."""
+    def _checked_controls(self, live: _Live, controls: np.ndarray | None) -> tuple | None:
+        """The running scenarios' commands ``(acceleration, steering)`` of ``controls`` (floats
+        at N = 1, columns ``(n,)`` else), or None; ``ValueError`` for a wrong shape or a value
+        that is not finite."""
         if controls is None:
             return None
         given = np.asarray(controls, dtype=float)
@@ -590,184 +806,206 @@ class ClosedLoop:
         rows = given[live.idx]
         if not np.isfinite(rows).all():
             raise ValueError("controls must be finite")
-        return rows
-
-    def _plan(self, live: _Live, given: np.ndarray | None,
-              controls: np.ndarray | None = None) -> None:
-        """The plans of this decision (``given`` ``(n, 3, 2)``, or the policies'), prepared for
-        tracking; or, with ``controls`` ``(n, 2)``, no plan: the commands are held instead."""
-        n, t = len(live.runs), (self._k - live.c.k0) * self._dt  # each scenario's own time
-        live.controls = controls
-        if controls is not None:
-            live.target = None
-            live.t_plan = t.astype(float)
-            live.plan_log = np.full((n, 10), np.nan)
-            live.plan_log[:, 0] = live.t_plan
-            self._lap("plan")
-            return
-        cps = given
-        if cps is None:
-            cps = np.empty((n, 3, 2))
-            for policy, rows_of in live.c.planners:  # one call per planner object
-                cps[rows_of] = np.asarray(policy.plan(live.features[rows_of]),
-                                          float).reshape(-1, 3, 2)
-        fx_, fy_ = live.front
-        yaw = live.st[2]
-        live.target = ctl.make_targets(cps, live.c.horizon, fx_, fy_, yaw)
-        live.t_plan = t.astype(float)
-        live.plan_log = np.column_stack([live.t_plan, fx_, fy_, yaw, cps.reshape(n, 6)])
-        self._lap("plan")
+        if self._xp is FLOATS:
+            accel, steer = rows[0].tolist()
+            return accel, steer
+        return rows[:, 0].copy(), rows[:, 1].copy()
 
     def _sub_step(self, live: _Live, k: int, last: bool, ev: Events) -> None:
         """Physics step ``k`` of every running scenario: drive, monitor, log, end."""
         moved = self._drive(live, k)
         rows, reason, departed, ttc_flag, hit = self._watch(live, k, moved)
-        idx = live.idx
-        ev.lane_departure[idx] |= departed
-        ev.ttc_flag[idx] |= ttc_flag
-        ev.collision[idx] |= hit
-        ev.sub_steps[idx] += 1
+        live.departed = live.departed | departed
+        live.ttc_flag = live.ttc_flag | ttc_flag
+        live.collision = live.collision | hit
+        live.sub_steps += 1
         ended = reason != ""
-        if last or ended.any():  # the observation: each scenario's latest row
-            self._last[idx] = rows
-        if ended.any():
+        any_ended = self._xp.any(ended)
+        if last or any_ended:  # the observation: each scenario's latest row
+            self._last[live.idx] = rows
+        if any_ended:
             self._end(live, ended, reason, ev)
-        self._lap("monitor")
+        if self._sub_lap is not None:
+            self._sub_lap("monitor")
 
     def _drive(self, live: _Live, k: int) -> tuple:
-        """Track the plans, step the plant, find each front bumper on its lane, move the egos
-        and command the leaders in SUMO, step SUMO."""
-        c, dt, lap, vehicle = live.c, self._dt, self._lap, self.vehicle
-        t = (k - c.k0) * dt  # (n,) each scenario's own time
-        x, y, yaw, vx, vy, yaw_rate = live.st[:6]
-        if live.controls is None:
-            steer_cmd, accel_cmd, live.integral, live.prev_error = ctl.track_values(
-                live.target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle,
-                live.integral, live.prev_error, self.controller, dt, ARRAYS)
-        else:  # commands from outside (step(controls=...)), held over the period
-            accel_cmd, steer_cmd = live.controls[:, 0].copy(), live.controls[:, 1].copy()
-        throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, ARRAYS)
-        lap("track")
-        live.st = st = self._plant.step(live.st, steer_cmd, throttle, brake, ARRAYS)
-        x, y, yaw, vx, vy = st[:5]
-        v = np.hypot(vx, vy)
-        d_front = vehicle.cog_to_front_bumper_m
-        front_x, front_y = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
-        lap("plant")
+        """Drive the egos (track and plant, or their recorded poses), find each front bumper on
+        its lane, move the egos and command the leaders in SUMO, step SUMO."""
+        c, dt, lap, xp = live.c, self._dt, self._sub_lap, self._xp
+        t = (k - c.k0) * dt  # each scenario's own time (a restarted one's starts at its k0)
+        steer_cmd, accel_cmd = self._driver.move(live, t, xp)
+        x, y, yaw, vx, vy = live.st[:5]
+        v = xp.hypot(vx, vy)
+        d_front = self._d_front
+        front_x, front_y = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+        if lap is not None:
+            lap("plant")
 
         # where each front bumper is on its lane, then SUMO: move, command the leaders, step
-        s, d, heading, live.ego_seg = c.lanes.project_near_many(front_x, front_y, live.ego_seg)
-        lap("project")
+        s, d, heading, live.ego_seg = c.project(front_x, front_y, live.ego_seg)
+        if lap is not None:
+            lap("project")
         n = len(live.runs)
-        inside = (lane_placeable(d, s, v * dt, 0.5 * c.lane_width, c.route_end).tolist()
-                  if self.loop.ego_placement == "lane" else [False] * n)
-        fxl, fyl, vl, sl = front_x.tolist(), front_y.tolist(), v.tolist(), s.tolist()
+        inside = (xp.rows(lane_placeable(d, s, v * dt, 0.5 * c.lane_width, c.route_end))
+                  if self._on_lane else [False] * n)
+        fxl, fyl, vl, sl, yl = xp.rows(front_x), xp.rows(front_y), xp.rows(v), xp.rows(s), \
+            xp.rows(yaw)
         api = self._api
-        move_to, move_to_xy, set_speed = api.vehicle.moveTo, api.vehicle.moveToXY, api.vehicle.setSpeed
+        move_to = api.vehicle.moveTo if self._on_lane else None
+        move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
         for j, r in enumerate(live.runs):
             if inside[j]:
                 move_to(r.ego, *_lane_position(r, sl[j], vl[j] * dt))
             else:
-                move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j], yaw_to_sumo_angle(float(yaw[j])),
-                           2)
+                move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j], yaw_to_sumo_angle(yl[j]), 2)
             set_speed(r.ego, vl[j])
-            if r.leader is not None:
-                v_cmd = r.lead_speeds[k - r.k0] * r.lead_scale
-                if v_cmd != r.lead_cmd:  # SUMO keeps a commanded speed until the next command
-                    set_speed(r.leader_id, v_cmd)
-                    r.lead_cmd = v_cmd
-        lap("sumo_move")
+            if r.lead is not None:
+                r.lead.command(api, k - r.k0)
+        if lap is not None:
+            lap("sumo_move")
+        if k == self._shot_k:  # sumo-gui saves it during this step
+            sumo_api.gui_screenshot(api, self.loop.gui_screenshot)
         api.simulation.step()
         colliding = set(api.simulation.getCollidingVehiclesIDList())
-        hit = np.fromiter((r.ego in colliding for r in live.runs), bool, n)
-        lap("sumo_step")
+        hit = xp.from_rows([r.ego in colliding for r in live.runs])
+        if lap is not None:
+            lap("sumo_step")
         return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl
 
-    def _watch(self, live: _Live, k: int, moved: tuple) -> tuple[np.ndarray, ...]:
+    def _read_leaders(self, live: _Live) -> tuple:
+        """Each running scenario's leader after a step: its rear ``lead_x, lead_y`` [m] and
+        true speed [m/s] (NaN: none; the true speed of a leader that ``needs_location`` comes
+        once it is located)."""
+        xp, api, nan = self._xp, self._api, math.nan
+        lx, ly, lv = [], [], []
+        for r in live.runs:
+            lead = r.lead
+            if lead is not None and lead.read(api):
+                (x, y), v = lead.leader[0], lead.v
+            else:
+                x = y = v = nan
+            lx.append(x)
+            ly.append(y)
+            lv.append(v)
+        if live.c.any_traffic:  # a leader met after none: its walk starts at the ego's segment
+            from_ego = xp.from_rows([isinstance(r.lead, TrafficLeader) and r.lead.from_ego
+                                     for r in live.runs])
+            live.lead_seg = xp.where(from_ego, live.ego_seg, live.lead_seg)
+        return xp.from_rows(lx), xp.from_rows(ly), xp.from_rows(lv)
+
+    def _locate_leaders(self, live: _Live, rows, s_rear, gap, v_lead, hit, front, yaw,
+                        count: bool = True) -> tuple:
+        """The leaders of ``rows`` located on the ego lane (their true speeds, and for traffic
+        the leaders met) and, where close, checked for footprint overlap with the ego (unless
+        already colliding). Returns ``v_lead, hit``."""
+        xp, vehicle = self._xp, self.vehicle
+        near = 2.0 * vehicle.length_m
+        srl, gl, vll, hl = xp.rows(s_rear), xp.rows(gap), xp.rows(v_lead), xp.rows(hit)
+        fxl, fyl, yl = front[0], front[1], xp.rows(yaw)
+        for j in rows:
+            lead = live.runs[j].lead
+            if lead.needs_location:
+                vll[j] = lead.located(srl[j], gl[j], count)
+            if gl[j] < near and not hl[j]:
+                hl[j] = footprints_overlap((fxl[j], fyl[j]), yl[j], vehicle, lead.leader,
+                                           lead.length, lead.width)
+        return xp.from_rows(vll), xp.from_rows(hl)
+
+    def _watch(self, live: _Live, k: int, moved: tuple) -> tuple:
         """Read the leaders, check footprints and run the monitors on the state at ``t + dt``;
-        log the step. Returns the full log rows ``(n, 44)``, each row's end reason (``""``:
-        goes on; in ``run_scenario``'s order) and the lane-departure, TTC and collision flags
-        ``(n,)``."""
+        log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), each row's
+        end reason (``""``: goes on) and the lane-departure, TTC and collision flags."""
         t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl = moved
-        c, st, n, vehicle = live.c, live.st, len(live.runs), self.vehicle
-        length, width = vehicle.length_m, vehicle.width_m
-        # the leaders, read per scenario and projected at once (NaN: none)
-        lead_x, lead_y, v_lead_true = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-        api = self._api
-        for j, r in enumerate(live.runs):
-            if r.leader is not None:
-                r.read_leader(api, vehicle)
-                if r.leader is not None:
-                    (lead_x[j], lead_y[j]), v_sumo = r.leader[0], r.leader[1]
-                    v_lead_true[j] = r.lead_v = v_sumo / r.lead_scale
-        has_lead = ~np.isnan(v_lead_true)
-        self._lap("sumo_read")
-        s_rear, _, _, live.lead_seg = c.lanes.project_near_many(lead_x, lead_y, live.lead_seg)
-        gap = np.where(has_lead, s_rear - s, np.inf)
+        c, st, n, xp = live.c, live.st, len(live.runs), self._xp
+        lead_x, lead_y, v_lead = self._read_leaders(live)
+        has_lead = xp.isfinite(lead_x)  # NaN: no leader
+        lap = self._sub_lap
+        if lap is not None:
+            lap("sumo_read")
+        s_rear, _, _, live.lead_seg = _project(c.lanes, xp, lead_x, lead_y, live.lead_seg)
+        gap = xp.where(has_lead, s_rear - s, math.inf)
         yaw = st[2]
-        for j in np.flatnonzero(has_lead & ((gap < 2.0 * length) | c.multi_piece)):
-            r = live.runs[j]
-            if r.multi_piece:  # the next command's scale: the SUMO lane under its front
-                r.lead_scale = r.road.piece_at(s_rear[j] + length).scale
-            if gap[j] < 2.0 * length and not hit[j]:
-                hit[j] = footprints_overlap((fxl[j], fyl[j]), float(yaw[j]), vehicle, r.leader,
-                                            length, width)
-        self._lap("project")
+        fix = xp.nonzero(has_lead & ((gap < 2.0 * self.vehicle.length_m) | c.located))
+        if len(fix):
+            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit, (fxl, fyl),
+                                               yaw)
+        if lap is not None:
+            lap("project")
 
         d_min, d_max, departed, ttc, ttc_flag, fraction = _monitors(
-            c, vehicle, yaw, heading, s, d, v, gap, v_lead_true, has_lead)
-        rows = np.column_stack([
-            t + self._dt, st[0], st[1], yaw, v, st[4], st[5], st[6], front_x,
-            front_y, steer_cmd, accel_cmd, s, d, d_min, d_max, live.feature_log, lead_x, lead_y,
-            v_lead_true, gap, ttc, departed, ttc_flag, hit, fraction, live.plan_log,
-            np.where(has_lead, 0.0, np.nan),
+            c, self.vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead, xp)
+        lead_no = (xp.from_rows([r.lead.no if r.lead is not None and r.lead.leader is not None
+                                 else math.nan for r in live.runs])
+                   if c.any_traffic else xp.where(has_lead, 0.0, math.nan))
+        rows = xp.columns([
+            xp.full(n, t + self._dt), st[0], st[1], yaw, v, st[4], st[5], st[6], front_x,
+            front_y, steer_cmd, accel_cmd, s, d, d_min, d_max, *live.feature_log, lead_x, lead_y,
+            v_lead, gap, ttc, departed, ttc_flag, hit, fraction, *live.plan_log, lead_no,
         ])
-        logged = rows if self._col_idx is None else rows[:, self._col_idx]
-        for j, r in enumerate(live.runs):
-            r.rows[k - r.k0] = logged[j]
-            r.steps = k - r.k0 + 1
+        logged = rows if self._col_idx is None else np.asarray(rows)[..., self._col_idx]
+        if xp is FLOATS:  # one scenario: a list append per step
+            live.runs[0].rows.append(logged)
+            live.runs[0].steps = k + 1
+        else:  # each scenario's own step (a restarted one's starts at its k0)
+            for r, row in zip(live.runs, logged):
+                r.rows[k - r.k0] = row
+                r.steps = k - r.k0 + 1
         loop = self.loop
-        reason = np.select(
-            [s >= c.path_end, hit, np.abs(d) > 0.5 * c.lane_width + loop.offroad_stop_m,
+        reason = xp.select(
+            [s >= c.path_end, hit, xp.abs(d) > 0.5 * c.lane_width + loop.offroad_stop_m,
              (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max],
             ["completed", "collision", "off_road", "flag", "timeout"], "")
         return rows, reason, departed, ttc_flag, hit
 
-    def _end(self, live: _Live, ended: np.ndarray, reason: np.ndarray, ev: Events) -> None:
-        """The scenarios ``ended`` (rows) leave SUMO and the loop."""
-        for j in np.flatnonzero(ended):
+    def _end(self, live: _Live, ended, reason, ev: Events) -> None:
+        """The scenarios ``ended`` (rows) are sensed once more (their final observation) and
+        leave SUMO and the loop."""
+        xp = self._xp
+        rows = xp.nonzero(ended)
+        self._sense(live, rows)
+        live.flush(ev)
+        reasons = xp.rows(reason)
+        for j in rows:
             r = live.runs[j]
-            r.end_reason = str(reason[j])
+            r.end_reason = str(reasons[j])
             ev.ended[r.i], ev.end_reason[r.i] = True, r.end_reason
             self._running[r.i] = False
-            for vid in (r.ego, r.leader_id) if r.has_leader and r.leader else (r.ego,):
+            for vid in (r.ego, *(r.lead.vehicle_ids() if r.lead is not None else ())):
                 with suppress(Exception):  # it may have left the network already
                     self._api.vehicle.remove(vid)
-        live.take(np.flatnonzero(~ended))
+        live.take(xp.nonzero(reason == ""))
 
     def _look_at_start(self, live: _Live) -> None:
         """The monitors' view of the initial states, for reset's observation (footprint
-        overlap as the collision; nothing the loop keeps is changed)."""
-        c, vehicle = live.c, self.vehicle
-        x, y, yaw, vx, vy = live.st[:5]
-        v = np.hypot(vx, vy)
-        d_front = vehicle.cog_to_front_bumper_m
-        front_x, front_y = x + d_front * np.cos(yaw), y + d_front * np.sin(yaw)
-        s, d, heading, _ = c.lanes.project_near_many(front_x, front_y, live.ego_seg)
+        overlap as the collision; traffic's leader located; nothing else the loop keeps is
+        changed)."""
+        c, vehicle, xp = live.c, self.vehicle, self._xp
         n = len(live.runs)
-        lead_x, lead_y, v_lead = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
-        for j, r in enumerate(live.runs):
-            if r.leader is not None:
-                (lead_x[j], lead_y[j]), v_lead[j] = r.leader[0], r.lead_v
-        has_lead = ~np.isnan(v_lead)
-        s_rear = c.lanes.project_near_many(lead_x, lead_y, live.lead_seg)[0]
-        gap = np.where(has_lead, s_rear - s, np.inf)
-        hit = np.zeros(n, dtype=bool)
-        for j in np.flatnonzero(has_lead & (gap < 2.0 * vehicle.length_m)):
-            hit[j] = footprints_overlap((front_x[j], front_y[j]), float(yaw[j]), vehicle,
-                                        live.runs[j].leader, vehicle.length_m, vehicle.width_m)
+        x, y, yaw, vx, vy = live.st[:5]
+        v = xp.hypot(vx, vy)
+        d_front = self._d_front
+        front_x, front_y = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+        s, d, heading, _ = c.project(front_x, front_y, live.ego_seg)
+        lx, ly, lv = [], [], []
+        for r in live.runs:
+            lead = r.lead.leader if r.lead is not None else None
+            lx.append(math.nan if lead is None else lead[0][0])
+            ly.append(math.nan if lead is None else lead[0][1])
+            lv.append(math.nan if lead is None else r.lead.v)
+        lead_x, lead_y, v_lead = xp.from_rows(lx), xp.from_rows(ly), xp.from_rows(lv)
+        has_lead = xp.isfinite(lead_x)
+        s_rear, _, _, seg = _project(c.lanes, xp, lead_x, lead_y, live.lead_seg)
+        if c.any_traffic:  # traffic's walk goes on from here
+            live.lead_seg = xp.where(c.traffic, seg, live.lead_seg)
+        gap = xp.where(has_lead, s_rear - s, math.inf)
+        hit = xp.from_rows([False] * n)
+        fix = xp.nonzero(has_lead & ((gap < 2.0 * vehicle.length_m) | c.traffic))
+        if len(fix):
+            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
+                                               (xp.rows(front_x), xp.rows(front_y)), yaw,
+                                               count=False)
         _, _, departed, ttc, ttc_flag, fraction = _monitors(
-            c, vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead)
+            c, vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead, xp)
         for name, values in (("t", 0.0), ("x", x), ("y", y), ("yaw", yaw), ("v", v), ("s", s),
                              ("d", d), ("gap", gap), ("ttc", ttc), ("leader_v", v_lead),
                              ("path_fraction", fraction), ("lane_departure", departed),
@@ -775,16 +1013,11 @@ class ClosedLoop:
             self._last[live.idx, _COL[name]] = values
 
     def _observation(self) -> Observation:
-        last = self._last
-
-        def col(name: str, dtype=float) -> np.ndarray:
-            return last[:, _COL[name]].astype(dtype)  # a copy
-
-        return Observation(
-            col("t"), self._features.copy(), col("x"), col("y"), col("yaw"), col("v"), col("s"),
-            col("d"), col("gap"), col("ttc"), col("leader_v"), col("path_fraction"),
-            col("lane_departure", bool), col("ttc_flag", bool), col("collision", bool),
-            self._running.copy())
+        # copies: fancy indexing makes new arrays, each field a row of one of them
+        t, x, y, yaw, v, s, d, gap, ttc, leader_v, fraction = self._last[:, _OBS_FLOATS].T
+        departed, ttc_flag, collision = self._last[:, _OBS_FLAGS].T.astype(bool)
+        return Observation(t, self._features.copy(), x, y, yaw, v, s, d, gap, ttc, leader_v,
+                           fraction, departed, ttc_flag, collision, self._running.copy())
 
     def _fail(self, exc: Exception) -> None:
         """Every scenario still running ends with the error; SUMO is closed."""
@@ -812,17 +1045,27 @@ def _policy_list(policies: Policy | Sequence[Policy | None] | None, n: int
     return out
 
 
+def _project(lanes: Polyline | PolylineStack, xp, x, y, seg) -> tuple:
+    """``s, d, heading, segment`` of points ``x, y`` each on its ego lane centre, walked from
+    ``seg``; a NaN point gives NaN and keeps its segment."""
+    if xp is FLOATS:
+        if math.isnan(x):
+            return math.nan, math.nan, math.nan, seg
+        return lanes.project_near(x, y, seg)
+    return lanes.project_near_many(x, y, seg)
+
+
 def _monitors(c: _Fixed, vehicle: veh.VehicleParams, yaw, heading, s, d, v, gap, v_lead,
-              has_lead) -> tuple[np.ndarray, ...]:
-    """The monitors on arrays ``(n,)``: ``d_min, d_max`` [m] (the footprint's lateral extent),
-    lane departure, TTC [s], TTC flag, path completed [-]."""
+              has_lead, xp) -> tuple:
+    """The monitors: ``d_min, d_max`` [m] (the footprint's lateral extent), lane departure,
+    TTC [s], TTC flag, path completed [-]."""
     heading_err = (yaw - heading + math.pi) % (2.0 * math.pi) - math.pi
     d_min, d_max = mon.footprint_offset_range(d, heading_err, vehicle.length_m, vehicle.width_m,
-                                              ARRAYS)
-    departed = mon.lane_departure(d_min, d_max, c.lane_width, c.margin, ARRAYS)
-    ttc = np.where(has_lead, mon.time_to_collision(gap, v, v_lead, ARRAYS), np.inf)
+                                              xp)
+    departed = mon.lane_departure(d_min, d_max, c.lane_width, c.margin, xp)
+    ttc = xp.where(has_lead, mon.time_to_collision(gap, v, v_lead, xp), math.inf)
     ttc_flag = ttc <= c.ttc_threshold
-    fraction = mon.path_completed(s, c.path_start, c.path_end, ARRAYS)
+    fraction = mon.path_completed(s, c.path_start, c.path_end, xp)
     return d_min, d_max, departed, ttc, ttc_flag, fraction
 
 
@@ -873,7 +1116,8 @@ def _groups(items: list, key: Callable) -> list[tuple[object, np.ndarray | slice
 
 @dataclass(frozen=True)
 class _Fixed:
-    """What stays fixed during a run, over the running scenarios (rebuilt when one ends)."""
+    """What stays fixed during a run, over the running scenarios (rebuilt when one ends):
+    floats at N = 1, arrays ``(n,)`` else."""
 
     lane_width: np.ndarray  # (n,) [m]
     margin: np.ndarray  # (n,) lane monitor tolerance [m]
@@ -883,26 +1127,33 @@ class _Fixed:
     route_end: np.ndarray  # (n,) the end of SUMO's route along the ego lane [m]
     n_max: np.ndarray  # (n,) steps
     horizon: np.ndarray  # (n,) plan horizon [s]
-    multi_piece: np.ndarray  # (n,) bool: a route of several SUMO lanes
+    located: np.ndarray  # (n,) bool: the leader is located on the ego lane every step
+    traffic: np.ndarray  # (n,) bool: the leader is SUMO's traffic
+    any_traffic: bool
     # each row's ego lane centre: the one polyline, or several (scenarios on different
     # roads) walked at once on their stack; NaN points give NaN and keep their segment
     lanes: Polyline | PolylineStack
     planners: list  # (planner or None, rows): one plan call each
+    project: Callable  # (x, y, segment) -> s, d, heading, segment on lanes (no NaN at N = 1)
     k0: np.ndarray  # (n,) int: the loop's physics step of each scenario's step 0 (restarts)
 
     @staticmethod
-    def of(live: list[_Scenario]) -> _Fixed:
-        def col(get, dtype=float) -> np.ndarray:
-            return np.array([get(r) for r in live], dtype=dtype)
+    def of(live: list[_Scenario], xp) -> _Fixed:
+        def col(get) -> np.ndarray:
+            return xp.from_rows([get(r) for r in live])
 
+        traffic = [isinstance(r.lead, TrafficLeader) for r in live]
+        lanes = live[0].centre if xp is FLOATS else _lanes(live)
         return _Fixed(
             col(lambda r: r.lane.width), col(lambda r: r.scenario.monitors.lane_margin_m),
             col(lambda r: r.scenario.monitors.ttc_threshold_s),
             col(lambda r: r.road.path_start_s), col(lambda r: r.road.path_end_s),
             col(lambda r: r.road.ego_pieces[-1].s1),
-            col(lambda r: r.n_max, int), col(lambda r: r.horizon),
-            col(lambda r: r.multi_piece, bool), _lanes(live),
-            _groups(live, lambda r: r.policy), col(lambda r: r.k0, int))
+            col(lambda r: r.n_max), col(lambda r: r.horizon),
+            col(lambda r: r.lead is not None and r.lead.needs_location),
+            xp.from_rows(traffic), any(traffic), lanes, _groups(live, lambda r: r.policy),
+            lanes.project_near if xp is FLOATS else lanes.project_near_many,
+            col(lambda r: r.k0))
 
 
 def _lanes(live: list[_Scenario]) -> Polyline | PolylineStack:
@@ -914,4 +1165,3 @@ def _lanes(live: list[_Scenario]) -> Polyline | PolylineStack:
     for k, (_, rows) in enumerate(groups):
         line_of[rows] = k
     return PolylineStack([line for line, _ in groups], line_of)
-

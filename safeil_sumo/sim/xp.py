@@ -10,6 +10,14 @@ expression finite on both sides (e.g. a divisor floored at a tiny number where t
 uses it is not taken). ``+ - * /`` and ``sqrt`` round identically in both namespaces;
 ``cos``/``sin``/``exp``/``atan``... may differ by an ulp between libm and numpy, which is why a
 batched run equals a scalar run to ~1e-12 m rather than bit for bit.
+
+The loop itself (:class:`.stepper.ClosedLoop`) is written against a namespace too: its values
+are per running scenario, one float each with :data:`FLOATS` (N = 1) or arrays ``(n,)`` with
+:data:`ARRAYS`, and what is per scenario by nature (SUMO's calls, the radar) goes through
+Python lists of the rows: ``rows(value)`` is such a list, ``from_rows(list)`` the value again,
+``full(n, value)`` a constant, ``nonzero(mask)`` the rows where a flag is set, ``select``
+numpy's ``select``, ``any`` whether any row is set and ``columns(values)`` the log's rows (a
+list of floats at N = 1, an array ``(n, columns)`` else).
 """
 
 from __future__ import annotations
@@ -40,11 +48,22 @@ def _isnan(value):
     return math.isnan(value)
 
 
+def _select(conditions, choices, default):
+    for condition, choice in zip(conditions, choices):
+        if condition:
+            return choice
+    return default
+
+
 FLOATS = SimpleNamespace(
     where=_where, minimum=min, maximum=max, clip=_clip, abs=abs,
-    logical_or=_or, logical_and=_and, isnan=_isnan,
+    logical_or=_or, logical_and=_and, isnan=_isnan, isfinite=math.isfinite,
     cos=math.cos, sin=math.sin, tan=math.tan, atan=math.atan, atan2=math.atan2,
     sqrt=math.sqrt, hypot=math.hypot, exp=math.exp,
+    # the loop's rows (one scenario)
+    rows=lambda value: [value], from_rows=lambda values: values[0],
+    full=lambda n, value: value, nonzero=lambda mask: [0] if mask else [],
+    select=_select, any=bool, columns=list,
 )
 
 def _clip_arrays(value, lo, hi):
@@ -53,7 +72,11 @@ def _clip_arrays(value, lo, hi):
 
 ARRAYS = SimpleNamespace(
     where=np.where, minimum=np.minimum, maximum=np.maximum, clip=_clip_arrays, abs=np.abs,
-    logical_or=np.logical_or, logical_and=np.logical_and, isnan=np.isnan,
+    logical_or=np.logical_or, logical_and=np.logical_and, isnan=np.isnan, isfinite=np.isfinite,
     cos=np.cos, sin=np.sin, tan=np.tan, atan=np.arctan, atan2=np.arctan2,
     sqrt=np.sqrt, hypot=np.hypot, exp=np.exp,
+    # the loop's rows (n scenarios)
+    rows=np.ndarray.tolist, from_rows=np.array,
+    full=lambda n, value: np.full(n, value, dtype=float), nonzero=np.flatnonzero,
+    select=np.select, any=np.any, columns=lambda parts: np.array(parts).T,
 )
