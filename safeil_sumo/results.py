@@ -568,9 +568,10 @@ def _lodo_readme(out: Path) -> list[str]:
             "two-stage recipe and calibrates the IDM without OpenACC driver f(k+2) and a quarter "
             "of the NGSIM follower vehicles, then replays those drivers' maneuvers whole; the "
             "OpenACC ones also adapted (`--adapt-first-s 60`, scored after the first 60 s). "
-            "Per driver: `lodo/per_driver.csv`; every run: `lodo/windows.csv`. Training the 4 "
-            "folds took 64 min on 2 shared cores, 2 folds at a time (the models are cached in "
-            "`data/lodo/`: the section's own wall time below is the rerun's).")
+            "Per driver: `lodo/per_driver.csv`; every run: `lodo/windows.csv`. The open-loop "
+            "stage of the 4 folds took 64 min on 2 shared cores, 2 folds at a time; the "
+            "closed-loop stage with the settling term and the replays 38 min more (the models "
+            "are cached in `data/lodo/`: the section's own wall time below is the rerun's).")
     return ["## Drivers never seen in training: leave one driver out", "", text, "",
             summary.read_text() if summary.is_file() else "", ""]
 
