@@ -570,14 +570,15 @@ def _task_files(out: Path) -> dict[str, str]:
 
 @pytest.mark.parametrize(("workers", "batch"), [("1", "1"), ("2", "1"), ("2", "3")])
 def test_sigint_keeps_finished_results_and_rerun_completes_the_rest(workers, batch, tmp_path):
-    """Batched (3 per simulation), a batch's records are saved when it ends. 30 scenarios of
-    8 s: the sweep must still be running when the signal arrives (12 of 4 s ended before it,
-    once, on a loaded machine with the float loop of one scenario)."""
+    """Batched (3 per simulation), a batch's records are saved when it ends."""
     out = tmp_path / "sweep"
     args = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policies",
-            "analytic", "--scenarios", "30", "--max-time", "8", "--workers", workers,
+            "analytic", "--scenarios", "12", "--max-time", "4", "--workers", workers,
             "--batch", batch, "--no-progress", "--out", str(out)]
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # the sweep gets Ctrl-C's default handling even when the tests run in a background job
+    # (a non-interactive shell starts those with SIGINT ignored, and children inherit that)
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while len(list((out / "tasks").glob("*.json"))) < 2 and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -586,18 +587,18 @@ def test_sigint_keeps_finished_results_and_rerun_completes_the_rest(workers, bat
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "interrupted: finished tasks are saved" in err
     finished = _task_files(out)
-    assert 2 <= len(finished) < 30
+    assert 2 <= len(finished) < 12
     for text in finished.values():  # every saved result is whole and readable
         assert json.loads(text)["status"] == "ok"
     assert not [p for p in out.rglob("*") if p.name.startswith(".tmp")]
 
     code, stdout, err = cli("safeil_sumo.sweep", *args[3:])
     assert code == 0, err
-    assert "30 tasks, 0 failed" in stdout
+    assert "12 tasks, 0 failed" in stdout
     after = _task_files(out)
-    assert len(after) == 30
+    assert len(after) == 12
     assert all(after[name] == text for name, text in finished.items())  # not rerun
-    assert len(pd.read_csv(out / "summary.csv")) == 30
+    assert len(pd.read_csv(out / "summary.csv")) == 12
 
 
 # -- atomic writes -------------------------------------------------------------------------------
