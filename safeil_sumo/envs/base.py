@@ -43,6 +43,12 @@ LOST = ("this env's SUMO simulation was closed when another safeil_sumo env in t
         "(vectorization_mode='async')")
 
 
+def step_loop(loop, action_level: str, actions: np.ndarray):
+    """One decision step of ``loop`` with ``actions (N, ...)``: plans (``action_level="plan"``)
+    or held acceleration/steering commands (``"control"``); its ``(Observation, Events)``."""
+    return loop.step(actions) if action_level == "plan" else loop.step(controls=actions)
+
+
 def check_options(options: dict | None, max_index: int) -> int | None:
     """The episode index of ``reset(options=...)`` (None: draw one)."""
     if not options:

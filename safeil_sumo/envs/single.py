@@ -92,10 +92,7 @@ class SafeILEnv(gym.Env):
         a = sp.checked_actions(action, self.action_space, self.out_of_space)[None]
         before = self._obs.s
         try:
-            if self.action_level == "plan":
-                obs, ev = self._loop.step(a)
-            else:
-                obs, ev = self._loop.step(controls=a)
+            obs, ev = base.step_loop(self._loop, self.action_level, a)
         except Exception:
             self._done = True
             raise

@@ -118,10 +118,7 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
                               horizon_s=self.horizon_s)
         before = self._obs.s
         try:
-            if self.action_level == "plan":
-                obs, ev = self.loop.step(a)
-            else:
-                obs, ev = self.loop.step(controls=a)
+            obs, ev = base.step_loop(self.loop, self.action_level, a)
         except Exception:
             self._open = False
             self._autoreset[:] = True
