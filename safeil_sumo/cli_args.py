@@ -67,6 +67,19 @@ def add_time_gap_option(parser: argparse.ArgumentParser) -> None:
              "it), or the IDM's T; other planners refuse it")
 
 
+BRAKE_GUARD_OPTIONS = {"on": True, "off": False}
+
+
+def add_brake_guard_option(parser: argparse.ArgumentParser) -> None:
+    """``--brake-guard on|off``, shared by ``run``, ``sweep`` and ``replay``."""
+    parser.add_argument(
+        "--brake-guard", choices=tuple(BRAKE_GUARD_OPTIONS), default="on",
+        help="collision-avoidance braking under the planner: brakes harder than the plan when "
+             "keeping 2 m behind a leader that keeps braking to a stop needs >= 3 m/s^2 "
+             "(default on; off: the planner and tracker alone, the paper's loop; "
+             "docs/brake_guard.md)")
+
+
 def add_route_option(parser: argparse.ArgumentParser) -> None:
     """``--route EDGE [EDGE ...]``, shared by ``run`` and ``sweep``."""
     parser.add_argument(

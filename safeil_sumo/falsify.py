@@ -37,6 +37,8 @@ HELPS = {
     "min_std": "CEM: floor of each coordinate's std (the box is [0, 1] per coordinate)",
     "max_time_s": "scenario duration [s]",
     "stop_at_failure": "end the search after the batch holding its first failure",
+    "brake_guard": "the loop's brake guard under the planner, as shipped (--no-brake-guard: "
+                   "the planner and tracker alone)",
 }
 
 
@@ -57,7 +59,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(str(exc))
     if args.out is None:
         name = Path(args.policy).name.removesuffix(".safetensors")
-        args.out = Path("runs") / f"falsify_{name}_{args.method}_s{args.seed}"
+        args.out = Path("runs") / (f"falsify_{name}_{args.method}_s{args.seed}"
+                                   + ("" if args.brake_guard else "_noguard"))
     return args
 
 

@@ -25,7 +25,12 @@ import pandas as pd
 
 from safeil_sumo import api
 from safeil_sumo import policies as pol
-from safeil_sumo.cli_args import finite_float, nonnegative_int
+from safeil_sumo.cli_args import (
+    BRAKE_GUARD_OPTIONS,
+    add_brake_guard_option,
+    finite_float,
+    nonnegative_int,
+)
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import SchemaError
 
@@ -44,6 +49,7 @@ from safeil_sumo.experiments import replay as rp
 from safeil_sumo.experiments import replay_all as ra
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError
+from safeil_sumo.sim.brake_guard import BrakeGuard
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.sumo_api import SumoError
 
@@ -94,6 +100,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--rate", type=finite_float, default=10.0,
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
+    add_brake_guard_option(p)
     p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--list", action="store_true", help="list the maneuvers and exit")
     p.add_argument("--animate", action="store_true",
@@ -139,7 +146,8 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
         pol.load_for_replay(name)
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
     config = rp.ReplayConfig(seed=args.seed)
-    config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate))
+    config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
+                                          brake_guard=brake_guard(args)))
     table, agg = api.replay(
         maneuvers, args.policies, out, only or "all", args.windows, args.workers,
         args.duration, args.stride, config, progress=True,
@@ -163,6 +171,11 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
               file=sys.stderr)
     print(f"results: {out}")
     return 1 if len(failed) else 0
+
+
+def brake_guard(args: argparse.Namespace) -> BrakeGuard | None:
+    """The loop's brake guard of ``--brake-guard``."""
+    return BrakeGuard() if BRAKE_GUARD_OPTIONS[args.brake_guard] else None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -189,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     out = args.out or Path("runs") / f"replay_{rp.rr.safe_name(mid)}"
     config = rp.ReplayConfig(seed=args.seed)
-    config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate))
+    config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
+                                          brake_guard=brake_guard(args)))
     try:
         with outputs.AtomicDir(out) as tmp:
             result = rp.replay_maneuver(rows, policies, tmp, config, maneuver_id=mid)

@@ -22,6 +22,8 @@ from tqdm import tqdm
 
 from safeil_sumo import animate, api, policies
 from safeil_sumo.cli_args import (
+    BRAKE_GUARD_OPTIONS,
+    add_brake_guard_option,
     add_ego_speed_option,
     add_lane_option,
     add_leader_options,
@@ -36,6 +38,7 @@ from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
 from safeil_sumo.scenarios.spec import LEADER_KINDS, ScenarioSpec
+from safeil_sumo.sim.brake_guard import BrakeGuard
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig
 from safeil_sumo.sim.sumo_api import SumoError
@@ -66,6 +69,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                        "braking: to 15 m/s at 3 m/s^2 after 5 s; accelerating: use sweep")
     add_ego_speed_option(p)
     add_time_gap_option(p)
+    add_brake_guard_option(p)
     p.add_argument("--gap", type=finite_float, default=50.0, help="initial bumper gap [m]")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
@@ -146,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     default_name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{net_name}_{policy.name}_seed{args.seed}")
     out = args.out or Path("runs") / default_name
     loop = LoopConfig(plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
-                      backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot)
+                      backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot,
+                      brake_guard=BrakeGuard() if BRAKE_GUARD_OPTIONS[args.brake_guard] else None)
     vehicle = VehicleParams()
     try:
         scenarios = api.build_scenarios(

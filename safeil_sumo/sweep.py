@@ -25,10 +25,13 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
+    BRAKE_GUARD_OPTIONS,
+    add_brake_guard_option,
     add_ego_speed_option,
     add_lane_option,
     add_leader_options,
@@ -72,18 +75,24 @@ def toml_argv(path: Path) -> list[str]:
     return argv
 
 
+def with_config(argv: list[str]) -> list[str]:
+    """``argv`` with a ``--config FILE``'s options in its place, before the others (flags on
+    the command line override the file's); exits with a one-line error for a bad file."""
+    if "--config" not in argv:
+        return argv
+    i = argv.index("--config")
+    if i + 1 >= len(argv):
+        print("error: --config needs a TOML file", file=sys.stderr)
+        raise SystemExit(2)
+    try:
+        return toml_argv(Path(argv[i + 1])) + argv[:i] + argv[i + 2:]
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    if "--config" in argv:  # the file's options first: flags on the command line override them
-        i = argv.index("--config")
-        if i + 1 >= len(argv):
-            print("error: --config needs a TOML file", file=sys.stderr)
-            raise SystemExit(2)
-        try:
-            argv = toml_argv(Path(argv[i + 1])) + argv[:i] + argv[i + 2:]
-        except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            raise SystemExit(2) from None
+    argv = with_config(list(sys.argv[1:] if argv is None else argv))
     p = argparse.ArgumentParser(
         prog="python -m safeil_sumo.sweep",
         description="Closed-loop scenario sweeps in SUMO (local processes or a Dask cluster).",
@@ -127,6 +136,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--max-time", type=finite_float, default=None,
                    help="scenario duration [s] (default: 2x the path at the ego speed + 10 s)")
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
+    add_brake_guard_option(p)
     p.add_argument("--safety-filter", choices=tuple(FILTER_OPTIONS), default="off",
                    help="run policies without (off), with (on) or both ways (default off)")
     p.add_argument("--workers", type=int, default=1,
@@ -176,10 +186,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
     """The grid: nets x policies x filter options x scenario indices (ValueError if invalid)."""
+    guard = BRAKE_GUARD_OPTIONS[args.brake_guard]
     if args.suite == "leader-response":
         from safeil_sumo.experiments.suite import suite_specs
 
-        return suite_specs(args.policies, args.seed, variants=1 if args.quick else 3)
+        return [replace(s, brake_guard=guard)
+                for s in suite_specs(args.policies, args.seed, variants=1 if args.quick else 3)]
     gap = tuple(args.gap_range) if args.gap_range else (args.gap if args.gap is not None else 50.0)
     return [
         ScenarioSpec(
@@ -192,6 +204,7 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
             stop_on_flag=args.stop_on_flag, leader_profile=args.leader_profile or "",
             route=tuple(args.route), from_km=args.from_km, to_km=args.to_km,
             traffic=args.traffic, lane=args.lane or "", time_gap_s=args.time_gap,
+            brake_guard=guard,
         )
         for net, policy, filt, index in itertools.product(
             args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))

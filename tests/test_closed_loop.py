@@ -63,7 +63,9 @@ def test_bad_policy_is_flagged_for_lane_departure_at_the_right_moment(curved500)
 def test_bad_policy_is_flagged_for_ttc_and_matches_sumo_ssm(curved500, tmp_path):
     ssm = tmp_path / "ssm.xml"
     sc = Scenario("blind", curved500, constant(25.0), 30.0, 50.0, seed=2)
-    r = run_scenario(sc, blind_cruise(), LoopConfig(max_time_s=12.0, ssm_file=ssm))
+    # the TTC flag is the point: without the brake guard, which would prevent it
+    r = run_scenario(sc, blind_cruise(), LoopConfig(max_time_s=12.0, ssm_file=ssm,
+                                                    brake_guard=None))
     s = r.summary
     # closing at ~5 m/s from a 50 m gap: TTC = (50 - 5 t) / 5 reaches 1 s at t ~ 9 s
     assert s["flag"] == "ttc"

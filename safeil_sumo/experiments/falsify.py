@@ -99,6 +99,9 @@ class SearchConfig:
     min_std: float = 0.02  # CEM: floor of each coordinate's std, in box units [-]
     max_time_s: float = 30.0  # scenario duration [s]
     stop_at_failure: bool = False  # end the search after the batch of its first failure
+    # the loop's brake guard under the planner (safeil_sumo.sim.brake_guard), as shipped;
+    # False searches the planner and tracker alone
+    brake_guard: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -187,12 +190,13 @@ def values(u: np.ndarray) -> dict[str, float]:
     return {p.name: p.value(x) for p, x in zip(BOX, u)}
 
 
-def decode(u: np.ndarray, policy: str, max_time_s: float = 30.0) -> ScenarioSpec:
+def decode(u: np.ndarray, policy: str, max_time_s: float = 30.0,
+           brake_guard: bool = True) -> ScenarioSpec:
     """The :class:`ScenarioSpec` at ``u (D,)``. Always ``index = 0``: the spec's draws come from
     ``master_seed`` (the ``scenario_seed`` coordinate), so ``sweep --seed`` reruns it."""
     v = values(u)
     common = {"net": NETS[int(v["track"])], "index": 0, "master_seed": int(v["scenario_seed"]),
-              "policy": policy, "max_time_s": max_time_s,
+              "policy": policy, "max_time_s": max_time_s, "brake_guard": brake_guard,
               "radar_noise_m": round(v["radar_noise_m"], 3),
               "lane_noise_c0_m": round(v["lane_noise_m"], 4)}
     if v["leader_source"] >= RECORDED_FROM:
@@ -288,13 +292,14 @@ def outcome_of(spec: ScenarioSpec, record: dict) -> Outcome:
     return Outcome(score(min_ttc, flag, ok), ok and bool(flag), min_ttc, flag, ok)
 
 
-def closed_loop_objective(policy: str, max_time_s: float = 30.0) -> Objective:
+def closed_loop_objective(policy: str, max_time_s: float = 30.0,
+                          brake_guard: bool = True) -> Objective:
     """The objective of planner ``policy`` in SUMO: a batch of points decoded into specs and run
     side by side in ONE simulation (:func:`.sweep.run_tasks` drives ``sim.batch.run_batch``)."""
     from safeil_sumo.experiments.sweep import run_tasks
 
     def evaluate(u: np.ndarray) -> list[Outcome]:
-        specs = [decode(x, policy, max_time_s) for x in u]
+        specs = [decode(x, policy, max_time_s, brake_guard) for x in u]
         return [outcome_of(s, r) for s, r in zip(specs, run_tasks(specs))]
 
     return evaluate
@@ -314,6 +319,8 @@ def sweep_toml(spec: ScenarioSpec, comment: str = "") -> str:
     else:
         keys |= {"brake_time": spec.brake_time_s, "brake_decel": spec.brake_decel_mps2,
                  "brake_to": spec.brake_to_mps, "ego_speed": spec.ego_speed_mps}
+    if not spec.brake_guard:
+        keys["brake_guard"] = "off"
 
     def fmt(v) -> str:
         if isinstance(v, list):
@@ -332,7 +339,7 @@ def table(result: SearchResult, policy: str) -> pd.DataFrame:
     lowest score so far and the spec (JSON)."""
     rows = []
     for k, (u, o) in enumerate(zip(result.u, result.outcomes)):
-        spec = decode(u, policy, result.config.max_time_s)
+        spec = decode(u, policy, result.config.max_time_s, result.config.brake_guard)
         rows.append({"sim": k + 1, **{f"u{j}": float(x) for j, x in enumerate(u)},
                      **values(u), "net": spec.net, "leader_kind": spec.leader_kind,
                      "score": o.score, "failure": o.failure, "min_ttc_s": o.min_ttc_s,
@@ -367,7 +374,8 @@ def summary(result: SearchResult, policy: str) -> dict:
         o = result.outcomes[b]
         out |= {"best_score": o.score, "best_min_ttc_s": o.min_ttc_s, "best_flag": o.flag,
                 "best_sim": b + 1,
-                "best_spec": decode(result.u[b], policy, result.config.max_time_s).to_json()}
+                "best_spec": decode(result.u[b], policy, result.config.max_time_s,
+                                            result.config.brake_guard).to_json()}
     return out
 
 
@@ -407,7 +415,8 @@ def run_or_load(policy: str, config: SearchConfig, folder: Path, progress: bool 
     bar = tqdm(total=config.budget, desc=f"{policy} {config.method} s{config.seed}",
                unit="sim", disable=not progress or None)
     try:
-        result = search(config, closed_loop_objective(policy, config.max_time_s), bar.update)
+        result = search(config, closed_loop_objective(policy, config.max_time_s,
+                                                            config.brake_guard), bar.update)
     finally:
         bar.close()
     folder.mkdir(parents=True, exist_ok=True)
@@ -446,7 +455,8 @@ def study_configs(run: StudyRun) -> list[SearchConfig]:
 
 def study_folder(work: Path, policy: str, config: SearchConfig) -> Path:
     """Where a study search is kept (resumable: :func:`run_or_load`)."""
-    return Path(work) / f"{policy}_{config.method}_s{config.seed}"
+    return Path(work) / (f"{policy}_{config.method}_s{config.seed}"
+                         + ("" if config.brake_guard else "_noguard"))
 
 
 def first_at_or_below(result: SearchResult, threshold_s: float) -> int | None:

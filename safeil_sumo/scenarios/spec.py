@@ -51,6 +51,10 @@ class ScenarioSpec:
     master_seed: int = 0  # with ``index`` gives the scenario seed (SUMO, sensors, draws) [-]
     policy: str = "analytic"  # a name of safeil_sumo.policies.NAMES or a checkpoint/IDM path
     safety_filter: bool = False  # wrap the policy in the inference-time safety filter
+    # collision-avoidance braking under the planner (safeil_sumo.sim.brake_guard); False: the
+    # planner and tracker alone, the paper's loop. In the JSON only when True: specs of earlier
+    # versions, which ran without it, keep their task ids as brake_guard=False
+    brake_guard: bool = True
     leader_kind: str = "constant"  # "constant" | "braking" | "accelerating" | "recorded"
     leader_speed_range_mps: tuple[float, float] = (25.0, 32.0)  # leader (initial) speed [m/s]
     brake_time_s: float = 5.0  # braking/accelerating leader: the change starts at this time [s]
@@ -104,6 +108,7 @@ class ScenarioSpec:
         set_(self, "index", int(self.index))
         set_(self, "master_seed", int(self.master_seed))
         set_(self, "safety_filter", bool(self.safety_filter))
+        set_(self, "brake_guard", bool(self.brake_guard))
         set_(self, "stop_on_flag", bool(self.stop_on_flag))
         set_(self, "leader_speed_range_mps", _pair(self.leader_speed_range_mps, "leader speed"))
         gap = self.initial_gap_m
@@ -188,6 +193,8 @@ class ScenarioSpec:
             del out["traffic"]
         if not out["lane"]:
             del out["lane"]
+        if not out["brake_guard"]:
+            del out["brake_guard"]
         return out
 
     @classmethod

@@ -17,6 +17,7 @@ from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import traffic as trf
+from safeil_sumo.sim.brake_guard import BrakeGuard
 from safeil_sumo.sim.leaders import SpeedProfile
 
 GUI_SCREENSHOT_AT_S = 1.0  # simulation time of LoopConfig.gui_screenshot [s]
@@ -79,6 +80,9 @@ class LoopConfig:
     # traffic, SUMO's vehicles react to the ego's SUMO position, so logs differ by millimetres.
     # sumo-gui always gets "xy" (it shows the true pose)
     ego_placement: str = "lane"
+    # collision-avoidance braking under the planner (:mod:`.brake_guard`); None: the planner's
+    # and tracker's commands alone (the paper's loop)
+    brake_guard: BrakeGuard | None = field(default_factory=BrakeGuard)
 
     def __post_init__(self) -> None:
         if self.ego_placement not in EGO_PLACEMENTS:

@@ -99,6 +99,9 @@ class _Log:
         "cp1_x", "cp1_y", "cp2_x", "cp2_y", "cp3_x", "cp3_y",
         # which leader [-]: 0, 1, ... in the order met (traffic); 0 the scripted one; NaN none
         "leader_no",
+        # the brake guard's deceleration [m/s^2] where it overrode the tracker's command, else
+        # 0; NaN without a guard (LoopConfig.brake_guard=None) or for held/kinematic commands
+        "guard_decel",
     )
 
     @classmethod

@@ -62,6 +62,7 @@ import numpy as np
 from safeil_sumo.features import planner_features
 from safeil_sumo.geometry import Polyline, PolylineStack, yaw_to_sumo_angle
 from safeil_sumo.policy import Policy
+from safeil_sumo.sim import brake_guard as grd
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim import sensors as sen
@@ -282,6 +283,7 @@ class PlanAndTrack:
         self.vehicle, self.controller, self.dt = loop.vehicle, loop.controller, loop.loop.step_s
         self.plant = veh.Plant.of(loop.vehicle, loop.loop.step_s)
         self.lap = loop._sub_lap
+        self.guard, self.period = loop.loop.brake_guard, loop._plan_every * loop.loop.step_s
 
     def plan(self, live: _Live, given: np.ndarray | None, t, xp, controls=None) -> None:
         """The plans of the decision at ``t`` [s] (each scenario's own time: a float at N = 1,
@@ -289,6 +291,8 @@ class PlanAndTrack:
         (acceleration, steering: floats at N = 1, columns ``(n,)`` else), no plan."""
         live.controls = controls
         n = len(live.runs)
+        if self.guard is not None:
+            self._watch_leader(live, xp)
         if controls is not None:  # the commands are held: no plan, its log columns NaN
             live.target = None
             live.t_plan = xp.full(n, t)
@@ -311,21 +315,45 @@ class PlanAndTrack:
             live.plan_log = (np.full(n, t), fx, fy, yaw, *cps.reshape(n, 6).T)
         live.t_plan = xp.full(n, t)
 
+    def _watch_leader(self, live: _Live, xp) -> None:
+        """The brake guard's view at a decision: the leader's acceleration estimate and the
+        deceleration demand held over the period (:mod:`.brake_guard`)."""
+        f = live.features
+        if xp is FLOATS:
+            v_ego, v_lead, gap = float(f[6]), float(f[7]), float(f[8])
+        else:
+            v_ego, v_lead, gap = f[:, 6], f[:, 7], f[:, 8]
+        a_prev, v_lead_prev, gap_prev, v_ego_prev = live.guard_memory
+        a_lead = grd.leader_accel(a_prev, v_lead_prev, gap_prev, v_ego_prev, v_lead, gap,
+                                  self.period, self.guard, xp)
+        live.guard_memory = (a_lead, v_lead, gap, v_ego)
+        live.guard_demand = grd.guard_decel(gap, v_ego, v_lead, a_lead, self.guard, xp)
+
     def move(self, live: _Live, t: float, xp) -> tuple:
-        """Track the plans and step the plant; the steering and acceleration commands."""
+        """Track the plans (under the brake guard) and step the plant; the steering and
+        acceleration commands and the guard's deceleration where it overrode (else 0; NaN
+        without a guard or with held commands)."""
         vehicle = self.vehicle
         x, y, yaw, vx, vy, yaw_rate = live.st[:6]
+        guarded = xp.full(len(live.runs), math.nan)
         if live.controls is None:
             steer_cmd, accel_cmd, live.integral, live.prev_error = ctl.track_values(
                 live.target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle,
                 live.integral, live.prev_error, self.controller, self.dt, xp)
+            if self.guard is not None:  # brake harder where the situation needs it
+                demand = live.guard_demand
+                override = xp.logical_and(demand > 0.0, demand > -accel_cmd)
+                guarded = xp.where(override, demand, 0.0)
+                accel_cmd = xp.where(override, xp.maximum(-demand,
+                                                          self.controller.accel_min_mps2),
+                                     accel_cmd)
         else:  # commands from outside, held over the period
             accel_cmd, steer_cmd = live.controls
         throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, xp)
         if self.lap is not None:
             self.lap("track")
         live.st = self.plant.step(live.st, steer_cmd, throttle, brake, xp)
-        return steer_cmd, accel_cmd
+        return steer_cmd, accel_cmd, guarded
 
 
 class Kinematic:
@@ -343,7 +371,7 @@ class Kinematic:
                   for r, tj in zip(live.runs, xp.rows(t + self.dt))]
         live.st = tuple(xp.from_rows(col) for col in zip(*states))
         n = len(live.runs)
-        return xp.full(n, math.nan), xp.full(n, math.nan)
+        return xp.full(n, math.nan), xp.full(n, math.nan), xp.full(n, math.nan)
 
 
 def _block(xp, n: int, k: int) -> tuple:
@@ -363,6 +391,10 @@ class _Live:
             (r.state0.x, r.state0.y, r.state0.yaw, r.state0.vx, r.state0.vy, r.state0.yaw_rate,
              r.state0.steer, r.state0.drive_force) for r in runs)))  # the plant's state
         self.integral, self.prev_error = xp.full(n, 0.0), xp.full(n, math.nan)  # PID memory
+        # the brake guard's: leader acceleration, leader speed, gap, ego speed at the last
+        # decision; its deceleration demand over the period [m/s^2]
+        self.guard_memory = grd.no_history(n, xp)
+        self.guard_demand = xp.full(n, 0.0)
         self.t_plan = xp.full(n, 0.0)  # when the tracked plans were made [s]
         self.features = np.full((n, 9) if xp is ARRAYS else 9, np.nan)  # the last decision's
         self.front = (xp.full(n, math.nan), xp.full(n, math.nan))  # front bumper then [m]
@@ -402,6 +434,8 @@ class _Live:
         self.c = _Fixed.of(self.runs, self.xp)
         self.st = tuple(col[keep] for col in self.st)
         self.integral, self.prev_error = self.integral[keep], self.prev_error[keep]
+        self.guard_memory = tuple(col[keep] for col in self.guard_memory)
+        self.guard_demand = self.guard_demand[keep]
         self.t_plan, self.features = self.t_plan[keep], self.features[keep]
         self.front = (self.front[0][keep], self.front[1][keep])
         self.ego_seg, self.lead_seg = self.ego_seg[keep], self.lead_seg[keep]
@@ -426,6 +460,8 @@ class _Live:
         self.st = cols(self.st, other.st)
         self.integral = cat([self.integral, other.integral])
         self.prev_error = cat([self.prev_error, other.prev_error])
+        self.guard_memory = cols(self.guard_memory, other.guard_memory)
+        self.guard_demand = cat([self.guard_demand, other.guard_demand])
         self.t_plan, self.features = (cat([self.t_plan, other.t_plan]),
                                       cat([self.features, other.features]))
         self.front = cols(self.front, other.front)
@@ -833,7 +869,7 @@ class ClosedLoop:
         its lane, move the egos and command the leaders in SUMO, step SUMO."""
         c, dt, lap, xp = live.c, self._dt, self._sub_lap, self._xp
         t = (k - c.k0) * dt  # each scenario's own time (a restarted one's starts at its k0)
-        steer_cmd, accel_cmd = self._driver.move(live, t, xp)
+        steer_cmd, accel_cmd, guarded = self._driver.move(live, t, xp)
         x, y, yaw, vx, vy = live.st[:5]
         v = xp.hypot(vx, vy)
         d_front = self._d_front
@@ -870,7 +906,7 @@ class ClosedLoop:
         hit = xp.from_rows([r.ego in colliding for r in live.runs])
         if lap is not None:
             lap("sumo_step")
-        return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl
+        return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded
 
     def _read_leaders(self, live: _Live) -> tuple:
         """Each running scenario's leader after a step: its rear ``lead_x, lead_y`` [m] and
@@ -915,7 +951,7 @@ class ClosedLoop:
         """Read the leaders, check footprints and run the monitors on the state at ``t + dt``;
         log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), each row's
         end reason (``""``: goes on) and the lane-departure, TTC and collision flags."""
-        t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl = moved
+        t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded = moved
         c, st, n, xp = live.c, live.st, len(live.runs), self._xp
         lead_x, lead_y, v_lead = self._read_leaders(live)
         has_lead = xp.isfinite(lead_x)  # NaN: no leader
@@ -941,6 +977,7 @@ class ClosedLoop:
             xp.full(n, t + self._dt), st[0], st[1], yaw, v, st[4], st[5], st[6], front_x,
             front_y, steer_cmd, accel_cmd, s, d, d_min, d_max, *live.feature_log, lead_x, lead_y,
             v_lead, gap, ttc, departed, ttc_flag, hit, fraction, *live.plan_log, lead_no,
+            guarded,
         ])
         logged = rows if self._col_idx is None else np.asarray(rows)[..., self._col_idx]
         if xp is FLOATS:  # one scenario: a list append per step

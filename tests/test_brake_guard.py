@@ -1,0 +1,158 @@
+"""The brake guard: its kinematics by hand and by simulation, its estimate, and in SUMO the
+avoidable collision it prevents (docs/brake_guard.md)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.sim.brake_guard import BrakeGuard, guard_decel, leader_accel, required_decel
+from safeil_sumo.sim.xp import ARRAYS, FLOATS
+
+GUARD = BrakeGuard()
+
+
+@pytest.mark.parametrize("gap, v_ego, v_lead, b_lead, expected", [
+    (25.0, 30.0, 20.0, 0.0, 2.0),  # constant-speed leader: dv^2 / (2 gap) = 100 / 50
+    (40.0, 20.0, 0.0, 0.0, 5.0),  # a stopped car: v^2 / (2 gap)
+    (20.0, 30.0, 20.0, 4.0, 6.5),  # speeds match at t* = 4 s, the leader still at 4 m/s: b + 2.5
+    (10.0, 20.0, 20.0, 5.0, 4.0),  # equal speeds, the leader stops in 40 m: 400 / (2 * 50)
+    (50.0, 30.0, 10.0, 5.0, 7.5),  # the leader stops (2 s) before the match (5 s): 900 / 120
+    (30.0, 20.0, 25.0, 0.0, 0.0),  # opening, nobody brakes: nothing needed
+])
+def test_required_decel_by_hand(gap, v_ego, v_lead, b_lead, expected):
+    assert required_decel(gap, v_ego, v_lead, b_lead, FLOATS) == pytest.approx(expected)
+    arrays = required_decel(np.array([gap]), np.array([v_ego]), np.array([v_lead]),
+                            np.array([b_lead]), ARRAYS)
+    assert arrays[0] == pytest.approx(expected)
+
+
+def _position(v: float, b: float, t: np.ndarray) -> np.ndarray:
+    """Distance [m] covered by ``t`` [s] from speed ``v`` braking at ``b`` to a stop."""
+    if b <= 0.0:
+        return v * t
+    tc = np.minimum(t, v / b)
+    return v * tc - 0.5 * b * tc * tc
+
+
+def _min_gap(gap: float, v_ego: float, v_lead: float, b_lead: float, b_ego: float) -> float:
+    """Smallest gap [m] while both cars brake at constant rates to a stop, on a fine time grid
+    up to when both stand (or, for a cruising leader, until the ego is no faster)."""
+    ends = [v_ego / b_ego if b_ego > 0 else 0.0, v_lead / b_lead if b_lead > 0 else 0.0]
+    if b_lead <= 0.0:
+        ends.append(max(v_ego - v_lead, 0.0) / b_ego if b_ego > 0 else 0.0)
+    t = np.linspace(0.0, max(ends) + 1.0, 200_001)
+    return float(np.min(gap + _position(v_lead, b_lead, t) - _position(v_ego, b_ego, t)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(gap=st.floats(2.0, 120.0), v_ego=st.floats(1.0, 40.0), v_lead=st.floats(0.0, 40.0),
+       b_lead=st.one_of(st.just(0.0), st.floats(0.1, 9.0)))
+def test_required_decel_is_enough_and_no_more(gap, v_ego, v_lead, b_lead):
+    """Braking at the demand keeps the gap >= 0 (to the integration's precision); 5 % less
+    does not, whenever anything is needed."""
+    b = required_decel(gap, v_ego, v_lead, b_lead, FLOATS)
+    assert b >= 0.0
+    if b == 0.0:
+        assert v_ego <= v_lead and b_lead == 0.0
+        return
+    assert _min_gap(gap, v_ego, v_lead, b_lead, b) >= -0.05
+    if b > 0.01:  # (below, 5 % is within the grid's precision)
+        assert _min_gap(gap, v_ego, v_lead, b_lead, 0.95 * b) < 0.0
+
+
+def test_leader_accel_estimate():
+    nan = math.nan
+    assert leader_accel(0.0, nan, nan, nan, 20.0, 30.0, 0.1, GUARD, FLOATS) == 0.0  # no history
+    # raw -2 m/s^2, low-passed with alpha = 0.1 / (0.3 + 0.1) = 0.25
+    assert leader_accel(0.0, 20.0, 30.0, 20.0, 19.8, 30.0, 0.1, GUARD, FLOATS) == \
+        pytest.approx(-0.5)
+    # the range jumped 10 m against its prediction: a new target, its estimate starts at 0
+    assert leader_accel(-3.0, 20.0, 30.0, 20.0, 15.0, 20.0, 0.1, GUARD, FLOATS) == 0.0
+    got = leader_accel(np.array([0.0, -3.0]), np.array([20.0, 20.0]), np.array([30.0, 30.0]),
+                       np.array([20.0, 20.0]), np.array([19.8, 15.0]), np.array([30.0, 20.0]),
+                       0.1, GUARD, ARRAYS)
+    np.testing.assert_allclose(got, [-0.5, 0.0])
+
+
+def test_guard_demand_acts_only_above_activation():
+    # 60 m behind a car at 20 m/s braking at 2 m/s^2, both at 20 m/s: the room is 58 m,
+    # 400 / (2 (58 + 100)) = 1.27 m/s^2 needed: below 3 m/s^2, the planner's
+    assert guard_decel(60.0, 20.0, 20.0, -2.0, GUARD, FLOATS) == 0.0
+    # 20 m behind it: room 18 m, 400 / (2 * 118) = 1.69; at 9 m/s^2: 400 / (2 (18 + 22.2)) = 4.97
+    assert guard_decel(20.0, 20.0, 20.0, -9.0, GUARD, FLOATS) == pytest.approx(
+        400.0 / (2.0 * (18.0 + 400.0 / 18.0)))
+    # the reaction distance: closing at 10 m/s takes 3 m off the room
+    assert guard_decel(15.0, 30.0, 20.0, 0.0, GUARD, FLOATS) == pytest.approx(100.0 / (2 * 10.0))
+    with pytest.raises(ValueError, match="reaction_s"):
+        BrakeGuard(reaction_s=-1.0)
+
+
+def test_spec_json_keeps_old_task_ids():
+    """brake_guard=False specs are the specs of earlier versions (same JSON, same task ids);
+    the default, True, is a new task."""
+    off = ScenarioSpec(brake_guard=False)
+    assert "brake_guard" not in off.to_json()
+    assert ScenarioSpec().to_json()["brake_guard"] is True
+    assert ScenarioSpec.from_json(off.to_json()) == replace(off, brake_guard=True)
+
+
+# -- in SUMO ------------------------------------------------------------------------------------
+
+GENTLE_BRAKING = ScenarioSpec(
+    net="straight", policy="safeil", leader_kind="braking", leader_speed_range_mps=(22.66, 22.66),
+    initial_gap_m=27.57, max_time_s=20.0, brake_time_s=1.09, brake_decel_mps2=2.79,
+    brake_to_mps=0.0, ego_speed_mps=30.0, master_seed=572)
+
+
+@pytest.mark.parametrize("policy", ["safeil", "idm"])
+def test_guard_prevents_the_avoidable_collision(policy):
+    """Falsification's case (docs/falsification.md): a leader 27.6 m ahead at 22.7 m/s brakes
+    gently (2.8 m/s^2) to a stop. Without the guard the planner collides; with it, the ego stops
+    behind with TTC > 1 s, and the log shows the guard braking."""
+    from safeil_sumo.experiments.sweep import run_task
+
+    spec = replace(GENTLE_BRAKING, policy=policy)
+    off = run_task(replace(spec, brake_guard=False))
+    on = run_task(spec)
+    assert off["status"] == on["status"] == "ok"
+    assert off["flag"] == "ttc" and off["min_ttc_s"] < 0.5
+    assert on["flag"] == "" and on["min_ttc_s"] > 1.0 and on["min_gap_m"] > 0.5
+
+
+def test_guard_is_logged_and_off_means_the_papers_loop():
+    from safeil_sumo import policies
+    from safeil_sumo.experiments.sweep import _task_parts
+    from safeil_sumo.sim.runner import run_scenario
+
+    _, scenario, policy, loop = _task_parts(GENTLE_BRAKING)
+    on = run_scenario(scenario, policy, loop).log
+    assert (on["guard_decel"] > 3.0).any()  # it braked
+    assert (on["guard_decel"] >= 0.0).all()  # 0 where it did not
+    assert on.loc[on["guard_decel"] > 0, "accel_cmd"].to_numpy() == pytest.approx(
+        -on.loc[on["guard_decel"] > 0, "guard_decel"].to_numpy())
+    off = run_scenario(scenario, policies.load("safeil"), replace(loop, brake_guard=None)).log
+    assert off["guard_decel"].isna().all()
+
+
+def test_guard_stays_out_of_ordinary_following(curved500):
+    """The paper's safety test (leader at a constant 25-32 m/s): the guard never acts, so the
+    runs are the planner's own (same logs as without it)."""
+    from safeil_sumo import policies
+    from safeil_sumo.scenarios.safety import safety_scenario
+    from safeil_sumo.sim.batch import run_batch
+    from safeil_sumo.sim.runner import LoopConfig
+
+    scenarios = [safety_scenario(curved500, i, master_seed=0) for i in range(4)]
+    policy = policies.load("safeil")
+    on = run_batch(scenarios, policy, LoopConfig())
+    off = run_batch(scenarios, policy, LoopConfig(brake_guard=None))
+    for a, b in zip(on, off):
+        assert (a.log["guard_decel"] == 0.0).all()
+        np.testing.assert_array_equal(a.log["gap"].to_numpy(), b.log["gap"].to_numpy())
