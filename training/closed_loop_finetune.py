@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     bar = tqdm(range(config.iters), disable=args.no_progress, desc="closed loop")
     log = []
-    for it in bar:
+    for _ in bar:
         idx = torch.randperm(len(eps), generator=gen)[: config.batch]
         ep = eps.take(idx.numpy())
         model.train()

@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     table = evaluate([str(p.with_suffix(".safetensors")) for p in candidates.values()],
                      WORK / "selection", workers=args.workers, progress=False)
     val_imitation = {}
-    for name, prefix in candidates.items():
+    for prefix in candidates.values():
         meta = json.loads(prefix.with_suffix(".json").read_text())
         val_imitation[str(prefix.with_suffix(".safetensors"))] = meta["metrics"]["val_imitation"]
     table["val_imitation"] = table["policy"].map(val_imitation)
