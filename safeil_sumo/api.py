@@ -134,8 +134,8 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
     ``adapt_first_s`` [s] (``whole`` windows): the planners are adapted to each driver on the
     maneuver's first seconds, which are then not scored (``replay_all.adapt_planners``)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
-    from safeil_sumo.experiments import replay_all as ra
     from safeil_sumo.data.sources import load_source
+    from safeil_sumo.experiments import replay_all as ra
 
     if isinstance(source, pd.DataFrame):
         rows = source

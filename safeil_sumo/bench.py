@@ -108,7 +108,7 @@ def sumo_share_us_per_step(net: str, sim_s: float) -> tuple[float, float]:
     half_width = 0.5 * road.lanes[road.ego_lane].width
     traj = list(zip(log["front_x"].tolist(), log["front_y"].tolist(),
                     [yaw_to_sumo_angle(y) for y in log["yaw"].tolist()], log["v"].tolist(),
-                    log["s"].tolist(), (log["d"].abs() <= half_width).tolist()))
+                    log["s"].tolist(), (log["d"].abs() <= half_width).tolist(), strict=True))
     api = sumo_api.start(sumo_args(sc, LoopConfig()))
     try:
         _add_two_cars(api, road)

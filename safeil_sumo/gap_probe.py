@@ -24,9 +24,9 @@ from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import finite_float, nonnegative_int
+from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 from safeil_sumo.experiments import gap_probe as gp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

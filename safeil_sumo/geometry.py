@@ -292,7 +292,7 @@ class PolylineStack:
         counts = np.array([len(a[0]) for a in arrays])  # vertices
         first = np.concatenate([[0], np.cumsum(counts)[:-1]])
         self.lines, self.line_of = lines, np.asarray(line_of)
-        self.arrays = tuple(np.concatenate(parts) for parts in zip(*arrays))
+        self.arrays = tuple(np.concatenate(parts) for parts in zip(*arrays, strict=True))
         self.first = first[self.line_of]  # (N,) each row's first vertex in the stack
         self.last = counts[self.line_of] - 2  # (N,) each row's last segment, on its own line
 

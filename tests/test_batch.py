@@ -63,12 +63,12 @@ def _largest_difference(batch, scalar) -> float:
     with np.errstate(invalid="ignore"):  # inf - inf in gap columns without a leader
         return max(float(np.nanmax(np.abs(np.where(
             np.isinf(s.log.to_numpy(float)), 0, b.log.to_numpy(float) - s.log.to_numpy(float))
-        )[:, [c != "ttc" for c in s.log.columns]])) for b, s in zip(batch, scalar))
+        )[:, [c != "ttc" for c in s.log.columns]])) for b, s in zip(batch, scalar, strict=True))
 
 
 def _assert_same(batch, scalar, atol=ATOL_M):
     """Same rows, flags, flag times (to the step) and end reasons; floats within ``atol``."""
-    for b, s in zip(batch, scalar):
+    for b, s in zip(batch, scalar, strict=True):
         name = s.summary["scenario"]
         assert list(b.log.columns) == list(s.log.columns)
         assert len(b.log) == len(s.log), name
@@ -129,7 +129,7 @@ def test_summary_columns_give_the_same_summaries(road):
     full = run_batch([sc for sc, _ in cases], [p for _, p in cases], loop)
     lean = run_batch([sc for sc, _ in cases], [p for _, p in cases], loop,
                      log_columns=SUMMARY_COLUMNS)
-    for f, s in zip(full, lean):
+    for f, s in zip(full, lean, strict=True):
         assert list(s.log.columns) == list(SUMMARY_COLUMNS)
         pd.testing.assert_frame_equal(s.log, f.log[list(SUMMARY_COLUMNS)])
         assert ({k: v for k, v in s.summary.items() if k not in WALL_KEYS}

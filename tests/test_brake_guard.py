@@ -153,6 +153,6 @@ def test_guard_stays_out_of_ordinary_following(curved500):
     policy = policies.load("safeil")
     on = run_batch(scenarios, policy, LoopConfig())
     off = run_batch(scenarios, policy, LoopConfig(brake_guard=None))
-    for a, b in zip(on, off):
+    for a, b in zip(on, off, strict=True):
         assert (a.log["guard_decel"] == 0.0).all()
         np.testing.assert_array_equal(a.log["gap"].to_numpy(), b.log["gap"].to_numpy())

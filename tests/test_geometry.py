@@ -143,17 +143,17 @@ def test_polyline_stack_equals_each_polyline(seed, spread):
              Polyline(np.array([[-30.0, 1.0], [400.0, 2.0]]))]
     line_of = rng.integers(0, len(lines), 40)
     s0 = np.array([rng.uniform(-20.0, lines[k].length + 20.0) for k in line_of])
-    xy = np.array([lines[k].point_at(s)[0] for k, s in zip(line_of, s0)])
+    xy = np.array([lines[k].point_at(s)[0] for k, s in zip(line_of, s0, strict=True)])
     xy += rng.normal(0.0, spread, xy.shape)
     xy[::7] = np.nan
-    hint = np.array([lines[k].segment_index(float(s)) for k, s in zip(line_of, s0)])
+    hint = np.array([lines[k].segment_index(float(s)) for k, s in zip(line_of, s0, strict=True)])
     hint += rng.integers(-2, 3, len(hint))
     stacked = PolylineStack(lines, line_of).project_near_many(xy[:, 0], xy[:, 1], hint)
     assert all(a.dtype == np.float64 for a in stacked[:3])
     for k, line in enumerate(lines):
         rows = np.flatnonzero(line_of == k)
         own = line.project_near_many(xy[rows, 0], xy[rows, 1], hint[rows])
-        for got, want in zip(stacked, own):
+        for got, want in zip(stacked, own, strict=True):
             np.testing.assert_array_equal(got[rows], want)
 
 

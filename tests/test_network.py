@@ -6,9 +6,8 @@ import json
 import math
 import shutil
 import subprocess
-from pathlib import Path
-
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,7 +20,7 @@ from safeil_sumo.scenarios.catalogue import (
     spec_for,
 )
 from safeil_sumo.scenarios.network import TrackSpec, build_network
-from safeil_sumo.scenarios.road import _parse_shape, NetworkError, Road, load_road
+from safeil_sumo.scenarios.road import NetworkError, Road, _parse_shape, load_road
 
 
 def fit_circle(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -72,7 +71,7 @@ def test_curved500_geometry(curved500: Road):
              if el.get("id") == "road_1").get("shape"))
     assert len(sumo_shape) < 60
     assert len(road.lane(1).centre.points) > 300
-    centre, r_sumo = fit_circle(sumo_shape[2:-1])  # the arc vertices lie on the circle
+    _centre, r_sumo = fit_circle(sumo_shape[2:-1])  # the arc vertices lie on the circle
     assert r_sumo == pytest.approx(500.0, abs=0.01)
     seg = np.diff(pts, axis=0)
     assert np.max(np.linalg.norm(seg, axis=1)) ** 2 / (8 * 500.0) < 0.021

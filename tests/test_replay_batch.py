@@ -42,7 +42,7 @@ def _same(a, b, where: str = "") -> None:
             _same(a[k], b[k], f"{where}/{k}")
     elif isinstance(a, list):
         assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
             _same(x, y, f"{where}[{i}]")
     elif isinstance(a, float) and isinstance(b, float) and not (math.isnan(a) or math.isnan(b)):
         assert a == pytest.approx(b, rel=RTOL, abs=1e-12), where

@@ -200,6 +200,6 @@ def test_whole_replays_with_constant_speed_aggregate_per_policy_and_driver(tmp_p
     assert row["collisions"] == 1 and row["gap_rmse_worst"] == "7-3#0@0s"
     assert agg.set_index("policy").loc["idm", "collisions"] == 0
     by_driver = pd.read_csv(tmp_path / "aggregate_by_driver.csv", dtype={"driver": str})
-    assert set(zip(by_driver["policy"], by_driver["driver"])) == {
+    assert set(zip(by_driver["policy"], by_driver["driver"], strict=True)) == {
         (p, d) for p in policies for d in ("7", "arc")}
     assert (by_driver["windows"] == 1).all()

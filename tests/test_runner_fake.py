@@ -11,6 +11,76 @@ from safeil_sumo.sim.leaders import constant
 from safeil_sumo.sim.runner import EGO_ID, LEADER_ID, LoopConfig, Scenario, run_scenario
 
 
+# FakeSumo's route, vehicle and simulation domains: each changes the state of its FakeSumo
+class _FakeRoute:
+    def __init__(self, fake):
+        self.fake = fake
+
+    def add(self, route_id, edges):
+        self.fake.calls.append(("route.add", route_id, tuple(edges)))
+
+
+class _FakeVehicle:
+    def __init__(self, fake):
+        self.fake = fake
+
+    def add(self, veh_id, route_id, depart="now", departLane="0", departPos="0",
+            departSpeed="0"):
+        self.fake.cars[veh_id] = {"x": float(departPos), "y": 0.0, "angle": 90.0,
+                                  "speed": float(departSpeed)}
+
+    def moveToXY(self, veh_id, edge, lane, x, y, angle=90.0, keepRoute=1):
+        self.fake.calls.append(("moveToXY", veh_id, x, y, angle, keepRoute))
+        self.fake.cars[veh_id].update(x=x, y=y, angle=angle)
+
+    def setSpeed(self, veh_id, v):
+        self.fake.cars[veh_id]["speed"] = v
+
+    def setSpeedMode(self, veh_id, mode):
+        self.fake.calls.append(("setSpeedMode", veh_id, mode))
+
+    def setLaneChangeMode(self, veh_id, mode):
+        self.fake.calls.append(("setLaneChangeMode", veh_id, mode))
+
+    def setLength(self, veh_id, length):
+        pass
+
+    def setWidth(self, veh_id, width):
+        pass
+
+    def getPosition(self, veh_id):
+        return self.fake.cars[veh_id]["x"], self.fake.cars[veh_id]["y"]
+
+    def getAngle(self, veh_id):
+        return self.fake.cars[veh_id]["angle"]
+
+    def getSpeed(self, veh_id):
+        return self.fake.cars[veh_id]["speed"]
+
+    def getIDList(self):
+        return list(self.fake.cars)
+
+
+class _FakeSimulation:
+    def __init__(self, fake):
+        self.fake = fake
+
+    def step(self, t=0.0):
+        self.fake.time += self.fake.dt
+        self.fake.steps += 1
+        if self.fake.fail_at_step is not None and self.fake.steps > self.fake.fail_at_step:
+            raise RuntimeError("simulated SUMO crash")
+        leader = self.fake.cars.get(LEADER_ID)
+        if leader is not None:
+            leader["x"] += leader["speed"] * self.fake.dt
+
+    def getTime(self):
+        return self.fake.time
+
+    def getCollidingVehiclesIDList(self):
+        return []
+
+
 class FakeSumo:
     """Vehicles on a straight road along +x: the leader moves at its set speed; the ego is
     wherever moveToXY puts it. Records the calls the runner makes."""
@@ -24,66 +94,9 @@ class FakeSumo:
         self.cars = {}
         self.calls = []
         self.closed = False
-        fake = self
-
-        class Route:
-            def add(self, route_id, edges):
-                fake.calls.append(("route.add", route_id, tuple(edges)))
-
-        class Vehicle:
-            def add(self, veh_id, route_id, depart="now", departLane="0", departPos="0",
-                    departSpeed="0"):
-                fake.cars[veh_id] = {"x": float(departPos), "y": 0.0, "angle": 90.0,
-                                     "speed": float(departSpeed)}
-
-            def moveToXY(self, veh_id, edge, lane, x, y, angle=90.0, keepRoute=1):
-                fake.calls.append(("moveToXY", veh_id, x, y, angle, keepRoute))
-                fake.cars[veh_id].update(x=x, y=y, angle=angle)
-
-            def setSpeed(self, veh_id, v):
-                fake.cars[veh_id]["speed"] = v
-
-            def setSpeedMode(self, veh_id, mode):
-                fake.calls.append(("setSpeedMode", veh_id, mode))
-
-            def setLaneChangeMode(self, veh_id, mode):
-                fake.calls.append(("setLaneChangeMode", veh_id, mode))
-
-            def setLength(self, veh_id, length):
-                pass
-
-            def setWidth(self, veh_id, width):
-                pass
-
-            def getPosition(self, veh_id):
-                return fake.cars[veh_id]["x"], fake.cars[veh_id]["y"]
-
-            def getAngle(self, veh_id):
-                return fake.cars[veh_id]["angle"]
-
-            def getSpeed(self, veh_id):
-                return fake.cars[veh_id]["speed"]
-
-            def getIDList(self):
-                return list(fake.cars)
-
-        class Simulation:
-            def step(self, t=0.0):
-                fake.time += fake.dt
-                fake.steps += 1
-                if fake.fail_at_step is not None and fake.steps > fake.fail_at_step:
-                    raise RuntimeError("simulated SUMO crash")
-                leader = fake.cars.get(LEADER_ID)
-                if leader is not None:
-                    leader["x"] += leader["speed"] * fake.dt
-
-            def getTime(self):
-                return fake.time
-
-            def getCollidingVehiclesIDList(self):
-                return []
-
-        self.route, self.vehicle, self.simulation = Route(), Vehicle(), Simulation()
+        self.route = _FakeRoute(self)
+        self.vehicle = _FakeVehicle(self)
+        self.simulation = _FakeSimulation(self)
 
     def close(self):
         self.closed = True

@@ -79,7 +79,7 @@ def _drive(sim: ClosedLoop, scenarios, pols, plan=None, **reset_kw):
 
 
 def _assert_identical(got, want, skip=()):
-    for g, w in zip(got, want):
+    for g, w in zip(got, want, strict=True):
         pd.testing.assert_frame_equal(g.log, w.log, check_exact=True)
         for key in set(w.summary) - set(WALL_KEYS) - set(skip):
             a, b = g.summary[key], w.summary[key]
@@ -180,7 +180,7 @@ def test_reset_with_a_seed_repeats_the_episode(road):
 
     first, again, other = episode(5), episode(5), episode(6)
     assert len(first[1]) == len(again[1]) == 31  # reset + 30 decision steps
-    for (o1, e1), (o2, e2) in zip(first[1], again[1]):
+    for (o1, e1), (o2, e2) in zip(first[1], again[1], strict=True):
         for field in o1.__dataclass_fields__:
             np.testing.assert_array_equal(getattr(o1, field), getattr(o2, field), err_msg=field)
         if e1 is not None:

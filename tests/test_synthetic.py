@@ -123,6 +123,41 @@ def test_params_validate():
         syn.DriverParams(wander_std_m=-0.1)
 
 
+class _ArcRoad:
+    """A road of constant curvature ``kappa`` [1/m], heading 0 at s = 0 (the two methods the
+    recorder's kinematic step reads)."""
+
+    def __init__(self, kappa: float) -> None:
+        self.kappa = kappa
+
+    def kappa_at(self, s: float) -> float:
+        return self.kappa
+
+    def heading_at(self, s: float) -> float:
+        return self.kappa * s
+
+
+def test_recorder_kinematic_step_by_hand():
+    """Speed by the acceleration (never below 0), distance by the mean speed, the arc length of
+    the reference line stretched by 1 / (1 - kappa d) for an offset lane, the new offset from
+    the right lane's centre and the yaw = road heading + the angle of the lateral move."""
+    from safeil_sumo.data.recorder import kinematic_step
+    from safeil_sumo.scenarios.n74 import lane_centre_offset
+
+    right = lane_centre_offset(0)
+    s, d, v, yaw = kinematic_step(_ArcRoad(0.0), 100.0, right, 20.0, 1.0, 0.5, DT)
+    assert v == pytest.approx(20.1) and s == pytest.approx(100.0 + 2.005)
+    assert d == pytest.approx(right + 0.5) and yaw == pytest.approx(math.atan2(0.5, 2.005))
+    # in a left bend, right of the reference line (outside): less reference arc than driven
+    s, _, _, yaw = kinematic_step(_ArcRoad(0.01), 0.0, right, 20.0, 0.0, 0.0, DT)
+    assert s == pytest.approx(2.0 / (1.0 - 0.01 * right))
+    assert yaw == pytest.approx(0.01 * s)
+    # braking to a stop: the speed stays 0, the lateral move keeps a finite angle
+    s, _, v, yaw = kinematic_step(_ArcRoad(0.0), 5.0, right, 0.5, -10.0, 0.2, DT)
+    assert v == 0.0 and s == pytest.approx(5.0 + 0.025)
+    assert yaw == pytest.approx(math.atan2(0.2, 0.025))
+
+
 # ------------------------------------------------------------------ real libsumo recording
 
 @pytest.fixture(scope="module")

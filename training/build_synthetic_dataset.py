@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     stats: dict[int, dict] = {}
     with mp.get_context("spawn").Pool(args.workers, maxtasksperchild=1) as pool:
         results = pool.imap(drive_one, jobs)  # ordered: the output does not depend on timing
-        for (i, _, _), (df, st) in tqdm(zip(jobs, results), total=len(jobs), unit="drive"):
+        for (i, _, _), (df, st) in tqdm(zip(jobs, results, strict=True), total=len(jobs), unit="drive"):
             frames[i], stats[i] = df, st
     drives = pd.concat([frames[i] for i in range(args.drivers)], ignore_index=True)
     save_drive(drives, args.out)

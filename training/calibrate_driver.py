@@ -98,7 +98,7 @@ def fit_pair(args: tuple[dict, int]) -> dict:
         "id": pair["id"],
         "samples": len(pair["v"]),
         "duration_s": round(len(pair["v"]) * pair["dt"], 1),
-        "params": {k: round(float(v), 4) for k, v in zip(FIT_NAMES, res.x)},
+        "params": {k: round(float(v), 4) for k, v in zip(FIT_NAMES, res.x, strict=True)},
         "rmse_gap_m": round(float(err["rmse_gap_m"][0]), 3),
         "rmse_speed_mps": round(float(err["rmse_speed_mps"][0]), 3),
         "objective": round(float(err["objective"][0]), 5),
@@ -118,7 +118,7 @@ def lateral_offsets(data: Path) -> list[np.ndarray]:
         off[lane == ln] -= np.median(off[lane == ln])
     rec = ng["recording_id"].to_numpy()
     starts = np.flatnonzero(np.r_[True, rec[1:] != rec[:-1]])
-    return [off[a:b] for a, b in zip(starts, np.r_[starts[1:], len(rec)])]
+    return [off[a:b] for a, b in zip(starts, np.r_[starts[1:], len(rec)], strict=True)]
 
 
 def mean_acf(series: list[np.ndarray], max_lag: int) -> np.ndarray:
@@ -205,7 +205,7 @@ def plot(pairs: list[dict], fits: list[dict], median: np.ndarray, lat_real: list
     import matplotlib.pyplot as plt
 
     real_h, fit_h, med_h, real_v, fit_v, med_v = [], [], [], [], [], []
-    for pair, fit in zip(pairs, fits):
+    for pair, fit in zip(pairs, fits, strict=True):
         x_fit = np.array([fit["params"][k] for k in FIT_NAMES])[:, None]
         g_fit, v_fit = simulate(pair, x_fit)
         g_med, v_med = simulate(pair, median[:, None])
@@ -284,7 +284,7 @@ def main(argv: list[str] | None = None) -> None:
 
     # v0 is not identified by car following (the fits run into its bounds): the median driver
     # takes the population's mean desired speed on n74 instead (see synthetic.sample_driver)
-    fitted = {k: round(float(v), 4) for k, v in zip(FIT_NAMES, median)}
+    fitted = {k: round(float(v), 4) for k, v in zip(FIT_NAMES, median, strict=True)}
     driver = replace(DriverParams(), **fitted | {"desired_speed_mps": DESIRED_SPEED_MEAN_MPS},
                      wander_std_m=lat["wander_std_m"], wander_tau_s=lat["wander_tau_s"])
 
@@ -301,7 +301,7 @@ def main(argv: list[str] | None = None) -> None:
                       "(CC BY 4.0; leader speed and bumper gap as recorded)",
             "model": "IDM with reaction delay (noise-free during the fit), delta = 4",
             "objective": "RMSE(gap)/mean(gap) + RMSE(speed)/mean(speed)",
-            "bounds": dict(zip(FIT_NAMES, BOUNDS)),
+            "bounds": dict(zip(FIT_NAMES, BOUNDS, strict=True)),
             "seed": args.seed,
             "per_pair": fits,
             "rmse_gap_m": summary([f["rmse_gap_m"] for f in fits]),

@@ -25,6 +25,7 @@ planner settles at, whatever the start.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from pathlib import Path
 
@@ -32,11 +33,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import held_out_maneuvers, load_model, save_checkpoint
 from safeil_sumo.learn.closed_loop import (
     D_LEAD,
     V_X,
+    FinetuneConfig,
     SettlingConfig,
     closed_loop_loss,
     episodes_from_tuples,
@@ -56,62 +59,47 @@ from safeil_sumo.learn.style import (
 from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The input and output options, and one option per :class:`FinetuneConfig` field under its
+    own name, its help the field's ``help`` metadata."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--init", type=Path,
                     default=Path("safeil_sumo/models/safeil_openloop.safetensors"))
     ap.add_argument("--data", type=Path, nargs="+", required=True, help="tuple Parquet files")
     ap.add_argument("--out", type=Path, required=True, help="checkpoint prefix")
-    ap.add_argument("--window", type=float, default=40.0, help="rollout length [s]")
-    ap.add_argument("--stride", type=float, default=10.0, help="between window starts [s]")
-    ap.add_argument("--iters", type=int, default=300)
-    ap.add_argument("--batch", type=int, default=64, help="episodes per iteration")
-    ap.add_argument("--lr", type=float, default=3e-4)
-    ap.add_argument("--speed-weight", type=float, default=4.0)
-    ap.add_argument("--lateral-weight", type=float, default=100.0)
-    ap.add_argument("--equilibrium-weight", type=float, default=0.0,
-                    help="weight of the equilibrium term: behind a leader at its own speed at "
-                         "the preferred gap the plan keeps its speed (learn/style.py)")
-    ap.add_argument("--perturb", type=float, default=0.0,
-                    help="share of episodes started off the human's state: the gap scaled by "
-                         "a factor in [0.5, 1.8] and the speed changed by up to 2 m/s; the "
-                         "planner must bring the gap back (default 0: none)")
-    ap.add_argument("--settle-weight", type=float, default=0.0,
-                    help="weight of the settling term: as many synthetic episodes as --batch, "
-                         "a constant-speed leader and the ego started far behind or too close "
-                         "(learn/closed_loop.py SettlingConfig); the gap is scored against the "
-                         "setting's equilibrium from --settle-after on, and time gaps below 0.8 s "
-                         "all along (default 0: none; needs --style)")
-    ap.add_argument("--settle-after", type=float, default=30.0,
-                    help="the settling term scores the gap from this time on [s] (at most "
-                         "half the window)")
-    ap.add_argument("--style", action="store_true",
-                    help="add the driver's preferred time gap as an input (learn/style.py)")
-    ap.add_argument("--seed", type=int, default=0)
+    helps = {f.name: f.metadata["help"] for f in dataclasses.fields(FinetuneConfig)}
+    add_dataclass_options(ap, FinetuneConfig, helps=helps)
     ap.add_argument("--no-progress", action="store_true")
-    args = ap.parse_args(argv)
-    if args.settle_weight > 0 and not args.style:
-        ap.error("--settle-weight needs --style: the episodes draw the time-gap setting")
+    return ap
 
-    torch.manual_seed(args.seed)
+
+def main(argv: list[str] | None = None) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    try:
+        config = dataclass_from_args(FinetuneConfig, args)
+    except ValueError as exc:  # the config's own checks: a usage error
+        ap.error(str(exc))
+
+    torch.manual_seed(config.seed)
     torch.set_num_threads(1)
     model, meta = load_model(args.init)
     frozen, _ = load_model(args.init)
     for p in frozen.parameters():
         p.requires_grad_(False)
-    cfg = TrainConfig.from_dict(meta["train_config"])
+    base = TrainConfig.from_dict(meta["train_config"])  # barrier, envelope, monotonicity kept
     horizon = float(meta["horizon_s"])
     held = set(held_out_maneuvers(args.init))
     tuples = Tuples.concat([Tuples.load(p) for p in args.data])
     train_ids = {m for m in np.unique(tuples.maneuver_id) if m not in held}
-    eps = episodes_from_tuples(tuples, args.window, args.stride, maneuvers=train_ids)
-    print(f"{len(eps)} episodes of {args.window:g} s from {len(set(eps.maneuver_id))} "
+    eps = episodes_from_tuples(tuples, config.window, config.stride, maneuvers=train_ids)
+    print(f"{len(eps)} episodes of {config.window:g} s from {len(set(eps.maneuver_id))} "
           f"training maneuvers ({len(held)} held out)")
     feats = torch.as_tensor(tuples.features, dtype=torch.float32)
     style_default = None
     median = float(np.nanmedian(maneuver_time_gaps(
         tuples.features[:, D_LEAD], tuples.features[:, V_X], tuples.maneuver_id, np.nan)))
-    if args.style:
+    if config.style:
         tg = maneuver_time_gaps(tuples.features[:, D_LEAD], tuples.features[:, V_X],
                                 tuples.maneuver_id, fallback_s=np.nan)
         train_rows = np.isin(tuples.maneuver_id, list(train_ids)) & np.isfinite(tg)
@@ -124,20 +112,20 @@ def main(argv: list[str] | None = None) -> int:
         feats = torch.cat([feats, torch.as_tensor(tg, dtype=torch.float32)[:, None]], dim=1)
         print(f"style: time gap per training maneuver, median {median:.2f} s, quartiles "
               f"{np.quantile(list(per_maneuver.values()), [0.25, 0.75]).round(2).tolist()} s")
-    settling = SettlingConfig(settle_after_s=min(args.settle_after, args.window / 2))
-    rng = np.random.default_rng([args.seed, 3])
-    gen = torch.Generator().manual_seed(args.seed)
-    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    settling = SettlingConfig(settle_after_s=min(config.settle_after, config.window / 2))
+    rng = np.random.default_rng([config.seed, 3])
+    gen = torch.Generator().manual_seed(config.seed)
+    opt = torch.optim.Adam(model.parameters(), lr=config.lr)
     start = time.perf_counter()
-    bar = tqdm(range(args.iters), disable=args.no_progress, desc="closed loop")
+    bar = tqdm(range(config.iters), disable=args.no_progress, desc="closed loop")
     log = []
-    for it in bar:
-        idx = torch.randperm(len(eps), generator=gen)[: args.batch]
+    for _ in bar:
+        idx = torch.randperm(len(eps), generator=gen)[: config.batch]
         ep = eps.take(idx.numpy())
         model.train()
         gap_off = speed_off = None
-        if args.perturb > 0:
-            on = torch.as_tensor(rng.uniform(size=len(ep)) < args.perturb, dtype=torch.float32)
+        if config.perturb > 0:
+            on = torch.as_tensor(rng.uniform(size=len(ep)) < config.perturb, dtype=torch.float32)
             factor = torch.as_tensor(rng.uniform(0.5, 1.8, len(ep)), dtype=torch.float32)
             gap0 = ep.gap_human[:, 0]
             gap_off = on * torch.clamp(gap0 * (factor - 1.0), min=3.0 - gap0)
@@ -145,30 +133,31 @@ def main(argv: list[str] | None = None) -> int:
                                              dtype=torch.float32)
         terms = closed_loop_loss(rollout(model, ep, horizon=horizon, gap_offset_m=gap_off,
                                          speed_offset_mps=speed_off), ep,
-                                 speed_weight=args.speed_weight, barrier_k=cfg.barrier_k,
-                                 barrier_weight=cfg.envelope_weight)
+                                 speed_weight=config.speed_weight, barrier_k=base.barrier_k,
+                                 barrier_weight=base.envelope_weight)
         settle = floor = torch.zeros(())
-        if args.settle_weight > 0:
-            syn, gap_eq = settling_episodes(args.batch, eps.lanes, rng, args.window, cfg=settling)
+        if config.settle_weight > 0:
+            syn, gap_eq = settling_episodes(config.batch, eps.lanes, rng, config.window,
+                                            cfg=settling)
             settle, floor = settling_loss(rollout(model, syn, horizon=horizon), gap_eq,
                                           syn.dt_s, settling)
-        env = torch.as_tensor(sample_states(cfg.envelope_batch, rng), dtype=torch.float32)
-        if args.style:
+        env = torch.as_tensor(sample_states(base.envelope_batch, rng), dtype=torch.float32)
+        if config.style:
             env = torch.cat([env, torch.as_tensor(rng.uniform(*TIME_GAP_RANGE_S, (len(env), 1)),
                                                   dtype=torch.float32)], dim=1)
-        env_term = sum(envelope_barrier_terms(env, model(env), horizon, cfg.barrier))
-        mono = gap_monotone_penalty(model, env, margin_m=cfg.monotone_margin_m)
+        env_term = sum(envelope_barrier_terms(env, model(env), horizon, base.barrier))
+        mono = gap_monotone_penalty(model, env, margin_m=base.monotone_margin_m)
         equilibrium = torch.zeros(())
-        if args.equilibrium_weight > 0:
-            time_gap = env[:, 9] if args.style else torch.full((len(env),), median)
+        if config.equilibrium_weight > 0:
+            time_gap = env[:, 9] if config.style else torch.full((len(env),), median)
             eq = equilibrium_states(env, time_gap)
             equilibrium = equilibrium_residual(model(eq), eq[:, V_X], horizon)
         data_rows = torch.randint(len(feats), (512,), generator=gen)
         anchor = torch.cat([feats[data_rows], env])
         lateral = (model(anchor)[..., 1] - frozen(anchor[:, :9])[..., 1]).pow(2).mean()
-        loss = (terms.total + cfg.envelope_weight * env_term + cfg.monotone_weight * mono
-                + args.lateral_weight * lateral + args.equilibrium_weight * equilibrium
-                + args.settle_weight * (settle + floor))
+        loss = (terms.total + base.envelope_weight * env_term + base.monotone_weight * mono
+                + config.lateral_weight * lateral + config.equilibrium_weight * equilibrium
+                + config.settle_weight * (settle + floor))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
@@ -185,12 +174,12 @@ def main(argv: list[str] | None = None) -> int:
     model.eval()
     seconds = time.perf_counter() - start
     metrics = {**meta.get("metrics", {}), "closed_loop": {
-        "init": str(args.init), "window_s": args.window, "stride_s": args.stride,
-        "iters": args.iters, "batch": args.batch, "lr": args.lr,
-        "speed_weight": args.speed_weight, "lateral_weight": args.lateral_weight,
-        "equilibrium_weight": args.equilibrium_weight, "perturb": args.perturb,
-        "settle_weight": args.settle_weight, "settle_after_s": settling.settle_after_s,
-        "seed": args.seed, "episodes": len(eps), "seconds": seconds, "style": args.style,
+        "init": str(args.init), "window_s": config.window, "stride_s": config.stride,
+        "iters": config.iters, "batch": config.batch, "lr": config.lr,
+        "speed_weight": config.speed_weight, "lateral_weight": config.lateral_weight,
+        "equilibrium_weight": config.equilibrium_weight, "perturb": config.perturb,
+        "settle_weight": config.settle_weight, "settle_after_s": settling.settle_after_s,
+        "seed": config.seed, "episodes": len(eps), "seconds": seconds, "style": config.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,
                     train_config=meta["train_config"], data_fingerprint=meta.get(

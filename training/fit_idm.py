@@ -25,8 +25,8 @@ from tqdm import tqdm
 from safeil_sumo import idm
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import load_drive
-from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR, driver_of, load_source
+from safeil_sumo.learn.checkpoint import held_out_maneuvers
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "safeil_sumo" / "models" / "idm.json"

@@ -106,14 +106,12 @@ def train_fold(k: int, drivers: set[str]) -> Path:
     py = sys.executable
     chosen = json.loads((shipped.MODELS / "selection.json").read_text())["chosen"]
     if not (fold / "safeil_openloop.safetensors").is_file():
-        _run([py, str(REPO / "training" / "train.py"), "--data", str(shipped.SYNTHETIC), *real,
-              "--seed", str(shipped.SEED), "--name", "safeil", "--out",
-              str(fold / "safeil_openloop"), "--no-progress",
-              *shipped.SAFEIL_CANDIDATES[chosen]], log)
+        _run(shipped.train_command(shipped.SAFEIL_CANDIDATES[chosen],
+                                   [str(shipped.SYNTHETIC), *real], fold / "safeil_openloop",
+                                   "safeil"), log)
     if not (fold / "safeil.safetensors").is_file():
-        _run([py, str(REPO / "training" / "closed_loop_finetune.py"), "--init",
-              str(fold / "safeil_openloop.safetensors"), "--data", *real, "--out",
-              str(fold / "safeil"), "--no-progress", *shipped.CLOSED_LOOP], log)
+        _run(shipped.finetune_command(shipped.CLOSED_LOOP, fold / "safeil_openloop.safetensors",
+                                      real, fold / "safeil"), log)
     if not (fold / "idm.json").is_file():
         _run([py, str(REPO / "training" / "fit_idm.py"), "--exclude-from",
               str(fold / "held_out.json"), "--out", str(fold / "idm.json")], log)

@@ -38,39 +38,6 @@ SUMMARY_KEYS = (
 )
 
 
-# one line of help per TrainConfig field (its docstring has the detail)
-FIELD_HELP = {
-    "method": "safeil (imitation + barrier) or bc (imitation only)",
-    "hidden": "hidden layer widths, e.g. 64,64",
-    "activation": "hidden-layer activation",
-    "lr": "Adam learning rate",
-    "weight_decay": "Adam L2 weight decay",
-    "batch_size": "minibatch size (0 = full batch)",
-    "max_epochs": "max epochs",
-    "patience": "epochs without a validation improvement before stopping",
-    "seed": "seed of the split, the initial weights and the minibatches",
-    "barrier_k": "barrier weight K",
-    "track": "vehicle track T [m]",
-    "gap_min": "extra leader gap [m]",
-    "time_gap": "extra leader gap [s]",
-    "barrier_samples": "also constrain this many points along the spline (0 = paper)",
-    "barrier_control_points": "constrain the control points (the paper; --no-... needs "
-                              "--barrier-samples > 0)",
-    "num_threads": "torch CPU threads",
-    "barrier_lateral": "lane barrier on the control points (paper) or on the exact Bernstein "
-                       "coefficients of the margin along the spline",
-    "output_mode": "control points (paper) or their residual to constant-speed motion",
-    "longitudinal_only_sources": "sources whose lateral (y) targets are not learned (e.g. "
-                                 "openacc: no lanes)",
-    "lateral_only_sources": "sources whose longitudinal (x) targets are not learned (e.g. "
-                            "synthetic)",
-    "envelope_weight": "weight of the barrier on states sampled across the operating envelope "
-                       "(0 = paper)",
-    "envelope_batch": "envelope states per minibatch",
-    "monotone_weight": "weight of the penalty on plans that shorten as the gap grows (on the "
-                       "envelope states)",
-    "monotone_margin_m": "growth [m] of the plan per 2 m of gap asked by the monotonicity penalty",
-}
 # the names these options had before they were generated from TrainConfig
 ALIASES = {"max_epochs": ("--epochs",), "num_threads": ("--threads",),
            "monotone_margin_m": ("--monotone-margin",)}
@@ -78,8 +45,8 @@ ALIASES = {"max_epochs": ("--epochs",), "num_threads": ("--threads",),
 
 def build_parser() -> argparse.ArgumentParser:
     """The data, split and output options, and one option per :class:`TrainConfig` field under
-    its own name (``--max-epochs``, old names kept as aliases). The config's own checks judge
-    the values: see :func:`config_of`."""
+    its own name (``--max-epochs``, old names kept as aliases), its help the field's ``help``
+    metadata. The config's own checks judge the values: see :func:`config_of`."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", required=True, type=Path, nargs="+",
                    help="Tuples Parquet file(s); several are concatenated (e.g. sources)")
@@ -87,7 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of maneuvers left out for validation (default 0.2)")
     p.add_argument("--val-maneuvers", default=None,
                    help="comma-separated maneuver ids to leave out (overrides --val-fraction)")
-    add_dataclass_options(p, TrainConfig, helps=FIELD_HELP, aliases=ALIASES,
+    helps = {f.name: f.metadata["help"] for f in dataclasses.fields(TrainConfig)}
+    add_dataclass_options(p, TrainConfig, helps=helps, aliases=ALIASES,
                           choices={"method": METHODS, "activation": ACTIVATIONS,
                                    "barrier_lateral": LATERAL_MODES,
                                    "output_mode": OUTPUT_MODES})

@@ -37,11 +37,16 @@ Models, all on the same data and split:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
+
+from safeil_sumo.learn.closed_loop import FinetuneConfig
+from safeil_sumo.learn.train import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_DIR = REPO / "data"
@@ -51,45 +56,81 @@ MODELS = REPO / "safeil_sumo" / "models"
 WORK = DATA_DIR / "models"
 SEED = 0
 
-MIXED = ["--longitudinal-only-sources", "openacc"]
+# the recipes are configs; option_argv turns them into the training scripts' options
+MIXED = TrainConfig(seed=SEED, longitudinal_only_sources=("openacc",))
 # envelope weight 0.01: with K = 1000 the envelope states' barrier still keeps every plan behind
 # the leader (probe 0 %, battery 0 flags), and costs the least human-likeness (weight 1 gave a
 # 3.05 m median replay gap RMSE on held-out OpenACC windows, 0.01 gave 2.56 m; see
 # docs/leader_following.md)
 # the monotonicity penalty asks for 2 mm of growth per 2 m of gap: without it a few probe states
 # (8 of 117 pairs) still planned up to 2.5 cm less for a farther leader; with 2 mm none does
-SAFEIL = [*MIXED, "--method", "safeil", "--barrier-lateral", "bernstein", "--output-mode",
-          "residual", "--envelope-weight", "0.01", "--monotone-weight", "10000",
-          "--monotone-margin", "0.002"]
+SAFEIL = replace(MIXED, method="safeil", barrier_lateral="bernstein", output_mode="residual",
+                 envelope_weight=0.01, monotone_weight=10000.0, monotone_margin_m=0.002)
 SAFEIL_CANDIDATES = {
-    "safeil_margin0": [*SAFEIL],
-    "safeil_margin2m": [*SAFEIL, "--gap-min", "2"],
+    "safeil_margin0": SAFEIL,
+    "safeil_margin2m": replace(SAFEIL, gap_min=2.0),
 }
 # closed-loop stage (docs/human_likeness.md): 400 iterations of 64 episodes of 60 s
 # plus the settling term: synthetic constant-speed leaders, the gap scored against the setting's
 # equilibrium from 20 s on, weight 3 (docs/human_likeness.md: weight 1 from 30 s settled 7 of 12
 # probe responses within 45 s, this 10)
-CLOSED_LOOP = ["--window", "60", "--iters", "400", "--style", "--equilibrium-weight", "1",
-               "--perturb", "0.5", "--settle-weight", "3", "--settle-after", "20",
-               "--seed", str(SEED)]
+CLOSED_LOOP = FinetuneConfig(window=60.0, iters=400, style=True, equilibrium_weight=1.0,
+                             perturb=0.5, settle_weight=3.0, settle_after=20.0, seed=SEED)
 OTHERS = {
-    "safeil_paper": [*MIXED, "--method", "safeil", "--barrier-lateral", "control_points"],
-    "bc": [*MIXED, "--method", "bc", "--output-mode", "residual"],
+    "safeil_paper": replace(MIXED, method="safeil", barrier_lateral="control_points"),
+    "bc": replace(MIXED, method="bc", output_mode="residual"),
 }
 
 
-def _train_all(jobs: dict[str, tuple[list[str], str]], parallel: int) -> dict[str, Path]:
-    """Train ``name -> (extra args, stored name)`` with ``parallel`` processes; the prefixes."""
+def option_argv(config: TrainConfig | FinetuneConfig) -> list[str]:
+    """The options that rebuild ``config`` through the script's generated parser
+    (:func:`safeil_sumo.cli_args.add_dataclass_options`): one per field that differs from the
+    default, so a command line reads like the recipe. Floats are written by ``repr``, which
+    parses back to the same float exactly: the trained weights depend on the values only."""
+    default = type(config)()
+    argv: list[str] = []
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if value == getattr(default, f.name):
+            continue
+        flag = f.name.replace("_", "-")
+        if isinstance(value, bool):
+            argv.append(f"--{flag}" if value else f"--no-{flag}")
+        elif isinstance(value, tuple) and "int" in str(f.type):  # e.g. hidden: "64,64"
+            argv += [f"--{flag}", ",".join(map(str, value))]
+        elif isinstance(value, tuple):  # several values
+            argv += [f"--{flag}", *map(str, value)]
+        else:
+            argv += [f"--{flag}", repr(value) if isinstance(value, float) else str(value)]
+    return argv
+
+
+def train_command(config: TrainConfig, data: list[str], out: Path, name: str) -> list[str]:
+    """The ``training/train.py`` command that trains ``config`` on ``data`` into ``out``,
+    storing the policy name ``name``."""
+    return [sys.executable, str(REPO / "training" / "train.py"), "--data", *data,
+            "--name", name, "--out", str(out), "--no-progress", *option_argv(config)]
+
+
+def finetune_command(config: FinetuneConfig, init: Path, data: list[str], out: Path
+                     ) -> list[str]:
+    """The ``training/closed_loop_finetune.py`` command that fine-tunes the checkpoint
+    ``init`` with ``config`` on ``data`` into ``out``."""
+    return [sys.executable, str(REPO / "training" / "closed_loop_finetune.py"),
+            "--init", str(init), "--data", *data, "--out", str(out), "--no-progress",
+            *option_argv(config)]
+
+
+def _train_all(jobs: dict[str, tuple[TrainConfig, str]], parallel: int) -> dict[str, Path]:
+    """Train ``name -> (config, stored name)`` with ``parallel`` processes; the prefixes."""
     data = [str(p) for p in (SYNTHETIC, *REAL)]
     WORK.mkdir(parents=True, exist_ok=True)
     pending = list(jobs.items())
     running: list[tuple[str, subprocess.Popen]] = []
     while pending or running:
         while pending and len(running) < parallel:
-            name, (extra, stored_name) = pending.pop(0)
-            cmd = [sys.executable, str(REPO / "training" / "train.py"), "--data", *data,
-                   "--seed", str(SEED), "--name", stored_name, "--out", str(WORK / name),
-                   "--no-progress", *extra]
+            name, (config, stored_name) = pending.pop(0)
+            cmd = train_command(config, data, WORK / name, stored_name)
             running.append((name, subprocess.Popen(cmd, stdout=subprocess.DEVNULL)))
         name, proc = running.pop(0)
         if proc.wait() != 0:
@@ -129,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     table = evaluate([str(p.with_suffix(".safetensors")) for p in candidates.values()],
                      WORK / "selection", workers=args.workers, progress=False)
     val_imitation = {}
-    for name, prefix in candidates.items():
+    for prefix in candidates.values():
         meta = json.loads(prefix.with_suffix(".json").read_text())
         val_imitation[str(prefix.with_suffix(".safetensors"))] = meta["metrics"]["val_imitation"]
     table["val_imitation"] = table["policy"].map(val_imitation)
@@ -138,10 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     best = Path(table["policy"].iloc[0]).with_suffix("")
     print(table[["policy", "collisions", "flags", "min_ttc_s", "val_imitation"]].to_string())
     _ship(best, "safeil_openloop")
-    subprocess.run([sys.executable, str(REPO / "training" / "closed_loop_finetune.py"),
-                    "--init", str(MODELS / "safeil_openloop.safetensors"),
-                    "--data", *map(str, REAL), "--out", str(WORK / "safeil"), "--no-progress",
-                    *CLOSED_LOOP], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(finetune_command(CLOSED_LOOP, MODELS / "safeil_openloop.safetensors",
+                                    [str(p) for p in REAL], WORK / "safeil"),
+                   check=True, stdout=subprocess.DEVNULL)
     _ship(WORK / "safeil", "safeil")
     records = table.drop(columns=["rank_key"]).to_dict(orient="records")
     for r in records:

@@ -188,6 +188,53 @@ def _insert_ego(api, cfg: RecordingConfig, route_edges: list[str]) -> None:
     api.vehicle.setLaneChangeMode(EGO_ID, 0)
 
 
+def radar_lead(others: Others, xy: np.ndarray, yaw: float, left: np.ndarray,
+               right: np.ndarray, sensors: sen.SensorConfig
+               ) -> tuple[sen.RadarTarget | None, str]:
+    """The radar's leader: the nearest vehicle ahead (rear bumper along the ego's heading) that
+    :func:`~safeil_sumo.sim.sensors.radar_leader` accepts, and its id; ``(None, "")`` if none."""
+    if not len(others.ids):
+        return None, ""
+    local_x = (others.rear - xy) @ np.array([math.cos(yaw), math.sin(yaw)])
+    for i in np.argsort(local_x):
+        if local_x[i] <= 0.0:
+            continue
+        target = sen.radar_leader(xy, yaw, others.rear[i], float(others.speed[i]), left, right,
+                                  sensors)
+        if target is not None:
+            return target, others.ids[i]
+    return None, ""
+
+
+def perceived_gaps(ref: Polyline, xy: np.ndarray, others: Others) -> tuple[LaneGaps, ...]:
+    """What the driver perceives: per main lane, the gaps ahead and behind (:func:`lane_gaps`,
+    arc lengths along the window's reference line ``ref``)."""
+    if not len(others.ids):
+        return tuple(LaneGaps() for _ in range(n74.MAIN_LANES))
+    s_f, d_f = ref.project(others.front)
+    s_r, _ = ref.project(others.rear)
+    s_ego, _ = ref.project(xy)
+    return lane_gaps(float(s_ego), s_f, s_r, d_f, others.width, others.speed)
+
+
+def kinematic_step(geo: n74.N74Geometry, s: float, d: float, v: float, accel: float,
+                   lateral_m: float, dt: float) -> tuple[float, float, float, float]:
+    """The ego moved kinematically along the road for ``dt`` [s]: ``(s, d, v, yaw)`` after it.
+
+    ``s`` arc length [m] and ``d`` lateral offset [m] of the reference line, ``v`` speed [m/s]
+    (>= 0, changed by ``accel`` [m/s^2]); the new offset is the driver's ``lateral_m`` from the
+    right lane's centre, reached in this step; ``yaw`` [rad] is the road's heading plus the
+    angle of that lateral move over the distance driven."""
+    v_new = max(v + accel * dt, 0.0)
+    dist = 0.5 * (v + v_new) * dt
+    kappa = float(geo.kappa_at(s))
+    d_new = n74.lane_centre_offset(0) + lateral_m
+    ds = dist / max(1.0 - kappa * d, 0.5)  # arc length of the reference line
+    heading_err = math.atan2(d_new - d, max(dist, 1e-3))
+    s_new = s + ds
+    return s_new, d_new, v_new, float(geo.heading_at(s_new)) + heading_err
+
+
 def record_drive(params: DriverParams, cfg: RecordingConfig = RecordingConfig(),
                  geo: n74.N74Geometry | None = None) -> pd.DataFrame:
     """Drive one synthetic driver on n74 and return the validated drive frame.
@@ -232,43 +279,18 @@ def record_drive(params: DriverParams, cfg: RecordingConfig = RecordingConfig(),
             road, ref, _ = windows.at(s)
             xy = geo.frenet_to_xy(s, d)
             others = read_others(api)
-            # --- sensors (the closed loop's code) --------------------------------------------
+            # sensors: the closed loop's code
             left, right, lane_idx = sen.camera_lane_lines(road, xy, yaw, cfg.sensors)
-            target, lead_id = None, ""
-            if len(others.ids):
-                local_x = (others.rear - xy) @ np.array([math.cos(yaw), math.sin(yaw)])
-                for i in np.argsort(local_x):
-                    if local_x[i] <= 0.0:
-                        continue
-                    target = sen.radar_leader(xy, yaw, others.rear[i], float(others.speed[i]),
-                                              left, right, cfg.sensors)
-                    if target is not None:
-                        lead_id = others.ids[i]
-                        break
+            target, lead_id = radar_lead(others, xy, yaw, left, right, cfg.sensors)
             leader_ids.append(lead_id)
             _log(cols, k * dt, xy, yaw, v, left, right, target, lane_idx, s, d)
-
-            # --- driver ----------------------------------------------------------------------
-            if len(others.ids):
-                s_f, d_f = ref.project(others.front)
-                s_r, _ = ref.project(others.rear)
-                s_ego, _ = ref.project(xy)
-                gaps = lane_gaps(float(s_ego), s_f, s_r, d_f, others.width, others.speed)
-            else:
-                gaps = tuple(LaneGaps() for _ in range(n74.MAIN_LANES))
+            # driver
             kappa_ahead = float(geo.kappa_at(s + v * params.curve_preview_s))
-            cmd = driver.step(Observation(v, gaps, kappa_ahead, n74.LANE_WIDTH_M))
+            cmd = driver.step(Observation(v, perceived_gaps(ref, xy, others), kappa_ahead,
+                                          n74.LANE_WIDTH_M))
             cols["accel"].append(cmd.accel)
-
-            # --- kinematic ego along the road ------------------------------------------------
-            v_new = max(v + cmd.accel * dt, 0.0)
-            dist = 0.5 * (v + v_new) * dt
-            kappa = float(geo.kappa_at(s))
-            d_new = n74.lane_centre_offset(0) + cmd.lateral_m
-            ds = dist / max(1.0 - kappa * d, 0.5)  # arc length of the reference line
-            heading_err = math.atan2(d_new - d, max(dist, 1e-3))
-            s, d, v = s + ds, d_new, v_new
-            yaw = float(geo.heading_at(s)) + heading_err
+            # kinematic ego along the road, then SUMO
+            s, d, v, yaw = kinematic_step(geo, s, d, v, cmd.accel, cmd.lateral_m, dt)
             _move(api, geo, s, d, yaw, v)
             api.simulation.step()
             if EGO_ID in api.simulation.getCollidingVehiclesIDList():
@@ -280,10 +302,23 @@ def record_drive(params: DriverParams, cfg: RecordingConfig = RecordingConfig(),
     df = pd.DataFrame(cols)
     df.insert(0, "recording_id", cfg.recording_id)
     out = validate_drive(df, f"recording {cfg.recording_id}")
+    out.attrs["recording_stats"] = {
+        **recording_stats(df, leader_ids, cfg, sim_time, collisions),
+        "wall_s": round(wall, 2),
+        "wall_drive_s": round(time.perf_counter() - wall_sim0, 2) if len(df) else 0.0,
+    }
+    return out
+
+
+def recording_stats(df: pd.DataFrame, leader_ids: list[str], cfg: RecordingConfig,
+                    sim_time: float, collisions: int) -> dict:
+    """The recording's counts: samples, distance driven [m], simulated duration [s], share of
+    samples with a leader, lane changes, leader switches (leader to another leader) and steps
+    in collision."""
     lane = df["lane_index"].to_numpy()
     lead = np.array(leader_ids)
     has = lead != ""
-    out.attrs["recording_stats"] = {
+    return {
         "recording_id": cfg.recording_id,
         "seed": cfg.seed,
         "samples": len(df),
@@ -293,10 +328,7 @@ def record_drive(params: DriverParams, cfg: RecordingConfig = RecordingConfig(),
         "lane_changes": int(np.count_nonzero(np.diff(lane) != 0)),
         "leader_switches": int(np.count_nonzero((lead[1:] != lead[:-1]) & has[1:] & has[:-1])),
         "collision_steps": collisions,
-        "wall_s": round(wall, 2),
-        "wall_drive_s": round(time.perf_counter() - wall_sim0, 2) if len(df) else 0.0,
     }
-    return out
 
 
 def _layout_seed(cfg: RecordingConfig) -> int:

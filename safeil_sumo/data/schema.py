@@ -85,6 +85,26 @@ def validate_drive(df: pd.DataFrame, source: str = "<frame>") -> pd.DataFrame:
 
     ``source`` names the file (or frame) in error messages. Raises :class:`SchemaError`.
     """
+    _check_columns(df, source)
+    out = df.reset_index(drop=True).copy()
+    for col in STRING_COLUMNS:
+        if col in out.columns:
+            out[col] = _string_column(out[col], col, source)
+    for col in NUMERIC_COLUMNS:
+        if col in out.columns:
+            out[col] = _numeric_column(out[col], col, source)
+    lx, ly = out["lead_x"].to_numpy(), out["lead_y"].to_numpy()
+    mismatch = np.isnan(lx) != np.isnan(ly)
+    if mismatch.any():
+        raise _fail(source, "lead_y", _first(mismatch), "lead_x and lead_y must be NaN together")
+    starts, dt = _check_time_order(out, source)
+    _check_plausible_units(out, starts, dt, source)
+    order = [c for c in COLUMNS if c in out.columns] + [c for c in out.columns if c not in COLUMNS]
+    return out[order]
+
+
+def _check_columns(df: pd.DataFrame, source: str) -> None:
+    """A non-empty table with unique column names and every required column."""
     if not isinstance(df, pd.DataFrame):
         raise _fail(source, None, None, f"expected a table, got {type(df).__name__}")
     if len(df) == 0:
@@ -96,48 +116,46 @@ def validate_drive(df: pd.DataFrame, source: str = "<frame>") -> pd.DataFrame:
     for col in REQUIRED_COLUMNS:
         if col not in df.columns:
             raise _fail(source, col, None, f"missing required column (have: {', '.join(cols)})")
-    out = df.reset_index(drop=True).copy()
 
-    for col in STRING_COLUMNS:
-        if col not in out.columns:
-            continue
-        vals = out[col]
-        bad = vals.isna().to_numpy()
-        if bad.any():
-            raise _fail(source, col, _first(bad), "missing value (NaN/empty) not allowed")
-        out[col] = vals.astype(str)
-        empty = (out[col].str.len() == 0).to_numpy()
-        if empty.any():
-            raise _fail(source, col, _first(empty), "empty string not allowed")
 
-    for col in NUMERIC_COLUMNS:
-        if col not in out.columns:
-            continue
-        raw = out[col]
-        if pd.api.types.is_bool_dtype(raw) or raw.dtype == object and raw.map(
-            lambda v: isinstance(v, (bool, np.bool_))
-        ).any():
-            raise _fail(source, col, None, "boolean values are not numbers")
-        try:
-            num = pd.to_numeric(raw, errors="coerce").astype(float).to_numpy()
-        except (TypeError, ValueError, OverflowError) as exc:
-            raise _fail(source, col, None, f"not numeric ({exc})") from exc
-        was_missing = raw.isna().to_numpy()
-        not_number = np.isnan(num) & ~was_missing
-        if not_number.any():
-            i = _first(not_number)
-            raise _fail(source, col, i, f"not a number: {raw.iloc[i]!r}")
-        if np.isinf(num).any():
-            raise _fail(source, col, _first(np.isinf(num)), "infinite value")
-        if col not in NULLABLE_COLUMNS and np.isnan(num).any():
-            raise _fail(source, col, _first(np.isnan(num)), "missing value (NaN) not allowed")
-        out[col] = num
+def _string_column(vals: pd.Series, col: str, source: str) -> pd.Series:
+    """``vals`` as strings, none missing or empty."""
+    bad = vals.isna().to_numpy()
+    if bad.any():
+        raise _fail(source, col, _first(bad), "missing value (NaN/empty) not allowed")
+    out = vals.astype(str)
+    empty = (out.str.len() == 0).to_numpy()
+    if empty.any():
+        raise _fail(source, col, _first(empty), "empty string not allowed")
+    return out
 
-    lx, ly = out["lead_x"].to_numpy(), out["lead_y"].to_numpy()
-    mismatch = np.isnan(lx) != np.isnan(ly)
-    if mismatch.any():
-        raise _fail(source, "lead_y", _first(mismatch), "lead_x and lead_y must be NaN together")
 
+def _numeric_column(raw: pd.Series, col: str, source: str) -> np.ndarray:
+    """``raw`` as finite floats (NaN only where missing, and only in a nullable column); no
+    booleans, no text."""
+    if pd.api.types.is_bool_dtype(raw) or raw.dtype == object and raw.map(
+        lambda v: isinstance(v, (bool, np.bool_))
+    ).any():
+        raise _fail(source, col, None, "boolean values are not numbers")
+    try:
+        num = pd.to_numeric(raw, errors="coerce").astype(float).to_numpy()
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise _fail(source, col, None, f"not numeric ({exc})") from exc
+    was_missing = raw.isna().to_numpy()
+    not_number = np.isnan(num) & ~was_missing
+    if not_number.any():
+        i = _first(not_number)
+        raise _fail(source, col, i, f"not a number: {raw.iloc[i]!r}")
+    if np.isinf(num).any():
+        raise _fail(source, col, _first(np.isinf(num)), "infinite value")
+    if col not in NULLABLE_COLUMNS and np.isnan(num).any():
+        raise _fail(source, col, _first(np.isnan(num)), "missing value (NaN) not allowed")
+    return num
+
+
+def _check_time_order(out: pd.DataFrame, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """Each recording's rows contiguous, its time strictly increasing: ``(starts, dt)``, the
+    rows where a recording starts and the time steps [s] between rows."""
     rec = out["recording_id"].to_numpy()
     starts = np.r_[True, rec[1:] != rec[:-1]]
     seen: set[str] = set()
@@ -152,7 +170,13 @@ def validate_drive(df: pd.DataFrame, source: str = "<frame>") -> pd.DataFrame:
         i = _first(bad_t)
         raise _fail(source, "time", i, f"time does not increase ({float(t[i - 1])!r} -> "
                     f"{float(t[i])!r})")
+    return starts, dt
 
+
+def _check_plausible_units(out: pd.DataFrame, starts: np.ndarray, dt: np.ndarray,
+                           source: str) -> None:
+    """Speeds, angles, offsets and time steps in the schema's units (m/s, rad, m, s), not
+    km/h, degrees or milliseconds."""
     v = out["v_x"].to_numpy()
     if np.median(np.abs(v)) > MAX_MEDIAN_SPEED:
         raise _fail(source, "v_x", None, f"median speed {np.median(np.abs(v)):.1f} m/s is "
@@ -174,9 +198,6 @@ def validate_drive(df: pd.DataFrame, source: str = "<frame>") -> pd.DataFrame:
     if len(inner) and np.median(inner) > MAX_MEDIAN_DT:
         raise _fail(source, "time", None, f"median time step {np.median(inner):g} s is "
                     "implausible: looks like milliseconds (schema is seconds)")
-
-    order = [c for c in COLUMNS if c in out.columns] + [c for c in out.columns if c not in COLUMNS]
-    return out[order]
 
 
 def load_drive(path: str | Path) -> pd.DataFrame:

@@ -187,7 +187,7 @@ def values(u: np.ndarray) -> dict[str, float]:
     u = np.clip(np.asarray(u, float), 0.0, 1.0)
     if u.shape != (DIM,):
         raise ValueError(f"a point of the box has {DIM} coordinates, got shape {u.shape}")
-    return {p.name: p.value(x) for p, x in zip(BOX, u)}
+    return {p.name: p.value(x) for p, x in zip(BOX, u, strict=True)}
 
 
 def decode(u: np.ndarray, policy: str, max_time_s: float = 30.0,
@@ -300,7 +300,7 @@ def closed_loop_objective(policy: str, max_time_s: float = 30.0,
 
     def evaluate(u: np.ndarray) -> list[Outcome]:
         specs = [decode(x, policy, max_time_s, brake_guard) for x in u]
-        return [outcome_of(s, r) for s, r in zip(specs, run_tasks(specs))]
+        return [outcome_of(s, r) for s, r in zip(specs, run_tasks(specs), strict=True)]
 
     return evaluate
 
@@ -338,7 +338,7 @@ def table(result: SearchResult, policy: str) -> pd.DataFrame:
     """One row per simulation, in order: the point ``u0..``, its parameters, its outcome, the
     lowest score so far and the spec (JSON)."""
     rows = []
-    for k, (u, o) in enumerate(zip(result.u, result.outcomes)):
+    for k, (u, o) in enumerate(zip(result.u, result.outcomes, strict=True)):
         spec = decode(u, policy, result.config.max_time_s, result.config.brake_guard)
         rows.append({"sim": k + 1, **{f"u{j}": float(x) for j, x in enumerate(u)},
                      **values(u), "net": spec.net, "leader_kind": spec.leader_kind,

@@ -31,7 +31,7 @@ def git_commit(repo: Path | None = None) -> str:
                              text=True, timeout=5, check=True)
         dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain",
                                 "--untracked-files=no"], capture_output=True, text=True,
-                               timeout=5).stdout.strip()
+                               timeout=5, check=False).stdout.strip()
         return out.stdout.strip() + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"

@@ -8,11 +8,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
 
-from safeil_sumo.scenarios.road import Road  # noqa: E402
+from safeil_sumo.scenarios.road import Road
 
 TTC_CLIP_S = 20.0  # TTC axis upper limit [s] (inf when not closing)
 

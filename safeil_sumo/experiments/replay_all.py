@@ -257,14 +257,21 @@ def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
     window is :func:`run_window`. Never raises: a window that cannot be prepared, or a batch
     that fails, gives failed records.
     """
-    from safeil_sumo.sim.batch import run_batch
-    from safeil_sumo.sim.runner import run_scenario
-
     if len(wins) == 1:  # today's path: one simulation per run
         records = [run_window(wins[0], maneuvers, policies, config)]
         if on_record is not None:
             on_record(records[0])
         return records
+    return _run_batched(wins, maneuvers, policies, config, on_record)
+
+
+def _run_batched(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
+                 config: rp.ReplayConfig, on_record: Callable[[dict], None] | None
+                 ) -> list[dict]:
+    """:func:`run_windows` of several windows: their planners' runs in one batch."""
+    from safeil_sumo.sim.batch import run_batch
+    from safeil_sumo.sim.runner import run_scenario
+
     records: list[dict | None] = [None] * len(wins)
     preps: dict[int, rp.ReplayPrep] = {}
     rollouts: dict[int, dict] = {}  # window -> label -> rollout, until the window's record

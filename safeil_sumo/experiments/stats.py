@@ -66,7 +66,7 @@ def breakdown(
         done = int(ok["completed"].fillna(False).astype(bool).sum())
         n_ok = len(ok)
         low, high = wilson_interval(done, n_ok, z)
-        row = dict(zip(by, key))
+        row = dict(zip(by, key, strict=True))
         row.update({
             "n": len(group),
             "failed": len(group) - n_ok,
@@ -88,10 +88,10 @@ def breakdown(
 def format_breakdown(table: pd.DataFrame) -> str:
     """The breakdown as a short text table: rate [%] with its 95 % interval, mean path [%]."""
     shown = table.copy()
-    shown["completed"] = [f"{c}/{k}" for c, k in zip(shown["completed"], shown["ok"])]
+    shown["completed"] = [f"{c}/{k}" for c, k in zip(shown["completed"], shown["ok"], strict=True)]
     shown["rate [95% CI]"] = [
         "-" if math.isnan(r) else f"{100 * r:.0f}% [{100 * lo:.0f}, {100 * hi:.0f}]"
-        for r, lo, hi in zip(shown["completion_rate"], shown["ci_low"], shown["ci_high"])
+        for r, lo, hi in zip(shown["completion_rate"], shown["ci_low"], shown["ci_high"], strict=True)
     ]
     shown["path[%]"] = (100 * shown["mean_path_completed"]).round(1)
     keys = list(table.columns[: list(table.columns).index("n")])  # the group-by columns

@@ -352,7 +352,7 @@ def run_sweep(
     tdir = tasks_dir(out_dir)
     tdir.mkdir(parents=True, exist_ok=True)
     ids = [task_id(s) for s in specs]
-    todo = [s for s, i in zip(specs, ids) if not _is_done(tdir / f"{i}.json", retry_failed)]
+    todo = [s for s, i in zip(specs, ids, strict=True) if not _is_done(tdir / f"{i}.json", retry_failed)]
     if todo and scheduler is None and workers > 1:
         _prepare_nets(todo)
 
@@ -572,7 +572,7 @@ def _run_dask(
     client = Client(address)  # only the address the user gave
     try:
         futures = client.map(partial(_run_exclusive, task_fn), todo, pure=False)
-        unit_of = {f.key: u for f, u in zip(futures, todo)}
+        unit_of = {f.key: u for f, u in zip(futures, todo, strict=True)}
         try:
             for future in as_completed(futures):
                 unit = unit_of[future.key]

@@ -22,7 +22,7 @@ is what is scored. Pure functions on tensors; :func:`rollout` is the only loop.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -294,3 +294,49 @@ def settling_loss(out: dict[str, torch.Tensor], gap_eq_m: torch.Tensor, dt_s: fl
     settle = (out["gap"][:, k0:] - gap_eq_m[:, None]).pow(2).mean()
     floor = F.relu(cfg.floor_time_gap_s * out["v"] - out["gap"]).pow(2).mean()
     return settle, floor
+
+
+@dataclass(frozen=True)
+class FinetuneConfig:
+    """Settings of the closed-loop fine-tune (``training/closed_loop_finetune.py``, one option
+    per field under its own name). Each field's meaning and unit is its ``help`` (field
+    metadata), the one place it is written. What the fine-tune keeps from the initial
+    checkpoint's :class:`~safeil_sumo.learn.train.TrainConfig` (barrier, envelope, monotonicity)
+    is not repeated here."""
+
+    window: float = field(default=40.0, metadata={"help": "rollout length [s]"})
+    stride: float = field(default=10.0, metadata={"help": "between window starts [s]"})
+    iters: int = field(default=300, metadata={"help": "optimiser iterations"})
+    batch: int = field(default=64, metadata={"help": "episodes per iteration"})
+    lr: float = field(default=3e-4, metadata={"help": "Adam learning rate [-]"})
+    speed_weight: float = field(default=4.0, metadata={
+        "help": "weight of the speed error to the human [s^2] (the gap error's is 1)"})
+    lateral_weight: float = field(default=100.0, metadata={
+        "help": "weight holding the lateral (y) outputs to the initial model's [-]"})
+    equilibrium_weight: float = field(default=0.0, metadata={
+        "help": "weight of the equilibrium term: behind a leader at its own speed at the "
+                "preferred gap the plan keeps its speed (learn/style.py) [-]"})
+    perturb: float = field(default=0.0, metadata={
+        "help": "share of episodes started off the human's state: the gap scaled by a factor in "
+                "[0.5, 1.8] and the speed changed by up to 2 m/s; the planner must bring the gap "
+                "back (0: none) [-]"})
+    settle_weight: float = field(default=0.0, metadata={
+        "help": "weight of the settling term: as many synthetic episodes as --batch, a "
+                "constant-speed leader and the ego started far behind or too close "
+                "(SettlingConfig); the gap is scored against the setting's equilibrium from "
+                "--settle-after on, and time gaps below 0.8 s all along (0: none; needs "
+                "--style) [-]"})
+    settle_after: float = field(default=30.0, metadata={
+        "help": "the settling term scores the gap from this time on [s] (at most half the "
+                "window)"})
+    style: bool = field(default=False, metadata={
+        "help": "add the driver's preferred time gap as an input (learn/style.py)"})
+    seed: int = field(default=0, metadata={
+        "help": "seed of the episodes drawn, the perturbations and the envelope states"})
+
+    def __post_init__(self) -> None:
+        if self.settle_weight > 0 and not self.style:
+            raise ValueError("settle_weight > 0 needs style: the settling episodes draw the "
+                             "time-gap setting")
+        if not (self.window > 0 and self.stride > 0 and self.iters >= 1 and self.batch >= 1):
+            raise ValueError("window and stride must be > 0, iters and batch >= 1")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -37,57 +37,58 @@ MONOTONE_STEP_M = 2.0  # [m] gap increment of the monotonicity pairs
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Training settings.
+    """Training settings. Each field's meaning and unit is its ``help`` (field metadata), the one
+    place it is written: ``training/train.py --help`` shows it under ``--<field-name>``. The
+    horizon [s] is taken from the data."""
 
-    method: "safeil" (imitation + barrier) or "bc" (imitation only; barrier logged, not trained);
-    hidden: hidden layer widths; activation: "tanh" | "relu";
-    lr: Adam learning rate [-]; weight_decay: Adam L2 [-];
-    batch_size: minibatch size (0 = full batch); max_epochs; patience: epochs without a
-    validation improvement before stopping; seed;
-    barrier_k: K [-]; track: vehicle track T [m]; gap_min [m] / time_gap [s]: extra leader margin
-    (0 = paper); barrier_samples: extra points along the spline (0 = paper, control points only);
-    barrier_control_points: constrain the control points (True = paper);
-    barrier_lateral: "control_points" (paper) | "bernstein" (lane terms on the exact Bernstein
-    coefficients of the margin along the spline, see :mod:`safeil_sumo.learn.losses`);
-    num_threads: torch CPU threads while training (fixed for determinism);
-    output_mode: "absolute" (paper) | "residual" (x predicted relative to constant-speed motion,
-    see :mod:`safeil_sumo.learn.model`);
-    longitudinal_only_sources: tuples of these sources contribute no lateral (y) imitation error
-    (their lateral positions do not match their lane features, e.g. OpenACC's GNSS);
-    lateral_only_sources: tuples of these sources contribute no longitudinal (x) imitation error
-    (e.g. synthetic drivers: lane keeping on curves, but not human car following);
-    envelope_weight: weight of the barrier on states drawn across the operating envelope
-    (:mod:`safeil_sumo.learn.envelope`; 0 = paper, SafeIL only); envelope_batch: such states per
-    minibatch; monotone_weight: weight of :func:`gap_monotone_penalty` on the envelope states (a
-    farther leader must never shorten the plan; needs envelope_weight > 0); monotone_margin_m:
-    the growth [m] per 2 m of gap that penalty asks for (0: none).
-    The horizon [s] is taken from the data.
-    """
-
-    method: str = "safeil"
-    hidden: tuple[int, ...] = (64, 64)
-    activation: str = "tanh"
-    lr: float = 1e-3
-    weight_decay: float = 0.0
-    batch_size: int = 512
-    max_epochs: int = 400
-    patience: int = 40
-    seed: int = 0
-    barrier_k: float = 1000.0
-    track: float = 1.76
-    gap_min: float = 0.0
-    time_gap: float = 0.0
-    barrier_samples: int = 0
-    barrier_control_points: bool = True
-    num_threads: int = 1
-    barrier_lateral: str = "control_points"
-    output_mode: str = "absolute"
-    longitudinal_only_sources: tuple[str, ...] = ()
-    lateral_only_sources: tuple[str, ...] = ()
-    envelope_weight: float = 0.0
-    envelope_batch: int = 256
-    monotone_weight: float = 0.0
-    monotone_margin_m: float = 0.0
+    method: str = field(default="safeil", metadata={
+        "help": "safeil (imitation + barrier) or bc (imitation only; barrier logged, not "
+                "trained)"})
+    hidden: tuple[int, ...] = field(default=(64, 64), metadata={
+        "help": "hidden layer widths, e.g. 64,64"})
+    activation: str = field(default="tanh", metadata={"help": "hidden-layer activation"})
+    lr: float = field(default=1e-3, metadata={"help": "Adam learning rate [-]"})
+    weight_decay: float = field(default=0.0, metadata={"help": "Adam L2 weight decay [-]"})
+    batch_size: int = field(default=512, metadata={"help": "minibatch size (0 = full batch)"})
+    max_epochs: int = field(default=400, metadata={"help": "max epochs"})
+    patience: int = field(default=40, metadata={
+        "help": "epochs without a validation improvement before stopping"})
+    seed: int = field(default=0, metadata={
+        "help": "seed of the split, the initial weights and the minibatches"})
+    barrier_k: float = field(default=1000.0, metadata={"help": "barrier weight K [-]"})
+    track: float = field(default=1.76, metadata={"help": "vehicle track T [m]"})
+    gap_min: float = field(default=0.0, metadata={"help": "extra leader margin [m] (0 = paper)"})
+    time_gap: float = field(default=0.0, metadata={"help": "extra leader margin [s] (0 = paper)"})
+    barrier_samples: int = field(default=0, metadata={
+        "help": "also constrain this many points along the spline (0 = paper, control points "
+                "only)"})
+    barrier_control_points: bool = field(default=True, metadata={
+        "help": "constrain the control points (the paper; --no-... needs --barrier-samples > "
+                "0)"})
+    num_threads: int = field(default=1, metadata={
+        "help": "torch CPU threads while training (fixed for determinism)"})
+    barrier_lateral: str = field(default="control_points", metadata={
+        "help": "lane barrier on the control points (paper) or on the exact Bernstein "
+                "coefficients of the margin along the spline (safeil_sumo.learn.losses)"})
+    output_mode: str = field(default="absolute", metadata={
+        "help": "control points (paper) or x relative to constant-speed motion "
+                "(safeil_sumo.learn.model)"})
+    longitudinal_only_sources: tuple[str, ...] = field(default=(), metadata={
+        "help": "sources whose lateral (y) imitation error is not learned: their lateral "
+                "positions do not match their lane features (e.g. openacc's GNSS)"})
+    lateral_only_sources: tuple[str, ...] = field(default=(), metadata={
+        "help": "sources whose longitudinal (x) imitation error is not learned (e.g. synthetic "
+                "drivers: lane keeping on curves, but not human car following)"})
+    envelope_weight: float = field(default=0.0, metadata={
+        "help": "weight of the barrier on states drawn across the operating envelope "
+                "(safeil_sumo.learn.envelope; 0 = paper, SafeIL only)"})
+    envelope_batch: int = field(default=256, metadata={"help": "envelope states per minibatch"})
+    monotone_weight: float = field(default=0.0, metadata={
+        "help": "weight of the gap-monotonicity penalty on the envelope states (a farther "
+                "leader must never shorten the plan; needs --envelope-weight > 0)"})
+    monotone_margin_m: float = field(default=0.0, metadata={
+        "help": "growth [m] of the plan per 2 m of gap asked by the monotonicity penalty (0: "
+                "none)"})
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

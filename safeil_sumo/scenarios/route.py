@@ -160,28 +160,50 @@ def load_route(net_path: str | Path, edges: Sequence[str], ego_lane: int | None 
     if len(edges) == 1:
         return load_road(net_path, edges[0], ego_lane)
     net = _Net(net_path, read_net(net_path))
+    ego_lane = _checked_ego_lane(net, edges, ego_lane)
+    ego_index, ego_pieces = _follow_ego_lane(net, edges, ego_lane)
+    # where the ego lane leaves each edge (a neighbour ending there is cut at this arc length)
+    edge_end_s = [max(p.s1 for p in ego_pieces if p.route_index == k and not p.internal)
+                  for k in range(len(edges))]
+    lanes = [_route_lane(net, edges, lane0, ego_index, i - ego_lane, edge_end_s)
+             for i, lane0 in enumerate(net.edge_lanes[edges[0]])]
+    lanes = _end_with_inner_lanes(lanes, ego_lane)
+    length = lanes[ego_lane].centre.length
+    return Road(net_path, edges[0], tuple(lanes), ego_lane, 0.0, length,
+                {"route_edges": list(edges)}, tuple(edges), tuple(ego_pieces))
+
+
+def _checked_ego_lane(net: _Net, edges: list[str], ego_lane: int | None) -> int:
+    """The ego's SUMO lane index on the first edge (default: the middle lane), after checking
+    that every edge exists with lanes and that the first edge has that lane."""
     for eid in edges:
         if eid not in net.edge_lanes:
             names = ", ".join(list(net.edge_lanes)[:10])
-            raise NetworkError(f"{net_path}: route edge {eid!r} does not exist (edges: {names}"
+            raise NetworkError(f"{net.path}: route edge {eid!r} does not exist (edges: {names}"
                                f"{', ...' if len(net.edge_lanes) > 10 else ''})")
         if not net.edge_lanes[eid]:
-            raise NetworkError(f"{net_path}: edge {eid!r} has no lanes")
+            raise NetworkError(f"{net.path}: edge {eid!r} has no lanes")
     first = net.edge_lanes[edges[0]]
     if ego_lane is None:
-        ego_lane = len(first) // 2
+        return len(first) // 2
     if not 0 <= ego_lane < len(first):
         later = next((e for e in edges[1:] if ego_lane < len(net.edge_lanes[e])), None)
         hint = (f"; lane {ego_lane} appears only on the later edge {later!r} (e.g. an "
                 f"acceleration lane): start the route there (--route {later} ...) to drive it"
                 if later is not None and ego_lane >= 0 else "")
-        raise NetworkError(f"{net_path}: the scenario needs lane index {ego_lane} but edge "
+        raise NetworkError(f"{net.path}: the scenario needs lane index {ego_lane} but edge "
                            f"{edges[0]!r} has {len(first)} lane(s) (the route's first edge; "
                            f"indices 0..{len(first) - 1}, 0 = rightmost){hint}")
+    return ego_lane
 
-    # the ego lane's SUMO lanes, edge by edge; ego_index[k] = its SUMO lane index on edges[k]
+
+def _follow_ego_lane(net: _Net, edges: list[str], ego_lane: int
+                     ) -> tuple[list[int], list[RoutePiece]]:
+    """The ego lane followed across the junctions: its SUMO lane index on each edge, and its
+    pieces (edge and internal lanes) with their arc lengths [m] along the route. A lane that
+    does not continue onto the next edge is a :class:`NetworkError` saying which lanes do."""
     ego_index = [ego_lane]
-    pieces: list[tuple[_SumoLane, int]] = [(first[ego_lane], 0)]  # (lane, route index)
+    pieces: list[tuple[_SumoLane, int]] = [(net.edge_lanes[edges[0]][ego_lane], 0)]
     for k, (a, b) in enumerate(pairwise(edges)):
         lane = net.lane(a, ego_index[-1])
         crossed = net.cross(lane, b)
@@ -190,59 +212,62 @@ def load_route(net_path: str | Path, edges: Sequence[str], ego_lane: int | None 
                               for c in cs})
             if b not in reached:
                 raise NetworkError(
-                    f"{net_path}: route edge {a!r} does not connect to {b!r} (it leads to: "
+                    f"{net.path}: route edge {a!r} does not connect to {b!r} (it leads to: "
                     f"{', '.join(reached) or 'nothing'}); list the edges in driving order")
             from_lanes = sorted({i for (e, i), cs in net.connections.items() if e == a
                                  and any(c.to_edge == b for c in cs)})
             raise NetworkError(
-                f"{net_path}: the ego lane {lane.lane_id} does not continue from edge {a!r} onto "
+                f"{net.path}: the ego lane {lane.lane_id} does not continue from edge {a!r} onto "
                 f"{b!r} (only lanes {', '.join(map(str, from_lanes))} of {a!r} do): end the "
                 f"route at {a!r} or start in a lane that continues")
         internal, to_lane = crossed
         pieces += [(ln, k) for ln in internal] + [(net.edge_lanes[b][to_lane], k + 1)]
         ego_index.append(to_lane)
-
     ego_pieces, s = [], 0.0
     for ln, k in pieces:
         length = Polyline(ln.shape).length
         ego_pieces.append(RoutePiece(ln.lane_id, ln.edge_id, ln.index, k, ln.edge_id not in
                                      net.edge_lanes, s, s + length, ln.length))
         s += length
-    # where the ego lane leaves each edge (a neighbour ending there is cut at this arc length)
-    edge_end_s = [max(p.s1 for p in ego_pieces if p.route_index == k and not p.internal)
-                  for k in range(len(edges))]
+    return ego_index, ego_pieces
 
-    lanes: list[Lane] = []
-    for i, lane0 in enumerate(first):
-        offset = i - ego_lane
-        shapes, sumo_length, lane, end_k = [lane0.shape], lane0.length, lane0, len(edges) - 1
-        for k, b in enumerate(edges[1:]):
-            crossed = net.cross(lane, b)
-            nxt = None if crossed is None else net.lane(b, crossed[1])
-            if (crossed is None or crossed[1] != ego_index[k + 1] + offset
-                    or abs(nxt.width - lane0.width) > WIDTH_TOLERANCE_M):
-                if offset == 0:  # the ego lane was followed above; only its width can differ
-                    raise NetworkError(
-                        f"{net_path}: the ego lane changes width from {lane0.width:g} m "
-                        f"({lane0.lane_id}) to {nxt.width:g} m ({nxt.lane_id}); routes need "
-                        "one lane width")
-                end_k = k
-                break
-            shapes += [ln.shape for ln in crossed[0]] + [nxt.shape]
-            sumo_length += sum(ln.length for ln in crossed[0]) + nxt.length
-            lane = nxt
-        centre = Polyline(_join(shapes))
-        ends = math.inf if end_k == len(edges) - 1 else edge_end_s[end_k]
-        lanes.append(Lane(
-            lane_id=lane0.lane_id, index=lane0.index, width=lane0.width,
-            sumo_length=sumo_length,
-            centre=centre, left_boundary=centre.offset(0.5 * lane0.width),
-            right_boundary=centre.offset(-0.5 * lane0.width), ends_at_s=ends))
-    # a lane is offered only while every lane between it and the ego lane is
+
+def _route_lane(net: _Net, edges: list[str], lane0: _SumoLane, ego_index: list[int],
+                offset: int, edge_end_s: list[float]) -> Lane:
+    """Lane ``lane0`` of the first edge, ``offset`` lanes left of the ego's, as one polyline
+    across the junctions while SUMO connects it to the lane at the same offset from the ego's
+    and its width stays the same; where it stops, it ends at the ego lane's arc length
+    ``edge_end_s`` [m] of that edge (``ends_at_s``; inf if it runs to the route's end)."""
+    shapes, sumo_length, lane, end_k = [lane0.shape], lane0.length, lane0, len(edges) - 1
+    for k, b in enumerate(edges[1:]):
+        crossed = net.cross(lane, b)
+        nxt = None if crossed is None else net.lane(b, crossed[1])
+        if (crossed is None or crossed[1] != ego_index[k + 1] + offset
+                or abs(nxt.width - lane0.width) > WIDTH_TOLERANCE_M):
+            if offset == 0:  # the ego lane was followed before; only its width can differ
+                raise NetworkError(
+                    f"{net.path}: the ego lane changes width from {lane0.width:g} m "
+                    f"({lane0.lane_id}) to {nxt.width:g} m ({nxt.lane_id}); routes need "
+                    "one lane width")
+            end_k = k
+            break
+        shapes += [ln.shape for ln in crossed[0]] + [nxt.shape]
+        sumo_length += sum(ln.length for ln in crossed[0]) + nxt.length
+        lane = nxt
+    centre = Polyline(_join(shapes))
+    ends = math.inf if end_k == len(edges) - 1 else edge_end_s[end_k]
+    return Lane(
+        lane_id=lane0.lane_id, index=lane0.index, width=lane0.width, sumo_length=sumo_length,
+        centre=centre, left_boundary=centre.offset(0.5 * lane0.width),
+        right_boundary=centre.offset(-0.5 * lane0.width), ends_at_s=ends)
+
+
+def _end_with_inner_lanes(lanes: list[Lane], ego_lane: int) -> list[Lane]:
+    """The lanes, each ending no later than the lanes between it and the ego lane: a lane is
+    offered only while every lane between it and the ego lane is."""
+    lanes = list(lanes)
     for i in (*range(ego_lane + 1, len(lanes)), *range(ego_lane - 1, -1, -1)):
         inner = lanes[i - 1] if i > ego_lane else lanes[i + 1]
         if inner.ends_at_s < lanes[i].ends_at_s:
             lanes[i] = replace(lanes[i], ends_at_s=inner.ends_at_s)
-    length = lanes[ego_lane].centre.length
-    return Road(net_path, edges[0], tuple(lanes), ego_lane, 0.0, length,
-                {"route_edges": list(edges)}, tuple(edges), tuple(ego_pieces))
+    return lanes

@@ -118,12 +118,37 @@ def mixed_copies_xml(net_paths: Sequence[Path], shifts_m: Sequence[float]) -> by
         if Path(p) not in parsed:
             parsed[Path(p)] = ET.parse(p).getroot()
     roots = [parsed[Path(p)] for p in net_paths]
+    out = ET.Element(roots[0].tag, roots[0].attrib)
+    out.extend(_shared_elements(net_paths, roots))
+    loc = out.find("location")
+    shifted = any(shifts_m)
+    if loc is not None and shifted and len(roots) > 1:
+        # SUMO sizes its spatial grid by this boundary: the union of the shifted copies
+        moved = [(_bounds(r), dx) for r, dx in zip(roots, shifts_m, strict=True)]
+        b = [min(q[0] + dx for q, dx in moved), min(q[1] for q, _ in moved),
+             max(q[2] + dx for q, dx in moved), max(q[3] for q, _ in moved)]
+        loc.set("convBoundary", ",".join(f"{v:.3f}" for v in b))
+    for i, (root, dx) in enumerate(zip(roots, shifts_m, strict=True)):
+        for e in root:
+            if e.tag not in _COPIED:
+                continue
+            c = copy.deepcopy(e)
+            _rename(c, i)
+            if shifted:  # every copy (also copy 0): shapes written in the nets' precision
+                _shift(c, dx)
+            out.append(c)
+    return ET.tostring(out, encoding="utf-8", xml_declaration=True)
+
+
+def _shared_elements(net_paths: Sequence[Path], roots: list[ET.Element]) -> list[ET.Element]:
+    """Copies of what the nets hold once (``<location>``, ``<type>``, ...): the first net's
+    all, another net's those not in an earlier one. ValueError when two nets define the same
+    element differently, or differ in the ``<net>`` attributes."""
     first = roots[0]
-    out = ET.Element(first.tag, first.attrib)
-    # (tag, id) -> the texts of the elements kept: the first net's all, another net's those
-    # not in an earlier one
+    shared: list[ET.Element] = []
+    # (tag, id) -> the texts of the elements kept
     kept: dict[tuple[str, str | None], list[bytes]] = {}
-    for k, (path, root) in enumerate(zip(net_paths, roots)):
+    for k, (path, root) in enumerate(zip(net_paths, roots, strict=True)):
         if root.attrib != first.attrib:
             raise ValueError(f"batch net: {path} has <net> attributes {root.attrib}, "
                              f"{net_paths[0]} has {first.attrib}")
@@ -140,25 +165,8 @@ def mixed_copies_xml(net_paths: Sequence[Path], shifts_m: Sequence[float]) -> by
                                  f"{seen[0].decode().strip()!r}")
             if k == 0 or seen is None:
                 kept.setdefault(key, []).append(text)
-                out.append(copy.deepcopy(e))
-    loc = out.find("location")
-    shifted = any(shifts_m)
-    if loc is not None and shifted and len(roots) > 1:
-        # SUMO sizes its spatial grid by this boundary: the union of the shifted copies
-        moved = [(_bounds(r), dx) for r, dx in zip(roots, shifts_m)]
-        b = [min(q[0] + dx for q, dx in moved), min(q[1] for q, _ in moved),
-             max(q[2] + dx for q, dx in moved), max(q[3] for q, _ in moved)]
-        loc.set("convBoundary", ",".join(f"{v:.3f}" for v in b))
-    for i, (root, dx) in enumerate(zip(roots, shifts_m)):
-        for e in root:
-            if e.tag not in _COPIED:
-                continue
-            c = copy.deepcopy(e)
-            _rename(c, i)
-            if shifted:  # every copy (also copy 0): shapes written in the nets' precision
-                _shift(c, dx)
-            out.append(c)
-    return ET.tostring(out, encoding="utf-8", xml_declaration=True)
+                shared.append(copy.deepcopy(e))
+    return shared
 
 
 def batch_net(net_path: Path, n: int, cache_dir: Path | None = None,
@@ -202,7 +210,7 @@ def mixed_batch_net(net_paths: Sequence[Path], spacing_m: float,
         return batch_net(paths[0], n, cache_dir, offset), [i * offset for i in range(n)]
     shifts = copy_shifts_m(paths, spacing_m)
     digest = hashlib.sha256()
-    for p, dx in zip(paths, shifts):
+    for p, dx in zip(paths, shifts, strict=True):
         digest.update(p.read_bytes() + f"|{dx}|".encode())
     digest.update(f"{_VERSION}".encode())
     out = _cache_folder(cache_dir) / (f"{paths[0].name.removesuffix('.net.xml')}_mix"

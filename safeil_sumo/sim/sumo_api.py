@@ -11,8 +11,9 @@ import shutil
 import signal
 import subprocess
 import threading
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Protocol, Sequence
+from typing import Any, Protocol
 
 
 class VehicleDomain(Protocol):
@@ -160,7 +161,7 @@ def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
         proc.wait()
         try:  # forget the half-open connection so a later start can use the default label
             traci.close(wait=False)
-        except Exception:
+        except Exception:  # noqa: BLE001, S110 - best effort: the start has failed already
             pass
         why = f"it exited with code {proc.returncode}" if died else "it did not answer"
         raise SumoError(f"sumo-gui failed to start ({why}: {exc}); see its messages above and "
@@ -198,5 +199,5 @@ def version() -> str:
         from importlib.metadata import version as pkg_version
 
         return pkg_version("eclipse-sumo")
-    except Exception:  # pragma: no cover - metadata missing
+    except Exception:  # noqa: BLE001  # pragma: no cover - metadata missing: a label only
         return "unknown"

@@ -49,7 +49,7 @@ def _isnan(value):
 
 
 def _select(conditions, choices, default):
-    for condition, choice in zip(conditions, choices):
+    for condition, choice in zip(conditions, choices, strict=True):
         if condition:
             return choice
     return default
