@@ -124,6 +124,7 @@ def test_guard_prevents_the_avoidable_collision(policy):
     assert off["status"] == on["status"] == "ok"
     assert off["flag"] == "ttc" and off["min_ttc_s"] < 0.5
     assert on["flag"] == "" and on["min_ttc_s"] > 1.0 and on["min_gap_m"] > 0.5
+    assert on["brake_guard_s"] > 0.5 and math.isnan(off["brake_guard_s"])
 
 
 def test_guard_is_logged_and_off_means_the_papers_loop():
@@ -154,5 +155,5 @@ def test_guard_stays_out_of_ordinary_following(curved500):
     on = run_batch(scenarios, policy, LoopConfig())
     off = run_batch(scenarios, policy, LoopConfig(brake_guard=None))
     for a, b in zip(on, off, strict=True):
-        assert (a.log["guard_decel"] == 0.0).all()
+        assert (a.log["guard_decel"] == 0.0).all() and a.summary["brake_guard_s"] == 0.0
         np.testing.assert_array_equal(a.log["gap"].to_numpy(), b.log["gap"].to_numpy())

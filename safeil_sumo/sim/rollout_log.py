@@ -60,10 +60,24 @@ def summarize(
         "min_gap_m": float(log["gap"].min()) if n else math.nan,
         "max_abs_lateral_offset_m": float(log["d"].abs().max()) if n else math.nan,
         "sim_time_s": float(times[-1]) if n else 0.0,
+        # how long the brake guard overrode the tracker [s] (NaN: no guard in this run)
+        "brake_guard_s": _guard_time(log),
         "steps": n,
         "wall_time_s": wall_s,
         "steps_per_s": n / wall_s if wall_s > 0 else math.nan,
     }
+
+
+def _guard_time(log: pd.DataFrame) -> float:
+    """Time [s] the brake guard braked in ``log`` (its steps with ``guard_decel > 0``); NaN
+    when it did not run (a column of NaN) or the log has no such column."""
+    if "guard_decel" not in log or len(log) == 0:
+        return math.nan
+    guard = log["guard_decel"].to_numpy()
+    if np.isnan(guard).all():
+        return math.nan
+    dt = float(log["t"].iloc[0]) if len(log) == 1 else float(np.median(np.diff(log["t"])))
+    return float(np.count_nonzero(guard > 0.0) * dt)
 
 
 def drive_stats(log: pd.DataFrame, path_start_s: float) -> dict:
@@ -82,7 +96,7 @@ def drive_stats(log: pd.DataFrame, path_start_s: float) -> dict:
 # the log columns a summary (summarize, drive_stats, leaders met) and a sweep's record (the
 # leader-response metrics) read: a log of these columns only gives the same record
 SUMMARY_COLUMNS = ("t", "v", "s", "d", "leader_v", "gap", "ttc", "lane_departure", "ttc_flag",
-                   "collision", "path_fraction", "leader_no")
+                   "collision", "path_fraction", "leader_no", "guard_decel")
 
 
 class _Log:
