@@ -118,6 +118,84 @@ def add_lane_option(parser: argparse.ArgumentParser) -> None:
              "(or of the net's one edge); default: the middle lane")
 
 
+def add_scenario_options(parser: argparse.ArgumentParser) -> None:
+    """The scenario options of ``run`` and ``sweep``, declared once: how many scenarios, the
+    leader, the ego's start, the sensors, the loop and the road's stretch. Each sets a
+    :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` field (:func:`scenario_fields`), whose
+    ``__post_init__`` holds the rules (:func:`check_scenario_options` reports them as usage
+    errors)."""
+    from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
+    from safeil_sumo.scenarios.spec import LEADER_KINDS
+
+    p = parser
+    p.add_argument("--scenarios", type=int, default=10,
+                   help="scenarios (per net and policy in a sweep) (default 10)")
+    p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
+    add_leader_options(p, LEADER_KINDS, "to --brake-to at --brake-decel after --brake-time")
+    p.add_argument("--leader-speed", type=finite_float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
+                   metavar=("LOW", "HIGH"),
+                   help="leader (initial) speed range [m/s], drawn per scenario (default 25 32, "
+                        "the paper's)")
+    p.add_argument("--brake-time", type=finite_float, default=5.0,
+                   help="braking/accelerating leader: the change starts at [s] (default 5)")
+    p.add_argument("--brake-decel", type=finite_float, default=3.0,
+                   help="braking/accelerating leader: rate of the change [m/s^2] (default 3)")
+    p.add_argument("--brake-to", type=finite_float, default=15.0,
+                   help="braking/accelerating leader: final speed [m/s] (default 15)")
+    add_ego_speed_option(p)
+    add_time_gap_option(p)
+    gap = p.add_mutually_exclusive_group()
+    gap.add_argument("--gap", type=finite_float, default=None,
+                     help="initial bumper gap [m] (default 50)")
+    gap.add_argument("--gap-range", type=finite_float, nargs=2, default=None,
+                     metavar=("LOW", "HIGH"), help="initial gap drawn per scenario [m]")
+    p.add_argument("--lane-noise", type=finite_float, default=0.0,
+                   help="camera lane-offset (c0) noise std [m] (default 0)")
+    p.add_argument("--radar-noise", type=finite_float, default=0.0,
+                   help="radar range noise std [m] (default 0)")
+    p.add_argument("--plan-rate", type=finite_float, default=10.0,
+                   help="re-planning rate [Hz] (default 10)")
+    p.add_argument("--max-time", type=finite_float, default=None,
+                   help="scenario duration [s] (default: 2x the path at the ego speed + 10 s)")
+    p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
+    add_brake_guard_option(p)
+    add_route_option(p)
+    add_n74_options(p)
+    add_lane_option(p)
+
+
+def scenario_fields(args: argparse.Namespace) -> dict:
+    """The :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` fields of
+    :func:`add_scenario_options`' options (all but the net, policy and scenario index)."""
+    gap = tuple(args.gap_range) if args.gap_range else (args.gap if args.gap is not None else 50.0)
+    return {
+        "master_seed": args.seed, "leader_kind": args.leader,
+        "leader_speed_range_mps": tuple(args.leader_speed), "brake_time_s": args.brake_time,
+        "brake_decel_mps2": args.brake_decel, "brake_to_mps": args.brake_to,
+        "ego_speed_mps": args.ego_speed, "initial_gap_m": gap,
+        "lane_noise_c0_m": args.lane_noise, "radar_noise_m": args.radar_noise,
+        "plan_rate_hz": args.plan_rate, "max_time_s": args.max_time,
+        "stop_on_flag": args.stop_on_flag, "leader_profile": args.leader_profile or "",
+        "route": tuple(args.route), "from_km": args.from_km, "to_km": args.to_km,
+        "traffic": "" if args.traffic == "none" else args.traffic, "lane": args.lane or "",
+        "time_gap_s": args.time_gap, "brake_guard": BRAKE_GUARD_OPTIONS[args.brake_guard],
+    }
+
+
+def check_scenario_options(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                           nets: list[str]) -> None:
+    """The scenario options' rules, as usage errors: ``ScenarioSpec``'s, on each of ``nets``."""
+    from safeil_sumo.scenarios.spec import ScenarioSpec
+
+    if args.scenarios < 1:
+        parser.error("--scenarios must be >= 1")
+    try:
+        for net in nets:
+            ScenarioSpec(net=net, **scenario_fields(args))
+    except ValueError as exc:
+        parser.error(str(exc))
+
+
 def int_list(text: str) -> tuple[int, ...]:
     """Comma-separated integers, e.g. layer widths ``64,64``."""
     try:

@@ -23,21 +23,13 @@ from tqdm import tqdm
 from safeil_sumo import animate, api, policies
 from safeil_sumo.cli_args import (
     BRAKE_GUARD_OPTIONS,
-    add_brake_guard_option,
-    add_ego_speed_option,
-    add_lane_option,
-    add_leader_options,
-    add_n74_options,
-    add_route_option,
-    add_time_gap_option,
-    finite_float,
+    add_scenario_options,
+    check_scenario_options,
     lane_for_net,
-    nonnegative_int,
+    scenario_fields,
 )
 from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.scenarios.road import NetworkError
-from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
-from safeil_sumo.scenarios.spec import LEADER_KINDS, ScenarioSpec
 from safeil_sumo.sim.brake_guard import BrakeGuard
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig
@@ -53,26 +45,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--net", default="curved500",
                    help="curved500, straight, curved<R> (e.g. curved300), n74 (29.2 km highway "
                         "with on-ramps; see --from-km/--to-km) or a .net.xml path")
-    add_route_option(p)
-    add_n74_options(p)
-    add_lane_option(p)
     p.add_argument("--policy", default=None,
                    help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
                         "IDM model .json "
                         f"(default: {policies.default_policy_name()})")
-    p.add_argument("--scenarios", type=int, default=10, help="number of scenarios (default 10)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
-    p.add_argument("--leader-speed", type=finite_float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
-                   metavar=("LOW", "HIGH"), help="leader speed range [m/s] (default 25 32)")
-    # accelerating leaders need a target speed: sweep has the options for it
-    add_leader_options(p, tuple(k for k in LEADER_KINDS if k != "accelerating"),
-                       "braking: to 15 m/s at 3 m/s^2 after 5 s; accelerating: use sweep")
-    add_ego_speed_option(p)
-    add_time_gap_option(p)
-    add_brake_guard_option(p)
-    p.add_argument("--gap", type=finite_float, default=50.0, help="initial bumper gap [m]")
-    p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
-    p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
+    add_scenario_options(p)
     p.add_argument("--backend", choices=("libsumo", "traci"), default="libsumo")
     p.add_argument("--gui", action="store_true", help="watch in sumo-gui (implies traci)")
     p.add_argument("--gui-screenshot", type=Path, default=None, metavar="PNG",
@@ -85,22 +62,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "scenarios, e.g. s0000 s0003 (no name: the first); see "
                         "python -m safeil_sumo.animate")
     args = p.parse_args(argv)
-    if args.scenarios < 1:
-        p.error("--scenarios must be >= 1")
-    if not 0 < args.plan_rate <= 100:  # the loop's step is 0.01 s
-        p.error("--plan-rate must be in (0, 100] Hz")
-    if args.net == "n74" and args.route:
-        p.error("--net n74 drives a stretch of --from-km/--to-km; --route needs a .net.xml path "
-                "(e.g. sumo_scenarios/n74/n74.net.xml)")
-    try:  # the scenario's rules (speeds, gap, leader, stretch, traffic, lane): ScenarioSpec's
-        args.lane = lane_for_net(args.net, args.lane)
-        ScenarioSpec(net=args.net, leader_kind=args.leader,
-                     leader_speed_range_mps=tuple(args.leader_speed),
-                     ego_speed_mps=args.ego_speed, initial_gap_m=args.gap,
-                     plan_rate_hz=args.plan_rate, leader_profile=args.leader_profile or "",
-                     route=tuple(args.route), **_stretch(args))
-    except ValueError as exc:
-        p.error(str(exc))
+    check_scenario_options(p, args, [args.net])
+    args.lane = lane_for_net(args.net, args.lane)
     if args.gui_screenshot is not None and not args.gui:
         p.error("--gui-screenshot needs --gui")
     if args.gui:
@@ -110,16 +73,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.backend = "traci"
     args.policy = args.policy or policies.default_policy_name()
     return args
-
-
-def _stretch(args: argparse.Namespace) -> dict:
-    """The ScenarioSpec fields of --from-km/--to-km (none when not given)."""
-    out = {k: v for k, v in (("from_km", args.from_km), ("to_km", args.to_km)) if v is not None}
-    if args.traffic != "none":
-        out["traffic"] = args.traffic
-    if args.lane:
-        out["lane"] = args.lane
-    return out
 
 
 def format_table(summaries: pd.DataFrame) -> str:
@@ -152,13 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     loop = LoopConfig(plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
                       backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot,
                       brake_guard=BrakeGuard() if BRAKE_GUARD_OPTIONS[args.brake_guard] else None)
+    fields = scenario_fields(args)
+    fields = {k: v for k, v in fields.items() if k not in ("master_seed", "plan_rate_hz",
+                                                           "stop_on_flag", "brake_guard")}
     vehicle = VehicleParams()
     try:
-        scenarios = api.build_scenarios(
-            args.net, args.scenarios, args.seed, leader_kind=args.leader,
-            leader_speed_range_mps=tuple(args.leader_speed), ego_speed_mps=args.ego_speed,
-            initial_gap_m=args.gap, leader_profile=args.leader_profile or "",
-            route=tuple(args.route), **_stretch(args))
+        scenarios = api.build_scenarios(args.net, args.scenarios, args.seed, **fields)
     except (ValueError, ProfileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -191,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         # as given (None: the default, or a recorded leader's start), and as each scenario began
         "ego_speed_mps": args.ego_speed, "ego_speeds_mps": [sc.ego_speed_mps for sc in scenarios],
         "initial_gap_m": args.gap,
+        "spec": scenario_fields(args),  # every scenario option, as ScenarioSpec fields
         "loop": asdict(loop), "vehicle": asdict(vehicle),
         "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
     }

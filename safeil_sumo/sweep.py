@@ -31,19 +31,13 @@ from pathlib import Path
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
     BRAKE_GUARD_OPTIONS,
-    add_brake_guard_option,
-    add_ego_speed_option,
-    add_lane_option,
-    add_leader_options,
-    add_n74_options,
-    add_route_option,
-    add_time_gap_option,
+    add_scenario_options,
     finite_float,
-    nonnegative_int,
+    scenario_fields,
 )
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
 from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
-from safeil_sumo.scenarios.spec import LEADER_KINDS, ScenarioSpec
+from safeil_sumo.scenarios.spec import ScenarioSpec
 
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
 
@@ -99,44 +93,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--net", nargs="+", default=["curved500"], metavar="NET",
                    help="curved500, straight, curved<R> (e.g. curved300) or .net.xml paths")
-    add_route_option(p)
-    add_n74_options(p)
-    add_lane_option(p)
     p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
                    help="safeil, safeil_paper, bc, analytic, idm, .safetensors checkpoints or IDM "
                         "model .json files (default: safeil bc)")
-    p.add_argument("--scenarios", type=int, default=10, help="scenarios per cell (default 10)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
-    add_leader_options(p, LEADER_KINDS, "to --brake-to at --brake-decel after --brake-time")
+    add_scenario_options(p)
     p.add_argument("--suite", choices=("leader-response",), default=None,
                    help="run a named suite instead of the grid (see docs; uses --policies, "
-                        "--seed, --workers, --out)")
+                        "--seed, --brake-guard, --workers, --out)")
     p.add_argument("--quick", action="store_true",
                    help="with --suite: one variant per family and net (CI)")
-    p.add_argument("--leader-speed", type=finite_float, nargs=2, default=(25.0, 32.0),
-                   metavar=("LOW", "HIGH"), help="leader (initial) speed range [m/s] (25 32)")
-    p.add_argument("--brake-time", type=finite_float, default=5.0, help="braking starts at [s] (5)")
-    p.add_argument("--brake-decel", type=finite_float, default=3.0,
-                   help="braking decel. [m/s^2] (3)")
-    p.add_argument("--brake-to", type=finite_float, default=15.0,
-                   help="speed after braking [m/s] (15)")
-    add_ego_speed_option(p)
-    add_time_gap_option(p)
-    gap = p.add_mutually_exclusive_group()
-    gap.add_argument("--gap", type=finite_float, default=None, help="initial bumper gap [m] (50)")
-    gap.add_argument("--gap-range", type=finite_float, nargs=2, default=None,
-                     metavar=("LOW", "HIGH"),
-                     help="initial gap drawn uniformly per scenario [m]")
-    p.add_argument("--lane-noise", type=finite_float, default=0.0,
-                   help="camera c0 noise std [m] (0)")
-    p.add_argument("--radar-noise", type=finite_float, default=0.0,
-                   help="radar range noise std [m] (0)")
-    p.add_argument("--plan-rate", type=finite_float, default=10.0,
-                   help="re-planning rate [Hz] (10)")
-    p.add_argument("--max-time", type=finite_float, default=None,
-                   help="scenario duration [s] (default: 2x the path at the ego speed + 10 s)")
-    p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
-    add_brake_guard_option(p)
     p.add_argument("--safety-filter", choices=tuple(FILTER_OPTIONS), default="off",
                    help="run policies without (off), with (on) or both ways (default off)")
     p.add_argument("--workers", type=int, default=1,
@@ -159,7 +124,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     args.resolved_argv = argv
 
-    if args.scenarios < 1:
+    if args.scenarios < 1:  # the specs' own rules are reported by main (build_specs)
         p.error("--scenarios must be >= 1")
     if args.workers < 1:
         p.error("--workers must be >= 1")
@@ -171,8 +136,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error(f"--scheduler needs an address like tcp://host:8786, got {args.scheduler!r}")
     if args.task_timeout is not None and args.task_timeout <= 0:
         p.error("--task-timeout must be > 0 s")
-    if args.leader_profile is not None and args.leader != "recorded":
-        p.error("--leader-profile needs --leader recorded")
     if args.quick and args.suite is None:
         p.error("--quick needs --suite")
     if (args.route or args.from_km is not None or args.to_km is not None
@@ -192,20 +155,9 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
 
         return [replace(s, brake_guard=guard)
                 for s in suite_specs(args.policies, args.seed, variants=1 if args.quick else 3)]
-    gap = tuple(args.gap_range) if args.gap_range else (args.gap if args.gap is not None else 50.0)
+    fields = scenario_fields(args)
     return [
-        ScenarioSpec(
-            net=net, index=index, master_seed=args.seed, policy=policy, safety_filter=filt,
-            leader_kind=args.leader, leader_speed_range_mps=tuple(args.leader_speed),
-            brake_time_s=args.brake_time, brake_decel_mps2=args.brake_decel,
-            brake_to_mps=args.brake_to, ego_speed_mps=args.ego_speed, initial_gap_m=gap,
-            lane_noise_c0_m=args.lane_noise, radar_noise_m=args.radar_noise,
-            plan_rate_hz=args.plan_rate, max_time_s=args.max_time,
-            stop_on_flag=args.stop_on_flag, leader_profile=args.leader_profile or "",
-            route=tuple(args.route), from_km=args.from_km, to_km=args.to_km,
-            traffic=args.traffic, lane=args.lane or "", time_gap_s=args.time_gap,
-            brake_guard=guard,
-        )
+        ScenarioSpec(net=net, index=index, policy=policy, safety_filter=filt, **fields)
         for net, policy, filt, index in itertools.product(
             args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
     ]

@@ -155,8 +155,11 @@ class ScenarioSpec:
                              f"got {self.ego_speed_mps}")
         if self.lane_noise_c0_m < 0 or self.radar_noise_m < 0:
             raise ValueError("sensor noise must be >= 0")
-        if not self.plan_rate_hz > 0:
-            raise ValueError(f"plan rate must be > 0 Hz, got {self.plan_rate_hz}")
+        if not 0 < self.plan_rate_hz <= 100:  # the loop's step is 0.01 s
+            raise ValueError(f"plan rate must be in (0, 100] Hz, got {self.plan_rate_hz}")
+        if self.net == "n74" and self.route:
+            raise ValueError("--net n74 drives a stretch of --from-km/--to-km; --route needs a "
+                             ".net.xml path (e.g. sumo_scenarios/n74/n74.net.xml)")
         if (self.from_km is not None or self.to_km is not None) and self.net != "n74":
             raise ValueError("--from-km/--to-km need --net n74")
         if self.traffic:
