@@ -50,7 +50,8 @@ class SafeILEnv(gym.Env):
         self.vehicle = VehicleParams()
         self.observation_space = sp.observation_space()
         self.action_space = sp.action_space(action_level, self.vehicle)
-        self.reward_config = sp.RewardConfig.of(reward)
+        self.reward_config = sp.RewardConfig.of(
+            reward, sp.REPLAY_REWARD if self.task.replay else None)
         self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
         self.loop_config = base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend)
         if render_mode == "human":  # sumo-gui: a process of its own, reached through traci
@@ -80,7 +81,8 @@ class SafeILEnv(gym.Env):
         self._done = True
         self._obs = self._loop.reset([scenario], horizon_s=self.horizon_s)
         self._done, self._reset_once, self._lost = False, True, False
-        info = {k: v[0] for k, v in sp.infos(self._obs).items()}
+        info = {k: v[0] for k, v in sp.infos(
+            self._obs, human_gap=self.task.human_gap_at(self._obs.t)).items()}
         return sp.observe(self._obs.features[0]), info | {"index": self.index}
 
     def step(self, action):
@@ -97,10 +99,11 @@ class SafeILEnv(gym.Env):
             self._done = True
             raise
         self._obs = obs
-        reward = float(self.reward_config.rewards(before, obs, ev)[0])
+        human_gap = self.task.human_gap_at(obs.t)
+        reward = float(self.reward_config.rewards(before, obs, ev, human_gap)[0])
         terminated, truncated = bool(ev.terminated[0]), bool(ev.truncated[0])
         self._done = terminated or truncated
-        info = {k: v[0] for k, v in sp.infos(obs, ev).items()}
+        info = {k: v[0] for k, v in sp.infos(obs, ev, human_gap).items()}
         return sp.observe(obs.features[0]), reward, terminated, truncated, info
 
     def rollout(self) -> Rollout:
