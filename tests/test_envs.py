@@ -473,3 +473,45 @@ def test_safeil_through_the_replay_env_reproduces_the_replay_cli(tmp_path, capsy
             tmp_path / "cli" / "human.parquet")["gap"], rtol=0, atol=1e-9)
     finally:
         env.close()
+
+
+def test_the_single_envs_float_path_equals_the_array_path():
+    """The single env's reward, info and observation on floats (reward_one, info_one,
+    observe_one) equal the vector env's array functions, bit for bit, on crafted steps: NaN and
+    inf features and progress, every flag and end, the replay's gap error."""
+    from types import SimpleNamespace as NS
+
+    from safeil_sumo.envs import spaces as sp
+
+    rng = np.random.default_rng(0)
+    cfg = sp.RewardConfig(progress_per_m=0.013, ttc_flag=-1.5, lane_departure=-0.7,
+                          collision=-9.0, off_road=-11.0, human_gap_per_m2=-0.02)
+    reasons = ["", "completed", "timeout", "collision", "off_road", "flag"]
+    for k in range(200):
+        feats = rng.normal(0, 60, 9)
+        feats[rng.integers(0, 9)] = [np.nan, np.inf, -np.inf, 1e9][k % 4]
+        s = rng.choice([rng.uniform(0, 500), np.nan, np.inf])
+        gap = rng.choice([rng.uniform(0, 80), np.inf, np.nan])
+        obs = NS(t=np.array([0.1 * k]), s=np.array([s]), gap=np.array([gap]),
+                 ttc=np.array([rng.uniform(0, 9)]), d=np.array([rng.normal()]),
+                 v=np.array([30.0]), leader_v=np.array([29.0]),
+                 path_fraction=np.array([0.5]), features=feats[None],
+                 lane_departure=np.array([k % 2 == 0]), ttc_flag=np.array([k % 3 == 0]),
+                 collision=np.array([k % 5 == 0]))
+        ev = NS(lane_departure=np.array([k % 2 == 1]), ttc_flag=np.array([k % 3 == 1]),
+                collision=np.array([k % 7 == 0]),
+                end_reason=np.array([reasons[k % 6]], object),
+                sub_steps=np.array([0 if k % 11 == 0 else 10]))
+        before = rng.uniform(0, 400)
+        for human in (None, np.array([rng.uniform(0, 80)])):
+            want = cfg.rewards(np.array([before]), obs, ev, human)[0]
+            got = cfg.reward_one(before, obs, ev, None if human is None else human[0])
+            assert got == want or (np.isnan(got) and np.isnan(want)), (k, got, want)
+            arrays = {key: v[0] for key, v in sp.infos(obs, ev, human).items()}
+            floats = sp.info_one(obs, ev, None if human is None else human[0])
+            assert arrays.keys() == floats.keys()
+            for key, value in arrays.items():
+                np.testing.assert_array_equal(floats[key], value, err_msg=key)
+        got_obs = sp.observe_one(feats)
+        np.testing.assert_array_equal(got_obs, sp.observe(feats[None])[0])
+        assert got_obs.dtype == np.float32

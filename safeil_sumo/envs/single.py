@@ -12,7 +12,7 @@ from safeil_sumo.envs import base
 from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
 from safeil_sumo.sim.loop_types import Rollout
-from safeil_sumo.sim.stepper import ClosedLoop
+from safeil_sumo.sim.stepper import LIMIT_REASONS, TERMINAL_REASONS, ClosedLoop
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
@@ -92,19 +92,22 @@ class SafeILEnv(gym.Env):
             raise RuntimeError("step after the episode ended (terminated or truncated): call "
                                "reset()" if self._reset_once else "call reset() before step()")
         a = sp.checked_actions(action, self.action_space, self.out_of_space)[None]
-        before = self._obs.s
+        before = float(self._obs.s[0])
         try:
             obs, ev = base.step_loop(self._loop, self.action_level, a)
         except Exception:
             self._done = True
             raise
         self._obs = obs
-        human_gap = self.task.human_gap_at(obs.t)
-        reward = float(self.reward_config.rewards(before, obs, ev, human_gap)[0])
-        terminated, truncated = bool(ev.terminated[0]), bool(ev.truncated[0])
+        # one scenario: floats, not the vector env's (N,) arrays (the same values)
+        human_gap = self.task.human_gap_at(obs.t[0])
+        reward = self.reward_config.reward_one(before, obs, ev, human_gap)
+        ended, reason = bool(ev.ended[0]), ev.end_reason[0]
+        terminated = ended and reason in TERMINAL_REASONS
+        truncated = ended and reason in LIMIT_REASONS
         self._done = terminated or truncated
-        info = {k: v[0] for k, v in sp.infos(obs, ev, human_gap).items()}
-        return sp.observe(obs.features[0]), reward, terminated, truncated, info
+        info = sp.info_one(obs, ev, human_gap)
+        return sp.observe_one(obs.features[0]), reward, terminated, truncated, info
 
     def rollout(self) -> Rollout:
         """The episode's per-step log and summary so far (as ``python -m safeil_sumo.run``'s)."""
