@@ -421,8 +421,19 @@ def test_replay_is_seeded_and_rewards_closeness_to_the_human():
         assert r < 0
     finally:
         env.close()
+    net_dir = env.unwrapped.task.net_dir
+    assert net_dir.is_dir()
+    del env, o1, o2, o3  # the rebuilt net goes with the env
+    import gc
+
+    gc.collect()
+    assert not net_dir.exists()
     with pytest.raises(ValueError, match="unknown replay option"):
         gym.make(REPLAY, leader_kind="braking")
+    with pytest.raises(ValueError, match="replay source 'nope'"):
+        gym.make(REPLAY, source="nope")
+    with pytest.raises(ValueError, match="start_s must be"):
+        gym.make(REPLAY, start_s=-1.0)
     with pytest.raises(ValueError, match="unknown maneuver"):
         gym.make(REPLAY, maneuver="no-such-maneuver")
     with pytest.raises(ValueError, match="no net"):
