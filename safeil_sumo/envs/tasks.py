@@ -84,8 +84,8 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
     - ``n74_traffic``: the n74 motorway stretch (``from_km``, ``to_km``, ``lane``) among SUMO's
       traffic (``traffic``: ``light``, ``default`` (default) or ``dense``), the leader being
       whichever vehicle SUMO puts ahead of the ego (``python -m safeil_sumo.run --net n74
-      --traffic ...``; ``net`` must be n74). N = 1 only: no native vector env.
-
+      --traffic ...``; ``net`` must be n74). N = 1 per SUMO: the native vector env takes
+      ``num_envs=1`` only;
     - ``replay``: a recorded maneuver's replay (:func:`safeil_sumo.envs.replay.replay_task`:
       ``source``, ``maneuver``, ``start_s``, ``duration_s``, ``data_dir``, sensor noise).
 
