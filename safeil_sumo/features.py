@@ -28,5 +28,11 @@ def planner_features(
     """
     left = np.asarray(left_line, dtype=float)[..., :3]
     right = np.asarray(right_line, dtype=float)[..., :3]
+    if (left.ndim == 1 and right.ndim == 1 and isinstance(v_x, float)
+            and isinstance(v_lead, float) and isinstance(d_lead, float)):
+        # one car (the one-scenario loop): the same 9 values without the stacking's overhead
+        out = np.empty(9)
+        out[:3], out[3:6], out[6:] = left, right, (v_x, v_lead, d_lead)
+        return out
     scalars = np.stack(np.broadcast_arrays(v_x, v_lead, d_lead), axis=-1).astype(float)
     return np.concatenate([left, right, scalars], axis=-1)

@@ -344,3 +344,185 @@ def test_ppo_trains_on_the_vector_env():
         sys.path.remove(str(REPO / "training"))
     model = train(num_envs=4, total_steps=512, n_steps=64, max_time_s=3.0)
     assert model.num_timesteps >= 512
+
+
+N74 = "safeil_sumo/N74Traffic-v0"
+REPLAY = "safeil_sumo/Replay-v0"
+
+
+def _drive(env, seed, policy, steps):
+    """``steps`` decisions of ``policy`` from ``reset(seed=seed)``: observations, rewards,
+    infos' gaps."""
+    obs, info = env.reset(seed=seed)
+    out, rewards, gaps = [obs], [], [info["gap"]]
+    for _ in range(steps):
+        obs, r, te, tr, info = env.step(_plan(policy, info["features"])[0])
+        out.append(obs)
+        rewards.append(r)
+        gaps.append(info["gap"])
+        if te or tr:
+            break
+    return np.array(out), np.array(rewards), np.array(gaps)
+
+
+def test_n74_traffic_is_seeded_and_single_only():
+    """N74Traffic-v0 (real libsumo, SUMO's traffic leads): reset(seed=s) twice in one process
+    gives the same observations, rewards and leaders; another seed other traffic. The native
+    vector env refuses num_envs > 1 clearly, before any SUMO starts."""
+    policy = policies.load("safeil")
+    env = gym.make(N74, traffic="dense", max_time_s=4.0)
+    try:
+        o1, r1, _ = _drive(env, 1, policy, 40)
+        log1 = env.unwrapped.rollout().log
+        o2, r2, _ = _drive(env, 1, policy, 40)
+        log2 = env.unwrapped.rollout().log
+        assert len(r1) == 40 and o1[:, 8].min() < 60.0  # the radar saw SUMO's traffic ahead
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(r1, r2)
+        np.testing.assert_array_equal(log1[["leader_x", "leader_y", "leader_v"]].to_numpy(),
+                                      log2[["leader_x", "leader_y", "leader_v"]].to_numpy())
+        o3, _, _ = _drive(env, 2, policy, 40)
+        assert not np.array_equal(o1, o3[:len(o1)])
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="num_envs=1 only"):
+        gym.make_vec(N74, num_envs=2, vectorization_mode="vector_entry_point")
+    with pytest.raises(ValueError, match="n74_traffic's traffic must be one of"):
+        gym.make(N74, traffic="none")
+    with pytest.raises(ValueError, match="runs on net 'n74'"):
+        gym.make(N74, net="curved500")
+
+
+def _need_openacc():
+    from fixtures_data import OPENACC_DIR, require_file
+
+    require_file(OPENACC_DIR / "JRC-VC_280219_part3.csv.gz")
+
+
+def test_replay_is_seeded_and_rewards_closeness_to_the_human():
+    """Replay-v0 with radar noise (the index is the replay's seed): the same seed the same
+    episode twice, another seed another; the default reward is -0.01 x the squared error of
+    the gap against the human's at the same time (no flag on this maneuver)."""
+    _need_openacc()
+    policy = policies.load("safeil")
+    env = gym.make(REPLAY, radar_noise_m=0.5, max_time_s=3.0)
+    try:
+        o1, r1, _ = _drive(env, 11, policy, 100)
+        o2, r2, _ = _drive(env, 11, policy, 100)
+        np.testing.assert_array_equal(o1, o2)
+        np.testing.assert_array_equal(r1, r2)
+        o3, _, _ = _drive(env, 12, policy, 100)
+        assert not np.array_equal(o1, o3)
+        _, info = env.reset(seed=0)
+        assert info["human_gap"] == pytest.approx(info["gap"], abs=0.01)  # starts as the human
+        for _ in range(10):
+            _, r, _, _, info = env.step(_plan(policy, info["features"])[0])
+            assert r == pytest.approx(-0.01 * (info["gap"] - info["human_gap"]) ** 2, abs=1e-12)
+        assert r < 0
+    finally:
+        env.close()
+    net_dir = env.unwrapped.task.net_dir
+    assert net_dir.is_dir()
+    del env, o1, o2, o3  # the rebuilt net goes with the env
+    import gc
+
+    gc.collect()
+    assert not net_dir.exists()
+    with pytest.raises(ValueError, match="unknown replay option"):
+        gym.make(REPLAY, leader_kind="braking")
+    with pytest.raises(ValueError, match="replay source 'nope'"):
+        gym.make(REPLAY, source="nope")
+    with pytest.raises(ValueError, match="start_s must be"):
+        gym.make(REPLAY, start_s=-1.0)
+    with pytest.raises(ValueError, match="unknown maneuver"):
+        gym.make(REPLAY, maneuver="no-such-maneuver")
+    with pytest.raises(ValueError, match="no net"):
+        gym.make(REPLAY, net="curved500")
+
+
+def test_safeil_through_the_replay_env_reproduces_the_replay_cli(tmp_path, capsys):
+    """The shipped safeil driven through Replay-v0 (defaults: OpenACC's paper-like window,
+    JRC-VC_280219_part3_f4#1 from 72 s, held out of safeil's training) gives the replay CLI's
+    gap RMSE to the human within the golden gap tolerance (1e-6 m), from the env's own info."""
+    _need_openacc()
+    import pandas as pd
+
+    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers
+    from safeil_sumo.replay import main as replay_main
+
+    assert replay_main(["--source", "openacc", "--maneuver", "auto", "--policies", "safeil",
+                        "--out", str(tmp_path / "cli")]) == 0
+    want = pd.read_csv(tmp_path / "cli" / "metrics.csv").iloc[0]
+    policy = policies.load("safeil")
+    env = gym.make(REPLAY)
+    try:
+        task = env.unwrapped.task
+        assert task.maneuver_id == "JRC-VC_280219_part3_f4#1" and task.start_s == 72.0
+        assert task.maneuver_id in held_out_maneuvers(REPO / "safeil_sumo/models/safeil.json")
+        _, info = env.reset(options={"index": 0})  # the CLI's --seed 0
+        t, gap, human = [info["t"]], [info["gap"]], [info["human_gap"]]
+        done = False
+        while not done:
+            _, _, te, tr, info = env.step(_plan(policy, info["features"])[0])
+            t.append(info["t"])
+            gap.append(info["gap"])
+            human.append(info["human_gap"])
+            done = te or tr
+        assert info["end_reason"] == want["end_reason"] == "timeout"
+        np.testing.assert_allclose(t, task.human_t, rtol=0, atol=1e-9)  # 10 Hz, as recorded
+        rmse = float(np.sqrt(np.mean((np.array(gap) - np.array(human)) ** 2)))
+        assert rmse == pytest.approx(want["rmse_gap"], abs=1e-6)
+        # and the CLI's own comparison of the env's log
+        human_trace = pd.DataFrame({"t": task.human_t, "gap": task.human_gap})
+        trace = rp.policy_trace(env.unwrapped.rollout().log, pd.read_parquet(
+            tmp_path / "cli" / "human.parquet"))
+        got = rp.compare(pd.read_parquet(tmp_path / "cli" / "human.parquet"), trace)
+        assert got["rmse_gap"] == pytest.approx(want["rmse_gap"], abs=1e-6)
+        assert got["rmse_v"] == pytest.approx(want["rmse_v"], abs=1e-6)
+        np.testing.assert_allclose(human_trace["gap"], pd.read_parquet(
+            tmp_path / "cli" / "human.parquet")["gap"], rtol=0, atol=1e-9)
+    finally:
+        env.close()
+
+
+def test_the_single_envs_float_path_equals_the_array_path():
+    """The single env's reward, info and observation on floats (reward_one, info_one,
+    observe_one) equal the vector env's array functions, bit for bit, on crafted steps: NaN and
+    inf features and progress, every flag and end, the replay's gap error."""
+    from types import SimpleNamespace as NS
+
+    from safeil_sumo.envs import spaces as sp
+
+    rng = np.random.default_rng(0)
+    cfg = sp.RewardConfig(progress_per_m=0.013, ttc_flag=-1.5, lane_departure=-0.7,
+                          collision=-9.0, off_road=-11.0, human_gap_per_m2=-0.02)
+    reasons = ["", "completed", "timeout", "collision", "off_road", "flag"]
+    for k in range(200):
+        feats = rng.normal(0, 60, 9)
+        feats[rng.integers(0, 9)] = [np.nan, np.inf, -np.inf, 1e9][k % 4]
+        s = rng.choice([rng.uniform(0, 500), np.nan, np.inf])
+        gap = rng.choice([rng.uniform(0, 80), np.inf, np.nan])
+        obs = NS(t=np.array([0.1 * k]), s=np.array([s]), gap=np.array([gap]),
+                 ttc=np.array([rng.uniform(0, 9)]), d=np.array([rng.normal()]),
+                 v=np.array([30.0]), leader_v=np.array([29.0]),
+                 path_fraction=np.array([0.5]), features=feats[None],
+                 lane_departure=np.array([k % 2 == 0]), ttc_flag=np.array([k % 3 == 0]),
+                 collision=np.array([k % 5 == 0]))
+        ev = NS(lane_departure=np.array([k % 2 == 1]), ttc_flag=np.array([k % 3 == 1]),
+                collision=np.array([k % 7 == 0]),
+                end_reason=np.array([reasons[k % 6]], object),
+                sub_steps=np.array([0 if k % 11 == 0 else 10]))
+        before = rng.uniform(0, 400)
+        for human in (None, np.array([rng.uniform(0, 80)])):
+            want = cfg.rewards(np.array([before]), obs, ev, human)[0]
+            got = cfg.reward_one(before, obs, ev, None if human is None else human[0])
+            assert got == want or (np.isnan(got) and np.isnan(want)), (k, got, want)
+            arrays = {key: v[0] for key, v in sp.infos(obs, ev, human).items()}
+            floats = sp.info_one(obs, ev, None if human is None else human[0])
+            assert arrays.keys() == floats.keys()
+            for key, value in arrays.items():
+                np.testing.assert_array_equal(floats[key], value, err_msg=key)
+        got_obs = sp.observe_one(feats)
+        np.testing.assert_array_equal(got_obs, sp.observe(feats[None])[0])
+        assert got_obs.dtype == np.float32

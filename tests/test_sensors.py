@@ -97,3 +97,32 @@ def test_batched_camera_fit_equals_the_scalar_one():
         sx, sy = _ego_points(line, s0[i], np.array([ex[i], ey[i]]), yaw[i], config)
         np.testing.assert_allclose(bx[i], sx, rtol=0, atol=1e-9)
         np.testing.assert_allclose(by[i], sy, rtol=0, atol=1e-9)
+
+
+def test_polyfit3_rows_equals_polyfit3_bit_for_bit():
+    """The camera's paired fit (one LAPACK call for both lines) gives polyfit3's coefficients
+    exactly, also for a point set with a NaN."""
+    from safeil_sumo.sim.sensors import polyfit3, polyfit3_rows
+
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        x = np.sort(rng.uniform(-5.0, 80.0, (2, 16)), axis=1) * rng.choice([0.01, 1.0, 10.0])
+        y = rng.normal(size=(2, 16)) * rng.choice([1e-3, 1.0, 50.0]) + 1e-3 * x**2
+        want = np.array([polyfit3(x[0], y[0]), polyfit3(x[1], y[1])])
+        assert np.array_equal(polyfit3_rows(x, y), want)
+    y[1, 3] = np.nan  # not finite: each row redone by polyfit3, whatever it gives
+    want = np.array([polyfit3(x[0], y[0]), polyfit3(x[1], y[1])])
+    assert np.array_equal(polyfit3_rows(x, y), want, equal_nan=True)
+
+
+def test_planner_features_of_one_car_equal_the_stacked_ones():
+    from safeil_sumo.features import planner_features
+
+    rng = np.random.default_rng(4)
+    left, right = rng.normal(size=4), rng.normal(size=4)
+    one = planner_features(left, right, 31.5, 29.25, 48.125)
+    stacked = planner_features(left[None], right[None], np.array([31.5]), np.array([29.25]),
+                               np.array([48.125]))[0]
+    assert one.shape == (9,) and one.dtype == np.float64
+    assert np.array_equal(one, stacked)
+    assert np.array_equal(one, planner_features(left, right, np.float64(31.5), 29.25, 48.125))

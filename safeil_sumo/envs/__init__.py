@@ -32,10 +32,17 @@ IDS: dict[str, dict] = {
     "safeil_sumo/OpenACCLeader-v0": {"task": "recorded", "profile": "openacc"},
     # your own leader profiles: gym.make("safeil_sumo/RecordedLeader-v0", profile="my/dir")
     "safeil_sumo/RecordedLeader-v0": {"task": "recorded"},
+    # the n74 motorway among SUMO's traffic (N = 1 per SUMO: the vector entry point refuses
+    # num_envs > 1; vectorization_mode="async" runs a process per sub-env)
+    "safeil_sumo/N74Traffic-v0": {"task": "n74_traffic"},
+    # a recorded maneuver's replay, rewarding closeness to the human: gym.make(...,
+    # source="openacc", maneuver="auto") (the defaults; safeil_sumo/envs/replay.py)
+    "safeil_sumo/Replay-v0": {"task": "replay"},
 }
 # ids that read the shared human recordings (../shared/data)
 DATA_IDS = ("safeil_sumo/StopAndGo-v0", "safeil_sumo/NGSIMLeader-v0",
-            "safeil_sumo/OpenACCLeader-v0", "safeil_sumo/RecordedLeader-v0")
+            "safeil_sumo/OpenACCLeader-v0", "safeil_sumo/RecordedLeader-v0",
+            "safeil_sumo/Replay-v0")
 
 
 def register() -> None:

@@ -4,8 +4,10 @@ On ``safeil_sumo/Curved500-v0`` (10 Hz decisions, 0.01 s physics, the analytic p
 as actions, resets included), each part in a fresh process: the single env; the native vector
 env at ``--n`` (one SUMO); Gymnasium's AsyncVectorEnv of single envs (a process and a libsumo
 per sub-env: a SyncVectorEnv cannot run, libsumo and traci's default connection are one
-simulation per process) at ``--async-n``. Memory: each process's peak RSS. Reports numbers,
-asserts nothing; ``safeil_sumo.bench`` runs it in a subprocess (``--json``).
+simulation per process) at ``--async-n``. Memory: each process's peak RSS. Beside the wall-clock
+rate, the single and native vector parts report transitions per CPU second of their process
+(``time.process_time``: on a shared machine, less sensitive to other jobs than wall time).
+Reports numbers, asserts nothing; ``safeil_sumo.bench`` runs it in a subprocess (``--json``).
 """
 
 from __future__ import annotations
@@ -40,29 +42,32 @@ def measure(part: str, n: int, seconds: float) -> dict:
     if part == "single":
         env = gym.make(ENV_ID)
         obs, _ = env.reset(seed=0)
-        count, t0 = 0, time.perf_counter()
+        count, t0, c0 = 0, time.perf_counter(), time.process_time()
         while time.perf_counter() - t0 < seconds:
             a = np.asarray(planner.plan(np.asarray(obs, float)[None]), float).reshape(6)
             obs, _, te, tr, _ = env.step(a)
             count += 1
             if te or tr:
                 obs, _ = env.reset()
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         env.close()
-        return {"part": part, "n": 1, "transitions_per_s": count / wall, "peak_rss_mb": _rss_mb()}
+        return {"part": part, "n": 1, "transitions_per_s": count / wall,
+                "transitions_per_cpu_s": count / cpu, "peak_rss_mb": _rss_mb()}
     mode = "vector_entry_point" if part == "vector" else "async"
     venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode)
     obs, _ = venv.reset(seed=0)
-    count, t0 = 0, time.perf_counter()
+    count, t0, c0 = 0, time.perf_counter(), time.process_time()
     while time.perf_counter() - t0 < seconds:
         a = np.asarray(planner.plan(np.asarray(obs, float)), float).reshape(n, 6)
         obs, _, _, _, _ = venv.step(a)
         count += n
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     venv.close()
     out = {"part": part, "n": n, "transitions_per_s": count / wall, "peak_rss_mb": _rss_mb()}
-    if part == "async":
+    if part == "async":  # the workers' CPU time is not this process's
         out["worker_peak_rss_mb"] = _children_rss_mb()
+    else:
+        out["transitions_per_cpu_s"] = count / cpu
     return out
 
 
@@ -99,8 +104,10 @@ def main(argv: list[str] | None = None) -> int:
         for r in rows:
             extra = (f", workers' peak {r['worker_peak_rss_mb']:.0f} MB"
                      if "worker_peak_rss_mb" in r else "")
-            print(f"{r['part']:>7} N={r['n']:<3} {r['transitions_per_s']:9.0f} transitions/s  "
-                  f"peak RSS {r['peak_rss_mb']:.0f} MB{extra}")
+            cpu = (f" ({r['transitions_per_cpu_s']:.0f} per CPU second)"
+                   if "transitions_per_cpu_s" in r else "")
+            print(f"{r['part']:>7} N={r['n']:<3} {r['transitions_per_s']:9.0f} transitions/s"
+                  f"{cpu}  peak RSS {r['peak_rss_mb']:.0f} MB{extra}")
         print(f"vector / single: {result['vector_over_single']:.1f}x; vector / async: "
               f"{result['vector_over_async']:.1f}x")
     return 0

@@ -12,7 +12,7 @@ from safeil_sumo.envs import base
 from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
 from safeil_sumo.sim.loop_types import Rollout
-from safeil_sumo.sim.stepper import ClosedLoop
+from safeil_sumo.sim.stepper import LIMIT_REASONS, TERMINAL_REASONS, ClosedLoop
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
@@ -50,7 +50,8 @@ class SafeILEnv(gym.Env):
         self.vehicle = VehicleParams()
         self.observation_space = sp.observation_space()
         self.action_space = sp.action_space(action_level, self.vehicle)
-        self.reward_config = sp.RewardConfig.of(reward)
+        self.reward_config = sp.RewardConfig.of(
+            reward, sp.REPLAY_REWARD if self.task.replay else None)
         self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
         self.loop_config = base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend)
         if render_mode == "human":  # sumo-gui: a process of its own, reached through traci
@@ -80,7 +81,8 @@ class SafeILEnv(gym.Env):
         self._done = True
         self._obs = self._loop.reset([scenario], horizon_s=self.horizon_s)
         self._done, self._reset_once, self._lost = False, True, False
-        info = {k: v[0] for k, v in sp.infos(self._obs).items()}
+        info = {k: v[0] for k, v in sp.infos(
+            self._obs, human_gap=self.task.human_gap_at(self._obs.t)).items()}
         return sp.observe(self._obs.features[0]), info | {"index": self.index}
 
     def step(self, action):
@@ -90,18 +92,22 @@ class SafeILEnv(gym.Env):
             raise RuntimeError("step after the episode ended (terminated or truncated): call "
                                "reset()" if self._reset_once else "call reset() before step()")
         a = sp.checked_actions(action, self.action_space, self.out_of_space)[None]
-        before = self._obs.s
+        before = float(self._obs.s[0])
         try:
             obs, ev = base.step_loop(self._loop, self.action_level, a)
         except Exception:
             self._done = True
             raise
         self._obs = obs
-        reward = float(self.reward_config.rewards(before, obs, ev)[0])
-        terminated, truncated = bool(ev.terminated[0]), bool(ev.truncated[0])
+        # one scenario: floats, not the vector env's (N,) arrays (the same values)
+        human_gap = self.task.human_gap_at(obs.t[0])
+        reward = self.reward_config.reward_one(before, obs, ev, human_gap)
+        ended, reason = bool(ev.ended[0]), ev.end_reason[0]
+        terminated = ended and reason in TERMINAL_REASONS
+        truncated = ended and reason in LIMIT_REASONS
         self._done = terminated or truncated
-        info = {k: v[0] for k, v in sp.infos(obs, ev).items()}
-        return sp.observe(obs.features[0]), reward, terminated, truncated, info
+        info = sp.info_one(obs, ev, human_gap)
+        return sp.observe_one(obs.features[0]), reward, terminated, truncated, info
 
     def rollout(self) -> Rollout:
         """The episode's per-step log and summary so far (as ``python -m safeil_sumo.run``'s)."""

@@ -23,7 +23,9 @@ MAX_INDEX = 2**31 - 1  # episode indices drawn in [0, MAX_INDEX)
 # family and net in its thousands)
 FAMILY_VARIANTS = 1000
 # the task kinds (the ``task`` argument of the envs)
-TASKS = ("curved500", *FAMILIES, "recorded")
+TASKS = ("curved500", *FAMILIES, "recorded", "n74_traffic", "replay")
+# the traffic densities of ``n74_traffic`` (safeil_sumo.sim.traffic.DENSITIES)
+TRAFFIC_DENSITIES = ("light", "default", "dense")
 
 
 @dataclass(frozen=True)
@@ -34,6 +36,7 @@ class Task:
     spec: ScenarioSpec
     max_index: int = MAX_INDEX  # indices in [0, max_index)
     family: str = ""  # a leader-response family: the index is its variant
+    replay: bool = False  # a recorded maneuver's replay (safeil_sumo.envs.replay.ReplayTask)
 
     def scenario(self, index: int) -> Scenario:
         """The loop's scenario of episode ``index``."""
@@ -49,8 +52,18 @@ class Task:
                                 self.spec.master_seed, self.spec.max_time_s or 40.0)
         return replace(self.spec, index=int(index))
 
+    @property
+    def traffic(self) -> bool:
+        """SUMO's traffic leads (N = 1 only: :func:`safeil_sumo.sim.stepper.check_scope`)."""
+        return bool(self.spec.traffic)
+
     def draw_index(self, rng: np.random.Generator) -> int:
         return int(rng.integers(0, self.max_index))
+
+    def human_gap_at(self, t: np.ndarray) -> np.ndarray | None:
+        """The recorded human's gap at ``t`` (replay tasks only): None here."""
+        del t  # no recording: no human gap
+        return None
 
     @property
     def net_path(self):
@@ -67,13 +80,26 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
     - a leader-response family (``approach``, ``braking``, ``cut_in``, ``stop_and_go``,
       ``accelerating``; ``net`` straight or curved500, default curved500; 40 s);
     - ``recorded``: a recorded human leader (``profile``: ``ngsim``, ``openacc``, or a CSV /
-      Parquet profile file or folder of your own; the ego starts as the recorded follower).
+      Parquet profile file or folder of your own; the ego starts as the recorded follower);
+    - ``n74_traffic``: the n74 motorway stretch (``from_km``, ``to_km``, ``lane``) among SUMO's
+      traffic (``traffic``: ``light``, ``default`` (default) or ``dense``), the leader being
+      whichever vehicle SUMO puts ahead of the ego (``python -m safeil_sumo.run --net n74
+      --traffic ...``; ``net`` must be n74). N = 1 per SUMO: the native vector env takes
+      ``num_envs=1`` only;
+    - ``replay``: a recorded maneuver's replay (:func:`safeil_sumo.envs.replay.replay_task`:
+      ``source``, ``maneuver``, ``start_s``, ``duration_s``, ``data_dir``, sensor noise).
 
     ``spec``: any other :class:`ScenarioSpec` field (``initial_gap_m``, ``lane_noise_c0_m``,
     ...; not for the families, which fix theirs). ``ValueError`` for an unknown task or field.
     """
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; tasks: {', '.join(TASKS)}")
+    if task == "replay":  # a recorded maneuver: its own options (safeil_sumo.envs.replay)
+        if net is not None or profile:
+            raise ValueError("the replay rebuilds the maneuver's own road: no net or profile")
+        from safeil_sumo.envs.replay import replay_task
+
+        return replay_task(master_seed=master_seed, max_time_s=max_time_s, **spec)
     known = set(ScenarioSpec.__dataclass_fields__) - {"index", "master_seed", "net", "policy"}
     unknown = sorted(set(spec) - known)
     if unknown:
@@ -86,6 +112,14 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
             raise ValueError(f"the leader-response families run on {NETS}, got {net!r}")
         return Task(task, ScenarioSpec(net=net, master_seed=master_seed,
                                        max_time_s=max_time_s or 40.0), FAMILY_VARIANTS, task)
+    if task == "n74_traffic":
+        if net not in (None, "n74"):
+            raise ValueError(f"n74_traffic runs on net 'n74', got {net!r}")
+        traffic = spec.pop("traffic", "default")
+        if traffic not in TRAFFIC_DENSITIES:
+            raise ValueError(f"n74_traffic's traffic must be one of {TRAFFIC_DENSITIES}, got "
+                             f"{traffic!r} (no traffic: Curved500-v0 with net='n74')")
+        net, spec = "n74", {"traffic": traffic, **spec}
     if task == "recorded":
         spec = {"leader_kind": "recorded", "leader_profile": profile or "ngsim", **spec}
     elif profile:

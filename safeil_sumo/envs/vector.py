@@ -59,7 +59,14 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         self.single_action_space = sp.action_space(action_level, self.vehicle)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self.reward_config = sp.RewardConfig.of(reward)
+        if self.task.traffic and self.num_envs > 1:
+            raise ValueError(
+                f"{self.task.name}: SUMO's traffic runs one scenario per simulation (its route "
+                "files name the original net's edges), so the native vector env takes "
+                f"num_envs=1 only, got {self.num_envs}; for more, one process per sub-env: "
+                "gymnasium.make_vec(id, num_envs=N, vectorization_mode='async')")
+        self.reward_config = sp.RewardConfig.of(
+            reward, sp.REPLAY_REWARD if self.task.replay else None)
         self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
         self.loop = ClosedLoop(base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend),
                                self.vehicle,
@@ -97,7 +104,8 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         scenarios = [self.task.scenario(int(i)) for i in self.indices]
         self._obs = self.loop.reset(scenarios, horizon_s=self.horizon_s)
         self._open, self._autoreset[:], self._lost = True, False, False
-        return sp.observe(self._obs.features), _with_masks(sp.infos(self._obs))
+        return sp.observe(self._obs.features), _with_masks(sp.infos(
+            self._obs, human_gap=self.task.human_gap_at(self._obs.t)))
 
     def step(self, actions):
         if self._obs is None:
@@ -125,10 +133,11 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
             raise
         self._obs = obs
         self._open = bool(obs.running.any())
-        rewards = self.reward_config.rewards(before, obs, ev)
+        human_gap = self.task.human_gap_at(obs.t)
+        rewards = self.reward_config.rewards(before, obs, ev, human_gap)
         self._autoreset = ev.ended.copy()
         return (sp.observe(obs.features), rewards, ev.terminated.copy(), ev.truncated.copy(),
-                _with_masks(sp.infos(obs, ev)))
+                _with_masks(sp.infos(obs, ev, human_gap)))
 
     def render(self):
         if self.render_mode != "rgb_array" or self._obs is None:

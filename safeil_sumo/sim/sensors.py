@@ -136,6 +136,35 @@ def polyfit3(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 _EPS = float(np.finfo(np.float64).eps)
 
 
+def polyfit3_rows(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """:func:`polyfit3` of each row of ``x, y (K, n)``: coefficients ``(K, 4)``, bit-identical
+    (the same operations row by row, and the same LAPACK least-squares solver, which
+    ``np.linalg.lstsq`` wraps, called once for the K rows); the camera's left and right lines in
+    one call, ~half the cost of two :func:`polyfit3`. A fit that is not finite (a degenerate
+    point set) is redone by :func:`polyfit3`, which raises as ``np.linalg.lstsq`` does."""
+    k, n = x.shape
+    van = np.empty((k, 4, n))
+    van[:, 0] = 1.0
+    van[:, 1] = x
+    np.multiply(van[:, 1], x, out=van[:, 2])
+    np.multiply(van[:, 2], x, out=van[:, 3])
+    scl = np.sqrt(np.square(van).sum(2))
+    scl[scl == 0] = 1
+    a = van.transpose(0, 2, 1) / scl[:, None, :]
+    with np.errstate(all="ignore"):
+        c = _lstsq(a, y[:, :, None], n * _EPS, signature="ddd->ddid")[0][:, :, 0]
+    if not np.isfinite(c).all():
+        return np.array([polyfit3(xi, yi) for xi, yi in zip(x, y, strict=True)])
+    return c / scl
+
+
+try:  # the gufunc np.linalg.lstsq calls (numpy 2.x); its wrapper's checks cost ~10 us a call
+    from numpy.linalg._umath_linalg import lstsq as _lstsq
+except ImportError:  # pragma: no cover - another numpy: through the public function
+    def _lstsq(a, b, rcond, signature=None):
+        return (np.stack([np.linalg.lstsq(ai, bi, rcond)[0] for ai, bi in zip(a, b)]),)
+
+
 def polyfit3_batch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """:func:`polyfit3` of K point sets ``(K, n)`` at once: coefficients ``(K, 4)``.
 
@@ -262,8 +291,14 @@ class LaneCamera:
         """Like :func:`camera_lane_lines` (same arguments, same result)."""
         config = self.config
         lane, s_left, s_right = self.lane_stations(float(ego_xy[0]), float(ego_xy[1]))
-        left = _fit_from(lane.left_boundary, s_left, ego_xy, ego_yaw, config)
-        right = _fit_from(lane.right_boundary, s_right, ego_xy, ego_yaw, config)
+        # both lines' points (_ego_points' operations), fitted in one call (polyfit3_rows)
+        offsets = _view_offsets(config.view_range_m, config.view_samples)
+        pts = np.stack((lane.left_boundary.xy_at(s_left + offsets),
+                        lane.right_boundary.xy_at(s_right + offsets)))
+        c, s = math.cos(ego_yaw), math.sin(ego_yaw)
+        d = pts - ego_xy
+        dx, dy = d[..., 0], d[..., 1]
+        left, right = polyfit3_rows(c * dx + s * dy, -s * dx + c * dy)
         add_lane_noise(left, right, config, rng)
         return left, right, lane.index
 
