@@ -98,6 +98,31 @@ def test_reset_with_a_seed_gives_the_same_episode():
         env.close()
 
 
+def test_brake_guard_option():
+    """The loop's brake guard is on by default under plan actions and ``brake_guard=False``
+    turns it off: a plan that ignores a braking leader is braked by the guard only."""
+    from safeil_sumo.analytic import AnalyticPlanner
+
+    logs = {}
+    for guard in (True, False):
+        env = gym.make("safeil_sumo/Braking-v0", brake_guard=guard, max_time_s=12.0)
+        try:
+            assert (env.unwrapped.loop_config.brake_guard is not None) == guard
+            _, info = env.reset(options={"index": 0})
+            done = False
+            while not done:  # the analytic plan's lane keeping at a held speed: blind
+                plan = _plan(AnalyticPlanner(), info["features"]).reshape(3, 2)
+                plan[:, 0] = info["features"][6] * 5.0 * np.arange(1, 4) / 3.0
+                _, _, te, tr, info = env.step(plan.reshape(-1))
+                done = te or tr
+            logs[guard] = env.unwrapped.rollout().log
+        finally:
+            env.close()
+    assert (logs[True]["guard_decel"] > 0).any()
+    assert logs[False]["guard_decel"].isna().all()
+    assert logs[True]["gap"].min() > logs[False]["gap"].min()
+
+
 def test_safeil_through_the_env_reproduces_run():
     """The shipped safeil planning from info["features"] gives run's flags and path."""
     policy = policies.load("safeil")

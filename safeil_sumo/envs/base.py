@@ -9,6 +9,7 @@ import weakref
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.sim.brake_guard import BrakeGuard
 from safeil_sumo.sim.loop_types import LoopConfig
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -17,12 +18,14 @@ _OWNER: list = [None]  # a weakref to the env whose SUMO simulation runs in this
 
 
 def loop_config(step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
-                backend: str = "libsumo") -> LoopConfig:
-    """The loop's settings (headless; ``LoopConfig`` checks the values)."""
+                backend: str = "libsumo", brake_guard: bool = True) -> LoopConfig:
+    """The loop's settings (headless; ``LoopConfig`` checks the values). ``brake_guard``: the
+    collision-avoidance braking under plan-level actions (docs/brake_guard.md; commands given
+    at the control level are never guarded); False: the plans tracked alone."""
     if backend not in ("libsumo", "traci"):
         raise ValueError(f"backend must be 'libsumo' or 'traci', got {backend!r}")
     return LoopConfig(step_s=step_s, plan_rate_hz=plan_rate_hz, stop_on_flag=stop_on_flag,
-                      backend=backend)
+                      backend=backend, brake_guard=BrakeGuard() if brake_guard else None)
 
 
 def claim_sumo(env) -> None:

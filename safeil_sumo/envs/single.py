@@ -24,7 +24,7 @@ class SafeILEnv(gym.Env):
     ``"plan"`` (B-spline control points, tracked) or ``"control"`` (acceleration, steering).
     ``horizon_s`` [s]: the plans' horizon. ``reward``: a :class:`RewardConfig` or a dict of its
     terms. ``out_of_space``: ``"clip"`` or ``"raise"``. ``step_s`` [s], ``plan_rate_hz`` [Hz],
-    ``stop_on_flag``, ``backend``: the loop's settings. ``render_mode``: None,
+    ``stop_on_flag``, ``backend``, ``brake_guard``: the loop's settings. ``render_mode``: None,
     ``"rgb_array"`` (:meth:`render` draws the animation's frame) or ``"human"`` (sumo-gui shows
     the episode as it runs, following the ego; it needs a display and runs SUMO through traci,
     whatever ``backend`` says; :meth:`render` does nothing).
@@ -36,7 +36,7 @@ class SafeILEnv(gym.Env):
                  horizon_s: float = 5.0, reward: sp.RewardConfig | dict | None = None,
                  out_of_space: str = "clip", render_mode: str | None = None,
                  step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
-                 backend: str = "libsumo", **task_options) -> None:
+                 backend: str = "libsumo", brake_guard: bool = True, **task_options) -> None:
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or one of "
                              f"{self.metadata['render_modes']}, got {render_mode!r}")
@@ -53,7 +53,8 @@ class SafeILEnv(gym.Env):
         self.reward_config = sp.RewardConfig.of(
             reward, sp.REPLAY_REWARD if self.task.replay else None)
         self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
-        self.loop_config = base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend)
+        self.loop_config = base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend,
+                                           brake_guard)
         if render_mode == "human":  # sumo-gui: a process of its own, reached through traci
             self.loop_config = replace(self.loop_config, gui=True, backend="traci")
         self._loop: ClosedLoop | None = None

@@ -41,7 +41,7 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
                  horizon_s: float = 5.0, reward: sp.RewardConfig | dict | None = None,
                  out_of_space: str = "clip", render_mode: str | None = None,
                  step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
-                 backend: str = "libsumo", **task_options) -> None:
+                 backend: str = "libsumo", brake_guard: bool = True, **task_options) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) \
                 or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
@@ -68,7 +68,8 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         self.reward_config = sp.RewardConfig.of(
             reward, sp.REPLAY_REWARD if self.task.replay else None)
         self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
-        self.loop = ClosedLoop(base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend),
+        self.loop = ClosedLoop(base.loop_config(step_s, plan_rate_hz, stop_on_flag, backend,
+                                           brake_guard),
                                self.vehicle,
                                log_columns=None if render_mode else SUMMARY_COLUMNS)
         self._rngs = [seeding.np_random(None)[0] for _ in range(self.num_envs)]
