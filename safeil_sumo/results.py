@@ -1041,9 +1041,11 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
         r = rates[rates["policy"] == p].iloc[0]
         draw_flag_map(ax, route, events[events["policy"] == p],
                       f"{LABELS[p]}: {r['km']:.0f} km in {r['drives']} drives")
+    for ax in axes.flat[len(names):]:
+        ax.axis("off")
     fig.suptitle("n74, direction A, right lane, default traffic: where the flags started "
                  "(ticks: km along the lane)", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
     fig.savefig(out / "n74_flag_map.png", dpi=110)
     plt.close(fig)
 
