@@ -53,6 +53,9 @@ SHIPPED_DATA = REPO / "data" / "synthetic" / "tuples.parquet"
 SHIPPED_SAFEIL = REPO / "safeil_sumo" / "models" / "safeil.json"
 SYNTHETIC_DRIVES = REPO / "data" / "synthetic" / "drives.parquet"  # the recorded n74 humans
 QUICK_STRETCH_KM = (4.0, 5.0)  # the n74 section's --quick drive (one per planner)
+# the real tuples the shipped safeil's style input was fine-tuned on (train_shipped_models.py):
+# the n74 driver population draws its settings from their training maneuvers' time gaps
+TRAINING_TUPLES = (REPO / "data" / "openacc_tuples.parquet", REPO / "data" / "ngsim_tuples.parquet")
 
 # The paper's Fig. "Safety Performance" (path completed before the first flag, scenarios 1..10)
 PAPER_SAFEIL = (1, 1, 1, 0.243652537072041, 1, 0.251206141365427, 0.286587934750144, 1, 1, 1)
@@ -70,10 +73,13 @@ LABELS = {"safeil": "SafeIL (closed loop + driver style)",
           "safeil_paper": "SafeIL (paper barrier)",
           "bc": "BC", "analytic": "analytic", "idm": "IDM (calibrated)",
           "recorded": "recorded human path (the replay's floor)",
-          "constant_speed": "constant speed (naive baseline)"}
+          "constant_speed": "constant speed (naive baseline)",
+          "safeil_population": "SafeIL, driver population",
+          "idm_population": "IDM (calibrated), driver population (its T drawn)"}
 COLORS = {"safeil": "tab:green", "safeil_openloop": "tab:cyan", "safeil_paper": "tab:olive",
           "bc": "tab:red",
-          "analytic": "tab:gray", "idm": "tab:blue"}
+          "analytic": "tab:gray", "idm": "tab:blue", "safeil_population": "tab:purple",
+          "idm_population": "tab:orange"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
             "humanlike", "whole", "lodo", "ablation", "instrument", "n74", "falsify")
@@ -526,6 +532,25 @@ def _n74_readme(n74: dict) -> list[str]:
             row["diff"] = (f"{r['median_diff_s']:+.2f} [{r['median_diff_lo_s']:+.2f}, "
                            f"{r['median_diff_hi_s']:+.2f}]")
         tg.append(row)
+    pop = d.get("population")
+    pop_text = [] if not pop else [(
+        "**A population of drivers.** Every ACC lets its driver choose the time-gap setting, "
+        "and one driver at one setting cannot match a population of drivers. The *driver "
+        f"population* rows drive each stretch {pop['seeds_per_stretch']} times "
+        f"({pop['drives_per_planner']} drives per planner; the first {d['seeds_per_stretch']} "
+        "per stretch on the other rows' traffic seeds), each drive at its own setting "
+        "(`time_gap_s` in its spec and in `n74_drives.csv`), drawn (stratified, seeded) from "
+        f"the preferred time gaps of the {pop['training_maneuvers']} real training maneuvers "
+        "the shipped SafeIL's style input was fine-tuned on (OpenACC and NGSIM, its held-out "
+        f"maneuvers left out; median {pop['estimates_median_s']:.2f} s, its default setting; "
+        f"p5-p95 {pop['estimates_p5_p95_s'][0]:.2f}-{pop['estimates_p5_p95_s'][1]:.2f} s) and "
+        f"clipped to the settable {pop['setting_range_s'][0]:g}-{pop['setting_range_s'][1]:g} "
+        "s: settings {:.2f}-{:.2f} s, median {:.2f} s. ".format(
+            *pop["settings_min_median_max_s"][::2], pop["settings_min_median_max_s"][1])
+        + "The synthetic humans' own time gaps (the comparison set) are not used. The IDM's "
+        "population row sets its time gap T to the same setting per drive. These rows test "
+        "whether a planner reproduces a population's spread when told each driver's setting, "
+        "not whether it infers a driver's style by itself."), ""]
     return [
         "## N74 drives: flags per 100 km and time gaps among traffic", "",
         (f"`python -m safeil_sumo.results --only n74` ({d['drives']} drives; their wall times "
@@ -552,7 +577,7 @@ def _n74_readme(n74: dict) -> list[str]:
         "(same road, same traffic flows; the humans also change lanes). KS: the largest gap "
         "between the two ECDFs (no p-value: samples of one drive are correlated); median "
         "difference planner − humans with a 95 % bootstrap interval that resamples whole "
-         "drives and recordings (seeded)."), "",
+         "drives and recordings (seeded)."), "", *pop_text,
         _md_table(tg, {"planner": "who", "groups": "drives", "samples": "samples",
                        "q05_s": "p5 [s]", "q25_s": "p25 [s]", "q50_s": "median [s]",
                        "q75_s": "p75 [s]", "q95_s": "p95 [s]",
@@ -963,18 +988,37 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
     from safeil_sumo.experiments import n74_drives as nd
     from safeil_sumo.experiments.plots import draw_flag_map
     from safeil_sumo.experiments.sweep import run_sweep
+    from safeil_sumo.learn.style import SETTING_RANGE_S
 
     # --quick: 1 km of each planner (a smoke test of the section)
     stretches, per = ((QUICK_STRETCH_KM,), 1) if quick else (nd.STRETCHES_KM,
                                                               nd.SEEDS_PER_STRETCH)
     specs = nd.drive_specs(nd.PLANNERS, seed, stretches, per)
+    # a population of drivers: one setting per drive, from the real training maneuvers
+    pop_per = 1 if quick else nd.POPULATION_SEEDS_PER_STRETCH
+    try:
+        estimates = nd.training_settings(SHIPPED_SAFEIL.with_suffix(".safetensors"),
+                                         TRAINING_TUPLES)
+    except (OSError, ValueError) as exc:
+        print(f"[n74] no driver population ({exc}); build the real tuples with python "
+              "training/build_real_datasets.py")
+        estimates = {}
+    population = nd.population_specs(estimates, nd.POPULATION_PLANNERS, seed, stretches,
+                                     pop_per, per) if estimates else []
+    specs += population
+    names = [*nd.PLANNERS, *dict.fromkeys(nd.row_name(s.policy, s.time_gap_s)
+                                          for s in population)]
     print(f"[n74] {len(specs)} drives", flush=True)
     df = run_sweep(specs, work / "n74", workers=workers, progress=True, task_fn=nd.drive_task)
     failed = df[df["status"] != "ok"]
     if len(failed):
         print(f"[n74] {len(failed)} drive(s) failed, e.g. {failed['error'].iloc[0]}")
     ok = df[df["status"] == "ok"].reset_index(drop=True)
-    cols = ["policy", "index", "from_km", "to_km", "km_driven", "end_reason", "ttc_events",
+    if "time_gap_s" not in ok:  # no drive with a setting
+        ok["time_gap_s"] = math.nan
+    ok["policy"] = [nd.row_name(p, t) for p, t in zip(ok["policy"], ok["time_gap_s"], strict=True)]
+    cols = ["policy", "time_gap_s", "index", "from_km", "to_km", "km_driven", "end_reason",
+            "ttc_events",
             "lane_departure_events", "collision_events", "min_ttc_s", "min_gap_m",
             "max_abs_lateral_offset_m", "leaders_met", "cut_ins_met"]
     _save_csv(ok[cols], out / "n74_drives.csv")
@@ -990,22 +1034,24 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
         columns=["policy", "index", "kind", "t_s", "km_post", "x", "y", "s_m"])
     _save_csv(events.drop(columns="s_m"), out / "n74_flags.csv")
     route = api.road("n74").lanes[api.road("n74").ego_lane].centre.points
-    ncols = min(len(nd.PLANNERS), 2)
-    nrows = math.ceil(len(nd.PLANNERS) / ncols)
+    ncols = min(len(names), 2)
+    nrows = math.ceil(len(names) / ncols)
     fig, axes = plt.subplots(nrows, ncols, figsize=(6 * ncols, 4.5 * nrows), squeeze=False)
-    for ax, p in zip(axes.flat, nd.PLANNERS, strict=False):
+    for ax, p in zip(axes.flat, names, strict=False):
         r = rates[rates["policy"] == p].iloc[0]
         draw_flag_map(ax, route, events[events["policy"] == p],
                       f"{LABELS[p]}: {r['km']:.0f} km in {r['drives']} drives")
+    for ax in axes.flat[len(names):]:
+        ax.axis("off")
     fig.suptitle("n74, direction A, right lane, default traffic: where the flags started "
                  "(ticks: km along the lane)", fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.98))
     fig.savefig(out / "n74_flag_map.png", dpi=110)
     plt.close(fig)
 
     # time gaps: each drive / recording is one group (its samples are correlated)
     groups = {p: [np.asarray(g, float) for g in ok.loc[ok["policy"] == p, "time_gaps_s"]]
-              for p in nd.PLANNERS}
+              for p in names}
     try:
         humans = nd.human_time_gaps(pd.read_parquet(
             SYNTHETIC_DRIVES, columns=["recording_id", "lead_x", "v_x", "lane_index"]))
@@ -1052,6 +1098,18 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
               "follow_min_speed_mps": nd.FOLLOW_MIN_SPEED_MPS,
               # one core's time of every drive (stable across resumes, unlike the wall time)
               "drives_core_s": round(float(ok["task_wall_time_s"].sum()), 1)}
+    if population:
+        drawn = np.array(sorted({s.index: s.time_gap_s for s in population}.values()))
+        est = np.array(list(estimates.values()))
+        design["population"] = {
+            "planners": list(nd.POPULATION_PLANNERS), "seeds_per_stretch": pop_per,
+            "drives_per_planner": len(drawn), "training_maneuvers": len(est),
+            "estimates_median_s": float(np.median(est)),
+            "estimates_p5_p95_s": np.quantile(est, [0.05, 0.95]).tolist(),
+            "checkpoint_default_s": json.loads(SHIPPED_SAFEIL.read_text()).get(
+                "style_default", {}).get("time_gap_s"),
+            "setting_range_s": list(SETTING_RANGE_S), "settings_min_median_max_s": [
+                float(drawn.min()), float(np.median(drawn)), float(drawn.max())]}
     return {"design": design, "rates": rates.to_dict(orient="records"),
             "time_gap": table.to_dict(orient="records"), "flags": len(events)}
 

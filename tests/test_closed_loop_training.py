@@ -240,3 +240,9 @@ def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
     assert meta["architecture"]["style_names"] == ["time_gap_s"]
     assert 1.0 < meta["style_default"]["time_gap_s"] < 2.2  # make_tuples' drivers: 1.2-2.0 s
     assert held_out_maneuvers(tmp_path / "a.json") == held
+    # the n74 driver population draws from the very estimates this default is the median of
+    from safeil_sumo.experiments.n74_drives import training_settings
+
+    est = training_settings(tmp_path / "a.safetensors", [tmp_path / "t.parquet"])
+    assert sorted(est) == sorted(str(m) for m in np.unique(tup.maneuver_id)[1:])
+    assert np.median(list(est.values())) == meta["style_default"]["time_gap_s"]

@@ -166,6 +166,90 @@ def test_flag_events_count_as_drive_stats(rows):
     assert events["t_s"].is_monotonic_increasing
 
 
+# ------------------------------------------------------------------- a population of drivers
+
+ESTIMATES = {"d": 4.0, "a": 0.5, "c": 2.5, "b": 1.5}  # [s] per training maneuver
+
+
+def test_draw_settings_by_hand():
+    """As many drives as estimates: one per stratum, i.e. every estimate once, clipped to the
+    settable 0.8-3.5 s; twice as many drives: every estimate twice (strata of 1/8 each)."""
+    from safeil_sumo.learn.style import SETTING_RANGE_S
+
+    assert SETTING_RANGE_S == (0.8, 3.5)
+    assert sorted(nd.draw_settings(ESTIMATES, 0, 4)) == [0.8, 1.5, 2.5, 3.5]
+    assert sorted(nd.draw_settings(ESTIMATES, 3, 8)) == [0.8, 0.8, 1.5, 1.5, 2.5, 2.5, 3.5, 3.5]
+    low, high = sorted(nd.draw_settings(ESTIMATES, 0, 2))  # strata [0, 1/2) and [1/2, 1)
+    assert low in (0.8, 1.5) and high in (2.5, 3.5)
+    assert nd.draw_settings({"x": 9.0}, 0, 3) == [3.5, 3.5, 3.5]
+
+
+def test_draw_settings_is_seeded_and_ignores_the_estimates_order():
+    draw = nd.draw_settings(ESTIMATES, 5, 12)
+    assert draw == nd.draw_settings(ESTIMATES, 5, 12)
+    assert draw == nd.draw_settings(dict(sorted(ESTIMATES.items())), 5, 12)
+    orders = {tuple(nd.draw_settings(ESTIMATES, seed, 12)) for seed in range(5)}
+    assert len(orders) > 1  # the master seed changes which drive gets which setting
+    many = nd.draw_settings({str(k): 0.3 * k for k in range(20)}, 1, 37)
+    assert all(0.8 <= t <= 3.5 for t in many)
+    with pytest.raises(ValueError, match="no time-gap estimates"):
+        nd.draw_settings({}, 0, 3)
+    with pytest.raises(ValueError, match="n >= 1"):
+        nd.draw_settings(ESTIMATES, 0, 0)
+
+
+def test_population_drives_share_the_other_rows_seeds_then_new_ones():
+    # 3 stretches x 6 drives, the first 2 per stretch those of drive_specs (indexes j * 2 + i)
+    idx = [[nd.population_index(j, i, 3, 6, 2) for i in range(6)] for j in range(3)]
+    assert idx == [[0, 1, 6, 7, 8, 9], [2, 3, 10, 11, 12, 13], [4, 5, 14, 15, 16, 17]]
+    base = {(s.index, s.from_km) for s in nd.drive_specs(("idm",), 0, nd.STRETCHES_KM, 2)}
+    pop = {(s.index, s.from_km) for s in nd.population_specs(ESTIMATES, ("idm",), 0)}
+    assert base < pop and len(pop) == 18
+    with pytest.raises(ValueError):
+        nd.population_index(0, 6, 3, 6, 2)
+
+
+def test_population_specs_carry_their_setting():
+    from safeil_sumo.experiments.sweep import task_id
+    from safeil_sumo.scenarios.spec import ScenarioSpec
+
+    stretches = ((1.0, 2.0), (3.0, 4.0))
+    specs = nd.population_specs(ESTIMATES, ("safeil", "idm"), 0, stretches, per=4, base=2)
+    assert len(specs) == 16
+    settings_ = nd.draw_settings(ESTIMATES, 0, 8)
+    assert sorted(settings_) == [0.8, 0.8, 1.5, 1.5, 2.5, 2.5, 3.5, 3.5]
+    by = {}
+    for s in specs:
+        assert s.time_gap_s == settings_[s.index] and s.traffic == nd.TRAFFIC
+        assert ScenarioSpec.from_json(s.to_json()).time_gap_s == s.time_gap_s  # a task file
+        by.setdefault(s.policy, []).append((s.index, s.from_km, s.to_km, s.time_gap_s))
+    assert by["safeil"] == by["idm"]  # the same drivers on the same traffic
+    assert sorted(i for i, *_ in by["idm"]) == list(range(8))
+    default = nd.drive_specs(("idm",), 0, stretches, 2)[0]
+    assert (default.index, default.from_km) == (specs[8].index, specs[8].from_km)
+    assert task_id(default) != task_id(specs[8])  # its own task, never the default row's cache
+    assert nd.row_name("idm", None) == "idm" and nd.row_name("idm", math.nan) == "idm"
+    assert nd.row_name("safeil", 1.2) == "safeil_population"
+
+
+def test_training_settings_are_the_shipped_safeils_training_estimates():
+    """The real tuples the shipped safeil was fine-tuned on: the median of the estimates is its
+    default setting, their spread its style input's scaling (skipped without the data)."""
+    from safeil_sumo import results
+
+    if not all(p.is_file() for p in results.TRAINING_TUPLES):
+        pytest.skip("no real tuples (python training/build_real_datasets.py)")
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers
+
+    meta = json.loads(results.SHIPPED_SAFEIL.read_text())
+    ckpt = results.SHIPPED_SAFEIL.with_suffix(".safetensors")
+    est = nd.training_settings(ckpt, results.TRAINING_TUPLES)
+    assert not set(est) & set(held_out_maneuvers(ckpt))
+    values = np.array(list(est.values()))
+    assert np.median(values) == meta["style_default"]["time_gap_s"]
+    assert np.std(values) == pytest.approx(meta["scaling"]["feature_std"][9], rel=1e-6)
+
+
 # ------------------------------------------------------------------ real drives (libsumo)
 
 
@@ -208,6 +292,8 @@ def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
     monkeypatch.setattr(results, "SYNTHETIC_DRIVES", tmp_path / "drives.parquet")
     monkeypatch.setattr(nd, "PLANNERS", ("analytic", "idm"))
     monkeypatch.setattr(results, "QUICK_STRETCH_KM", (4.0, 4.3))
+    monkeypatch.setattr(nd, "POPULATION_PLANNERS", ("idm",))
+    monkeypatch.setattr(nd, "training_settings", lambda *a: {"m0": 1.2, "m1": 9.0})
     assert results.main(["--only", "n74", "--quick", "--out", str(out), "--work",
                          str(tmp_path / "work"), "--workers", "1"]) == 0
     facts = json.loads((out / "facts.json").read_text())
@@ -219,9 +305,18 @@ def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
     readme = (out / "README.md").read_text()
     assert "## Safety on the 500 m-radius track" in readme and "## N74 drives" in readme
     rates = pd.read_csv(out / "n74_rates.csv")
-    assert rates["policy"].tolist() == ["analytic", "idm"]
+    assert rates["policy"].tolist() == ["analytic", "idm", "idm_population"]
     gaps = pd.read_csv(out / "n74_time_gap.csv").set_index("who")
     assert gaps.loc[nd.HUMANS, "samples"] == 5
+    assert gaps.loc["idm_population", "groups"] == 1  # its row (0.3 km may hold no sample)
+    drives = pd.read_csv(out / "n74_drives.csv").set_index("policy")
+    # one drive (--quick) draws one of the two estimates, clipped to 0.8-3.5 s
+    assert drives.loc["idm_population", "time_gap_s"] == nd.draw_settings(
+        {"m0": 1.2, "m1": 9.0}, 0, 1)[0]
+    assert drives.loc["idm_population", "time_gap_s"] in (1.2, 3.5)
+    assert math.isnan(drives.loc["idm", "time_gap_s"])
+    assert facts["n74"]["design"]["population"]["drives_per_planner"] == 1
+    assert "A population of drivers" in readme
     for name in ("n74_flag_map.png", "n74_time_gap.png", "n74_drives.csv", "n74_flags.csv"):
         assert (out / name).stat().st_size > 0
 

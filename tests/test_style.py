@@ -15,6 +15,7 @@ from safeil_sumo.learn.style import (
     clip_time_gap,
     estimate_time_gap,
     maneuver_time_gaps,
+    training_time_gaps,
 )
 
 STATE = np.array([1.75, 0.0, 0.0, -1.75, 0.0, 0.0, 25.0, 24.0, 40.0])
@@ -35,6 +36,18 @@ def test_time_gap_per_maneuver_with_fallback():
     ids = np.array(["a", "a", "b", "c"])
     np.testing.assert_allclose(maneuver_time_gaps(gap, v, ids, fallback_s=1.4),
                                [1.5, 1.5, 3.0, 1.4])
+
+
+def test_training_time_gaps_per_training_maneuver_in_order_of_appearance():
+    """Only training maneuvers with following samples: a held-out maneuver ("h") and one that
+    never follows above the minimum speed ("q") have no estimate."""
+    gap = np.array([45.0, 10.0, 20.0, 30.0, 3.0, 40.0, 20.0])
+    v = np.array([30.0, 10.0, 20.0, 20.0, 2.0, 20.0, 20.0])
+    ids = np.array(["b", "h", "a", "a", "q", "a", "b"])
+    est = training_time_gaps(gap, v, ids, {"a", "b", "q"})
+    # b: 45/30 = 1.5 and 20/20 = 1.0 -> 1.25; a: 1.0, 1.5, 2.0 -> 1.5
+    assert list(est) == ["b", "a"]
+    assert est["b"] == pytest.approx(1.25) and est["a"] == pytest.approx(1.5)
 
 
 def test_settings_are_clipped_to_the_iso_floor_and_the_trained_range():

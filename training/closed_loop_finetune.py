@@ -55,6 +55,7 @@ from safeil_sumo.learn.style import (
     equilibrium_residual,
     equilibrium_states,
     maneuver_time_gaps,
+    training_time_gaps,
 )
 from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
 
@@ -102,8 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     if config.style:
         tg = maneuver_time_gaps(tuples.features[:, D_LEAD], tuples.features[:, V_X],
                                 tuples.maneuver_id, fallback_s=np.nan)
-        train_rows = np.isin(tuples.maneuver_id, list(train_ids)) & np.isfinite(tg)
-        per_maneuver = dict(zip(tuples.maneuver_id[train_rows], tg[train_rows], strict=True))
+        per_maneuver = training_time_gaps(tuples.features[:, D_LEAD], tuples.features[:, V_X],
+                                          tuples.maneuver_id, train_ids)
         median = float(np.median(list(per_maneuver.values())))
         tg = np.where(np.isfinite(tg), tg, median)
         style_default = {"time_gap_s": median}

@@ -5,7 +5,10 @@ synthetic humans of the same road, and where their flags happened.
 Pure functions (:func:`garwood_interval`, :func:`time_gaps`, :func:`flag_events`,
 :func:`human_time_gaps`, :func:`compare_time_gaps`) do the maths on logs and tables; the sweep
 (:func:`drive_specs`, :func:`drive_task`) runs the drives with the sweep engine and keeps, per
-drive, only the time-gap samples and the flag events of its per-step log.
+drive, only the time-gap samples and the flag events of its per-step log. A population of
+drivers (:func:`population_specs`) drives the planners that have a time-gap setting at one
+setting per drive, drawn from the real training maneuvers' preferred time gaps
+(:func:`training_settings`, :func:`draw_settings`).
 
 Definitions (the same for planners and humans):
 
@@ -23,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -45,6 +49,13 @@ FOLLOW_MIN_SPEED_MPS = 5.0  # [m/s] below it a time gap is not meaningful
 TIME_GAP_RATE_HZ = 10.0  # [Hz] time-gap samples kept per drive (the synthetic drives' rate)
 TIME_GAP_QUANTILES = (0.05, 0.1, 0.25, 0.5, 0.75, 0.9, 0.95)
 HUMANS = "synthetic humans"
+# a population of drivers: the planners with a time-gap setting drive each stretch
+# POPULATION_SEEDS_PER_STRETCH times, each drive at a setting drawn from the preferred time gaps
+# of the real training maneuvers (:func:`population_specs`)
+POPULATION_PLANNERS = ("safeil", "idm")
+POPULATION_SEEDS_PER_STRETCH = 6  # 18 drives; the first 2 per stretch on the other rows' seeds
+POPULATION = "population"
+SETTING_SALT = 74  # the settings' random stream, apart from the traffic's
 
 
 # ------------------------------------------------------------------------------- statistics
@@ -209,6 +220,87 @@ def drive_specs(planners: Sequence[str] = PLANNERS, master_seed: int = 0,
                          policy=p, from_km=a, to_km=b, traffic=traffic)
             for p in planners for j, (a, b) in enumerate(stretches)
             for i in range(seeds_per_stretch)]
+
+
+# ---------------------------------------------------------------- a population of drivers
+
+
+def training_settings(checkpoint: str | Path, tuple_paths: Sequence[str | Path]
+                      ) -> dict[str, float]:
+    """The preferred time gaps [s] a style-conditioned checkpoint was trained with: per training
+    maneuver of the real tuple files it was fine-tuned on (``training/train_shipped_models.py``:
+    the OpenACC and NGSIM tuples), its held-out maneuvers left out
+    (:func:`safeil_sumo.learn.style.training_time_gaps`; their median is its default setting)."""
+    from safeil_sumo.data.tuples import Tuples
+    from safeil_sumo.learn.checkpoint import held_out_maneuvers
+    from safeil_sumo.learn.closed_loop import D_LEAD, V_X
+    from safeil_sumo.learn.style import training_time_gaps
+
+    tuples = Tuples.concat([Tuples.load(p) for p in tuple_paths])
+    held = set(held_out_maneuvers(checkpoint))
+    train = {m for m in np.unique(tuples.maneuver_id) if m not in held}
+    est = training_time_gaps(tuples.features[:, D_LEAD], tuples.features[:, V_X],
+                             tuples.maneuver_id, train)
+    return {str(k): float(v) for k, v in est.items()}
+
+
+def draw_settings(estimates: dict[str, float], master_seed: int, n: int) -> list[float]:
+    """``n`` drivers' time-gap settings [s], stratified: the estimates' empirical distribution is
+    cut into ``n`` equal-probability strata, each drive draws one training maneuver's estimate
+    uniformly within its own stratum, and the strata are assigned to the drives in a random
+    order (so ``n`` drives cover the distribution evenly, not by the luck of ``n`` independent
+    draws, and a drive's setting is independent of its traffic). Seeded by ``(SETTING_SALT,
+    master_seed, n)``; each value clipped to the settable range
+    :data:`safeil_sumo.learn.style.SETTING_RANGE_S`. With ``n`` equal to the number of
+    estimates, the settings are the clipped estimates in a random order."""
+    from safeil_sumo.learn.style import clip_time_gap
+
+    if not estimates:
+        raise ValueError("no time-gap estimates to draw a setting from")
+    if n < 1:
+        raise ValueError(f"need n >= 1 settings, got {n}")
+    values = np.sort(np.asarray(list(estimates.values()), float))
+    rng = np.random.default_rng([SETTING_SALT, int(master_seed), int(n)])
+    u = (rng.permutation(n) + rng.uniform(size=n)) / n  # drive k's quantile, in stratum perm[k]
+    pick = np.minimum((u * len(values)).astype(int), len(values) - 1)
+    return [clip_time_gap(values[i]) for i in pick]
+
+
+def population_index(stretch: int, seed: int, n_stretches: int, per: int,
+                     base: int = SEEDS_PER_STRETCH) -> int:
+    """The task index (traffic seed) of stretch ``stretch``'s ``seed``-th population drive: the
+    first ``base`` of each stretch are the other rows' (:func:`drive_specs`: common random
+    numbers); the further ones are numbered after all of theirs."""
+    if not (0 <= stretch < n_stretches and 0 <= seed < per):
+        raise ValueError(f"stretch {stretch} / seed {seed} outside {n_stretches} x {per}")
+    if seed < base:
+        return stretch * base + seed
+    return n_stretches * base + stretch * (per - base) + (seed - base)
+
+
+def population_specs(estimates: dict[str, float],
+                     planners: Sequence[str] = POPULATION_PLANNERS, master_seed: int = 0,
+                     stretches: Sequence[tuple[float, float]] = STRETCHES_KM,
+                     per: int = POPULATION_SEEDS_PER_STRETCH, base: int = SEEDS_PER_STRETCH,
+                     traffic: str = TRAFFIC) -> list[ScenarioSpec]:
+    """A population of drivers: every stretch driven ``per`` times, each drive at its own
+    setting (:func:`draw_settings`; drive ``index`` gets setting ``index``, recorded in its spec
+    as ``time_gap_s``); every planner gets the same drives (index, stretch, setting)."""
+    n = len(stretches)
+    drives = [(population_index(j, i, n, per, min(base, per)), a, b)
+              for j, (a, b) in enumerate(stretches) for i in range(per)]
+    settings = draw_settings(estimates, master_seed, len(drives))  # indexes 0 .. n * per - 1
+    return [ScenarioSpec(net="n74", index=k, master_seed=master_seed, policy=p, from_km=a,
+                         to_km=b, traffic=traffic, time_gap_s=settings[k])
+            for p in planners for k, a, b in drives]
+
+
+def row_name(policy: str, time_gap_s: float | None) -> str:
+    """A drive's row in the tables: its planner, or ``<planner>_population`` when its spec
+    carries a setting."""
+    if time_gap_s is None or not math.isfinite(float(time_gap_s)):
+        return policy
+    return f"{policy}_{POPULATION}"
 
 
 def drive_extras(spec: ScenarioSpec, rollout) -> dict:

@@ -56,6 +56,18 @@ def maneuver_time_gaps(gap_m: np.ndarray, speed_mps: np.ndarray, maneuver_id: np
     return out
 
 
+def training_time_gaps(gap_m: np.ndarray, speed_mps: np.ndarray, maneuver_id: np.ndarray,
+                       training_maneuvers) -> dict:
+    """Per training maneuver (its id in ``training_maneuvers``) that has following samples: its
+    :func:`estimate_time_gap` [s], in order of first appearance. These are the style estimates
+    a style-conditioned planner is trained with (``training/closed_loop_finetune.py --style``);
+    its default setting is their median."""
+    ids = np.asarray(maneuver_id)
+    tg = maneuver_time_gaps(gap_m, speed_mps, ids, fallback_s=np.nan)
+    rows = np.isin(ids, list(training_maneuvers)) & np.isfinite(tg)
+    return dict(zip(ids[rows], tg[rows], strict=True))
+
+
 def clip_time_gap(time_gap_s: float) -> float:
     """A setting inside :data:`SETTING_RANGE_S` (within the trained range)."""
     lo, hi = SETTING_RANGE_S
