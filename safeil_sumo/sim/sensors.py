@@ -162,7 +162,7 @@ try:  # the gufunc np.linalg.lstsq calls (numpy 2.x); its wrapper's checks cost 
     from numpy.linalg._umath_linalg import lstsq as _lstsq
 except ImportError:  # pragma: no cover - another numpy: through the public function
     def _lstsq(a, b, rcond, signature=None):
-        return (np.stack([np.linalg.lstsq(ai, bi, rcond)[0] for ai, bi in zip(a, b)]),)
+        return (np.stack([np.linalg.lstsq(ai, bi, rcond)[0] for ai, bi in zip(a, b, strict=True)]),)
 
 
 def polyfit3_batch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
