@@ -198,7 +198,7 @@ def camera_lane_lines(
 def radar_leader(
     ego_xy: np.ndarray,
     ego_yaw: float,
-    leader_rear_xy: np.ndarray | None,
+    leader_rear_xy: tuple[float, float] | np.ndarray | None,
     leader_speed: float,
     left_line: np.ndarray,
     right_line: np.ndarray,

@@ -24,8 +24,16 @@ from __future__ import annotations
 
 import math
 from types import SimpleNamespace
+from typing import TypeAlias
 
 import numpy as np
+
+# The types the stages are annotated with. A per-scenario value is a Python float with FLOATS (N
+# = 1) and an array (N,) with ARRAYS; the namespaces' functions are untyped (mypy sees them as
+# Any), so a stage's signature says which values are per scenario, not which namespace runs.
+FloatOrArray: TypeAlias = float | np.ndarray
+BoolOrArray: TypeAlias = bool | np.ndarray  # a per-scenario flag
+Namespace: TypeAlias = SimpleNamespace  # FLOATS or ARRAYS
 
 
 def _where(condition, a, b):
