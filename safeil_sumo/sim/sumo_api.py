@@ -12,6 +12,7 @@ import signal
 import subprocess
 import threading
 from collections.abc import Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -164,10 +165,10 @@ def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
         died = proc.poll() is not None and not watchdog.finished.is_set()
         _kill_group(proc)
         proc.wait()
-        try:  # forget the half-open connection so a later start can use the default label
+        # forget the half-open connection so a later start can use the default label (best
+        # effort: the start has failed already)
+        with suppress(Exception):
             traci.close(wait=False)
-        except Exception:  # noqa: BLE001, S110 - best effort: the start has failed already
-            pass
         why = f"it exited with code {proc.returncode}" if died else "it did not answer"
         raise SumoError(f"sumo-gui failed to start ({why}: {exc}); see its messages above and "
                         "the README's sumo-gui paragraph (OpenGL via Mesa, a 24-bit display, "
@@ -177,10 +178,8 @@ def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
 
 
 def _kill_group(proc: subprocess.Popen) -> None:
-    try:
+    with suppress(ProcessLookupError):  # already gone
         os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:  # already gone
-        pass
 
 
 def track_in_gui(api: SumoApi, veh_id: str, view_width_m: float) -> None:
