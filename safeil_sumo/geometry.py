@@ -10,6 +10,7 @@ Conventions used across the package:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -306,7 +307,9 @@ class PolylineStack:
 
 
 def _walk_many(arrays: tuple[np.ndarray, ...], first: np.ndarray | int, last: np.ndarray | int,
-               x: np.ndarray, y: np.ndarray, hint: np.ndarray, near) -> tuple[np.ndarray, ...]:
+               x: np.ndarray, y: np.ndarray, hint: np.ndarray,
+               near: Callable[[np.intp, float, float, int], tuple[float, float, float, int]]
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:meth:`Polyline.project_near_many`'s walk on segment arrays holding each row's polyline
     at segments ``first .. first + last`` (``i`` below: the index within it); ``near(j, x, y,
     hint)`` resolves row ``j`` near a vertex."""

@@ -155,3 +155,19 @@ def test_an_error_before_the_loop_ends_the_run_with_its_reason(straight_road):
     assert rollout.summary["end_reason"] == "error"
     assert "moveTo" in rollout.summary["error"] and fake.closed
     assert rollout.summary["leaders_met"] == 0
+
+
+def test_lane_placeable_on_floats_and_arrays():
+    """Inside the lane (``|d| <= half width``, the boundary included, NaN outside) and the step
+    short of the route's end: a Python bool at N = 1, the same flags on arrays."""
+    from safeil_sumo.sim.runner import lane_placeable
+
+    half, end, advance = 1.75, 100.0, 1.0
+    cases = [(0.0, 50.0, True), (1.75, 50.0, True), (-1.75, 50.0, True), (1.76, 50.0, False),
+             (-1.76, 50.0, False), (math.nan, 50.0, False), (0.0, 98.9, True),
+             (0.0, 99.0, False)]
+    for d, s, expected in cases:
+        assert lane_placeable(d, s, advance, half, end) is expected, (d, s)
+    d, s, expected = (np.array(column) for column in zip(*cases, strict=True))
+    flags = lane_placeable(d, s, np.full(len(d), advance), np.full(len(d), half), end)
+    assert flags.tolist() == expected.tolist()

@@ -21,6 +21,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
+from contextlib import suppress
 from functools import partial
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -414,10 +415,8 @@ def _prepare_nets(specs: Sequence[ScenarioSpec]) -> None:
     from safeil_sumo.scenarios.catalogue import resolve_net
 
     for net in dict.fromkeys(s.net for s in specs):
-        try:
+        with suppress(Exception):  # the tasks of this net record the error
             resolve_net(net)
-        except Exception:  # noqa: BLE001, S110 - the tasks of this net record the error
-            pass
 
 
 # -- local worker processes ----------------------------------------------------------------------
@@ -464,10 +463,8 @@ class _Worker:
         self.conn.send(unit)
 
     def stop(self) -> None:
-        try:
+        with suppress(OSError):
             self.conn.send(None)
-        except OSError:
-            pass
 
     def kill(self) -> None:
         if self.process.is_alive():

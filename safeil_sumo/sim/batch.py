@@ -71,8 +71,9 @@ def run_batch(
     rollouts: list[Rollout | None] = [None] * len(scenarios)
     wall0 = time.perf_counter()
 
-    def done(i: int) -> None:
-        """The rollout of scenario ``i``, which has ended; its log buffer is freed."""
+    def done(i: int) -> Rollout:
+        """The rollout of scenario ``i``, which has ended (kept in ``rollouts`` and returned);
+        its log buffer is freed."""
         # the batch's wall time so far, shared out by steps (what one scenario cost of it)
         steps = sim.steps
         wall = (time.perf_counter() - wall0) * steps[i] / max(int(steps.sum()), 1)
@@ -80,7 +81,10 @@ def run_batch(
         sim.free_log(i)
         if on_done is not None:
             on_done(i, rollout)
-        rollouts[i] = rollout if keep_logs else Rollout(rollout.log.iloc[:0], rollout.summary)
+        if not keep_logs:
+            rollout = Rollout(rollout.log.iloc[:0], rollout.summary)
+        rollouts[i] = rollout
+        return rollout
 
     try:
         # one BLAS thread: the batch's matrices are small, and a sweep already runs one worker
@@ -89,14 +93,12 @@ def run_batch(
             obs = sim.reset(scenarios, policy)
             while obs.running.any():
                 obs, events = sim.step()
-                for i in np.flatnonzero(events.ended):
-                    done(int(i))
+                for ended in np.flatnonzero(events.ended):
+                    done(int(ended))
     except Exception:  # the stepper has ended every running scenario with the error
         if not sim.started:  # refused before SUMO started: bad input
             raise
     finally:
         sim.close()
-    for i, rollout in enumerate(rollouts):
-        if rollout is None:  # the loop failed before it ended
-            done(i)
-    return rollouts
+    # a rollout still None: the loop failed before it ended
+    return [done(i) if rollout is None else rollout for i, rollout in enumerate(rollouts)]

@@ -23,6 +23,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from safeil_sumo.sim.xp import FloatOrArray, Namespace
+
 
 @dataclass(frozen=True)
 class BrakeGuard:
@@ -50,7 +52,8 @@ class BrakeGuard:
                 raise ValueError(f"BrakeGuard.{name} must be >= 0, got {getattr(self, name)}")
 
 
-def required_decel(gap, v_ego, v_lead, b_lead, xp):
+def required_decel(gap: FloatOrArray, v_ego: FloatOrArray, v_lead: FloatOrArray,
+                   b_lead: FloatOrArray, xp: Namespace) -> FloatOrArray:
     """Smallest constant ego deceleration [m/s^2] (>= 0) that keeps a positive ``gap`` [m] to a
     leader at ``v_lead`` [m/s] braking at ``b_lead`` [m/s^2] (>= 0) until it stops; the ego is at
     ``v_ego`` [m/s]. ``gap`` must be > 0 (the caller floors it).
@@ -73,8 +76,9 @@ def required_decel(gap, v_ego, v_lead, b_lead, xp):
     return where(xp.logical_and(closing, moving_at_match), b_a, b_b)
 
 
-def leader_accel(prev_accel, prev_v_lead, prev_gap, prev_v_ego, v_lead, gap, period_s,
-                 guard: BrakeGuard, xp):
+def leader_accel(prev_accel: FloatOrArray, prev_v_lead: FloatOrArray, prev_gap: FloatOrArray,
+                 prev_v_ego: FloatOrArray, v_lead: FloatOrArray, gap: FloatOrArray,
+                 period_s: float, guard: BrakeGuard, xp: Namespace) -> FloatOrArray:
     """The leader's acceleration estimate [m/s^2] after a decision ``period_s`` [s]: the radar's
     speed difference, low-passed (``leader_accel_tau_s``); 0 at the first decision (NaN
     previous values) and for a new target (the range jumped by more than ``new_target_jump_m``
@@ -87,7 +91,8 @@ def leader_accel(prev_accel, prev_v_lead, prev_gap, prev_v_ego, v_lead, gap, per
     return xp.where(xp.logical_and(same, xp.isfinite(smoothed)), smoothed, 0.0)
 
 
-def guard_decel(gap, v_ego, v_lead, a_lead, guard: BrakeGuard, xp):
+def guard_decel(gap: FloatOrArray, v_ego: FloatOrArray, v_lead: FloatOrArray,
+                a_lead: FloatOrArray, guard: BrakeGuard, xp: Namespace) -> FloatOrArray:
     """The guard's deceleration demand [m/s^2]: :func:`required_decel` on the gap less the
     standstill gap and the reaction distance, with the leader braking at ``-a_lead`` (clipped to
     ``[0, max_leader_decel_mps2]``); 0 below ``activation_mps2``."""
@@ -98,7 +103,8 @@ def guard_decel(gap, v_ego, v_lead, a_lead, guard: BrakeGuard, xp):
     return xp.where(b >= guard.activation_mps2, b, 0.0)
 
 
-def no_history(n: int, xp) -> tuple:
+def no_history(n: int, xp: Namespace
+               ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray]:
     """The guard's memory before the first decision: ``(a_lead, v_lead, gap, v_ego)``, 0 and
     NaNs (floats at N = 1, arrays ``(n,)`` else)."""
     return xp.full(n, 0.0), xp.full(n, math.nan), xp.full(n, math.nan), xp.full(n, math.nan)

@@ -21,7 +21,9 @@ direction) instead of its heading, so tyre side slip does not bias the tracking 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 
@@ -32,7 +34,7 @@ from safeil_sumo.sim.vehicle import (
     available_drive_force,
     resistance_force,
 )
-from safeil_sumo.sim.xp import FLOATS
+from safeil_sumo.sim.xp import FLOATS, FloatOrArray, Namespace
 
 # how far the sampled path is extended beyond its ends along the end tangents [m]
 _BACK_EXTENSION_M = 50.0
@@ -143,7 +145,9 @@ class TrackingTarget:
     def speed_and_accel(self, t: float) -> tuple[float, float]:
         """Plan speed [m/s] and tangential acceleration [m/s^2] at ``t`` [s] (see
         :func:`plan_speed_and_accel`)."""
-        return plan_speed_and_accel(self.coeff_x, self.coeff_y, self.horizon_s, t)
+        # FLOATS (the default) on floats gives floats
+        return cast("tuple[float, float]",
+                    plan_speed_and_accel(self.coeff_x, self.coeff_y, self.horizon_s, t))
 
     def lookahead(self, px: float, py: float, ld: float) -> tuple[float, float]:
         """:func:`lookahead_point` on this plan's path."""
@@ -279,7 +283,9 @@ def lookahead_points(
     return np.where(far, near_x, cross_x), np.where(far, near_y, cross_y)
 
 
-def plan_speed_and_accel(coeff_x, coeff_y, horizon, t, xp=FLOATS):
+def plan_speed_and_accel(coeff_x: Sequence[FloatOrArray], coeff_y: Sequence[FloatOrArray],
+                         horizon: FloatOrArray, t: FloatOrArray, xp: Namespace = FLOATS
+                         ) -> tuple[FloatOrArray, FloatOrArray]:
     """Speed [m/s] and tangential acceleration [m/s^2] at ``t`` [s] of a plan whose x(t), y(t)
     have power-basis coefficients ``coeff_x``, ``coeff_y`` (4 each) over ``horizon`` [s].
 
@@ -366,7 +372,8 @@ def _sample_basis(horizon: float, n_samples: int) -> tuple[np.ndarray, np.ndarra
     return _BASIS_CACHE[key]
 
 
-def lookahead_distance(v, params: ControllerParams, xp=FLOATS):
+def lookahead_distance(v: FloatOrArray, params: ControllerParams, xp: Namespace = FLOATS
+                       ) -> FloatOrArray:
     """``L_d`` [m] at speed ``v`` [m/s]."""
     return xp.clip(params.lookahead_gain_s * v + params.lookahead_min_m, params.lookahead_min_m,
                    params.lookahead_max_m)
@@ -424,7 +431,8 @@ def lookahead_point(
     return px + ax + s * sx, py + ay + s * sy
 
 
-def pure_pursuit_steer(target_x, target_y, wheelbase: float, xp=FLOATS):
+def pure_pursuit_steer(target_x: FloatOrArray, target_y: FloatOrArray, wheelbase: float,
+                       xp: Namespace = FLOATS) -> tuple[FloatOrArray, FloatOrArray]:
     """Road-wheel angle [rad] and curvature [1/m] reaching a target given in the rear-axle frame.
 
     ``delta = atan(2 L sin(alpha) / l)`` with ``l`` the distance to the target and ``alpha`` its
@@ -449,28 +457,29 @@ def track(
     ``t_since_plan`` [s] is the time elapsed since the plan was made; ``dt`` [s] the control period.
     """
     st = state
-    steer, accel, integral, error = track_values(
+    # FLOATS (the default) on floats gives floats
+    steer, accel, integral, error = cast("tuple[float, float, float, float]", track_values(
         target, t_since_plan, st.x, st.y, st.yaw, st.vx, st.vy, st.yaw_rate, vehicle,
-        ctrl_state.integral, ctrl_state.prev_error, params, dt)
+        ctrl_state.integral, ctrl_state.prev_error, params, dt))
     return steer, accel, ControllerState(integral=integral, prev_error=error)
 
 
 def track_values(
-    target,
-    t_since_plan,
-    x,
-    y,
-    yaw,
-    vx,
-    vy,
-    yaw_rate,
+    target: TrackingTarget | BatchTarget,
+    t_since_plan: FloatOrArray,
+    x: FloatOrArray,
+    y: FloatOrArray,
+    yaw: FloatOrArray,
+    vx: FloatOrArray,
+    vy: FloatOrArray,
+    yaw_rate: FloatOrArray,
     vehicle: VehicleParams,
-    integral,
-    prev_error,
+    integral: FloatOrArray,
+    prev_error: FloatOrArray | None,
     params: ControllerParams,
     dt: float,
-    xp=FLOATS,
-):
+    xp: Namespace = FLOATS,
+) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray]:
     """:func:`track` on plain floats (the closed loop's path: no per-step dataclasses).
 
     Takes the state's fields and the PID memory, returns ``(steer_cmd, accel_cmd, integral,
@@ -492,7 +501,8 @@ def track_values(
     # --- lateral: pure pursuit ----------------------------------------------------------------
     v = vx
     ld = lookahead_distance(v, params, xp)
-    gx, gy = target.lookahead(px, py, ld)
+    # floats with a TrackingTarget, arrays with a BatchTarget: a pairing the union cannot say
+    gx, gy = target.lookahead(px, py, ld)  # type: ignore[arg-type]
     ch, sh = xp.cos(heading), xp.sin(heading)
     lx, ly = ch * (gx - px) + sh * (gy - py), -sh * (gx - px) + ch * (gy - py)
     steer, kappa = pure_pursuit_steer(lx, ly, vehicle.wheelbase_m, xp)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 import pandas as pd
@@ -55,8 +56,13 @@ class SpeedProfile:
         object.__setattr__(self, "times", t)
         object.__setattr__(self, "speeds", v)
 
+    @overload
+    def speed_at(self, t: float) -> float: ...
+    @overload
+    def speed_at(self, t: np.ndarray) -> np.ndarray: ...
+
     def speed_at(self, t: float | np.ndarray) -> float | np.ndarray:
-        """Speed [m/s] at time ``t`` [s]."""
+        """Speed [m/s] at time ``t`` [s] (a float, or an array of the times' shape)."""
         return np.interp(t, self.times, self.speeds)
 
     @property

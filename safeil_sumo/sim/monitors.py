@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo.sim.xp import FLOATS
+from safeil_sumo.sim.xp import FLOATS, BoolOrArray, FloatOrArray, Namespace
 
 _TINY = 1e-300  # a divisor's floor on the untaken side of a branch
 
@@ -34,7 +34,8 @@ class MonitorConfig:
             raise ValueError("MonitorConfig.ttc_threshold_s must be > 0")
 
 
-def time_to_collision(gap, v_ego, v_lead, xp=FLOATS):
+def time_to_collision(gap: FloatOrArray, v_ego: FloatOrArray, v_lead: FloatOrArray,
+                      xp: Namespace = FLOATS) -> FloatOrArray:
     """TTC [s] = bumper gap [m] / closing speed [m/s]; ``inf`` when not closing.
 
     A gap <= 0 (overlap) gives 0. Floats, or arrays ``(N,)`` with ``xp=ARRAYS``.
@@ -44,13 +45,16 @@ def time_to_collision(gap, v_ego, v_lead, xp=FLOATS):
     return xp.where(gap <= 0.0, 0.0, ttc)
 
 
-def lane_departure(min_offset, max_offset, lane_width, margin=0.0, xp=FLOATS):
+def lane_departure(min_offset: FloatOrArray, max_offset: FloatOrArray, lane_width: FloatOrArray,
+                   margin: FloatOrArray = 0.0, xp: Namespace = FLOATS) -> BoolOrArray:
     """True when any part of the footprint lies outside ``±(lane_width/2 + margin)`` [m]."""
     half = 0.5 * lane_width + margin
     return xp.logical_or(max_offset > half, min_offset < -half)
 
 
-def footprint_offset_range(front_d, heading_error, length: float, width: float, xp=FLOATS):
+def footprint_offset_range(front_d: FloatOrArray, heading_error: FloatOrArray, length: float,
+                           width: float, xp: Namespace = FLOATS
+                           ) -> tuple[FloatOrArray, FloatOrArray]:
     """Smallest and largest lateral offset [m] of the footprint's corners from the lane centre.
 
     ``front_d``: signed offset of the FRONT-bumper centre [m]; ``heading_error``: vehicle yaw
@@ -72,7 +76,8 @@ def event_starts(flags: np.ndarray) -> np.ndarray:
     return np.flatnonzero(flags & ~np.concatenate([[False], flags[:-1]]))
 
 
-def path_completed(s, start: float, end: float, xp=FLOATS):
+def path_completed(s: FloatOrArray, start: FloatOrArray, end: FloatOrArray,
+                   xp: Namespace = FLOATS) -> FloatOrArray:
     """Fraction [0, 1] of the test path ``[start, end]`` [m] covered at arc length ``s``."""
     return xp.clip((s - start) / (end - start), 0.0, 1.0)
 

@@ -21,6 +21,7 @@ speed [m/s], ``length`` and ``width`` [m] (the footprint check), ``no`` the log'
 from __future__ import annotations
 
 import math
+from typing import TypeAlias
 
 import numpy as np
 
@@ -28,7 +29,12 @@ from safeil_sumo.geometry import sumo_angle_to_yaw
 from safeil_sumo.sim import traffic as trf
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import Scenario
+from safeil_sumo.sim.sumo_api import SumoApi
 from safeil_sumo.sim.sumo_setup import leader_speeds
+
+# what the loop reads of a leader after a step: ``(rear_xy, v_sumo, yaw, front_xy)`` [m, m/s,
+# rad, m], in the original track's coordinates
+LeaderPose: TypeAlias = tuple[tuple[float, float], float, float, tuple[float, float]]
 
 
 class ScriptedLeader:
@@ -44,21 +50,24 @@ class ScriptedLeader:
         # SUMO lane position (and speed) per geometric metre differs per SUMO lane (lanes of a
         # curved edge share its length): on a route it is looked up where the leader is
         self.needs_location = len(self.road.ego_pieces) > 1
-        self.speeds = leader_speeds(scenario, n_max, dt)
+        speeds = leader_speeds(scenario, n_max, dt)
+        if speeds is None:
+            raise ValueError("a ScriptedLeader needs a scenario with a leader")
+        self.speeds = speeds
         self.scale = 1.0  # SUMO speed per true speed on the lane it is commanded on
         self.cmd = math.nan  # the last speed command to SUMO [m/s]
         self.gone = False  # it has left the network
-        self.leader = None
+        self.leader: LeaderPose | None = None
         self.v = 0.0
         self.length, self.width = vehicle.length_m, vehicle.width_m
         self.no = 0.0  # the log's leader_no while there is a leader
         self.met, self.cut_ins = 0, 0  # the summary's (traffic only)
 
-    def start(self, api, scale: float, ego_edge: str, ego_pos: float) -> None:
+    def start(self, api: SumoApi, scale: float, ego_edge: str, ego_pos: float) -> None:
         """After the insertion: its speed scale on its departure lane."""
         self.scale = scale
 
-    def command(self, api, k: int) -> None:
+    def command(self, api: SumoApi, k: int) -> None:
         """Its speed of step ``k``; SUMO keeps a commanded speed until the next command."""
         if not self.gone:
             v_cmd = self.speeds[k] * self.scale
@@ -66,7 +75,7 @@ class ScriptedLeader:
                 api.vehicle.setSpeed(self.veh_id, v_cmd)
                 self.cmd = v_cmd
 
-    def read(self, api) -> bool:
+    def read(self, api: SumoApi) -> bool:
         """Its pose and true speed after a step (in the original track's coordinates)."""
         if self.gone:
             return False
@@ -105,6 +114,8 @@ class TrafficLeader:
     needs_location = True  # its true speed is read on the SUMO lane under its front
 
     def __init__(self, scenario: Scenario, ego_id: str) -> None:
+        if scenario.traffic is None:
+            raise ValueError("a TrafficLeader needs a scenario with traffic")
         self.spec, self.ego_id, self.road = scenario.traffic, ego_id, scenario.road
         self.seed = scenario.seed
         self.radar_range = scenario.sensors.radar_range_m
@@ -115,19 +126,19 @@ class TrafficLeader:
         self.met: dict[str, int] = {}  # the leaders met (ids, in order)
         self.cut_ins = 0  # newly met leaders closer than the one before
         self.last_id, self.last_gap = "", math.inf
-        self.leader = None
+        self.leader: LeaderPose | None = None
         self.v = 0.0
         self.length = self.width = 0.0
 
-    def start(self, api, scale: float, ego_edge: str, ego_pos: float) -> None:
+    def start(self, api: SumoApi, scale: float, ego_edge: str, ego_pos: float) -> None:
         """Fill the road with traffic at the flows' density (:func:`.traffic.prefill`)."""
         trf.prefill(api, self.spec, ego_edge, ego_pos, self.road.route_edges[-1],
                     np.random.default_rng([self.seed, 1]))
 
-    def command(self, api, k: int) -> None:
+    def command(self, api: SumoApi, k: int) -> None:
         pass  # SUMO drives it
 
-    def read(self, api) -> bool:
+    def read(self, api: SumoApi) -> bool:
         """Whichever vehicle ``getLeader`` names, its pose and size."""
         self.from_ego = not self.id
         self.id, self.leader, self.v = "", None, 0.0
@@ -153,6 +164,7 @@ class TrafficLeader:
         """Its rear at ``s_rear`` [m along the ego lane], ``gap`` [m] ahead of the ego: its true
         speed (SUMO's divided by the scale of the SUMO lane under its front); ``count``: a
         leader within radar range is met (a cut-in if closer than the one before)."""
+        assert self.leader is not None, "located after a read that found no leader"
         self.v = self.leader[1] / self.road.piece_at(s_rear + self.length).scale
         if count and gap <= self.radar_range:
             if self.id not in self.met:

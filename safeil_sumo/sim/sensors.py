@@ -14,6 +14,7 @@ walks from where it looked last (:meth:`Polyline.project_near`, same result as `
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -158,11 +159,14 @@ def polyfit3_rows(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return c / scl
 
 
+_lstsq: Callable[..., tuple[np.ndarray, ...]]
 try:  # the gufunc np.linalg.lstsq calls (numpy 2.x); its wrapper's checks cost ~10 us a call
     from numpy.linalg._umath_linalg import lstsq as _lstsq
 except ImportError:  # pragma: no cover - another numpy: through the public function
-    def _lstsq(a, b, rcond, signature=None):
-        return (np.stack([np.linalg.lstsq(ai, bi, rcond)[0] for ai, bi in zip(a, b, strict=True)]),)
+    def _lstsq(a: np.ndarray, b: np.ndarray, rcond: float, signature: str | None = None
+               ) -> tuple[np.ndarray, ...]:
+        return (np.stack([np.linalg.lstsq(ai, bi, rcond)[0]
+                          for ai, bi in zip(a, b, strict=True)]),)
 
 
 def polyfit3_batch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -198,7 +202,7 @@ def camera_lane_lines(
 def radar_leader(
     ego_xy: np.ndarray,
     ego_yaw: float,
-    leader_rear_xy: np.ndarray | None,
+    leader_rear_xy: tuple[float, float] | np.ndarray | None,
     leader_speed: float,
     left_line: np.ndarray,
     right_line: np.ndarray,

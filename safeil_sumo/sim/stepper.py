@@ -55,7 +55,7 @@ from contextlib import suppress
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Self
+from typing import Self, TypeVar
 
 import numpy as np
 
@@ -89,7 +89,7 @@ from safeil_sumo.sim.sumo_setup import (
     sumo_lane_position,
     xy_placement_is_unambiguous,
 )
-from safeil_sumo.sim.xp import ARRAYS, FLOATS
+from safeil_sumo.sim.xp import ARRAYS, FLOATS, FloatOrArray
 
 # empty space [m] between neighbouring copies of the track: beyond moveToXY's lane search
 # radius, so each ego's search sees its own copy only (coincident copies made every moveToXY
@@ -319,6 +319,9 @@ class PlanAndTrack:
         """The brake guard's view at a decision: the leader's acceleration estimate and the
         deceleration demand held over the period (:mod:`.brake_guard`)."""
         f = live.features
+        v_ego: FloatOrArray
+        v_lead: FloatOrArray
+        gap: FloatOrArray
         if xp is FLOATS:
             v_ego, v_lead, gap = float(f[6]), float(f[7]), float(f[8])
         else:
@@ -423,7 +426,7 @@ class _Live:
         ev.lane_departure[idx], ev.ttc_flag[idx] = self.departed, self.ttc_flag
         ev.collision[idx], ev.sub_steps[idx] = self.collision, self.sub_steps
 
-    def take(self, keep: Sequence[int]) -> None:
+    def take(self, keep: Sequence[int] | np.ndarray) -> None:
         """Keep the rows ``keep`` (indices) only: the others have ended."""
         if not len(keep):
             self.runs, self.idx = [], self.idx[:0]
@@ -788,6 +791,8 @@ class ClosedLoop:
         v = xp.hypot(vx, vy)
         d_front = self._d_front
         fx_, fy_ = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+        lefts: list[np.ndarray] | np.ndarray
+        rights: list[np.ndarray] | np.ndarray
         if xp is FLOATS:  # the camera: one scenario's lines, its own noise
             r = runs[0]
             left, right, _ = r.camera.lane_lines(np.array((fx_, fy_)), yaw, r.rng)
@@ -1112,7 +1117,7 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
     lines each camera sees, then one sampling and one stacked fit per (line, camera setting)."""
     fits = np.empty((2 * len(live), 4))  # row 2j: scenario j's left line, 2j + 1: its right
     xl, yl = x.tolist(), y.tolist()
-    groups: dict[tuple[int, int], tuple] = {}  # -> (line, camera setting, rows, arc lengths)
+    groups: dict[tuple[int, float, int], tuple] = {}  # -> (line, camera, rows, arc lengths)
     for j, r in enumerate(live):
         lane, s_left, s_right = r.camera.lane_stations(xl[j], yl[j])
         config = r.scenario.sensors
@@ -1139,10 +1144,14 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
     return fits[0::2], fits[1::2]
 
 
-def _groups(items: list, key: Callable) -> list[tuple[object, np.ndarray | slice]]:
+_T = TypeVar("_T")
+_K = TypeVar("_K")
+
+
+def _groups(items: list[_T], key: Callable[[_T], _K]) -> list[tuple[_K, np.ndarray | slice]]:
     """``(object, rows)`` for each distinct ``key(item)`` object (compared by identity: lanes
     and planners need not hash), in order; one group's rows are ``slice(None)``."""
-    groups: dict[int, tuple[object, list[int]]] = {}
+    groups: dict[int, tuple[_K, list[int]]] = {}
     for j, item in enumerate(items):
         obj = key(item)
         groups.setdefault(id(obj), (obj, []))[1].append(j)

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import threading
 from collections.abc import Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -31,6 +32,10 @@ class VehicleDomain(Protocol):
     def getPosition(self, vehID: str) -> tuple[float, float]: ...
     def getAngle(self, vehID: str) -> float: ...
     def getSpeed(self, vehID: str) -> float: ...
+    def getLength(self, vehID: str) -> float: ...
+    def getWidth(self, vehID: str) -> float: ...
+    # libsumo answers ("", -1) when there is no leader, traci None
+    def getLeader(self, vehID: str, dist: float = ...) -> tuple[str, float] | None: ...
     def getIDList(self) -> Sequence[str]: ...
     # used by the synthetic-drive recorder (data/recorder.py) to see the surrounding traffic
     def getLanePosition(self, vehID: str) -> float: ...
@@ -52,6 +57,7 @@ class RouteDomain(Protocol):
 
 class LaneDomain(Protocol):
     def getLastStepVehicleIDs(self, laneID: str) -> Sequence[str]: ...
+    def getLength(self, laneID: str) -> float: ...
 
 
 class GuiDomain(Protocol):
@@ -159,10 +165,10 @@ def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
         died = proc.poll() is not None and not watchdog.finished.is_set()
         _kill_group(proc)
         proc.wait()
-        try:  # forget the half-open connection so a later start can use the default label
+        # forget the half-open connection so a later start can use the default label (best
+        # effort: the start has failed already)
+        with suppress(Exception):
             traci.close(wait=False)
-        except Exception:  # noqa: BLE001, S110 - best effort: the start has failed already
-            pass
         why = f"it exited with code {proc.returncode}" if died else "it did not answer"
         raise SumoError(f"sumo-gui failed to start ({why}: {exc}); see its messages above and "
                         "the README's sumo-gui paragraph (OpenGL via Mesa, a 24-bit display, "
@@ -172,10 +178,8 @@ def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
 
 
 def _kill_group(proc: subprocess.Popen) -> None:
-    try:
+    with suppress(ProcessLookupError):  # already gone
         os.killpg(proc.pid, signal.SIGKILL)
-    except ProcessLookupError:  # already gone
-        pass
 
 
 def track_in_gui(api: SumoApi, veh_id: str, view_width_m: float) -> None:

@@ -23,6 +23,7 @@ from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.xp import BoolOrArray, FloatOrArray
 
 EGO_ID = "ego"
 LEADER_ID = "leader"
@@ -81,12 +82,14 @@ def _depart(road: Road, s: float, who: str) -> tuple[int, str, str, float]:
     return p.route_index, str(p.lane_index), f"{(s - p.s0) * p.scale:.3f}", p.scale
 
 
-def lane_placeable(d, s, advance_m, half_width, route_end):
+def lane_placeable(d: FloatOrArray, s: FloatOrArray, advance_m: FloatOrArray,
+                   half_width: FloatOrArray, route_end: FloatOrArray) -> BoolOrArray:
     """Whether ``LoopConfig.ego_placement="lane"`` may place the ego with ``moveTo``: its front
     bumper inside its lane (``|d| <= half_width`` [m]) and SUMO's step of ``advance_m`` [m]
     short of the route's end ``route_end`` [m along the ego lane] (SUMO lets a vehicle driven
     past its route's end arrive and leave; ``moveToXY`` keeps it). Floats, or arrays ``(N,)``."""
-    return (abs(d) <= half_width) & (s + advance_m < route_end)
+    # |d| <= half_width written as two comparisons (builtin abs() of float | array is untyped)
+    return (d <= half_width) & (d >= -half_width) & (s + advance_m < route_end)
 
 
 def sumo_lane_position(road: Road, s: float, advance_m: float = 0.0) -> tuple[str, float]:

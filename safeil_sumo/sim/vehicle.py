@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import ClassVar, TypeAlias, cast
 
-from safeil_sumo.sim.xp import FLOATS
+from safeil_sumo.sim.xp import FLOATS, FloatOrArray, Namespace
 
 GRAVITY = 9.81  # [m/s^2]
 
@@ -124,7 +124,8 @@ def speed(state: VehicleState) -> float:
     return math.hypot(state.vx, state.vy)
 
 
-def resistance_force(vx, params: VehicleParams, xp=FLOATS):
+def resistance_force(vx: FloatOrArray, params: VehicleParams, xp: Namespace = FLOATS
+                     ) -> FloatOrArray:
     """Drag + rolling resistance [N] opposing motion at ``vx`` [m/s] (0 at standstill; a
     float, or an array with ``xp=ARRAYS``)."""
     drag = 0.5 * params.air_density_kgm3 * params.drag_coefficient * params.frontal_area_m2
@@ -132,7 +133,8 @@ def resistance_force(vx, params: VehicleParams, xp=FLOATS):
                     drag * vx * vx + params.rolling_resistance * params.mass_kg * GRAVITY)
 
 
-def available_drive_force(vx, params: VehicleParams, xp=FLOATS):
+def available_drive_force(vx: FloatOrArray, params: VehicleParams, xp: Namespace = FLOATS
+                          ) -> FloatOrArray:
     """Traction force [N] at full throttle: force-limited at low speed, power-limited above
     (``vx`` [m/s] a float, or an array with ``xp=ARRAYS``)."""
     return xp.minimum(params.max_drive_force_n, params.max_drive_power_w / xp.maximum(vx, 0.1))
@@ -146,10 +148,12 @@ def pedals_from_accel(
     Inverse of the longitudinal model with drag and rolling resistance as feed-forward; exactly one
     of the two is non-zero (or both zero). Saturates at full throttle / full brake.
     """
-    return pedals_from_accel_vx(accel_cmd, state.vx, params)
+    # FLOATS (the default) on floats gives floats
+    return cast("tuple[float, float]", pedals_from_accel_vx(accel_cmd, state.vx, params))
 
 
-def pedals_from_accel_vx(accel_cmd, vx, params: VehicleParams, xp=FLOATS):
+def pedals_from_accel_vx(accel_cmd: FloatOrArray, vx: FloatOrArray, params: VehicleParams,
+                         xp: Namespace = FLOATS) -> tuple[FloatOrArray, FloatOrArray]:
     """:func:`pedals_from_accel` from the longitudinal speed ``vx`` [m/s] alone (floats, or
     arrays ``(N,)`` with ``xp=ARRAYS``)."""
     force = params.mass_kg * accel_cmd + resistance_force(vx, params, xp)
@@ -176,12 +180,18 @@ def step(
 ) -> VehicleState:
     """Advance the plant by ``dt`` [s] under road-wheel ``steer_cmd`` [rad] and pedals in [0, 1]."""
     s = state
-    return VehicleState(*Plant.of(params, dt).step(
+    fields = Plant.of(params, dt).step(
         (s.x, s.y, s.yaw, s.vx, s.vy, s.yaw_rate, s.steer, s.drive_force),
-        steer_cmd, throttle, brake))
+        steer_cmd, throttle, brake)
+    return VehicleState(*cast("tuple[float, ...]", fields))  # FLOATS on floats gives floats
 
 
 _TINY = 1e-300  # a divisor's floor on the untaken side of a branch
+
+# the plant's state as :class:`Plant` steps it: the :class:`VehicleState` fields in order, floats
+# (one car) or arrays (N,) (N cars)
+PlantState: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray,
+                              FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray]
 
 
 class Plant:
@@ -224,11 +234,12 @@ class Plant:
             plant = cls._cache[key] = cls(params, dt)
         return plant
 
-    def resistance(self, vx, xp=FLOATS):
+    def resistance(self, vx: FloatOrArray, xp: Namespace = FLOATS) -> FloatOrArray:
         """:func:`resistance_force` at ``vx`` [m/s] (a float, or an array with ``xp=ARRAYS``)."""
         return xp.where(vx <= 0.0, 0.0, self.drag * vx * vx + self.rolling)
 
-    def step(self, state, steer_cmd, throttle, brake, xp=FLOATS):
+    def step(self, state: PlantState, steer_cmd: FloatOrArray, throttle: FloatOrArray,
+             brake: FloatOrArray, xp: Namespace = FLOATS) -> PlantState:
         """Next ``(x, y, yaw, vx, vy, yaw_rate, steer, drive_force)`` (see :func:`step`).
 
         ``state`` is a tuple of those 8 fields and the commands are floats, or with
@@ -346,5 +357,5 @@ def state_from_front_bumper(
         vy=0.0,
         yaw_rate=0.0,
         steer=0.0,
-        drive_force=resistance_force(v, params),
+        drive_force=cast(float, resistance_force(v, params)),  # FLOATS on a float: a float
     )

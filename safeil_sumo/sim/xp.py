@@ -23,32 +23,43 @@ list of floats at N = 1, an array ``(n, columns)`` else).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from types import SimpleNamespace
+from typing import TypeAlias, TypeVar
 
 import numpy as np
 
+# The types the stages are annotated with. A per-scenario value is a Python float with FLOATS (N
+# = 1) and an array (N,) with ARRAYS; the namespaces' functions are untyped (mypy sees them as
+# Any), so a stage's signature says which values are per scenario, not which namespace runs.
+FloatOrArray: TypeAlias = float | np.ndarray
+BoolOrArray: TypeAlias = bool | np.ndarray  # a per-scenario flag
+Namespace: TypeAlias = SimpleNamespace  # FLOATS or ARRAYS
 
-def _where(condition, a, b):
+T = TypeVar("T")
+
+
+def _where(condition: object, a: T, b: T) -> T:
     return a if condition else b
 
 
-def _clip(value, lo, hi):
+def _clip(value: float, lo: float, hi: float) -> float:
     return min(max(value, lo), hi)
 
 
-def _or(a, b):
+def _or(a: bool, b: bool) -> bool:
     return a or b
 
 
-def _and(a, b):
+def _and(a: bool, b: bool) -> bool:
     return a and b
 
 
-def _isnan(value):
+def _isnan(value: float) -> bool:
     return math.isnan(value)
 
 
-def _select(conditions, choices, default):
+def _select(conditions: Sequence[object], choices: Sequence[T], default: T) -> T:
     for condition, choice in zip(conditions, choices, strict=True):
         if condition:
             return choice
@@ -66,7 +77,7 @@ FLOATS = SimpleNamespace(
     select=_select, any=bool, columns=list,
 )
 
-def _clip_arrays(value, lo, hi):
+def _clip_arrays(value: np.ndarray, lo: FloatOrArray, hi: FloatOrArray) -> np.ndarray:
     return np.minimum(np.maximum(value, lo), hi)  # np.clip's overhead is ~10x on small arrays
 
 
