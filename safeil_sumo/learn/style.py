@@ -17,6 +17,8 @@ with styles across :data:`TIME_GAP_RANGE_S`.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
 import torch
 
@@ -57,7 +59,7 @@ def maneuver_time_gaps(gap_m: np.ndarray, speed_mps: np.ndarray, maneuver_id: np
 
 
 def training_time_gaps(gap_m: np.ndarray, speed_mps: np.ndarray, maneuver_id: np.ndarray,
-                       training_maneuvers) -> dict:
+                       training_maneuvers: Iterable[str]) -> dict[str, float]:
     """Per training maneuver (its id in ``training_maneuvers``) that has following samples: its
     :func:`estimate_time_gap` [s], in order of first appearance. These are the style estimates
     a style-conditioned planner is trained with (``training/closed_loop_finetune.py --style``);
