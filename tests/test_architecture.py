@@ -38,9 +38,7 @@ CLI_LAYER = next(i for i, (what, _) in enumerate(LAYERS) if what == "command lin
 ALLOWED_UPWARD: dict[tuple[str, str], str] = {}
 # functions over 100 lines today, with their length then: they may shrink, not grow, and no
 # other may join them (issue 21 splits them)
-LONG_FUNCTIONS = {
-    "results.py::write_readme": 208,
-}
+LONG_FUNCTIONS: dict[str, int] = {}
 MAX_FUNCTION_LINES = 100
 
 
