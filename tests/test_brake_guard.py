@@ -127,6 +127,22 @@ def test_guard_prevents_the_avoidable_collision(policy):
     assert on["brake_guard_s"] > 0.5 and math.isnan(off["brake_guard_s"])
 
 
+def test_guard_brakes_as_hard_as_the_car_can():
+    """Falsification's worst case with the guard at the tracker's 8 m/s^2 limit: a leader
+    24.8 m ahead at 15.8 m/s braking at 7.8 m/s^2 to a stop, the ego at 30 m/s, radar noise
+    1.2 m. The guard brakes beyond the tracker's limit, up to the car's full 9 m/s^2: no
+    collision (it collided at 8)."""
+    from safeil_sumo.experiments.sweep import run_task
+
+    spec = ScenarioSpec(net="curved1000", policy="safeil", leader_kind="braking",
+                        leader_speed_range_mps=(15.76, 15.76), initial_gap_m=24.81,
+                        lane_noise_c0_m=0.1259, radar_noise_m=1.242, max_time_s=12.0,
+                        brake_time_s=2.48, brake_decel_mps2=7.83, brake_to_mps=0.0,
+                        ego_speed_mps=30.0, master_seed=273)
+    on = run_task(spec)
+    assert on["status"] == "ok" and on["end_reason"] != "collision" and on["min_gap_m"] > 0.0
+
+
 def test_guard_is_logged_and_off_means_the_papers_loop():
     from safeil_sumo import policies
     from safeil_sumo.experiments.sweep import _task_parts

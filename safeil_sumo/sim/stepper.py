@@ -284,6 +284,7 @@ class PlanAndTrack:
         self.plant = veh.Plant.of(loop.vehicle, loop.loop.step_s)
         self.lap = loop._sub_lap
         self.guard, self.period = loop.loop.brake_guard, loop._plan_every * loop.loop.step_s
+        self.full_brake_mps2 = loop.vehicle.max_brake_decel_mps2
 
     def plan(self, live: _Live, given: np.ndarray | None, t, xp, controls=None) -> None:
         """The plans of the decision at ``t`` [s] (each scenario's own time: a float at N = 1,
@@ -347,8 +348,8 @@ class PlanAndTrack:
                 demand = live.guard_demand
                 override = xp.logical_and(demand > 0.0, demand > -accel_cmd)
                 guarded = xp.where(override, demand, 0.0)
-                accel_cmd = xp.where(override, xp.maximum(-demand,
-                                                          self.controller.accel_min_mps2),
+                # full braking if need be: the vehicle's limit, not the tracker's
+                accel_cmd = xp.where(override, xp.maximum(-demand, -self.full_brake_mps2),
                                      accel_cmd)
         else:  # commands from outside, held over the period
             accel_cmd, steer_cmd = live.controls
