@@ -102,9 +102,11 @@ LIMIT_REASONS = ("completed", "timeout")
 _COL = {name: i for i, name in enumerate(_Log.COLUMNS)}
 _LOGGED_FEATURES = [0, 1, 2, 3, 4, 5, 7, 8]  # c0l..c2r, v_lead, d_lead: the features logged
 # the log's columns in an Observation: floats, then flags
-_OBS_FLOATS = [_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc", "leader_v",
-                                 "path_fraction")]
-_OBS_FLAGS = [_COL[c] for c in ("lane_departure", "ttc_flag", "collision")]
+_OBS_FLOATS = np.array([_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc",
+                                           "leader_v", "path_fraction")])
+_OBS_FLAGS = np.array([_COL[c] for c in ("lane_departure", "ttc_flag", "collision")])
+# the end reasons of a sub-step, in the order they are checked (_watch)
+_END_REASONS = ("completed", "collision", "off_road", "flag", "timeout")
 
 Pose: TypeAlias = tuple[float, float, float, float]  # front bumper x, y [m], yaw [rad], v [m/s]
 # a kinematic ego's recorded pose at t [s] (the recorded pseudo-planner's pose_at)
@@ -382,7 +384,6 @@ class PlanAndTrack:
         without a guard or with held commands)."""
         vehicle = self.vehicle
         x, y, yaw, vx, vy, yaw_rate = live.st[:6]
-        guarded = xp.full(len(live.runs), math.nan)
         # plan() made a target or holds the commands: one of the two
         target, controls = live.target, live.controls
         if target is not None:
@@ -396,8 +397,11 @@ class PlanAndTrack:
                 accel_cmd = xp.where(override, xp.maximum(-demand,
                                                           self.controller.accel_min_mps2),
                                      accel_cmd)
+            else:
+                guarded = xp.full(len(live.runs), math.nan)
         elif controls is not None:  # commands from outside, held over the period
             accel_cmd, steer_cmd = controls
+            guarded = xp.full(len(live.runs), math.nan)
         else:
             raise RuntimeError("nothing to track: each step plans (or holds commands) first")
         throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, xp)
@@ -486,15 +490,21 @@ class _Live:
 
     def clear_flags(self) -> None:
         """A new decision step: no flag, no sub-step yet."""
-        false: BoolOrArray = self.xp.from_rows([False] * len(self.runs))
+        false = self.c.no_flags
         self.departed = self.ttc_flag = self.collision = false
         self.sub_steps = 0
 
+    @property
+    def at(self) -> np.ndarray | slice:
+        """The rows in the reset's per-scenario arrays: ``idx``, or at N = 1 the one row as a
+        slice (cheaper to write)."""
+        return slice(None) if self.xp is FLOATS else self.idx
+
     def flush(self, ev: Events) -> None:
         """The decision step's flags and sub-steps so far into ``ev``."""
-        idx = self.idx
-        ev.lane_departure[idx], ev.ttc_flag[idx] = self.departed, self.ttc_flag
-        ev.collision[idx], ev.sub_steps[idx] = self.collision, self.sub_steps
+        at = self.at
+        ev.lane_departure[at], ev.ttc_flag[at] = self.departed, self.ttc_flag
+        ev.collision[at], ev.sub_steps[at] = self.collision, self.sub_steps
 
     def take(self, keep: Rows) -> None:
         """Keep the rows ``keep`` (indices) only: the others have ended (rows remain of
@@ -593,6 +603,8 @@ class ClosedLoop:
         self._lap = clock.lap if clock is not None else _no_lap
         self._sub_lap = clock.lap if clock is not None else None  # every physics step's
         self._d_front = vehicle.cog_to_front_bumper_m  # [m]
+        # a leader's rear this close [m] ahead of the ego's front is checked for footprint overlap
+        self._near = 2.0 * vehicle.length_m
         self._dt = loop.step_s
         self._plan_every = max(round(1.0 / (loop.plan_rate_hz * loop.step_s)), 1)
         # sumo-gui shows the true pose: always moveToXY there
@@ -855,7 +867,7 @@ class ClosedLoop:
         state: the features of the next decision (or, for ended rows, the final ones)."""
         st: tuple[FloatOrArray, ...]
         if rows is None or len(rows) == len(live.runs):
-            runs, st, idx = live.runs, live.st, live.idx
+            runs, st, idx = live.runs, live.st, live.at
         else:  # some of several scenarios (N > 1: arrays)
             runs = [live.runs[j] for j in rows]
             st = tuple(_array(col)[rows] for col in live.st)
@@ -908,7 +920,7 @@ class ClosedLoop:
         """The running scenarios' rows ``(n, 3, 2)`` of ``plans`` (None: their policies
         plan); ``ValueError`` for plans of the wrong size or a missing policy."""
         if plans is None:
-            if any(policy is None for policy, _ in live.c.planners):
+            if live.c.unplanned:
                 raise ValueError("a scenario without a policy needs its plans: step(plans)")
             return None
         given = np.asarray(plans, dtype=float)
@@ -947,7 +959,7 @@ class ClosedLoop:
         ended = reason != ""
         any_ended = self._xp.any(ended)
         if last or any_ended:  # the observation: each scenario's latest row
-            self._last[live.idx] = rows
+            self._last[live.at] = rows
         if any_ended:
             self._end(live, api, ended, reason, ev)
         if self._sub_lap is not None:
@@ -971,7 +983,7 @@ class ClosedLoop:
         if lap is not None:
             lap("project")
         n = len(live.runs)
-        inside = (xp.rows(lane_placeable(d, s, v * dt, 0.5 * c.lane_width, c.route_end))
+        inside = (xp.rows(lane_placeable(d, s, v * dt, c.half_width, c.route_end))
                   if self._on_lane else [False] * n)
         fxl, fyl, vl, sl, yl = xp.rows(front_x), xp.rows(front_y), xp.rows(v), xp.rows(s), \
             xp.rows(yaw)
@@ -990,8 +1002,12 @@ class ClosedLoop:
         if k == self._shot_k and (shot := self.loop.gui_screenshot) is not None:
             sumo_api.gui_screenshot(api, shot)  # sumo-gui saves it during this step
         api.simulation.step()
-        colliding = set(api.simulation.getCollidingVehiclesIDList())
-        hit = xp.from_rows([r.ego in colliding for r in live.runs])
+        colliding = api.simulation.getCollidingVehiclesIDList()
+        if colliding:  # SUMO's collisions (few steps have any)
+            ids = set(colliding)
+            hit = xp.from_rows([r.ego in ids for r in live.runs])
+        else:
+            hit = c.no_flags
         if lap is not None:
             lap("sumo_step")
         return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded
@@ -1027,7 +1043,7 @@ class ClosedLoop:
         speeds, and for traffic the leaders met) and, where close, checked for footprint
         overlap with the ego (unless already colliding). Returns ``v_lead, hit``."""
         xp, vehicle = self._xp, self.vehicle
-        near = 2.0 * vehicle.length_m
+        near = self._near
         srl, gl, vll, hl = xp.rows(s_rear), xp.rows(gap), xp.rows(v_lead), xp.rows(hit)
         fxl, fyl, yl = front[0], front[1], xp.rows(yaw)
         for j in rows:
@@ -1056,7 +1072,7 @@ class ClosedLoop:
         s_rear, _, _, live.lead_seg = _project(c.project, xp, lead_x, lead_y, live.lead_seg)
         gap = xp.where(has_lead, s_rear - s, math.inf)
         yaw = st[2]
-        fix = xp.nonzero(has_lead & ((gap < 2.0 * self.vehicle.length_m) | c.located))
+        fix = xp.nonzero(has_lead & ((gap < self._near) | c.located))
         if len(fix):
             v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit, (fxl, fyl),
                                                yaw)
@@ -1089,9 +1105,9 @@ class ClosedLoop:
                 r.steps = k - r.k0 + 1
         loop = self.loop
         reason = xp.select(
-            [s >= c.path_end, hit, xp.abs(d) > 0.5 * c.lane_width + loop.offroad_stop_m,
+            [s >= c.path_end, hit, xp.abs(d) > c.half_width + loop.offroad_stop_m,
              (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max],
-            ["completed", "collision", "off_road", "flag", "timeout"], "")
+            _END_REASONS, "")
         return rows, reason, departed, ttc_flag, hit
 
     def _end(self, live: _Live, api: sumo_api.SumoApi, ended: BoolOrArray, reason: Any,
@@ -1137,7 +1153,7 @@ class ClosedLoop:
             live.lead_seg = xp.where(c.traffic, seg, live.lead_seg)
         gap = xp.where(has_lead, s_rear - s, math.inf)
         hit = xp.from_rows([False] * n)
-        fix = xp.nonzero(has_lead & ((gap < 2.0 * vehicle.length_m) | c.traffic))
+        fix = xp.nonzero(has_lead & ((gap < self._near) | c.traffic))
         if len(fix):
             v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
                                                (xp.rows(front_x), xp.rows(front_y)), yaw,
@@ -1151,9 +1167,10 @@ class ClosedLoop:
             self._last[live.idx, _COL[name]] = values
 
     def _observation(self) -> Observation:
-        # copies: fancy indexing makes new arrays, each field a row of one of them
-        t, x, y, yaw, v, s, d, gap, ttc, leader_v, fraction = self._last[:, _OBS_FLOATS].T
-        departed, ttc_flag, collision = self._last[:, _OBS_FLAGS].T.astype(bool)
+        # copies: take makes new arrays (columns, floats), each field a row of one of them
+        last = self._last.T
+        t, x, y, yaw, v, s, d, gap, ttc, leader_v, fraction = last.take(_OBS_FLOATS, axis=0)
+        departed, ttc_flag, collision = last.take(_OBS_FLAGS, axis=0).astype(bool)
         return Observation(t, self._features.copy(), x, y, yaw, v, s, d, gap, ttc, leader_v,
                            fraction, departed, ttc_flag, collision, self._running.copy())
 
@@ -1265,6 +1282,7 @@ class _Fixed:
     floats at N = 1, arrays ``(n,)`` else."""
 
     lane_width: FloatOrArray  # (n,) [m]
+    half_width: FloatOrArray  # (n,) half the lane width [m]
     margin: FloatOrArray  # (n,) lane monitor tolerance [m]
     ttc_threshold: FloatOrArray  # (n,) [s]
     path_start: FloatOrArray  # (n,) [m]
@@ -1275,11 +1293,13 @@ class _Fixed:
     located: BoolOrArray  # (n,) bool: the leader is located on the ego lane every step
     traffic: BoolOrArray  # (n,) bool: the leader is SUMO's traffic
     any_traffic: bool
-    # each row's ego lane centre: the one polyline, or several (scenarios on different
-    # roads) walked at once on their stack; NaN points give NaN and keep their segment
-    lanes: Polyline | PolylineStack
+    no_flags: BoolOrArray  # (n,) bool: False in every row (not written to)
     planners: list[tuple[Policy | None, np.ndarray | slice]]  # (planner, rows): a call each
-    project: Project  # (x, y, segment) -> s, d, heading, segment on lanes (no NaN at N = 1)
+    unplanned: bool  # a row has no policy: step needs its plans
+    # (x, y, segment) -> s, d, heading, segment on each row's ego lane centre: the one polyline,
+    # or several (scenarios on different roads) walked at once on their stack (NaN points give
+    # NaN and keep their segment; no NaN at N = 1)
+    project: Project
     k0: FloatOrArray  # (n,) int: the loop's physics step of each scenario's step 0 (restarts)
 
     @staticmethod
@@ -1288,23 +1308,23 @@ class _Fixed:
             return xp.from_rows([get(r) for r in live])
 
         traffic = [isinstance(r.lead, TrafficLeader) for r in live]
-        lanes: Polyline | PolylineStack
-        project: Project
-        if xp is FLOATS:
-            lanes = live[0].centre
-            project = lanes.project_near
-        else:
-            lanes = _lanes(live)
-            project = lanes.project_near_many
+        project: Project = (live[0].centre.project_near if xp is FLOATS
+                            else _lanes(live).project_near_many)
+        lane_width = col(lambda r: r.lane.width)
+        planners = _groups(live, lambda r: r.policy)
         return _Fixed(
-            col(lambda r: r.lane.width), col(lambda r: r.scenario.monitors.lane_margin_m),
-            col(lambda r: r.scenario.monitors.ttc_threshold_s),
-            col(lambda r: r.road.path_start_s), col(lambda r: r.road.path_end_s),
-            col(lambda r: r.road.ego_pieces[-1].s1),
-            col(lambda r: r.n_max), col(lambda r: r.horizon),
-            col(lambda r: r.lead is not None and r.lead.needs_location),
-            xp.from_rows(traffic), any(traffic), lanes, _groups(live, lambda r: r.policy),
-            project, col(lambda r: r.k0))
+            lane_width=lane_width, half_width=0.5 * lane_width,
+            margin=col(lambda r: r.scenario.monitors.lane_margin_m),
+            ttc_threshold=col(lambda r: r.scenario.monitors.ttc_threshold_s),
+            path_start=col(lambda r: r.road.path_start_s),
+            path_end=col(lambda r: r.road.path_end_s),
+            route_end=col(lambda r: r.road.ego_pieces[-1].s1),
+            n_max=col(lambda r: r.n_max), horizon=col(lambda r: r.horizon),
+            located=col(lambda r: r.lead is not None and r.lead.needs_location),
+            traffic=xp.from_rows(traffic), any_traffic=any(traffic),
+            no_flags=xp.from_rows([False] * len(live)), planners=planners,
+            unplanned=any(policy is None for policy, _ in planners), project=project,
+            k0=col(lambda r: r.k0))
 
 
 def _lanes(live: list[_Scenario]) -> Polyline | PolylineStack:
