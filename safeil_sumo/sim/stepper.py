@@ -55,7 +55,7 @@ from contextlib import suppress
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Self, TypeVar
+from typing import Any, Self, TypeAlias, TypeVar
 
 import numpy as np
 
@@ -70,7 +70,7 @@ from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.batch_net import mixed_batch_net, prefixed
 from safeil_sumo.sim.loop_types import GUI_SCREENSHOT_AT_S, LoopConfig, Rollout, Scenario
-from safeil_sumo.sim.providers import ScriptedLeader, TrafficLeader
+from safeil_sumo.sim.providers import LeaderPose, ScriptedLeader, TrafficLeader
 from safeil_sumo.sim.rollout_log import _Log, finish
 from safeil_sumo.sim.sumo_setup import (
     EGO_ID,
@@ -89,7 +89,7 @@ from safeil_sumo.sim.sumo_setup import (
     sumo_lane_position,
     xy_placement_is_unambiguous,
 )
-from safeil_sumo.sim.xp import ARRAYS, FLOATS, FloatOrArray
+from safeil_sumo.sim.xp import ARRAYS, FLOATS, BoolOrArray, FloatOrArray, Namespace
 
 # empty space [m] between neighbouring copies of the track: beyond moveToXY's lane search
 # radius, so each ego's search sees its own copy only (coincident copies made every moveToXY
@@ -102,9 +102,27 @@ LIMIT_REASONS = ("completed", "timeout")
 _COL = {name: i for i, name in enumerate(_Log.COLUMNS)}
 _LOGGED_FEATURES = [0, 1, 2, 3, 4, 5, 7, 8]  # c0l..c2r, v_lead, d_lead: the features logged
 # the log's columns in an Observation: floats, then flags
-_OBS_FLOATS = [_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc", "leader_v",
-                                 "path_fraction")]
-_OBS_FLAGS = [_COL[c] for c in ("lane_departure", "ttc_flag", "collision")]
+_OBS_FLOATS = np.array([_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc",
+                                           "leader_v", "path_fraction")])
+_OBS_FLAGS = np.array([_COL[c] for c in ("lane_departure", "ttc_flag", "collision")])
+# the end reasons of a sub-step, in the order they are checked (_watch)
+_END_REASONS = ("completed", "collision", "off_road", "flag", "timeout")
+
+Pose: TypeAlias = tuple[float, float, float, float]  # front bumper x, y [m], yaw [rad], v [m/s]
+# a kinematic ego's recorded pose at t [s] (the recorded pseudo-planner's pose_at)
+PoseAt: TypeAlias = Callable[[float], Pose]
+# (s, d, heading, segment) of points on each row's ego lane centre, walked from their segments:
+# floats and an int at N = 1 (Polyline.project_near), arrays else (project_near_many)
+Project: TypeAlias = Callable[..., tuple[Any, Any, Any, Any]]
+Rows: TypeAlias = Sequence[int] | np.ndarray  # row indices of the running scenarios
+Controls: TypeAlias = tuple[FloatOrArray, FloatOrArray]  # held acceleration, steering commands
+# what a driver's move gives the log: steering, acceleration commands, the guard's deceleration
+Commands: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray]
+# what a sub-step's drive gives its watch: t, steer_cmd, accel_cmd, v, front_x, front_y, s, d,
+# heading, hit, the front bumper's rows (x, y) and the guard's deceleration
+Moved: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray,
+                         FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, BoolOrArray,
+                         list[float], list[float], FloatOrArray]
 
 
 class StageClock:
@@ -208,18 +226,19 @@ class _Scenario:
         self.s_ego0, self.s_lead0 = start_positions(scenario, vehicle)
         self.camera = sen.LaneCamera(road, scenario.sensors, self.s_ego0)
         # a policy with pose_at(t) (the recorded pseudo-planner) is a kinematic ego
-        self.pose_at = getattr(policy, "pose_at", None)
-        self.state0 = (initial_state(scenario, vehicle) if self.pose_at is None
-                       else veh.state_from_front_bumper(*self.pose_at(0.0), vehicle))
+        pose_at: PoseAt | None = getattr(policy, "pose_at", None)
+        self.pose_at = pose_at
+        self.state0 = (initial_state(scenario, vehicle) if pose_at is None
+                       else veh.state_from_front_bumper(*pose_at(0.0), vehicle))
         self.lead: ScriptedLeader | TrafficLeader | None = (
             TrafficLeader(scenario, self.ego) if scenario.traffic is not None
             else ScriptedLeader(scenario, vehicle, self.leader_id, self.n_max, loop.step_s, dx)
             if scenario.leader is not None else None)
         self.end_reason, self.error = "", ""
-        # the log, row k = step k: a list of rows at N = 1 (an append per step), else an array
-        # filled row by row; None: freed
-        self.rows: list | np.ndarray | None = [] if not copies else np.empty((self.n_max,
-                                                                                log_width))
+        # the log, row k = step k: a list of rows at N = 1 (an append per step: the row, or the
+        # array of its kept columns), else an array filled row by row; None: freed
+        self.rows: list[list[float] | np.ndarray] | np.ndarray | None = (
+            [] if not copies else np.empty((self.n_max, log_width)))
         self.steps = 0  # rows filled
         self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this run
 
@@ -239,6 +258,24 @@ class _Scenario:
             api.vehicle.setSpeed(self.ego, veh.speed(self.state0))
 
 
+def _horizon(policy: Policy | None, horizon_s: float | None) -> float:
+    """The plans' horizon [s]: ``horizon_s``, else the policy's."""
+    if horizon_s is not None:
+        return horizon_s
+    assert policy is not None, "reset and restart refuse neither a policy nor horizon_s"
+    return policy.horizon
+
+
+def _leader_rear(sc: _Scenario) -> tuple[tuple[float, float] | None, float]:
+    """The scenario's leader as last read: its rear ``(x, y)`` [m] and true speed [m/s]
+    (``None, 0.0``: no leader)."""
+    lead = sc.lead
+    pose: LeaderPose | None = lead.leader if lead is not None else None
+    if lead is None or pose is None:
+        return None, 0.0
+    return pose[0], lead.v
+
+
 def _lane_position(sc: _Scenario, s: float, advance_m: float) -> tuple[str, float]:
     """:func:`.sumo_setup.sumo_lane_position` on the scenario's track in this run."""
     lane, pos = sumo_lane_position(sc.road, s, advance_m)
@@ -248,8 +285,7 @@ def _lane_position(sc: _Scenario, s: float, advance_m: float) -> tuple[str, floa
     return copy, pos
 
 
-def _kinematic_state(pose: tuple[float, float, float, float], vehicle: veh.VehicleParams
-                     ) -> tuple:
+def _kinematic_state(pose: Pose, vehicle: veh.VehicleParams) -> veh.PlantState:
     """The loop's state tuple of an ego at front bumper ``pose[:2]``, heading ``pose[2]``,
     speed ``pose[3]``."""
     s = veh.state_from_front_bumper(*pose, vehicle)
@@ -286,14 +322,16 @@ class PlanAndTrack:
         self.guard, self.period = loop.loop.brake_guard, loop._plan_every * loop.loop.step_s
         self.full_brake_mps2 = loop.vehicle.max_brake_decel_mps2
 
-    def plan(self, live: _Live, given: np.ndarray | None, t, xp, controls=None) -> None:
+    def plan(self, live: _Live, given: np.ndarray | None, t: FloatOrArray, xp: Namespace,
+             controls: Controls | None = None) -> None:
         """The plans of the decision at ``t`` [s] (each scenario's own time: a float at N = 1,
         ``(n,)`` else) (``given`` ``(n, 3, 2)``, or the policies'); or, with ``controls``
         (acceleration, steering: floats at N = 1, columns ``(n,)`` else), no plan."""
         live.controls = controls
         n = len(live.runs)
-        if self.guard is not None:
-            self._watch_leader(live, xp)
+        guard = self.guard
+        if guard is not None:
+            self._watch_leader(live, guard, xp)
         if controls is not None:  # the commands are held: no plan, its log columns NaN
             live.target = None
             live.t_plan = xp.full(n, t)
@@ -302,21 +340,29 @@ class PlanAndTrack:
         fx, fy = live.front
         yaw = live.st[2]
         if xp is FLOATS:
-            cp = given[0] if given is not None else live.runs[0].policy.plan(live.features)
-            live.target = ctl.make_target(cp, live.c.horizon, (fx, fy, yaw))
+            if given is not None:
+                cp = given[0]
+            else:
+                policy = live.runs[0].policy
+                assert policy is not None, "_checked_plans refuses steps without plans or policy"
+                cp = policy.plan(live.features)
+            live.target = ctl.make_target(cp, _scalar(live.c.horizon),
+                                          (_scalar(fx), _scalar(fy), _scalar(yaw)))
             live.plan_log = (t, fx, fy, yaw, *np.asarray(cp, float).reshape(6).tolist())
         else:
             cps = given
             if cps is None:
                 cps = np.empty((n, 3, 2))
                 for policy, rows_of in live.c.planners:  # one call per planner object
+                    assert policy is not None, "_checked_plans refuses steps without plans or policy"
                     cps[rows_of] = np.asarray(policy.plan(live.features[rows_of]),
                                               float).reshape(-1, 3, 2)
-            live.target = ctl.make_targets(cps, live.c.horizon, fx, fy, yaw)
+            live.target = ctl.make_targets(cps, _array(live.c.horizon), _array(fx), _array(fy),
+                                           _array(yaw))
             live.plan_log = (np.full(n, t), fx, fy, yaw, *cps.reshape(n, 6).T)
         live.t_plan = xp.full(n, t)
 
-    def _watch_leader(self, live: _Live, xp) -> None:
+    def _watch_leader(self, live: _Live, guard: grd.BrakeGuard, xp: Namespace) -> None:
         """The brake guard's view at a decision: the leader's acceleration estimate and the
         deceleration demand held over the period (:mod:`.brake_guard`)."""
         f = live.features
@@ -329,20 +375,21 @@ class PlanAndTrack:
             v_ego, v_lead, gap = f[:, 6], f[:, 7], f[:, 8]
         a_prev, v_lead_prev, gap_prev, v_ego_prev = live.guard_memory
         a_lead = grd.leader_accel(a_prev, v_lead_prev, gap_prev, v_ego_prev, v_lead, gap,
-                                  self.period, self.guard, xp)
+                                  self.period, guard, xp)
         live.guard_memory = (a_lead, v_lead, gap, v_ego)
-        live.guard_demand = grd.guard_decel(gap, v_ego, v_lead, a_lead, self.guard, xp)
+        live.guard_demand = grd.guard_decel(gap, v_ego, v_lead, a_lead, guard, xp)
 
-    def move(self, live: _Live, t: float, xp) -> tuple:
+    def move(self, live: _Live, t: FloatOrArray, xp: Namespace) -> Commands:
         """Track the plans (under the brake guard) and step the plant; the steering and
         acceleration commands and the guard's deceleration where it overrode (else 0; NaN
         without a guard or with held commands)."""
         vehicle = self.vehicle
         x, y, yaw, vx, vy, yaw_rate = live.st[:6]
-        guarded = xp.full(len(live.runs), math.nan)
-        if live.controls is None:
+        # plan() made a target or holds the commands: one of the two
+        target, controls = live.target, live.controls
+        if target is not None:
             steer_cmd, accel_cmd, live.integral, live.prev_error = ctl.track_values(
-                live.target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle,
+                target, t - live.t_plan, x, y, yaw, vx, vy, yaw_rate, vehicle,
                 live.integral, live.prev_error, self.controller, self.dt, xp)
             if self.guard is not None:  # brake harder where the situation needs it
                 demand = live.guard_demand
@@ -351,8 +398,13 @@ class PlanAndTrack:
                 # full braking if need be: the vehicle's limit, not the tracker's
                 accel_cmd = xp.where(override, xp.maximum(-demand, -self.full_brake_mps2),
                                      accel_cmd)
-        else:  # commands from outside, held over the period
-            accel_cmd, steer_cmd = live.controls
+            else:
+                guarded = xp.full(len(live.runs), math.nan)
+        elif controls is not None:  # commands from outside, held over the period
+            accel_cmd, steer_cmd = controls
+            guarded = xp.full(len(live.runs), math.nan)
+        else:
+            raise RuntimeError("nothing to track: each step plans (or holds commands) first")
         throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, xp)
         if self.lap is not None:
             self.lap("track")
@@ -367,18 +419,33 @@ class Kinematic:
     def __init__(self, loop: ClosedLoop) -> None:
         self.vehicle, self.dt = loop.vehicle, loop.loop.step_s
 
-    def plan(self, live: _Live, given: np.ndarray | None, t, xp, controls=None) -> None:
+    def plan(self, live: _Live, given: np.ndarray | None, t: FloatOrArray, xp: Namespace,
+             controls: Controls | None = None) -> None:
         pass  # nothing is planned (nor held): the log's plan columns stay NaN
 
-    def move(self, live: _Live, t, xp) -> tuple:
-        states = [_kinematic_state(r.pose_at(tj), self.vehicle)
-                  for r, tj in zip(live.runs, xp.rows(t + self.dt))]
+    def move(self, live: _Live, t: FloatOrArray, xp: Namespace) -> Commands:
+        states = []
+        for r, tj in zip(live.runs, xp.rows(t + self.dt)):
+            assert r.pose_at is not None, "a run's egos are all kinematic or none (check_scope)"
+            states.append(_kinematic_state(r.pose_at(tj), self.vehicle))
         live.st = tuple(xp.from_rows(col) for col in zip(*states))
         n = len(live.runs)
         return xp.full(n, math.nan), xp.full(n, math.nan), xp.full(n, math.nan)
 
 
-def _block(xp, n: int, k: int) -> tuple:
+def _scalar(value: FloatOrArray) -> float:
+    """A per-scenario value of the N = 1 loop (FLOATS): a float, not an array."""
+    assert not isinstance(value, np.ndarray), "the one-scenario loop runs on floats"
+    return value
+
+
+def _array(value: FloatOrArray) -> np.ndarray:
+    """A per-scenario value of the N > 1 loop (ARRAYS): an array ``(n,)``."""
+    assert isinstance(value, np.ndarray), "the loop of N > 1 scenarios runs on arrays"
+    return value
+
+
+def _block(xp: Namespace, n: int, k: int) -> tuple[FloatOrArray, ...]:
     """``k`` NaN log columns: floats at N = 1, arrays ``(n,)`` else."""
     return (xp.full(n, math.nan),) * k
 
@@ -387,77 +454,98 @@ class _Live:
     """The loop's state over the running scenarios, in the run's namespace ``xp``: row ``j``
     of every value is ``runs[j]``, scenario ``idx[j]`` of the reset."""
 
-    def __init__(self, runs: list[_Scenario], xp) -> None:
+    def __init__(self, runs: list[_Scenario], xp: Namespace) -> None:
         n = len(runs)
         self.runs, self.xp = runs, xp
         self.idx = np.arange(n)
-        self.st = tuple(xp.from_rows([float(v) for v in col]) for col in zip(*(
+        self.st: veh.PlantState = tuple(xp.from_rows([float(v) for v in col]) for col in zip(*(
             (r.state0.x, r.state0.y, r.state0.yaw, r.state0.vx, r.state0.vy, r.state0.yaw_rate,
              r.state0.steer, r.state0.drive_force) for r in runs)))  # the plant's state
-        self.integral, self.prev_error = xp.full(n, 0.0), xp.full(n, math.nan)  # PID memory
+        # PID memory
+        self.integral: FloatOrArray = xp.full(n, 0.0)
+        self.prev_error: FloatOrArray = xp.full(n, math.nan)
         # the brake guard's: leader acceleration, leader speed, gap, ego speed at the last
         # decision; its deceleration demand over the period [m/s^2]
         self.guard_memory = grd.no_history(n, xp)
-        self.guard_demand = xp.full(n, 0.0)
-        self.t_plan = xp.full(n, 0.0)  # when the tracked plans were made [s]
+        self.guard_demand: FloatOrArray = xp.full(n, 0.0)
+        self.t_plan: FloatOrArray = xp.full(n, 0.0)  # when the tracked plans were made [s]
         self.features = np.full((n, 9) if xp is ARRAYS else 9, np.nan)  # the last decision's
-        self.front = (xp.full(n, math.nan), xp.full(n, math.nan))  # front bumper then [m]
+        # front bumper then [m]
+        self.front: tuple[FloatOrArray, FloatOrArray] = (xp.full(n, math.nan),
+                                                         xp.full(n, math.nan))
         # log columns: c0l..c2r, v_lead, d_lead as logged; the plan being tracked (time, pose,
         # control points)
         self.feature_log, self.plan_log = _block(xp, n, 8), _block(xp, n, 10)
         self.target: ctl.TrackingTarget | ctl.BatchTarget | None = None
         # the held commands (acceleration, steering) of step(controls=...), or None
-        self.controls: tuple | None = None
+        self.controls: Controls | None = None
         self.c = _Fixed.of(runs, xp)
-        self.ego_seg = xp.from_rows([r.centre.segment_index(r.s_ego0) for r in runs])
+        # each row's segment of its ego lane centre under the front bumper, under the leader's
+        # rear (ints at N = 1)
+        self.ego_seg: FloatOrArray = xp.from_rows([r.centre.segment_index(r.s_ego0)
+                                                   for r in runs])
         # the leader's walk starts at its front; among traffic at the ego's (no leader yet)
-        self.lead_seg = xp.from_rows([r.centre.segment_index(
+        self.lead_seg: FloatOrArray = xp.from_rows([r.centre.segment_index(
             r.s_ego0 if isinstance(r.lead, TrafficLeader) else r.s_lead0) for r in runs])
         self.clear_flags()
 
     def clear_flags(self) -> None:
         """A new decision step: no flag, no sub-step yet."""
-        false = self.xp.from_rows([False] * len(self.runs))
+        false = self.c.no_flags
         self.departed = self.ttc_flag = self.collision = false
         self.sub_steps = 0
 
+    @property
+    def at(self) -> np.ndarray | slice:
+        """The rows in the reset's per-scenario arrays: ``idx``, or at N = 1 the one row as a
+        slice (cheaper to write)."""
+        return slice(None) if self.xp is FLOATS else self.idx
+
     def flush(self, ev: Events) -> None:
         """The decision step's flags and sub-steps so far into ``ev``."""
-        idx = self.idx
-        ev.lane_departure[idx], ev.ttc_flag[idx] = self.departed, self.ttc_flag
-        ev.collision[idx], ev.sub_steps[idx] = self.collision, self.sub_steps
+        at = self.at
+        ev.lane_departure[at], ev.ttc_flag[at] = self.departed, self.ttc_flag
+        ev.collision[at], ev.sub_steps[at] = self.collision, self.sub_steps
 
-    def take(self, keep: Sequence[int] | np.ndarray) -> None:
-        """Keep the rows ``keep`` (indices) only: the others have ended."""
+    def take(self, keep: Rows) -> None:
+        """Keep the rows ``keep`` (indices) only: the others have ended (rows remain of
+        several scenarios only: N > 1, arrays)."""
         if not len(keep):
             self.runs, self.idx = [], self.idx[:0]
             return
         keep = np.asarray(keep)
+
+        def cols(values: tuple[FloatOrArray, ...]) -> Any:  # the tuple's length, as given
+            return tuple(_array(col)[keep] for col in values)
+
         self.runs = [self.runs[j] for j in keep]
         self.idx = self.idx[keep]
         self.c = _Fixed.of(self.runs, self.xp)
-        self.st = tuple(col[keep] for col in self.st)
-        self.integral, self.prev_error = self.integral[keep], self.prev_error[keep]
-        self.guard_memory = tuple(col[keep] for col in self.guard_memory)
-        self.guard_demand = self.guard_demand[keep]
-        self.t_plan, self.features = self.t_plan[keep], self.features[keep]
-        self.front = (self.front[0][keep], self.front[1][keep])
-        self.ego_seg, self.lead_seg = self.ego_seg[keep], self.lead_seg[keep]
-        self.feature_log = tuple(col[keep] for col in self.feature_log)
-        self.plan_log = tuple(col[keep] for col in self.plan_log)
-        self.target = self.target.take(keep) if self.target is not None else None
-        self.controls = (tuple(col[keep] for col in self.controls)
-                         if self.controls is not None else None)
-        self.departed, self.ttc_flag = self.departed[keep], self.ttc_flag[keep]
-        self.collision = self.collision[keep]
+        self.st = cols(self.st)
+        self.integral, self.prev_error = cols((self.integral, self.prev_error))
+        self.guard_memory = cols(self.guard_memory)
+        self.guard_demand, self.t_plan = cols((self.guard_demand, self.t_plan))
+        self.features = self.features[keep]
+        self.front = cols(self.front)
+        self.ego_seg, self.lead_seg = cols((self.ego_seg, self.lead_seg))
+        self.feature_log = cols(self.feature_log)
+        self.plan_log = cols(self.plan_log)
+        target = self.target
+        if target is not None:
+            assert isinstance(target, ctl.BatchTarget), "N > 1 scenarios track a BatchTarget"
+            target = target.take(keep)
+        self.target = target
+        self.controls = cols(self.controls) if self.controls is not None else None
+        self.departed, self.ttc_flag, self.collision = cols(
+            (self.departed, self.ttc_flag, self.collision))
 
     def join(self, other: _Live) -> None:
         """Add ``other``'s rows (restarted scenarios, after a step: the next decision plans
         anew), then order every row by its scenario index (N > 1: arrays)."""
         cat = np.concatenate
 
-        def cols(a: tuple, b: tuple) -> tuple:
-            return tuple(cat([x, y]) for x, y in zip(a, b))
+        def cols(a: tuple[FloatOrArray, ...], b: tuple[FloatOrArray, ...]) -> Any:
+            return tuple(cat([x, y]) for x, y in zip(a, b, strict=True))
 
         self.runs = self.runs + other.runs
         self.idx = cat([self.idx, other.idx])
@@ -516,6 +604,8 @@ class ClosedLoop:
         self._lap = clock.lap if clock is not None else _no_lap
         self._sub_lap = clock.lap if clock is not None else None  # every physics step's
         self._d_front = vehicle.cog_to_front_bumper_m  # [m]
+        # a leader's rear this close [m] ahead of the ego's front is checked for footprint overlap
+        self._near = 2.0 * vehicle.length_m
         self._dt = loop.step_s
         self._plan_every = max(round(1.0 / (loop.plan_rate_hz * loop.step_s)), 1)
         # sumo-gui shows the true pose: always moveToXY there
@@ -568,12 +658,12 @@ class ClosedLoop:
             net, shifts = mixed_batch_net([sc.road.net_path for sc in scenarios], SPACING_M,
                                           self.net_dir)
             args[args.index("-n") + 1] = str(net)
-        runs = [_Scenario(i, sc, p, horizon_s if horizon_s is not None else p.horizon,
-                          self.loop, self.vehicle, dx, len(self.columns), copies)
+        runs = [_Scenario(i, sc, p, _horizon(p, horizon_s), self.loop, self.vehicle, dx,
+                          len(self.columns), copies)
                 for i, (sc, p, dx) in enumerate(zip(scenarios, pols, shifts))]
         self._xp = ARRAYS if copies else FLOATS
         self._driver = Kinematic(self) if runs[0].pose_at is not None else PlanAndTrack(self)
-        self._api = self.api_factory(args)
+        self._api = api = self.api_factory(args)
         self.sumo_started_s = time.perf_counter()
         self._runs, self._k = runs, 0
         n = len(runs)
@@ -581,7 +671,7 @@ class ClosedLoop:
         self._features = np.full((n, 9), np.nan)
         self._running = np.ones(n, dtype=bool)
         try:
-            live = self._start(runs)
+            live = self._start(api, runs)
         except Exception as exc:
             self._fail(exc)
             raise
@@ -602,10 +692,11 @@ class ClosedLoop:
         step and what happened in it. An error ends every running scenario with
         ``end_reason="error"``, closes SUMO and is raised.
         """
-        live = self._live
+        live, api = self._live, self._api
         if live is None:
             raise RuntimeError("no scenario is running: call reset first" if not self._runs
                                else "every scenario has ended: call reset")
+        assert api is not None, "SUMO runs while a scenario does (close ends both)"
         self._lap("outside")
         if plans is not None and controls is not None:
             raise ValueError("step takes plans or controls, not both")
@@ -629,16 +720,15 @@ class ClosedLoop:
                 last = sub == self._plan_every - 1
                 if last and pending:  # inserted by this step's last SUMO step, as in reset
                     for r in pending:
-                        r.add(self._api, self.vehicle)
-                self._sub_step(live, self._k, last, ev)
+                        r.add(api, self.vehicle)
+                self._sub_step(live, api, self._k, last, ev)
                 self._k += 1
                 if not live.runs:
                     break
             if live.runs:
                 live.flush(ev)
             if pending:
-                self._start_restarted(live, pending, inserted=last)
-                live = self._live
+                live = self._start_restarted(live, api, pending, inserted=last)
             if live.runs:
                 self._sense(live)
             else:  # every scenario has ended: SUMO is no longer needed
@@ -681,32 +771,34 @@ class ClosedLoop:
         if horizon_s is None and policy is None:
             raise ValueError("a restart without a policy needs horizon_s, the plans' horizon [s]")
         self._runs[i] = r = _Scenario(
-            i, scenario, policy, horizon_s if horizon_s is not None else policy.horizon,
-            self.loop, self.vehicle, old.dx, len(self.columns), True, old.generation + 1)
+            i, scenario, policy, _horizon(policy, horizon_s), self.loop, self.vehicle, old.dx,
+            len(self.columns), True, old.generation + 1)
         r.lane_ids = old.lane_ids  # the same copy of the track
         self._pending.append(r)
 
-    def _start_restarted(self, live: _Live, pending: list[_Scenario], inserted: bool) -> None:
+    def _start_restarted(self, live: _Live, api: sumo_api.SumoApi, pending: list[_Scenario],
+                         inserted: bool) -> _Live:
         """The restarted scenarios after their insertion (done now with one SUMO step when
         every other scenario ended before the step's last one): read the leaders, look at the
-        start and join the running ones; they are sensed with them."""
+        start and join the running ones; they are sensed with them. Returns the loop's rows."""
         if not inserted:
             for r in pending:
-                r.add(self._api, self.vehicle)
-            self._api.simulation.step()
+                r.add(api, self.vehicle)
+            api.simulation.step()
             self._k += 1
         for r in pending:
             r.k0 = self._k
             if r.lead is not None:
-                r.lead.read(self._api)
+                r.lead.read(api)
         new = _Live(pending, self._xp)
         new.idx = np.array([r.i for r in pending])
         self._look_at_start(new)
         self._running[new.idx] = True
         if live.runs:
             live.join(new)
-        else:  # every other scenario has ended: the restarted ones are the loop's rows
-            self._live = new
+            return live
+        self._live = new  # every other scenario has ended: the restarted ones are the loop's
+        return new
 
     def rollout(self, i: int, wall_s: float = math.nan) -> Rollout:
         """Scenario ``i``'s log so far and its summary (``wall_s`` [s]: its share of the wall
@@ -749,15 +841,14 @@ class ClosedLoop:
     def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # -- the stages ---------------------------------------------------------------------------
 
-    def _start(self, runs: list[_Scenario]) -> _Live:
+    def _start(self, api: sumo_api.SumoApi, runs: list[_Scenario]) -> _Live:
         """Insert every scenario, take SUMO's first step, read the leaders, look at the
         initial states and sense them."""
-        api = self._api
         for r in runs:
             r.add(api, self.vehicle)
         api.simulation.step()
@@ -772,19 +863,25 @@ class ClosedLoop:
         self._sense(live)
         return live
 
-    def _sense(self, live: _Live, rows: Sequence[int] | None = None) -> None:
+    def _sense(self, live: _Live, rows: Rows | None = None) -> None:
         """Camera and radar of the running scenarios (or of their ``rows``) at their current
         state: the features of the next decision (or, for ended rows, the final ones)."""
-        whole = rows is None or len(rows) == len(live.runs)
-        runs = live.runs if whole else [live.runs[j] for j in rows]
-        st = live.st if whole else tuple(col[rows] for col in live.st)
+        st: tuple[FloatOrArray, ...]
+        if rows is None or len(rows) == len(live.runs):
+            runs, st, idx = live.runs, live.st, live.at
+        else:  # some of several scenarios (N > 1: arrays)
+            runs = [live.runs[j] for j in rows]
+            st = tuple(_array(col)[rows] for col in live.st)
+            idx = live.idx[rows]
         feats, feature_log, front = self._features_at(runs, st)
-        self._features[live.idx if whole else live.idx[rows]] = feats
+        self._features[idx] = feats
         if rows is None:
             live.features, live.feature_log, live.front = feats, feature_log, front
         self._lap("sense")
 
-    def _features_at(self, runs: list[_Scenario], st: tuple) -> tuple:
+    def _features_at(self, runs: list[_Scenario], st: tuple[FloatOrArray, ...]
+                     ) -> tuple[np.ndarray, tuple[FloatOrArray, ...],
+                                tuple[FloatOrArray, FloatOrArray]]:
         """The planner's features of ``runs`` at states ``st``: ``(features (n, 9) or (9,),
         their logged columns, the front bumpers (x, y))``."""
         xp = self._xp
@@ -796,20 +893,18 @@ class ClosedLoop:
         rights: list[np.ndarray] | np.ndarray
         if xp is FLOATS:  # the camera: one scenario's lines, its own noise
             r = runs[0]
-            left, right, _ = r.camera.lane_lines(np.array((fx_, fy_)), yaw, r.rng)
+            left, right, _ = r.camera.lane_lines(np.array((fx_, fy_)), _scalar(yaw), r.rng)
             lefts, rights = [left], [right]
         else:  # each scenario's lines, sampled per line and fitted all at once, then its noise
-            lefts, rights = _camera_fits(runs, fx_, fy_, yaw)
+            lefts, rights = _camera_fits(runs, fx_, fy_, _array(yaw))
             for j, r in enumerate(runs):
                 sen.add_lane_noise(lefts[j], rights[j], r.scenario.sensors, r.rng)
         fxl, fyl, yl, vl = xp.rows(fx_), xp.rows(fy_), xp.rows(yaw), xp.rows(v)
         v_lead, d_lead = [], []
         for j, r in enumerate(runs):
-            lead = r.lead.leader if r.lead is not None else None
-            radar = sen.radar_leader(np.array((fxl[j], fyl[j])), yl[j],
-                                     None if lead is None else lead[0],
-                                     0.0 if lead is None else r.lead.v, lefts[j], rights[j],
-                                     r.scenario.sensors, r.rng)
+            rear, v_true = _leader_rear(r)
+            radar = sen.radar_leader(np.array((fxl[j], fyl[j])), yl[j], rear, v_true, lefts[j],
+                                     rights[j], r.scenario.sensors, r.rng)
             vj, dj = sen.leader_features(radar, vl[j], r.scenario.sensors)
             v_lead.append(vj)
             d_lead.append(dj)
@@ -826,7 +921,7 @@ class ClosedLoop:
         """The running scenarios' rows ``(n, 3, 2)`` of ``plans`` (None: their policies
         plan); ``ValueError`` for plans of the wrong size or a missing policy."""
         if plans is None:
-            if any(policy is None for policy, _ in live.c.planners):
+            if live.c.unplanned:
                 raise ValueError("a scenario without a policy needs its plans: step(plans)")
             return None
         given = np.asarray(plans, dtype=float)
@@ -853,10 +948,11 @@ class ClosedLoop:
             return accel, steer
         return rows[:, 0].copy(), rows[:, 1].copy()
 
-    def _sub_step(self, live: _Live, k: int, last: bool, ev: Events) -> None:
+    def _sub_step(self, live: _Live, api: sumo_api.SumoApi, k: int, last: bool, ev: Events
+                  ) -> None:
         """Physics step ``k`` of every running scenario: drive, monitor, log, end."""
-        moved = self._drive(live, k)
-        rows, reason, departed, ttc_flag, hit = self._watch(live, k, moved)
+        moved = self._drive(live, api, k)
+        rows, reason, departed, ttc_flag, hit = self._watch(live, api, k, moved)
         live.departed = live.departed | departed
         live.ttc_flag = live.ttc_flag | ttc_flag
         live.collision = live.collision | hit
@@ -864,13 +960,13 @@ class ClosedLoop:
         ended = reason != ""
         any_ended = self._xp.any(ended)
         if last or any_ended:  # the observation: each scenario's latest row
-            self._last[live.idx] = rows
+            self._last[live.at] = rows
         if any_ended:
-            self._end(live, ended, reason, ev)
+            self._end(live, api, ended, reason, ev)
         if self._sub_lap is not None:
             self._sub_lap("monitor")
 
-    def _drive(self, live: _Live, k: int) -> tuple:
+    def _drive(self, live: _Live, api: sumo_api.SumoApi, k: int) -> Moved:
         """Drive the egos (track and plant, or their recorded poses), find each front bumper on
         its lane, move the egos and command the leaders in SUMO, step SUMO."""
         c, dt, lap, xp = live.c, self._dt, self._sub_lap, self._xp
@@ -888,15 +984,14 @@ class ClosedLoop:
         if lap is not None:
             lap("project")
         n = len(live.runs)
-        inside = (xp.rows(lane_placeable(d, s, v * dt, 0.5 * c.lane_width, c.route_end))
+        inside = (xp.rows(lane_placeable(d, s, v * dt, c.half_width, c.route_end))
                   if self._on_lane else [False] * n)
         fxl, fyl, vl, sl, yl = xp.rows(front_x), xp.rows(front_y), xp.rows(v), xp.rows(s), \
             xp.rows(yaw)
-        api = self._api
-        move_to = api.vehicle.moveTo if self._on_lane else None
+        move_to = api.vehicle.moveTo if self._on_lane else None  # (a fake API may lack it)
         move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
         for j, r in enumerate(live.runs):
-            if inside[j]:
+            if inside[j] and move_to is not None:  # inside: on_lane placement only
                 move_to(r.ego, *_lane_position(r, sl[j], vl[j] * dt))
             else:
                 move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j], yaw_to_sumo_angle(yl[j]), 2)
@@ -905,25 +1000,31 @@ class ClosedLoop:
                 r.lead.command(api, k - r.k0)
         if lap is not None:
             lap("sumo_move")
-        if k == self._shot_k:  # sumo-gui saves it during this step
-            sumo_api.gui_screenshot(api, self.loop.gui_screenshot)
+        if k == self._shot_k and (shot := self.loop.gui_screenshot) is not None:
+            sumo_api.gui_screenshot(api, shot)  # sumo-gui saves it during this step
         api.simulation.step()
-        colliding = set(api.simulation.getCollidingVehiclesIDList())
-        hit = xp.from_rows([r.ego in colliding for r in live.runs])
+        colliding = api.simulation.getCollidingVehiclesIDList()
+        if colliding:  # SUMO's collisions (few steps have any)
+            ids = set(colliding)
+            hit = xp.from_rows([r.ego in ids for r in live.runs])
+        else:
+            hit = c.no_flags
         if lap is not None:
             lap("sumo_step")
         return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded
 
-    def _read_leaders(self, live: _Live) -> tuple:
+    def _read_leaders(self, live: _Live, api: sumo_api.SumoApi
+                      ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
         """Each running scenario's leader after a step: its rear ``lead_x, lead_y`` [m] and
         true speed [m/s] (NaN: none; the true speed of a leader that ``needs_location`` comes
         once it is located)."""
-        xp, api, nan = self._xp, self._api, math.nan
+        xp, nan = self._xp, math.nan
         lx, ly, lv = [], [], []
         for r in live.runs:
             lead = r.lead
-            if lead is not None and lead.read(api):
-                (x, y), v = lead.leader[0], lead.v
+            # read: its pose, or False and None (no leader)
+            if lead is not None and lead.read(api) and (pose := lead.leader) is not None:
+                (x, y), v = pose[0], lead.v
             else:
                 x = y = v = nan
             lx.append(x)
@@ -935,39 +1036,44 @@ class ClosedLoop:
             live.lead_seg = xp.where(from_ego, live.ego_seg, live.lead_seg)
         return xp.from_rows(lx), xp.from_rows(ly), xp.from_rows(lv)
 
-    def _locate_leaders(self, live: _Live, rows, s_rear, gap, v_lead, hit, front, yaw,
-                        count: bool = True) -> tuple:
-        """The leaders of ``rows`` located on the ego lane (their true speeds, and for traffic
-        the leaders met) and, where close, checked for footprint overlap with the ego (unless
-        already colliding). Returns ``v_lead, hit``."""
+    def _locate_leaders(self, live: _Live, rows: Rows, s_rear: FloatOrArray, gap: FloatOrArray,
+                        v_lead: FloatOrArray, hit: BoolOrArray,
+                        front: tuple[list[float], list[float]], yaw: FloatOrArray,
+                        count: bool = True) -> tuple[FloatOrArray, BoolOrArray]:
+        """The leaders of ``rows`` (each with a leader) located on the ego lane (their true
+        speeds, and for traffic the leaders met) and, where close, checked for footprint
+        overlap with the ego (unless already colliding). Returns ``v_lead, hit``."""
         xp, vehicle = self._xp, self.vehicle
-        near = 2.0 * vehicle.length_m
+        near = self._near
         srl, gl, vll, hl = xp.rows(s_rear), xp.rows(gap), xp.rows(v_lead), xp.rows(hit)
         fxl, fyl, yl = front[0], front[1], xp.rows(yaw)
         for j in rows:
             lead = live.runs[j].lead
+            pose = lead.leader if lead is not None else None
+            assert lead is not None and pose is not None, "rows with a leader are located"
             if lead.needs_location:
                 vll[j] = lead.located(srl[j], gl[j], count)
             if gl[j] < near and not hl[j]:
-                hl[j] = footprints_overlap((fxl[j], fyl[j]), yl[j], vehicle, lead.leader,
-                                           lead.length, lead.width)
+                hl[j] = footprints_overlap((fxl[j], fyl[j]), yl[j], vehicle, pose, lead.length,
+                                           lead.width)
         return xp.from_rows(vll), xp.from_rows(hl)
 
-    def _watch(self, live: _Live, k: int, moved: tuple) -> tuple:
+    def _watch(self, live: _Live, api: sumo_api.SumoApi, k: int, moved: Moved
+               ) -> tuple[Any, Any, BoolOrArray, BoolOrArray, BoolOrArray]:
         """Read the leaders, check footprints and run the monitors on the state at ``t + dt``;
         log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), each row's
         end reason (``""``: goes on) and the lane-departure, TTC and collision flags."""
         t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded = moved
         c, st, n, xp = live.c, live.st, len(live.runs), self._xp
-        lead_x, lead_y, v_lead = self._read_leaders(live)
+        lead_x, lead_y, v_lead = self._read_leaders(live, api)
         has_lead = xp.isfinite(lead_x)  # NaN: no leader
         lap = self._sub_lap
         if lap is not None:
             lap("sumo_read")
-        s_rear, _, _, live.lead_seg = _project(c.lanes, xp, lead_x, lead_y, live.lead_seg)
+        s_rear, _, _, live.lead_seg = _project(c.project, xp, lead_x, lead_y, live.lead_seg)
         gap = xp.where(has_lead, s_rear - s, math.inf)
         yaw = st[2]
-        fix = xp.nonzero(has_lead & ((gap < 2.0 * self.vehicle.length_m) | c.located))
+        fix = xp.nonzero(has_lead & ((gap < self._near) | c.located))
         if len(fix):
             v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit, (fxl, fyl),
                                                yaw)
@@ -987,20 +1093,26 @@ class ClosedLoop:
         ])
         logged = rows if self._col_idx is None else np.asarray(rows)[..., self._col_idx]
         if xp is FLOATS:  # one scenario: a list append per step
-            live.runs[0].rows.append(logged)
-            live.runs[0].steps = k + 1
+            run = live.runs[0]
+            log = run.rows
+            assert isinstance(log, list), "a running scenario's log is kept (a list at N = 1)"
+            log.append(logged)
+            run.steps = k + 1
         else:  # each scenario's own step (a restarted one's starts at its k0)
             for r, row in zip(live.runs, logged):
-                r.rows[k - r.k0] = row
+                log = r.rows
+                assert isinstance(log, np.ndarray), "a running scenario's log is kept"
+                log[k - r.k0] = row
                 r.steps = k - r.k0 + 1
         loop = self.loop
         reason = xp.select(
-            [s >= c.path_end, hit, xp.abs(d) > 0.5 * c.lane_width + loop.offroad_stop_m,
+            [s >= c.path_end, hit, xp.abs(d) > c.half_width + loop.offroad_stop_m,
              (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max],
-            ["completed", "collision", "off_road", "flag", "timeout"], "")
+            _END_REASONS, "")
         return rows, reason, departed, ttc_flag, hit
 
-    def _end(self, live: _Live, ended, reason, ev: Events) -> None:
+    def _end(self, live: _Live, api: sumo_api.SumoApi, ended: BoolOrArray, reason: Any,
+             ev: Events) -> None:
         """The scenarios ``ended`` (rows) are sensed once more (their final observation) and
         leave SUMO and the loop."""
         xp = self._xp
@@ -1015,7 +1127,7 @@ class ClosedLoop:
             self._running[r.i] = False
             for vid in (r.ego, *(r.lead.vehicle_ids() if r.lead is not None else ())):
                 with suppress(Exception):  # it may have left the network already
-                    self._api.vehicle.remove(vid)
+                    api.vehicle.remove(vid)
         live.take(xp.nonzero(reason == ""))
 
     def _look_at_start(self, live: _Live) -> None:
@@ -1031,18 +1143,18 @@ class ClosedLoop:
         s, d, heading, _ = c.project(front_x, front_y, live.ego_seg)
         lx, ly, lv = [], [], []
         for r in live.runs:
-            lead = r.lead.leader if r.lead is not None else None
-            lx.append(math.nan if lead is None else lead[0][0])
-            ly.append(math.nan if lead is None else lead[0][1])
-            lv.append(math.nan if lead is None else r.lead.v)
+            rear, v_true = _leader_rear(r)
+            lx.append(math.nan if rear is None else rear[0])
+            ly.append(math.nan if rear is None else rear[1])
+            lv.append(math.nan if rear is None else v_true)
         lead_x, lead_y, v_lead = xp.from_rows(lx), xp.from_rows(ly), xp.from_rows(lv)
         has_lead = xp.isfinite(lead_x)
-        s_rear, _, _, seg = _project(c.lanes, xp, lead_x, lead_y, live.lead_seg)
+        s_rear, _, _, seg = _project(c.project, xp, lead_x, lead_y, live.lead_seg)
         if c.any_traffic:  # traffic's walk goes on from here
             live.lead_seg = xp.where(c.traffic, seg, live.lead_seg)
         gap = xp.where(has_lead, s_rear - s, math.inf)
         hit = xp.from_rows([False] * n)
-        fix = xp.nonzero(has_lead & ((gap < 2.0 * vehicle.length_m) | c.traffic))
+        fix = xp.nonzero(has_lead & ((gap < self._near) | c.traffic))
         if len(fix):
             v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
                                                (xp.rows(front_x), xp.rows(front_y)), yaw,
@@ -1056,9 +1168,10 @@ class ClosedLoop:
             self._last[live.idx, _COL[name]] = values
 
     def _observation(self) -> Observation:
-        # copies: fancy indexing makes new arrays, each field a row of one of them
-        t, x, y, yaw, v, s, d, gap, ttc, leader_v, fraction = self._last[:, _OBS_FLOATS].T
-        departed, ttc_flag, collision = self._last[:, _OBS_FLAGS].T.astype(bool)
+        # copies: take makes new arrays (columns, floats), each field a row of one of them
+        last = self._last.T
+        t, x, y, yaw, v, s, d, gap, ttc, leader_v, fraction = last.take(_OBS_FLOATS, axis=0)
+        departed, ttc_flag, collision = last.take(_OBS_FLAGS, axis=0).astype(bool)
         return Observation(t, self._features.copy(), x, y, yaw, v, s, d, gap, ttc, leader_v,
                            fraction, departed, ttc_flag, collision, self._running.copy())
 
@@ -1080,7 +1193,7 @@ class ClosedLoop:
 def _policy_list(policies: Policy | Sequence[Policy | None] | None, n: int
                  ) -> list[Policy | None]:
     """One policy (or None) per scenario."""
-    if policies is None or hasattr(policies, "plan"):
+    if policies is None or isinstance(policies, Policy):
         return [policies] * n
     out = list(policies)
     if len(out) != n:
@@ -1088,18 +1201,21 @@ def _policy_list(policies: Policy | Sequence[Policy | None] | None, n: int
     return out
 
 
-def _project(lanes: Polyline | PolylineStack, xp, x, y, seg) -> tuple:
-    """``s, d, heading, segment`` of points ``x, y`` each on its ego lane centre, walked from
-    ``seg``; a NaN point gives NaN and keeps its segment."""
-    if xp is FLOATS:
-        if math.isnan(x):
-            return math.nan, math.nan, math.nan, seg
-        return lanes.project_near(x, y, seg)
-    return lanes.project_near_many(x, y, seg)
+def _project(project: Project, xp: Namespace, x: FloatOrArray, y: FloatOrArray,
+             seg: FloatOrArray) -> tuple[Any, Any, Any, Any]:
+    """``s, d, heading, segment`` of points ``x, y`` each on its ego lane centre (``project``:
+    :attr:`_Fixed.project`), walked from ``seg``; a NaN point gives NaN and keeps its segment
+    (the arrays' walk does so itself)."""
+    if xp is FLOATS and math.isnan(x):
+        return math.nan, math.nan, math.nan, seg
+    return project(x, y, seg)
 
 
-def _monitors(c: _Fixed, vehicle: veh.VehicleParams, yaw, heading, s, d, v, gap, v_lead,
-              has_lead, xp) -> tuple:
+def _monitors(c: _Fixed, vehicle: veh.VehicleParams, yaw: FloatOrArray, heading: FloatOrArray,
+              s: FloatOrArray, d: FloatOrArray, v: FloatOrArray, gap: FloatOrArray,
+              v_lead: FloatOrArray, has_lead: BoolOrArray, xp: Namespace
+              ) -> tuple[FloatOrArray, FloatOrArray, BoolOrArray, FloatOrArray, BoolOrArray,
+                         FloatOrArray]:
     """The monitors: ``d_min, d_max`` [m] (the footprint's lateral extent), lane departure,
     TTC [s], TTC flag, path completed [-]."""
     heading_err = (yaw - heading + math.pi) % (2.0 * math.pi) - math.pi
@@ -1166,41 +1282,50 @@ class _Fixed:
     """What stays fixed during a run, over the running scenarios (rebuilt when one ends):
     floats at N = 1, arrays ``(n,)`` else."""
 
-    lane_width: np.ndarray  # (n,) [m]
-    margin: np.ndarray  # (n,) lane monitor tolerance [m]
-    ttc_threshold: np.ndarray  # (n,) [s]
-    path_start: np.ndarray  # (n,) [m]
-    path_end: np.ndarray  # (n,) [m]
-    route_end: np.ndarray  # (n,) the end of SUMO's route along the ego lane [m]
-    n_max: np.ndarray  # (n,) steps
-    horizon: np.ndarray  # (n,) plan horizon [s]
-    located: np.ndarray  # (n,) bool: the leader is located on the ego lane every step
-    traffic: np.ndarray  # (n,) bool: the leader is SUMO's traffic
+    lane_width: FloatOrArray  # (n,) [m]
+    half_width: FloatOrArray  # (n,) half the lane width [m]
+    margin: FloatOrArray  # (n,) lane monitor tolerance [m]
+    ttc_threshold: FloatOrArray  # (n,) [s]
+    path_start: FloatOrArray  # (n,) [m]
+    path_end: FloatOrArray  # (n,) [m]
+    route_end: FloatOrArray  # (n,) the end of SUMO's route along the ego lane [m]
+    n_max: FloatOrArray  # (n,) steps
+    horizon: FloatOrArray  # (n,) plan horizon [s]
+    located: BoolOrArray  # (n,) bool: the leader is located on the ego lane every step
+    traffic: BoolOrArray  # (n,) bool: the leader is SUMO's traffic
     any_traffic: bool
-    # each row's ego lane centre: the one polyline, or several (scenarios on different
-    # roads) walked at once on their stack; NaN points give NaN and keep their segment
-    lanes: Polyline | PolylineStack
-    planners: list  # (planner or None, rows): one plan call each
-    project: Callable  # (x, y, segment) -> s, d, heading, segment on lanes (no NaN at N = 1)
-    k0: np.ndarray  # (n,) int: the loop's physics step of each scenario's step 0 (restarts)
+    no_flags: BoolOrArray  # (n,) bool: False in every row (not written to)
+    planners: list[tuple[Policy | None, np.ndarray | slice]]  # (planner, rows): a call each
+    unplanned: bool  # a row has no policy: step needs its plans
+    # (x, y, segment) -> s, d, heading, segment on each row's ego lane centre: the one polyline,
+    # or several (scenarios on different roads) walked at once on their stack (NaN points give
+    # NaN and keep their segment; no NaN at N = 1)
+    project: Project
+    k0: FloatOrArray  # (n,) int: the loop's physics step of each scenario's step 0 (restarts)
 
     @staticmethod
-    def of(live: list[_Scenario], xp) -> _Fixed:
-        def col(get) -> np.ndarray:
+    def of(live: list[_Scenario], xp: Namespace) -> _Fixed:
+        def col(get: Callable[[_Scenario], object]) -> Any:
             return xp.from_rows([get(r) for r in live])
 
         traffic = [isinstance(r.lead, TrafficLeader) for r in live]
-        lanes = live[0].centre if xp is FLOATS else _lanes(live)
+        project: Project = (live[0].centre.project_near if xp is FLOATS
+                            else _lanes(live).project_near_many)
+        lane_width = col(lambda r: r.lane.width)
+        planners = _groups(live, lambda r: r.policy)
         return _Fixed(
-            col(lambda r: r.lane.width), col(lambda r: r.scenario.monitors.lane_margin_m),
-            col(lambda r: r.scenario.monitors.ttc_threshold_s),
-            col(lambda r: r.road.path_start_s), col(lambda r: r.road.path_end_s),
-            col(lambda r: r.road.ego_pieces[-1].s1),
-            col(lambda r: r.n_max), col(lambda r: r.horizon),
-            col(lambda r: r.lead is not None and r.lead.needs_location),
-            xp.from_rows(traffic), any(traffic), lanes, _groups(live, lambda r: r.policy),
-            lanes.project_near if xp is FLOATS else lanes.project_near_many,
-            col(lambda r: r.k0))
+            lane_width=lane_width, half_width=0.5 * lane_width,
+            margin=col(lambda r: r.scenario.monitors.lane_margin_m),
+            ttc_threshold=col(lambda r: r.scenario.monitors.ttc_threshold_s),
+            path_start=col(lambda r: r.road.path_start_s),
+            path_end=col(lambda r: r.road.path_end_s),
+            route_end=col(lambda r: r.road.ego_pieces[-1].s1),
+            n_max=col(lambda r: r.n_max), horizon=col(lambda r: r.horizon),
+            located=col(lambda r: r.lead is not None and r.lead.needs_location),
+            traffic=xp.from_rows(traffic), any_traffic=any(traffic),
+            no_flags=xp.from_rows([False] * len(live)), planners=planners,
+            unplanned=any(policy is None for policy, _ in planners), project=project,
+            k0=col(lambda r: r.k0))
 
 
 def _lanes(live: list[_Scenario]) -> Polyline | PolylineStack:

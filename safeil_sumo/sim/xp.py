@@ -59,6 +59,10 @@ def _isnan(value: float) -> bool:
     return math.isnan(value)
 
 
+def _row(values: list[T]) -> list[T]:
+    return values  # one scenario's log row: the list as built
+
+
 def _select(conditions: Sequence[object], choices: Sequence[T], default: T) -> T:
     for condition, choice in zip(conditions, choices, strict=True):
         if condition:
@@ -74,7 +78,7 @@ FLOATS = SimpleNamespace(
     # the loop's rows (one scenario)
     rows=lambda value: [value], from_rows=lambda values: values[0],
     full=lambda n, value: value, nonzero=lambda mask: [0] if mask else [],
-    select=_select, any=bool, columns=list,
+    select=_select, any=bool, columns=_row,
 )
 
 def _clip_arrays(value: np.ndarray, lo: FloatOrArray, hi: FloatOrArray) -> np.ndarray:
