@@ -1320,7 +1320,9 @@ def _falsify_readme(f: dict) -> list[str]:
             "TTC found, CEM / random. Per search: `falsify.csv`; every simulation: "
             "`runs/results_work/falsify/*/evaluations.csv` (not committed), where a rerun reads "
             "the finished searches back: the section's own wall time below is such a rerun's; "
-            "the searches took 114 min on 2 shared cores, two at a time.")
+            "the searches took about 50 min on 2 shared cores, two at a time. Every planner runs "
+            "with the loop's brake guard, as shipped (docs/brake_guard.md; the study of the "
+            "planners alone is in docs/falsification.md).")
     return ["## Falsification: searching for failures", "", text, "",
             _md_table(rows, {"planner": "planner", "budget": "simulations per search",
                              "cem": "CEM: to 1st failure", "random": "random: to 1st failure",
