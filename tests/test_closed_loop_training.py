@@ -244,8 +244,8 @@ def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
 
 def test_envelope_lane_term_is_hand_computed():
     """The fine-tune's lane term is the paper's ``K sum softplus(-b_k)`` over the exact Bernstein
-    coefficients k = 1..6 of both lateral margins; with the leader term it is the envelope
-    barrier. A plan x = L tau, y = 0: x^2 = L^2 tau^2 has degree-6 Bernstein coefficients
+    coefficients k = 1..6 of both lateral margins, its leader term ``K sum softplus(-m_i)`` at
+    the control points; together they are the envelope barrier. A plan x = L tau, y = 0: x^2 = L^2 tau^2 has degree-6 Bernstein coefficients
     L^2 k (k - 1) / 30, so on a lane curving left (c2 > 0) the left margin's are
     w/2 - T/2 + c2 L^2 k (k - 1) / 30 and the right margin's w/2 - T/2 - c2 L^2 k (k - 1) / 30."""
     import torch.nn.functional as F
@@ -258,7 +258,7 @@ def test_envelope_lane_term_is_hand_computed():
                          dtype=torch.float64)
     cp = torch.tensor([[[L / 3, 0.0], [2 * L / 3, 0.0], [L, 0.0]]], dtype=torch.float64)
     cfg = BarrierConfig(k=k_barrier, track=track, lateral="bernstein")
-    env, lane = envelope_terms(feats, cp, 5.0, cfg)
+    env, lane, lead = envelope_terms(feats, cp, 5.0, cfg)
     k = np.arange(1, 7)
     bend = c2 * L * L * k * (k - 1) / 30.0
     base = half_w - track / 2
@@ -267,13 +267,14 @@ def test_envelope_lane_term_is_hand_computed():
     times = np.arange(1, 4) * 5.0 / 3.0
     want_lead = k_barrier * sp(150.0 + 20.0 * times - np.array([L / 3, 2 * L / 3, L])).sum()
     assert float(lane) == pytest.approx(want_lane, rel=1e-12)
+    assert float(lead) == pytest.approx(want_lead, rel=1e-12)
     assert float(env) == pytest.approx(want_lane + want_lead, rel=1e-12)
     # the plan leaves the lane on the right (b_6 = 0.87 - 20 m): the term is dominated by it
     assert want_lane > k_barrier * (20.0 - base)
     # a straight lane: every coefficient is w/2 - T/2
     flat = feats.clone()
     flat[:, [2, 5]] = 0.0
-    _, lane_flat = envelope_terms(flat, cp, 5.0, cfg)
+    _, lane_flat, _ = envelope_terms(flat, cp, 5.0, cfg)
     assert float(lane_flat) == pytest.approx(k_barrier * 12 * float(F.softplus(
         torch.tensor(-base, dtype=torch.float64))), rel=1e-12)
 
@@ -329,10 +330,11 @@ BEFORE_LANE_TERM = "5b51c15"
 
 
 def test_lane_weight_0_is_the_recipe_before_the_option_bit_for_bit(tmp_path):
-    """With the defaults (lane weight 0, anchor on the envelope states too) the fine-tune gives
-    the weights the script gave before either option existed (the commit before them, run here
-    against the same package), bit for bit; a lane weight or dropping the envelope anchor
-    changes them."""
+    """With the defaults (lane and leader weights 0, anchor on the envelope states too) the
+    fine-tune gives
+    the weights the script gave before these options existed (the commit before them, run here
+    against the same package), bit for bit; a lane or leader weight or dropping the envelope
+    anchor changes them."""
     import subprocess
     from pathlib import Path
 
@@ -353,13 +355,15 @@ def test_lane_weight_0_is_the_recipe_before_the_option_bit_for_bit(tmp_path):
                         "--out", str(tmp_path / "zero")]) == 0
     assert new_ft.main([*args, "--lane-weight", "0.5", "--out", str(tmp_path / "lane")]) == 0
     assert new_ft.main([*args, "--no-anchor-envelope", "--out", str(tmp_path / "free")]) == 0
+    assert new_ft.main([*args, "--leader-weight", "0.5", "--out", str(tmp_path / "lead")]) == 0
     ref = _weights(tmp_path / "old.safetensors")
     assert _same(_weights(tmp_path / "new.safetensors"), ref)
     assert _same(_weights(tmp_path / "zero.safetensors"), ref)
     assert not _same(_weights(tmp_path / "lane.safetensors"), ref)
     assert not _same(_weights(tmp_path / "free.safetensors"), ref)
+    assert not _same(_weights(tmp_path / "lead.safetensors"), ref)
     import json
 
     cl = json.loads((tmp_path / "lane.json").read_text())["metrics"]["closed_loop"]
-    assert cl["lane_weight"] == 0.5 and cl["anchor_envelope"] is True
-    assert cl["final"]["lane"] > 0.0
+    assert cl["lane_weight"] == 0.5 and cl["leader_weight"] == 0.0 and cl["anchor_envelope"]
+    assert cl["final"]["lane"] > 0.0 and cl["final"]["leader"] >= 0.0

@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         if config.style:
             env = torch.cat([env, torch.as_tensor(rng.uniform(*TIME_GAP_RANGE_S, (len(env), 1)),
                                                   dtype=torch.float32)], dim=1)
-        env_term, lane = envelope_terms(env, model(env), horizon, base.barrier)
+        env_term, lane, lead = envelope_terms(env, model(env), horizon, base.barrier)
         mono = gap_monotone_penalty(model, env, margin_m=base.monotone_margin_m)
         equilibrium = torch.zeros(())
         if config.equilibrium_weight > 0:
@@ -161,12 +161,14 @@ def main(argv: list[str] | None = None) -> int:
                 + config.settle_weight * (settle + floor))
         if config.lane_weight > 0:  # (not added at 0: today's recipe, bit for bit)
             loss = loss + config.lane_weight * lane
+        if config.leader_weight > 0:
+            loss = loss + config.leader_weight * lead
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         opt.step()
         row = {**terms.as_floats(), "envelope": float(env_term.detach()),
-               "lane": float(lane.detach()), "monotone": float(mono.detach()),
+               "lane": float(lane.detach()), "leader": float(lead.detach()), "monotone": float(mono.detach()),
                "lateral": float(lateral.detach()), "equilibrium": float(equilibrium.detach()),
                "settle": float(settle.detach()), "floor": float(floor.detach()),
                "loss": float(loss.detach())}
@@ -182,7 +184,8 @@ def main(argv: list[str] | None = None) -> int:
         "speed_weight": config.speed_weight, "lateral_weight": config.lateral_weight,
         "equilibrium_weight": config.equilibrium_weight, "perturb": config.perturb,
         "settle_weight": config.settle_weight, "settle_after_s": settling.settle_after_s,
-        "lane_weight": config.lane_weight, "anchor_envelope": config.anchor_envelope,
+        "lane_weight": config.lane_weight, "leader_weight": config.leader_weight,
+        "anchor_envelope": config.anchor_envelope,
         "seed": config.seed, "episodes": len(eps), "seconds": seconds, "style": config.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,

@@ -298,15 +298,15 @@ def settling_loss(out: dict[str, torch.Tensor], gap_eq_m: torch.Tensor, dt_s: fl
 
 
 def envelope_terms(features: torch.Tensor, control_points: torch.Tensor, horizon: float,
-                   barrier: BarrierConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(envelope, lane)`` on envelope states ``features (N, 9+)`` and their plans
+                   barrier: BarrierConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(envelope, lane, leader)`` on envelope states ``features (N, 9+)`` and their plans
     ``(N, 3, 2)``: the envelope barrier (left + right + leader,
-    :func:`~safeil_sumo.learn.losses.envelope_barrier_terms`, the open-loop training's) and its
+    :func:`~safeil_sumo.learn.losses.envelope_barrier_terms`, the open-loop training's), its
     lane part alone (left + right: ``K sum_k softplus(-b_k)`` over the exact Bernstein
-    coefficients k = 1..6 of both lateral margins when ``barrier.lateral == "bernstein"``),
-    batch means."""
+    coefficients k = 1..6 of both lateral margins when ``barrier.lateral == "bernstein"``) and
+    its leader part, batch means."""
     terms = envelope_barrier_terms(features, control_points, horizon, barrier)
-    return sum(terms), terms[0] + terms[1]
+    return sum(terms), terms[0] + terms[1], terms[2]
 
 
 @dataclass(frozen=True)
@@ -336,6 +336,11 @@ class FinetuneConfig:
                 "margins of the plan (the envelope barrier's lane terms, "
                 "learn/losses.envelope_barrier_terms; added to the envelope weight they already "
                 "have) (0: none) [-]"})
+    leader_weight: float = field(default=0.0, metadata={
+        "help": "weight of an extra leader barrier on the envelope states: the paper's "
+                "K softplus(-m) on the leader margins of the plan's control points (the "
+                "envelope barrier's leader term again, on top of the envelope weight) (0: none) "
+                "[-]"})
     equilibrium_weight: float = field(default=0.0, metadata={
         "help": "weight of the equilibrium term: behind a leader at its own speed at the "
                 "preferred gap the plan keeps its speed (learn/style.py) [-]"})
@@ -361,7 +366,7 @@ class FinetuneConfig:
         if self.settle_weight > 0 and not self.style:
             raise ValueError("settle_weight > 0 needs style: the settling episodes draw the "
                              "time-gap setting")
-        if self.lane_weight < 0:
-            raise ValueError("lane_weight must be >= 0")
+        if self.lane_weight < 0 or self.leader_weight < 0:
+            raise ValueError("lane_weight and leader_weight must be >= 0")
         if not (self.window > 0 and self.stride > 0 and self.iters >= 1 and self.batch >= 1):
             raise ValueError("window and stride must be > 0, iters and batch >= 1")
