@@ -396,3 +396,26 @@ def test_cli_certifies_writes_and_checks(tmp_path, capsys) -> None:
         assert cli.main([*argv, "--max-boxes", "10", "--no-progress"]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error:") and message in err and err.count("\n") == 1
+
+
+def test_sampled_violations_weigh_the_parts_and_match_reference_margins() -> None:
+    """The Monte Carlo estimate: each part's share is the share of its sampled states whose
+    reference margins fail (recomputed here), the total weighs them 90/10 as the envelope; an
+    unsafe network is caught, and proven boxes bound it (bc fails far more than safeil_openloop)."""
+    bc = pol.load("bc")
+    props = cm.Properties.from_metadata(bc.metadata)
+    res = cm.sampled_violations(bc, props, 3000, seed=4, chunk=1000)
+    for m in cm.MARGINS:
+        r = res[m]
+        assert r["violated"] == pytest.approx(0.9 * r["leader_states"] + 0.1 * r["no_leader"])
+    assert res["lane"]["violated"] > 0.5 and res["lane"]["worst_m"] >= res["lane"]["median_m"] > 0
+    # the leader part recomputed from the same draws
+    from dataclasses import replace
+
+    rng = np.random.default_rng(4)
+    rows = np.concatenate([cm.reference_margins(bc, sample_states(1000, rng, replace(
+        EnvelopeConfig(), no_leader_share=0.0)), props) for _ in range(3)])
+    assert res["leader"]["leader_states"] == np.mean(rows[:, cm.MARGIN_ROWS["leader"]].min(1) < 0)
+    ol = pol.load("safeil_openloop")
+    good = cm.sampled_violations(ol, cm.Properties.from_metadata(ol.metadata), 3000, seed=4)
+    assert good["lane"]["violated"] < 0.02 < res["lane"]["violated"]

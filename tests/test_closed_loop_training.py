@@ -246,3 +246,130 @@ def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
     est = training_settings(tmp_path / "a.safetensors", [tmp_path / "t.parquet"])
     assert sorted(est) == sorted(str(m) for m in np.unique(tup.maneuver_id)[1:])
     assert np.median(list(est.values())) == meta["style_default"]["time_gap_s"]
+
+
+def test_envelope_lane_term_is_hand_computed():
+    """The fine-tune's lane term is the paper's ``K sum softplus(-b_k)`` over the exact Bernstein
+    coefficients k = 1..6 of both lateral margins, its leader term ``K sum softplus(-m_i)`` at
+    the control points; together they are the envelope barrier. A plan x = L tau, y = 0: x^2 = L^2 tau^2 has degree-6 Bernstein coefficients
+    L^2 k (k - 1) / 30, so on a lane curving left (c2 > 0) the left margin's are
+    w/2 - T/2 + c2 L^2 k (k - 1) / 30 and the right margin's w/2 - T/2 - c2 L^2 k (k - 1) / 30."""
+    import torch.nn.functional as F
+
+    from safeil_sumo.learn.closed_loop import envelope_terms
+    from safeil_sumo.learn.losses import BarrierConfig
+
+    L, c2, half_w, track, k_barrier = 100.0, 0.002, 1.75, 1.76, 1000.0
+    feats = torch.tensor([[half_w, 0.0, c2, -half_w, 0.0, c2, 20.0, 20.0, 150.0]],
+                         dtype=torch.float64)
+    cp = torch.tensor([[[L / 3, 0.0], [2 * L / 3, 0.0], [L, 0.0]]], dtype=torch.float64)
+    cfg = BarrierConfig(k=k_barrier, track=track, lateral="bernstein")
+    env, lane, lead = envelope_terms(feats, cp, 5.0, cfg)
+    k = np.arange(1, 7)
+    bend = c2 * L * L * k * (k - 1) / 30.0
+    base = half_w - track / 2
+    sp = lambda m: np.log1p(np.exp(-m))  # softplus(-m)
+    want_lane = k_barrier * (sp(base + bend).sum() + sp(base - bend).sum())
+    times = np.arange(1, 4) * 5.0 / 3.0
+    want_lead = k_barrier * sp(150.0 + 20.0 * times - np.array([L / 3, 2 * L / 3, L])).sum()
+    assert float(lane) == pytest.approx(want_lane, rel=1e-12)
+    assert float(lead) == pytest.approx(want_lead, rel=1e-12)
+    assert float(env) == pytest.approx(want_lane + want_lead, rel=1e-12)
+    # the plan leaves the lane on the right (b_6 = 0.87 - 20 m): the term is dominated by it
+    assert want_lane > k_barrier * (20.0 - base)
+    # a straight lane: every coefficient is w/2 - T/2
+    flat = feats.clone()
+    flat[:, [2, 5]] = 0.0
+    _, lane_flat, _ = envelope_terms(flat, cp, 5.0, cfg)
+    assert float(lane_flat) == pytest.approx(k_barrier * 12 * float(F.softplus(
+        torch.tensor(-base, dtype=torch.float64))), rel=1e-12)
+
+
+def _tiny_finetune_setup(tmp_path):
+    """A tiny initial checkpoint and tuples (tmp_path); the fine-tune arguments and script."""
+    from pathlib import Path
+
+    from test_learn import make_tuples
+
+    from safeil_sumo.learn.checkpoint import save_checkpoint
+    from safeil_sumo.learn.model import PlannerMLP
+    from safeil_sumo.learn.train import TrainConfig
+
+    tup = make_tuples(n_maneuvers=4, per_maneuver=60, curved=True)
+    tup.save(tmp_path / "t.parquet")
+    torch.manual_seed(0)
+    model = PlannerMLP(output_mode="residual")
+    model.set_scaling(tup.features, tup.control_points)
+    cfg = TrainConfig(envelope_weight=0.01, monotone_weight=1.0, output_mode="residual",
+                      barrier_lateral="bernstein")
+    held = [str(np.unique(tup.maneuver_id)[0])]
+    save_checkpoint(tmp_path / "init", model, name="safeil", horizon=5.0, train_config=cfg,
+                    metrics={"val_maneuvers": held})
+    args = ["--init", str(tmp_path / "init.safetensors"), "--data", str(tmp_path / "t.parquet"),
+            "--iters", "3", "--batch", "4", "--window", "8", "--stride", "4", "--style",
+            "--perturb", "0.5", "--equilibrium-weight", "1", "--settle-weight", "1",
+            "--no-progress"]
+    return args, Path(__file__).parents[1] / "training" / "closed_loop_finetune.py"
+
+
+def _load_script(path, name):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _weights(path):
+    from safetensors.numpy import load_file
+
+    return load_file(path)
+
+
+def _same(a, b):
+    return sorted(a) == sorted(b) and all(np.array_equal(a[k], b[k]) for k in a)
+
+
+# the fine-tune script before the lane term and the envelope-anchor option
+BEFORE_LANE_TERM = "5b51c15"
+
+
+def test_lane_weight_0_is_the_recipe_before_the_option_bit_for_bit(tmp_path):
+    """With the defaults (lane and leader weights 0, anchor on the envelope states too) the
+    fine-tune gives
+    the weights the script gave before these options existed (the commit before them, run here
+    against the same package), bit for bit; a lane or leader weight or dropping the envelope
+    anchor changes them."""
+    import subprocess
+    from pathlib import Path
+
+    args, script = _tiny_finetune_setup(tmp_path)
+    repo = Path(__file__).parents[1]
+    try:
+        old = subprocess.run(["git", "-C", str(repo), "show",
+                              f"{BEFORE_LANE_TERM}:training/closed_loop_finetune.py"],
+                             capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("no git history: the script before the option is not available")
+    (tmp_path / "old_finetune.py").write_text(old)
+    new_ft = _load_script(script, "finetune_new")
+    old_ft = _load_script(tmp_path / "old_finetune.py", "finetune_old")
+    assert old_ft.main([*args, "--out", str(tmp_path / "old")]) == 0
+    assert new_ft.main([*args, "--out", str(tmp_path / "new")]) == 0
+    assert new_ft.main([*args, "--lane-weight", "0", "--anchor-envelope",
+                        "--out", str(tmp_path / "zero")]) == 0
+    assert new_ft.main([*args, "--lane-weight", "0.5", "--out", str(tmp_path / "lane")]) == 0
+    assert new_ft.main([*args, "--no-anchor-envelope", "--out", str(tmp_path / "free")]) == 0
+    assert new_ft.main([*args, "--leader-weight", "0.5", "--out", str(tmp_path / "lead")]) == 0
+    ref = _weights(tmp_path / "old.safetensors")
+    assert _same(_weights(tmp_path / "new.safetensors"), ref)
+    assert _same(_weights(tmp_path / "zero.safetensors"), ref)
+    assert not _same(_weights(tmp_path / "lane.safetensors"), ref)
+    assert not _same(_weights(tmp_path / "free.safetensors"), ref)
+    assert not _same(_weights(tmp_path / "lead.safetensors"), ref)
+    import json
+
+    cl = json.loads((tmp_path / "lane.json").read_text())["metrics"]["closed_loop"]
+    assert cl["lane_weight"] == 0.5 and cl["leader_weight"] == 0.0 and cl["anchor_envelope"]
+    assert cl["final"]["lane"] > 0.0 and cl["final"]["leader"] >= 0.0

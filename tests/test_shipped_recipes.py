@@ -88,7 +88,9 @@ def test_closed_loop_recipe_gives_the_command_it_replaced():
                 lateral_only_sources=("synthetic",), envelope_weight=0.1, envelope_batch=32,
                 monotone_weight=3.0, monotone_margin_m=0.002),
     FinetuneConfig(window=8.0, stride=4.0, iters=2, batch=4, lr=1e-5 / 3, speed_weight=0.5,
-                   lateral_weight=1.0, equilibrium_weight=1.0, perturb=0.5, settle_weight=1.0,
+                   lateral_weight=1.0, anchor_envelope=False, lane_weight=0.5,
+                   leader_weight=0.25,
+                   equilibrium_weight=1.0, perturb=0.5, settle_weight=1.0,
                    settle_after=2.0, style=True, seed=7),
 ], ids=["train", "finetune"])
 def test_option_argv_round_trips_every_field(config):

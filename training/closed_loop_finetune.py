@@ -42,13 +42,13 @@ from safeil_sumo.learn.closed_loop import (
     FinetuneConfig,
     SettlingConfig,
     closed_loop_loss,
+    envelope_terms,
     episodes_from_tuples,
     rollout,
     settling_episodes,
     settling_loss,
 )
 from safeil_sumo.learn.envelope import sample_states
-from safeil_sumo.learn.losses import envelope_barrier_terms
 from safeil_sumo.learn.model import with_style_input
 from safeil_sumo.learn.style import (
     TIME_GAP_RANGE_S,
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
         if config.style:
             env = torch.cat([env, torch.as_tensor(rng.uniform(*TIME_GAP_RANGE_S, (len(env), 1)),
                                                   dtype=torch.float32)], dim=1)
-        env_term = sum(envelope_barrier_terms(env, model(env), horizon, base.barrier))
+        env_term, lane, lead = envelope_terms(env, model(env), horizon, base.barrier)
         mono = gap_monotone_penalty(model, env, margin_m=base.monotone_margin_m)
         equilibrium = torch.zeros(())
         if config.equilibrium_weight > 0:
@@ -154,23 +154,28 @@ def main(argv: list[str] | None = None) -> int:
             eq = equilibrium_states(env, time_gap)
             equilibrium = equilibrium_residual(model(eq), eq[:, V_X], horizon)
         data_rows = torch.randint(len(feats), (512,), generator=gen)
-        anchor = torch.cat([feats[data_rows], env])
+        anchor = torch.cat([feats[data_rows], env]) if config.anchor_envelope else feats[
+            data_rows]
         lateral = (model(anchor)[..., 1] - frozen(anchor[:, :9])[..., 1]).pow(2).mean()
         loss = (terms.total + base.envelope_weight * env_term + base.monotone_weight * mono
                 + config.lateral_weight * lateral + config.equilibrium_weight * equilibrium
                 + config.settle_weight * (settle + floor))
+        if config.lane_weight > 0:  # (not added at 0: today's recipe, bit for bit)
+            loss = loss + config.lane_weight * lane
+        if config.leader_weight > 0:
+            loss = loss + config.leader_weight * lead
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
         opt.step()
         row = {**terms.as_floats(), "envelope": float(env_term.detach()),
-               "monotone": float(mono.detach()),
+               "lane": float(lane.detach()), "leader": float(lead.detach()), "monotone": float(mono.detach()),
                "lateral": float(lateral.detach()), "equilibrium": float(equilibrium.detach()),
                "settle": float(settle.detach()), "floor": float(floor.detach()),
                "loss": float(loss.detach())}
         log.append(row)
         bar.set_postfix(gap=f"{row['gap']:.1f}", v=f"{row['speed']:.2f}",
-                        lat=f"{row['lateral']:.2g}", settle=f"{row['settle']:.1f}",
+                        lat=f"{row['lateral']:.2g}", lane=f"{row['lane']:.0f}", settle=f"{row['settle']:.1f}",
                         refresh=False)
     model.eval()
     seconds = time.perf_counter() - start
@@ -180,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
         "speed_weight": config.speed_weight, "lateral_weight": config.lateral_weight,
         "equilibrium_weight": config.equilibrium_weight, "perturb": config.perturb,
         "settle_weight": config.settle_weight, "settle_after_s": settling.settle_after_s,
+        "lane_weight": config.lane_weight, "leader_weight": config.leader_weight,
+        "anchor_envelope": config.anchor_envelope,
         "seed": config.seed, "episodes": len(eps), "seconds": seconds, "style": config.style,
         "final": log[-1], "first": log[0]}}
     save_checkpoint(args.out, model, name=meta["name"], horizon=horizon,

@@ -440,3 +440,43 @@ def envelope_volume(env: CertEnvelope, part: str, grid: int = 1024) -> tuple[flo
     lo, hi = env.root_boxes()[part]
     a, b = box_shares(env, lo[None], hi[None], part, grid)
     return float(a[0]), float(b[0])
+
+
+# ------------------------------------------------------------------ sampled violations
+
+
+def sampled_violations(policy: MLPPolicy, props: Properties, n: int, seed: int = 0,
+                       chunk: int = 100_000, cfg: EnvelopeConfig = _SAMPLING) -> dict:
+    """Monte Carlo estimate of the share of the envelope where each margin truly fails (what
+    no certificate can cover), in the certificate's measure: ``n`` leader states and ``n``
+    no-leader states drawn by the training's sampler (:func:`~safeil_sumo.learn.envelope.
+    sample_states`), the parts weighted as the envelope weighs them (``no_leader_share``), the
+    margins of the network's actual plans (:func:`reference_margins`, at its current style).
+
+    Returns per margin the weighted violated share, the share per part, and the median and
+    worst violation [m] (positive numbers) over the violating states."""
+    from dataclasses import replace
+
+    from safeil_sumo.learn.envelope import sample_states
+
+    rng = np.random.default_rng(seed)
+    parts = {"leader_states": replace(cfg, no_leader_share=0.0),
+             "no_leader": replace(cfg, no_leader_share=1.0)}
+    mins: dict[str, dict[str, list]] = {m: {p: [] for p in parts} for m in MARGINS}
+    for part, part_cfg in parts.items():
+        for start in range(0, n, chunk):
+            feats = sample_states(min(chunk, n - start), rng, part_cfg)
+            rows = reference_margins(policy, feats, props)
+            for m in MARGINS:
+                mins[m][part].append(rows[:, MARGIN_ROWS[m]].min(axis=1))
+    out = {}
+    w_free = cfg.no_leader_share
+    for m in MARGINS:
+        per = {p: np.concatenate(v) for p, v in mins[m].items()}
+        share = {p: float(np.mean(v < 0.0)) for p, v in per.items()}
+        bad = -np.concatenate([v[v < 0.0] for v in per.values()])
+        out[m] = {"violated": (1.0 - w_free) * share["leader_states"]
+                  + w_free * share["no_leader"], **share,
+                  "median_m": float(np.median(bad)) if len(bad) else 0.0,
+                  "worst_m": float(bad.max()) if len(bad) else 0.0}
+    return out

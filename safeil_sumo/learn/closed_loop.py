@@ -30,6 +30,7 @@ import torch.nn.functional as F
 
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.features import FEATURE_NAMES
+from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms
 
 V_X, V_LEAD, D_LEAD = (FEATURE_NAMES.index(n) for n in ("v_x", "v_lead", "d_lead"))
 
@@ -296,6 +297,18 @@ def settling_loss(out: dict[str, torch.Tensor], gap_eq_m: torch.Tensor, dt_s: fl
     return settle, floor
 
 
+def envelope_terms(features: torch.Tensor, control_points: torch.Tensor, horizon: float,
+                   barrier: BarrierConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(envelope, lane, leader)`` on envelope states ``features (N, 9+)`` and their plans
+    ``(N, 3, 2)``: the envelope barrier (left + right + leader,
+    :func:`~safeil_sumo.learn.losses.envelope_barrier_terms`, the open-loop training's), its
+    lane part alone (left + right: ``K sum_k softplus(-b_k)`` over the exact Bernstein
+    coefficients k = 1..6 of both lateral margins when ``barrier.lateral == "bernstein"``) and
+    its leader part, batch means."""
+    terms = envelope_barrier_terms(features, control_points, horizon, barrier)
+    return sum(terms), terms[0] + terms[1], terms[2]
+
+
 @dataclass(frozen=True)
 class FinetuneConfig:
     """Settings of the closed-loop fine-tune (``training/closed_loop_finetune.py``, one option
@@ -313,6 +326,21 @@ class FinetuneConfig:
         "help": "weight of the speed error to the human [s^2] (the gap error's is 1)"})
     lateral_weight: float = field(default=100.0, metadata={
         "help": "weight holding the lateral (y) outputs to the initial model's [-]"})
+    anchor_envelope: bool = field(default=True, metadata={
+        "help": "hold the lateral outputs to the initial model's on the envelope states too, "
+                "not only on the data states (off: the envelope's lane barrier alone shapes "
+                "them there)"})
+    lane_weight: float = field(default=0.0, metadata={
+        "help": "weight of an extra lane barrier on the envelope states: the paper's "
+                "K softplus(-b_k) on the exact Bernstein coefficients b_1..b_6 of both lateral "
+                "margins of the plan (the envelope barrier's lane terms, "
+                "learn/losses.envelope_barrier_terms; added to the envelope weight they already "
+                "have) (0: none) [-]"})
+    leader_weight: float = field(default=0.0, metadata={
+        "help": "weight of an extra leader barrier on the envelope states: the paper's "
+                "K softplus(-m) on the leader margins of the plan's control points (the "
+                "envelope barrier's leader term again, on top of the envelope weight) (0: none) "
+                "[-]"})
     equilibrium_weight: float = field(default=0.0, metadata={
         "help": "weight of the equilibrium term: behind a leader at its own speed at the "
                 "preferred gap the plan keeps its speed (learn/style.py) [-]"})
@@ -338,5 +366,7 @@ class FinetuneConfig:
         if self.settle_weight > 0 and not self.style:
             raise ValueError("settle_weight > 0 needs style: the settling episodes draw the "
                              "time-gap setting")
+        if self.lane_weight < 0 or self.leader_weight < 0:
+            raise ValueError("lane_weight and leader_weight must be >= 0")
         if not (self.window > 0 and self.stride > 0 and self.iters >= 1 and self.batch >= 1):
             raise ValueError("window and stride must be > 0, iters and batch >= 1")
