@@ -50,6 +50,7 @@ from safeil_sumo.experiments import replay_all as ra
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.sim.brake_guard import BrakeGuard
+from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.sumo_api import SumoError
 
@@ -175,7 +176,7 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
 
 def brake_guard(args: argparse.Namespace) -> BrakeGuard | None:
     """The loop's brake guard of ``--brake-guard``."""
-    return BrakeGuard() if BRAKE_GUARD_OPTIONS[args.brake_guard] else None
+    return brake_guard_when(BRAKE_GUARD_OPTIONS[args.brake_guard])
 
 
 def main(argv: list[str] | None = None) -> int:

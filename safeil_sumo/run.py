@@ -30,7 +30,7 @@ from safeil_sumo.cli_args import (
 )
 from safeil_sumo.experiments import outputs, plots
 from safeil_sumo.scenarios.road import NetworkError
-from safeil_sumo.sim.brake_guard import BrakeGuard
+from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.runner import LoopConfig
 from safeil_sumo.sim.sumo_api import SumoError
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path("runs") / default_name
     loop = LoopConfig(plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
                       backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot,
-                      brake_guard=BrakeGuard() if BRAKE_GUARD_OPTIONS[args.brake_guard] else None)
+                      brake_guard=brake_guard_when(BRAKE_GUARD_OPTIONS[args.brake_guard]))
     fields = scenario_fields(args)
     fields = {k: v for k, v in fields.items() if k not in ("master_seed", "plan_rate_hz",
                                                            "stop_on_flag", "brake_guard")}

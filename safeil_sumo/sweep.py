@@ -30,7 +30,6 @@ from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
-    BRAKE_GUARD_OPTIONS,
     add_scenario_options,
     finite_float,
     scenario_fields,
@@ -149,13 +148,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
     """The grid: nets x policies x filter options x scenario indices (ValueError if invalid)."""
-    guard = BRAKE_GUARD_OPTIONS[args.brake_guard]
+    fields = scenario_fields(args)
     if args.suite == "leader-response":
         from safeil_sumo.experiments.suite import suite_specs
 
-        return [replace(s, brake_guard=guard)
+        return [replace(s, brake_guard=fields["brake_guard"])
                 for s in suite_specs(args.policies, args.seed, variants=1 if args.quick else 3)]
-    fields = scenario_fields(args)
     return [
         ScenarioSpec(net=net, index=index, policy=policy, safety_filter=filt, **fields)
         for net, policy, filt, index in itertools.product(

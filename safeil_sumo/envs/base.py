@@ -9,7 +9,7 @@ import weakref
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.sim.brake_guard import BrakeGuard
+from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.loop_types import LoopConfig
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -25,7 +25,7 @@ def loop_config(step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: 
     if backend not in ("libsumo", "traci"):
         raise ValueError(f"backend must be 'libsumo' or 'traci', got {backend!r}")
     return LoopConfig(step_s=step_s, plan_rate_hz=plan_rate_hz, stop_on_flag=stop_on_flag,
-                      backend=backend, brake_guard=BrakeGuard() if brake_guard else None)
+                      backend=backend, brake_guard=brake_guard_when(brake_guard))
 
 
 def claim_sumo(env) -> None:

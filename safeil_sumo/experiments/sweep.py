@@ -223,14 +223,14 @@ def even_units(items: Sequence, size: int, workers: int = 1) -> list[tuple]:
 def _task_parts(spec: ScenarioSpec, shared: bool = False):
     """``(road, scenario, policy, loop)`` of a task. ``shared``: planners of the same name are
     one object (batched plan calls; a safety filter still gets its own wrapper per task)."""
-    from safeil_sumo.sim.brake_guard import BrakeGuard
+    from safeil_sumo.sim.brake_guard import when as brake_guard_when
     from safeil_sumo.sim.runner import LoopConfig
 
     road = resolve_road(spec.net, spec.route, spec.from_km, spec.to_km, spec.lane)
     scenario = build_scenario(spec, road)
     policy = _load_policy(spec, shared)
     loop = LoopConfig(plan_rate_hz=spec.plan_rate_hz, stop_on_flag=spec.stop_on_flag,
-                      brake_guard=BrakeGuard() if spec.brake_guard else None)
+                      brake_guard=brake_guard_when(spec.brake_guard))
     return road, scenario, policy, loop
 
 

@@ -52,6 +52,11 @@ class BrakeGuard:
                 raise ValueError(f"BrakeGuard.{name} must be >= 0, got {getattr(self, name)}")
 
 
+def when(enabled: bool) -> BrakeGuard | None:
+    """The loop's ``brake_guard`` setting of an on/off choice: the default guard, or None."""
+    return BrakeGuard() if enabled else None
+
+
 def required_decel(gap: FloatOrArray, v_ego: FloatOrArray, v_lead: FloatOrArray,
                    b_lead: FloatOrArray, xp: Namespace) -> FloatOrArray:
     """Smallest constant ego deceleration [m/s^2] (>= 0) that keeps a positive ``gap`` [m] to a
