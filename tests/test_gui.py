@@ -10,7 +10,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -101,20 +100,22 @@ def test_gui_run_equals_headless_and_screenshots_the_ego(tmp_path, xvfb):
     assert centre.any(), "no vehicle at the centre of the sumo-gui view"
 
 
-@pytest.mark.parametrize("xvfb_options, env", [
+@pytest.mark.parametrize("xvfb_options, env, why", [
     # no GLX on the display: sumo-gui says "This system has no OpenGL support" and exits
-    (("-extension", "GLX"), {}),
-    # no Mesa DRI driver on the client side: sumo-gui gets an X error and hangs
-    ((), {"LIBGL_DRIVERS_PATH": "/nonexistent"}),
+    (("-extension", "GLX"), {}, "it exited with code"),
+    # no Mesa DRI driver on the client side: sumo-gui gets an X error and hangs, until the
+    # watchdog (sumo_api.GUI_START_TIMEOUT_S) kills it
+    ((), {"LIBGL_DRIVERS_PATH": "/nonexistent"}, "it did not answer"),
 ], ids=["no-glx", "no-dri-driver"])
-def test_broken_opengl_fails_fast_with_one_error_line(tmp_path, xvfb, xvfb_options, env):
-    t0 = time.monotonic()
-    # a sumo-gui left hanging would hold the captured pipes open: the run would not return
+def test_broken_opengl_fails_fast_with_one_error_line(tmp_path, xvfb, xvfb_options, env, why):
+    # a sumo-gui left hanging would hold the captured pipes open: the run would not return and
+    # run_cli's subprocess timeout fails the test. No wall-clock bound beyond that: a loaded
+    # machine takes longer to import and start, not to fail; the message says which path ended it
     proc = run_cli(tmp_path / "o", "--gui", display=xvfb(*xvfb_options), **env)
-    assert time.monotonic() - t0 < sumo_api.GUI_START_TIMEOUT_S + 10.0
     assert proc.returncode == 3
     errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "sumo-gui failed to start" in errors[0], proc.stderr
+    assert why in errors[0], proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "o").exists()
 

@@ -3,8 +3,6 @@ and (real libsumo) background traffic as the ego's leaders."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -37,14 +35,13 @@ def test_stretch_outside_the_road_is_refused_in_one_line(lo, hi, message):
 
 def test_run_n74_drives_three_km_without_flags(tmp_path, capsys):
     out = tmp_path / "res"
-    t0 = time.perf_counter()
     code = main(["--net", "n74", "--from-km", "0", "--to-km", "3", "--policy", "analytic",
                  "--scenarios", "1", "--no-plots", "--out", str(out)])
-    wall = time.perf_counter() - t0
     assert code == 0, capsys.readouterr().err
     summary = pd.read_csv(out / "summary.csv")
     assert summary["completed"].all() and (summary["flag"].isna() | (summary["flag"] == "")).all()
-    assert wall < 60.0  # ~2 s on the 2-core CI machine (10,000 steps)
+    # (its speed is the benchmark's business, python -m safeil_sumo.bench: no wall-clock bound
+    # here, which a loaded or slower machine would fail)
 
 
 @pytest.mark.parametrize("args, message", [
