@@ -25,7 +25,7 @@ from tqdm import tqdm
 from safeil_sumo import policies
 from safeil_sumo.experiments.replay import ReplayConfig
 from safeil_sumo.experiments.replay_all import DEFAULT_BATCH as REPLAY_BATCH
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
+from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario

@@ -254,7 +254,7 @@ def closed_loop_peak_rss_mb(policy_name: str, sim_s: float) -> float:
 
 _SWEEP_SCRIPT = _PEAK_KB + """
 import json, sys, time
-from safeil_sumo.experiments.sweep import run_sweep
+from safeil_sumo.experiments.sweep_executor import run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
 n, workers, out, max_time = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 batch, policy = int(sys.argv[5]), sys.argv[6]
@@ -273,7 +273,7 @@ print(json.dumps({"wall_s": wall, "tasks": len(summary),
 def sweep_rows(quick: bool, policy: str, rows: dict, notes: list[str]) -> None:
     """curved500 sweeps with 1 and 2 workers, each in a fresh process: one scenario per
     simulation (100 scenarios) and batched (1,000 scenarios, the sweep's default batch)."""
-    from safeil_sumo.experiments.sweep import DEFAULT_BATCH
+    from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH
 
     plans = ([("", 6, "5", 1), ("_batched", 6, "5", 3)] if quick
              else [("", 100, "none", 1), ("_batched", 1000, "none", DEFAULT_BATCH)])
@@ -304,7 +304,7 @@ def multi_edge_rows(policy: str, quick: bool, rows: dict) -> None:
     one edge (curved500), µs per step of the loop alone; the wall time of a 10 km n74 drive
     (task start included) with a scripted 30 m/s leader and, full runs only, among SUMO's
     default traffic."""
-    from safeil_sumo.experiments.sweep import run_task
+    from safeil_sumo.experiments.sweep_executor import run_task
     from safeil_sumo.scenarios.spec import ScenarioSpec
 
     def task(**kw) -> tuple[float, dict]:
@@ -335,7 +335,7 @@ def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: di
     """Ego-steps/s of ``run_batch`` (lane placement, the sweeps') for N in BATCH_SIZES and of
     ``run_scenario`` (today's defaults) one scenario after another on the same scenarios, SUMO
     start included in both; the batch's time per ego-step per stage (StageClock)."""
-    from safeil_sumo.experiments.sweep import DEFAULT_BATCH
+    from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH
     from safeil_sumo.sim.batch import StageClock, run_batch
 
     road = load_road(net)

@@ -80,7 +80,7 @@ def format_table(table) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from safeil_sumo import policies
-    from safeil_sumo.experiments.sweep import run_sweep
+    from safeil_sumo.experiments.sweep_executor import run_sweep
     from safeil_sumo.scenarios.spec import resolve_road
 
     try:

@@ -46,7 +46,7 @@ import pandas as pd
 
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.stats import breakdown
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, comparable, run_sweep
+from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, comparable, run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -1048,7 +1048,7 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
     with exact Poisson intervals, time gaps against the synthetic humans of the same road, and a
     map of where the flags happened (:mod:`safeil_sumo.experiments.n74_drives`)."""
     from safeil_sumo.experiments import n74_drives as nd
-    from safeil_sumo.experiments.sweep import run_sweep
+    from safeil_sumo.experiments.sweep_executor import run_sweep
     from safeil_sumo.learn.style import SETTING_RANGE_S
 
     # --quick: 1 km of each planner (a smoke test of the section)

@@ -35,7 +35,7 @@ from safeil_sumo.cli_args import (
     scenario_fields,
 )
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
+from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
 
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}

@@ -135,7 +135,7 @@ def test_layers_by_hand() -> None:
     assert layer_of("geometry") == 0
     assert layer_of("scenarios.road") == 1 and layer_of("scenarios.spec") == 3
     assert layer_of("sim.runner") == layer_of("learn.model") == 2
-    assert layer_of("experiments.sweep") == 4 and layer_of("run") == CLI_LAYER
+    assert layer_of("experiments.sweep_executor") == 4 and layer_of("run") == CLI_LAYER
     assert layer_of("envs.vector") == len(LAYERS) - 1
     assert layer_of("somewhere_new") is None
 

@@ -116,7 +116,7 @@ def test_guard_prevents_the_avoidable_collision(policy):
     """Falsification's case (docs/falsification.md): a leader 27.6 m ahead at 22.7 m/s brakes
     gently (2.8 m/s^2) to a stop. Without the guard the planner collides; with it, the ego stops
     behind with TTC > 1 s, and the log shows the guard braking."""
-    from safeil_sumo.experiments.sweep import run_task
+    from safeil_sumo.experiments.sweep_executor import run_task
 
     spec = replace(GENTLE_BRAKING, policy=policy)
     off = run_task(replace(spec, brake_guard=False))
@@ -132,7 +132,7 @@ def test_guard_brakes_as_hard_as_the_car_can():
     24.8 m ahead at 15.8 m/s braking at 7.8 m/s^2 to a stop, the ego at 30 m/s, radar noise
     1.2 m. The guard brakes beyond the tracker's limit, up to the car's full 9 m/s^2: no
     collision (it collided at 8)."""
-    from safeil_sumo.experiments.sweep import run_task
+    from safeil_sumo.experiments.sweep_executor import run_task
 
     spec = ScenarioSpec(net="curved1000", policy="safeil", leader_kind="braking",
                         leader_speed_range_mps=(15.76, 15.76), initial_gap_m=24.81,
@@ -145,7 +145,7 @@ def test_guard_brakes_as_hard_as_the_car_can():
 
 def test_guard_is_logged_and_off_means_the_papers_loop():
     from safeil_sumo import policies
-    from safeil_sumo.experiments.sweep import _task_parts
+    from safeil_sumo.experiments.sweep_executor import _task_parts
     from safeil_sumo.sim.runner import run_scenario
 
     _, scenario, policy, loop = _task_parts(GENTLE_BRAKING)

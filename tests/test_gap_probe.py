@@ -183,7 +183,7 @@ def test_step_specs() -> None:
     with pytest.raises(ValueError, match="unknown step kind"):
         gp.initial_gap_m("sideways", 25)
     pull = gp.probe_spec("idm", "pull_away", 25.0)
-    from safeil_sumo.experiments.sweep import leader_profile
+    from safeil_sumo.scenarios.spec import leader_profile
 
     prof = leader_profile(pull, 25.0)
     assert prof.speed_at(59.9) == 25.0 and prof.speed_at(61.5) == pytest.approx(26.5)

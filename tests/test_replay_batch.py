@@ -18,7 +18,7 @@ import pytest
 from test_replay import arc_drive
 
 from safeil_sumo.experiments import replay_all as ra
-from safeil_sumo.experiments.sweep import even_units
+from safeil_sumo.experiments.sweep_executor import even_units
 
 pytest.importorskip("libsumo")
 

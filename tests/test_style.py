@@ -231,7 +231,8 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
 
 
 def test_sweep_specs_carry_the_time_gap():
-    from safeil_sumo.experiments.sweep import ScenarioSpec, batch_key, task_id
+    from safeil_sumo.experiments.sweep_executor import batch_key, task_id
+    from safeil_sumo.scenarios.spec import ScenarioSpec
 
     plain = ScenarioSpec(policy="idm")
     set_ = ScenarioSpec(policy="idm", time_gap_s=2)

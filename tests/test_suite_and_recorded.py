@@ -12,7 +12,7 @@ import pytest
 from safeil_sumo import run as run_cli
 from safeil_sumo import sweep as sweep_cli
 from safeil_sumo.experiments import suite
-from safeil_sumo.experiments.sweep import run_sweep, task_id
+from safeil_sumo.experiments.sweep_executor import run_sweep, task_id
 from safeil_sumo.scenarios import recorded_leaders as rl
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
 from safeil_sumo.scenarios.spec import resolve_road as _road

@@ -48,7 +48,7 @@ from tqdm import tqdm
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import replay as rp
-from safeil_sumo.experiments.sweep import even_units
+from safeil_sumo.experiments.sweep_executor import even_units
 
 WINDOW_MODES = ("paper", "sliding", "whole")
 HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
@@ -335,7 +335,7 @@ _STATE: dict = {}
 def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig,
           tasks: Path, tag: str) -> None:
     from safeil_sumo import policies as pol
-    from safeil_sumo.experiments.sweep import _die_with_parent
+    from safeil_sumo.experiments.sweep_executor import _die_with_parent
 
     _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
 
