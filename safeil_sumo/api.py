@@ -23,7 +23,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from safeil_sumo import policies
-from safeil_sumo.experiments.replay import ReplayConfig
+from safeil_sumo.experiments.maneuver_replay import ReplayConfig
 from safeil_sumo.experiments.replay_all import DEFAULT_BATCH as REPLAY_BATCH
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.policy import Policy

@@ -44,8 +44,8 @@ from safeil_sumo.data.sources import (  # noqa: F401
     driver_of,
     load_source,
 )
+from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments import replay as rp
 from safeil_sumo.experiments import replay_all as ra
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError

@@ -265,7 +265,7 @@ def _paper_like_window(source: str, maneuver: str | list[str] = "auto"
     some maneuvers or in all of ``source`` (10 Hz). Raises OSError/ValueError without the data."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     maneuvers, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
     if maneuver != "auto":
@@ -276,7 +276,7 @@ def _paper_like_window(source: str, maneuver: str | list[str] = "auto"
 
 def replay(out: Path, work: Path, seed: int) -> pd.DataFrame:
     from safeil_sumo import policies as pol
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     sources = {"openacc": ("openacc", "auto"), "ngsim": ("ngsim", "auto")}
     synthetic = REPO / "data" / "synthetic" / "drives.parquet"
@@ -407,7 +407,7 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
 def _efficiency_replay(checkpoints: list[str], work: Path) -> list[float]:
     """d_lead RMSE vs the human on the OpenACC paper-like maneuver (NaN without the data)."""
     from safeil_sumo import policies as pol
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     try:
         mid, _, rows = _paper_like_window("openacc")
@@ -945,7 +945,7 @@ def _held_out_sources(tag: str):
 
 def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     """Every 11 s window (every 20 s) of the maneuvers the shipped SafeIL held out, per source."""
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
     from safeil_sumo.experiments import replay_all as ra
 
     rows = []
@@ -970,7 +970,7 @@ def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -
     with :data:`WHOLE_POLICIES`, per source: ``humanlike_whole.csv`` (per planner),
     ``humanlike_whole_by_driver.csv`` (per planner and driver), ``humanlike_whole_<source>.png``.
     ``quick``: the first :data:`WHOLE_QUICK_MANEUVERS` held-out maneuvers per source."""
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
     from safeil_sumo.experiments import replay_all as ra
 
     rows, drivers = [], []
@@ -1005,7 +1005,7 @@ def instrument(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     its flags, apart from those the recording itself has."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
     from safeil_sumo.experiments import replay_all as ra
 
     rows = []

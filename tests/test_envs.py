@@ -472,7 +472,7 @@ def test_safeil_through_the_replay_env_reproduces_the_replay_cli(tmp_path, capsy
     _need_openacc()
     import pandas as pd
 
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
     from safeil_sumo.replay import main as replay_main
 

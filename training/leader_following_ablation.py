@@ -115,7 +115,7 @@ def replay_windows(checkpoints: dict[str, str], held_out: list[str], work: Path)
     from safeil_sumo import policies as pol
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     maneuvers, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
     policies = {name: pol.load(path) for name, path in checkpoints.items()}

@@ -1,8 +1,8 @@
 """Human-likeness over the whole distribution: replay every maneuver window, aggregate, plot.
 
 One *task* is one window of one maneuver (rebuilt once in SUMO) driven by every policy; its
-metrics (one row per policy, :func:`safeil_sumo.experiments.replay.compare`) and the time-gap
-histograms of the human and each policy are written at once and atomically to
+metrics (one row per policy, :func:`safeil_sumo.experiments.maneuver_replay.compare`) and the
+time-gap histograms of the human and each policy are written at once and atomically to
 ``<out>/tasks/<task>.json``, so an interrupted run resumes (done windows are skipped). Windows
 run in ``workers`` processes (one libsumo each), up to ``batch`` windows of a worker's unit side
 by side in ONE SUMO simulation (:func:`run_windows`: each window on its own copy of its net,
@@ -46,8 +46,8 @@ import pandas as pd
 from tqdm import tqdm
 
 from safeil_sumo.atomic import atomic_path
+from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments import replay as rp
 from safeil_sumo.experiments.sweep_executor import even_units
 
 WINDOW_MODES = ("paper", "sliding", "whole")
