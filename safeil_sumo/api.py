@@ -24,8 +24,8 @@ from tqdm import tqdm
 
 from safeil_sumo import policies
 from safeil_sumo.experiments.maneuver_replay import ReplayConfig
-from safeil_sumo.experiments.replay_all import DEFAULT_BATCH as REPLAY_BATCH
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
+from safeil_sumo.experiments.window_replays import DEFAULT_BATCH as REPLAY_BATCH
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
@@ -132,10 +132,10 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
     plots and messages (default: the source). Up to ``batch`` windows of a worker task run side
     by side in one SUMO simulation (1: one simulation per run; the same records).
     ``adapt_first_s`` [s] (``whole`` windows): the planners are adapted to each driver on the
-    maneuver's first seconds, which are then not scored (``replay_all.adapt_planners``)."""
+    maneuver's first seconds, which are then not scored (``window_replays.adapt_planners``)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     if isinstance(source, pd.DataFrame):
         rows = source

@@ -46,7 +46,7 @@ from safeil_sumo.data.sources import (  # noqa: F401
 )
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments import replay_all as ra
+from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.sim.brake_guard import BrakeGuard

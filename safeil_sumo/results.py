@@ -946,7 +946,7 @@ def _held_out_sources(tag: str):
 def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     """Every 11 s window (every 20 s) of the maneuvers the shipped SafeIL held out, per source."""
     from safeil_sumo.experiments import maneuver_replay as rp
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     rows = []
     for source, maneuvers, only in _held_out_sources("humanlike"):
@@ -971,7 +971,7 @@ def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -
     ``humanlike_whole_by_driver.csv`` (per planner and driver), ``humanlike_whole_<source>.png``.
     ``quick``: the first :data:`WHOLE_QUICK_MANEUVERS` held-out maneuvers per source."""
     from safeil_sumo.experiments import maneuver_replay as rp
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     rows, drivers = [], []
     for source, maneuvers, only in _held_out_sources("whole"):
@@ -1006,7 +1006,7 @@ def instrument(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
     from safeil_sumo.experiments import maneuver_replay as rp
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     rows = []
     for source, where in (("openacc", "openacc"), ("ngsim", "ngsim"),

@@ -155,7 +155,7 @@ def _arc_rows(duration: float, gap: float = 50.0):
 def test_adapted_windows_leave_out_the_adaptation_seconds():
     import pandas as pd
 
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     maneuvers = pd.concat([_arc_rows(40.0), _arc_rows(25.0).assign(maneuver_id="short#0")],
                           ignore_index=True)
@@ -176,7 +176,7 @@ def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
 
     from safeil_sumo import idm
     from safeil_sumo import policies as pol
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
                     horizon=5.0)
@@ -201,7 +201,7 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     """Real libsumo: the arc maneuver replayed from 10 s on with the planners adapted on its
     first 10 s; the record says so and covers the rest only."""
     pytest.importorskip("libsumo")
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     maneuvers = _arc_rows(35.0)
     wins = ra.windows(maneuvers, "whole", adapt_s=10.0)

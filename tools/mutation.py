@@ -43,12 +43,12 @@ SCOPE = (
     "safeil_sumo.experiments.suite.x_aggregate__mutmut_*",
     "safeil_sumo.experiments.suite.x_family_of__mutmut_*",
     # the replay statistics
-    "safeil_sumo.experiments.replay_all.x_bootstrap_ci__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x_aggregate__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x_literature_summary__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x__column__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x__nan_stat__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x__headway_hist__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x_bootstrap_ci__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x_aggregate__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x_literature_summary__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x__column__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x__nan_stat__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x__headway_hist__mutmut_*",
     # the recorded leader's speed and its drift filter
     "safeil_sumo.scenarios.replay_road.x_drift_corrected_speed__mutmut_*",
     "safeil_sumo.scenarios.replay_road.x_leader_speed__mutmut_*",
