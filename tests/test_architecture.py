@@ -21,7 +21,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
      ("geometry", "bspline", "features", "policy", "atomic", "analytic", "idm", "safety_filter")),
     ("roads: SUMO nets and the geometry read from them",
      ("scenarios.track", "scenarios.road", "scenarios.network", "scenarios.route",
-      "scenarios.n74", "scenarios.catalogue", "scenarios.replay_road")),
+      "scenarios.n74", "scenarios.catalogue", "scenarios.recorded_road")),
     ("data, learning and the closed loop",
      ("data.*", "learn.*", "sim.*", "policies")),
     ("scenarios: specs built into the loop's Scenario",

@@ -34,7 +34,7 @@ from safeil_sumo.data.pipeline import (
 )
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.run import main as run_main
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios import recorded_road as rr
 from safeil_sumo.sim.recorded_ego import RecordedPath, RecordedPathError
 
 # ------------------------------------------------------------------------------------- pure

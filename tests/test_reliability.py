@@ -34,7 +34,7 @@ from safeil_sumo.experiments.sweep_executor import run_sweep, task_id
 from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
 from safeil_sumo.policies import MODELS_DIR, PolicyError
 from safeil_sumo.policies import load as load_policy
-from safeil_sumo.scenarios.replay_road import safe_name
+from safeil_sumo.scenarios.recorded_road import safe_name
 from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim.leaders import ProfileError, constant, from_file

@@ -13,7 +13,7 @@ import pytest
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data.schema import save_drive, validate_drive
 from safeil_sumo.experiments import maneuver_replay as rp
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios import recorded_road as rr
 from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
 
 R = 800.0  # [m] lane-centre radius of the synthetic recording

@@ -20,9 +20,9 @@ from safeil_sumo.experiments.probe import straight_lane_features
 from safeil_sumo.experiments.window_replays import bootstrap_ci
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios import recorded_road as rr
 
-# ------------------------------------------------------------- 1. replay_road: drift low-pass
+# ------------------------------------------------------------- 1. recorded_road: drift low-pass
 
 
 def test_drift_correction_low_passes_position_noise() -> None:
