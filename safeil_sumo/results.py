@@ -891,7 +891,7 @@ def leader(out: Path, work: Path, workers: int, seed: int, variants: int) -> dic
     """The static probe and the leader-response suite, every planner."""
     from safeil_sumo import policies as pol
     from safeil_sumo.experiments import suite
-    from safeil_sumo.experiments.probe import probe
+    from safeil_sumo.experiments.leader_probe import probe
 
     probes = []
     for p in POLICIES:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from safeil_sumo import idm, policies
-from safeil_sumo.experiments.probe import probe, straight_lane_features
+from safeil_sumo.experiments.leader_probe import probe, straight_lane_features
 
 P = idm.IDMParams(v0_mps=30.0, time_gap_s=1.2, s0_m=2.0, a_max_mps2=1.5, b_mps2=2.0)
 

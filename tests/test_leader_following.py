@@ -11,7 +11,12 @@ import torch
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.experiments.probe import ProbeGrid, probe, recoverable, straight_lane_features
+from safeil_sumo.experiments.leader_probe import (
+    ProbeGrid,
+    probe,
+    recoverable,
+    straight_lane_features,
+)
 from safeil_sumo.learn.checkpoint import save_checkpoint
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.inference import load_policy

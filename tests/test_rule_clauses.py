@@ -16,7 +16,7 @@ import torch
 
 from safeil_sumo import bspline, idm
 from safeil_sumo.experiments import suite
-from safeil_sumo.experiments.probe import straight_lane_features
+from safeil_sumo.experiments.leader_probe import straight_lane_features
 from safeil_sumo.experiments.window_replays import bootstrap_ci
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms

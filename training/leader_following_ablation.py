@@ -7,8 +7,9 @@ from the recipe of the earlier shipped model (synthetic data, absolute control p
 the recorded tuples only) to the shipped recipe, and measures each:
 
 - open loop: the held-out imitation error of the x control points per source [m^2];
-- the static probe (:mod:`safeil_sumo.experiments.probe`): plans that run past the predicted
-  leader on recoverable states, and (speed, leader speed) pairs whose plan shrinks as the gap grows;
+- the static probe (:mod:`safeil_sumo.experiments.leader_probe`): plans that run past the
+  predicted leader on recoverable states, and (speed, leader speed) pairs whose plan shrinks as
+  the gap grows;
 - closed loop: the validation battery (:mod:`safeil_sumo.experiments.selection`: flags and
   collisions over 12 scenarios), and the human-likeness replay of every 11 s window (every 20 s)
   of the held-out OpenACC maneuvers (median gap RMSE [m] against the human, flags).
@@ -158,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
               "training/build_synthetic_dataset.py", file=sys.stderr)
         return 2
     from safeil_sumo import policies as pol
-    from safeil_sumo.experiments.probe import probe
+    from safeil_sumo.experiments.leader_probe import probe
     from safeil_sumo.experiments.selection import evaluate
 
     args.cache.mkdir(parents=True, exist_ok=True)
