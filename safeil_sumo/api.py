@@ -22,7 +22,7 @@ from pathlib import Path
 import pandas as pd
 from tqdm import tqdm
 
-from safeil_sumo import policies
+from safeil_sumo import planner_registry
 from safeil_sumo.experiments.maneuver_replay import ReplayConfig
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.experiments.window_replays import DEFAULT_BATCH as REPLAY_BATCH
@@ -46,7 +46,7 @@ class RunResult:
 def load_policy(policy: str | Policy) -> Policy:
     """A shipped name, a checkpoint / IDM model path, or a Policy object (returned as it is)."""
     if isinstance(policy, str):
-        return policies.load(policy)
+        return planner_registry.load(policy)
     if not isinstance(policy, Policy):
         raise TypeError(f"{policy!r} is no Policy: it needs name, horizon and plan(features)")
     return policy

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.leader_probe import probe
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 from safeil_sumo import api
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import (
     BRAKE_GUARD_OPTIONS,
     add_brake_guard_option,

@@ -275,7 +275,7 @@ def _paper_like_window(source: str, maneuver: str | list[str] = "auto"
 
 
 def replay(out: Path, work: Path, seed: int) -> pd.DataFrame:
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import maneuver_replay as rp
 
     sources = {"openacc": ("openacc", "auto"), "ngsim": ("ngsim", "auto")}
@@ -406,7 +406,7 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
 
 def _efficiency_replay(checkpoints: list[str], work: Path) -> list[float]:
     """d_lead RMSE vs the human on the OpenACC paper-like maneuver (NaN without the data)."""
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import maneuver_replay as rp
 
     try:
@@ -889,7 +889,7 @@ def _walls_readme(facts: dict) -> list[str]:
 
 def leader(out: Path, work: Path, workers: int, seed: int, variants: int) -> dict:
     """The static probe and the leader-response suite, every planner."""
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import suite
     from safeil_sumo.experiments.leader_probe import probe
 

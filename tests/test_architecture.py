@@ -23,7 +23,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
      ("scenarios.track", "scenarios.road", "scenarios.network", "scenarios.route",
       "scenarios.n74", "scenarios.catalogue", "scenarios.recorded_road")),
     ("data, learning and the closed loop",
-     ("data.*", "learn.*", "sim.*", "policies")),
+     ("data.*", "learn.*", "sim.*", "planner_registry")),
     ("scenarios: specs built into the loop's Scenario",
      ("scenarios.spec", "scenarios.safety", "scenarios.recorded_leaders")),
     ("experiments: sweeps, replays, probes, metrics",

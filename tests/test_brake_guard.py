@@ -144,7 +144,7 @@ def test_guard_brakes_as_hard_as_the_car_can():
 
 
 def test_guard_is_logged_and_off_means_the_papers_loop():
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
     from safeil_sumo.experiments.sweep_executor import _task_parts
     from safeil_sumo.sim.runner import run_scenario
 
@@ -154,20 +154,21 @@ def test_guard_is_logged_and_off_means_the_papers_loop():
     assert (on["guard_decel"] >= 0.0).all()  # 0 where it did not
     assert on.loc[on["guard_decel"] > 0, "accel_cmd"].to_numpy() == pytest.approx(
         -on.loc[on["guard_decel"] > 0, "guard_decel"].to_numpy())
-    off = run_scenario(scenario, policies.load("safeil"), replace(loop, brake_guard=None)).log
+    off = run_scenario(scenario, planner_registry.load("safeil"),
+                       replace(loop, brake_guard=None)).log
     assert off["guard_decel"].isna().all()
 
 
 def test_guard_stays_out_of_ordinary_following(curved500):
     """The paper's safety test (leader at a constant 25-32 m/s): the guard never acts, so the
     runs are the planner's own (same logs as without it)."""
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
     from safeil_sumo.scenarios.safety import safety_scenario
     from safeil_sumo.sim.batch import run_batch
     from safeil_sumo.sim.runner import LoopConfig
 
     scenarios = [safety_scenario(curved500, i, master_seed=0) for i in range(4)]
-    policy = policies.load("safeil")
+    policy = planner_registry.load("safeil")
     on = run_batch(scenarios, policy, LoopConfig())
     off = run_batch(scenarios, policy, LoopConfig(brake_guard=None))
     for a, b in zip(on, off, strict=True):

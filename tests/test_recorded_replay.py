@@ -19,7 +19,7 @@ from fixtures_data import (
     straight_drive,
 )
 
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.importers import (
     NGSIM_LANE_WIDTH,
     import_ngsim_pairs,

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 from test_replay import arc_drive
 
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.schema import validate_drive
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import metrics as hm

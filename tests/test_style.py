@@ -124,20 +124,20 @@ def test_checkpoint_with_a_style_input_count_mismatch_is_refused(tmp_path):
 
 
 def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
     from safeil_sumo.analytic import AnalyticPlanner
 
     styled = with_style_input(_style_model(), 1.5, 0.5)
     save_checkpoint(tmp_path / "m", styled, name="m", horizon=5.0)
-    p = policies.with_time_gap(policies.load(str(tmp_path / "m.safetensors")), 2.2)
+    p = planner_registry.with_time_gap(planner_registry.load(str(tmp_path / "m.safetensors")), 2.2)
     assert p.style == {"time_gap_s": 2.2}
-    idm = policies.with_time_gap(policies.load("idm"), 2.4)
+    idm = planner_registry.with_time_gap(planner_registry.load("idm"), 2.4)
     assert idm.params.time_gap_s == 2.4
-    assert policies.load("idm").params.time_gap_s != 2.4  # the shipped fit is untouched
-    with pytest.raises(policies.PolicyError, match="no time-gap setting"):
-        policies.with_time_gap(AnalyticPlanner(), 2.0)
-    with pytest.raises(policies.PolicyError, match="> 0"):
-        policies.with_time_gap(idm, 0.0)
+    assert planner_registry.load("idm").params.time_gap_s != 2.4  # the shipped fit is untouched
+    with pytest.raises(planner_registry.PolicyError, match="no time-gap setting"):
+        planner_registry.with_time_gap(AnalyticPlanner(), 2.0)
+    with pytest.raises(planner_registry.PolicyError, match="> 0"):
+        planner_registry.with_time_gap(idm, 0.0)
 
 
 # ------------------------------------------------------------------ adaptation in replays
@@ -175,7 +175,7 @@ def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
     from test_replay import V
 
     from safeil_sumo import idm
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import window_replays as ra
 
     save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
@@ -215,7 +215,7 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     # the IDM ran with the parameters fitted on the first 10 s, not the shipped ones
     from dataclasses import asdict
 
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
 
     assert set(rec["adapted"]) == {"idm", "recorded"} and rec["adapted"]["recorded"] == {}
     assert rec["adapted"]["idm"] != asdict(pol.load("idm").params)

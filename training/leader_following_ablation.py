@@ -113,7 +113,7 @@ def imitation_by_source(prefix: Path, va) -> dict[str, float]:
 
 def replay_windows(checkpoints: dict[str, str], held_out: list[str], work: Path) -> pd.DataFrame:
     """Gap RMSE of every policy on every 11 s window of the held-out OpenACC maneuvers."""
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
     from safeil_sumo.experiments import maneuver_replay as rp
@@ -158,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: missing datasets {missing}: run training/build_real_datasets.py and "
               "training/build_synthetic_dataset.py", file=sys.stderr)
         return 2
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments.leader_probe import probe
     from safeil_sumo.experiments.selection import evaluate
 

@@ -73,13 +73,13 @@ _SHARED_POLICIES: dict[tuple, Any] = {}
 
 
 def _load_policy(spec: ScenarioSpec, shared: bool = False):
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
 
     # loaded fresh for every task: no state (e.g. filter counters) leaks between tasks; a
     # batch shares the (stateless) planner itself
     def load():
-        policy = policies.load(spec.policy)
-        return policy if spec.time_gap_s is None else policies.with_time_gap(policy,
+        policy = planner_registry.load(spec.policy)
+        return policy if spec.time_gap_s is None else planner_registry.with_time_gap(policy,
                                                                              spec.time_gap_s)
 
     if shared:

@@ -161,7 +161,7 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> d
     from dataclasses import replace
 
     from safeil_sumo import idm
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.learn.style import estimate_time_gap
 
     time_gap = estimate_time_gap(first_rows["lead_x"].to_numpy(float),
@@ -334,7 +334,7 @@ _STATE: dict = {}
 
 def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig,
           tasks: Path, tag: str) -> None:
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments.sweep_executor import _die_with_parent
 
     _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
