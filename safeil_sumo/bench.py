@@ -195,7 +195,7 @@ def data_and_training(quick: bool, rows: dict, notes: list[str], calls: int) -> 
         return
     from safeil_sumo.learn.checkpoint import save_checkpoint
     from safeil_sumo.learn.inference import load_policy
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     train_set, val_set = split_by_maneuver(tuples, 0.2, seed=0)
     epochs = 3 if quick else 30

@@ -323,7 +323,7 @@ def openloop(out: Path, work: Path) -> pd.DataFrame:
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
     from safeil_sumo.learn.evaluate import open_loop_metrics
     from safeil_sumo.learn.inference import load_policy
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     datasets = {"synthetic": SHIPPED_DATA, "ngsim": REPO / "data" / "ngsim_tuples.parquet",
                 "openacc": REPO / "data" / "openacc_tuples.parquet"}
@@ -362,7 +362,7 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
                scenarios: int) -> pd.DataFrame:
     from safeil_sumo.data.tuples import Tuples
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     if not SHIPPED_DATA.is_file():
         print(f"[efficiency] skipped: {SHIPPED_DATA} missing (training/build_synthetic_dataset.py)")

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from safeil_sumo.learn.closed_loop import FinetuneConfig
-from safeil_sumo.learn.train import TrainConfig
+from safeil_sumo.learn.trainer import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 

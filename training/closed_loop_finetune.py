@@ -57,7 +57,7 @@ from safeil_sumo.learn.style import (
     maneuver_time_gaps,
     training_time_gaps,
 )
-from safeil_sumo.learn.train import TrainConfig, gap_monotone_penalty
+from safeil_sumo.learn.trainer import TrainConfig, gap_monotone_penalty
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -73,7 +73,7 @@ def _slug(name: str) -> str:
 def train_variant(name: str, sources: tuple[str, ...], overrides: dict, cache: Path) -> Path:
     from safeil_sumo.data.tuples import Tuples
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     prefix = cache / _slug(name)
     if prefix.with_suffix(".safetensors").is_file():
@@ -93,7 +93,7 @@ def mixed_held_out():
     every variant is scored on these (the synthetic-only variants held out other synthetic
     maneuvers, so their synthetic score is slightly optimistic)."""
     from safeil_sumo.data.tuples import Tuples
-    from safeil_sumo.learn.train import split_by_maneuver
+    from safeil_sumo.learn.trainer import split_by_maneuver
 
     return split_by_maneuver(Tuples.concat([Tuples.load(p) for p in SOURCES.values()]), 0.2, 0)[1]
 

@@ -4,7 +4,7 @@
 
 Whole maneuvers are left out for validation (early stopping and the printed open-loop metrics).
 Writes ``<out>.safetensors`` + ``<out>.json`` (architecture, scaling, config, data fingerprint,
-metrics, per-epoch history). Every field of :class:`safeil_sumo.learn.train.TrainConfig` is an
+metrics, per-epoch history). Every field of :class:`safeil_sumo.learn.trainer.TrainConfig` is an
 option under its own name (``--max-epochs``, ``--weight-decay``, ...; ``--epochs``, ``--threads``
 and ``--monotone-margin`` are kept as aliases), checked by the config itself.
 """
@@ -24,7 +24,7 @@ from safeil_sumo.learn.evaluate import open_loop_metrics
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.losses import LATERAL_MODES
 from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES
-from safeil_sumo.learn.train import METHODS, TrainConfig, split_by_maneuver, train
+from safeil_sumo.learn.trainer import METHODS, TrainConfig, split_by_maneuver, train
 from safeil_sumo.safety_filter import SafeSet
 
 SUMMARY_KEYS = (

@@ -46,7 +46,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from safeil_sumo.learn.closed_loop import FinetuneConfig
-from safeil_sumo.learn.train import TrainConfig
+from safeil_sumo.learn.trainer import TrainConfig
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_DIR = REPO / "data"
