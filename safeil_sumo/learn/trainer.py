@@ -423,15 +423,20 @@ def train_checkpoint(
         **{k: v for k, v in best.items() if k.startswith(("train_", "val_"))},
         # which maneuvers were held out: a replay can then check "left out of training"
         "data": data_label, "val_maneuvers": sorted(map(str, va.maneuvers))}
-    stored = {"name": name or config.method, "horizon": tuples.horizon, "train_config": config,
-              "data_fingerprint": tuples_fingerprint(tuples), "history": history}
+    fingerprint = tuples_fingerprint(tuples)
+
+    def save() -> None:
+        save_checkpoint(out, model, name=name or config.method, horizon=tuples.horizon,
+                        train_config=config, data_fingerprint=fingerprint, metrics=metrics,
+                        history=history)
+
     # save, then evaluate the checkpoint through the numpy policy the closed loop will use
-    save_checkpoint(out, model, metrics=metrics, **stored)
+    save()
     policy = load_policy(out)
     safe_set = SafeSet(track=config.track, gap_min=config.gap_min, time_gap=config.time_gap)
     for split, part in (("train", tr), ("val", va)):
         if len(part):
             om = open_loop_metrics(policy, part, safe_set)
             metrics.update({f"open_loop_{split}_{k}": om[k] for k in SUMMARY_KEYS})
-    save_checkpoint(out, model, metrics=metrics, **stored)
+    save()
     return TrainedCheckpoint(out, metrics, history, (note,))
