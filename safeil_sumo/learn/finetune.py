@@ -78,7 +78,7 @@ class FinetuneResult:
     notes: tuple[str, ...]
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Start:
     """The fine-tune's starting point: the model (style input added if asked), the initial model
     (frozen: the lateral anchor), the initial checkpoint's metadata and recipe, the episodes and
@@ -93,7 +93,7 @@ class _Start:
     features: torch.Tensor
     median_time_gap_s: float
     style_default: dict[str, float] | None
-    notes: list[str]
+    notes: tuple[str, ...]
 
 
 def _start(config: FinetuneConfig, init: Path, data_paths: Sequence[Path]) -> _Start:
@@ -125,7 +125,7 @@ def _start(config: FinetuneConfig, init: Path, data_paths: Sequence[Path]) -> _S
                      f"{np.quantile(list(per_maneuver.values()), [0.25, 0.75]).round(2).tolist()}"
                      " s")
     return _Start(model, frozen, meta, base, float(meta["horizon_s"]), eps, feats, median,
-                  style_default, notes)
+                  style_default, tuple(notes))
 
 
 def _iteration(config: FinetuneConfig, s: _Start, settling: SettlingConfig,
@@ -229,4 +229,4 @@ def finetune(config: FinetuneConfig, init: str | Path, data_paths: Sequence[str 
                     train_config=s.meta["train_config"],
                     data_fingerprint=s.meta.get("data_fingerprint"), metrics=metrics,
                     style_default=s.style_default)
-    return FinetuneResult(out, metrics, tuple(s.notes))
+    return FinetuneResult(out, metrics, s.notes)
