@@ -124,7 +124,7 @@ def _run_road(run_dir: Path, config: dict) -> Road:
 
 
 def _replay_road(run_dir: Path) -> Road:
-    from safeil_sumo.scenarios import replay_road as rr
+    from safeil_sumo.scenarios import recorded_road as rr
 
     nets = sorted((run_dir / "net").glob("*.net.xml"))
     if len(nets) != 1:

@@ -22,10 +22,10 @@ from pathlib import Path
 import pandas as pd
 from tqdm import tqdm
 
-from safeil_sumo import policies
-from safeil_sumo.experiments.replay import ReplayConfig
-from safeil_sumo.experiments.replay_all import DEFAULT_BATCH as REPLAY_BATCH
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
+from safeil_sumo import planner_registry
+from safeil_sumo.experiments.maneuver_replay import ReplayConfig
+from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
+from safeil_sumo.experiments.window_replays import DEFAULT_BATCH as REPLAY_BATCH
 from safeil_sumo.policy import Policy
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
@@ -46,7 +46,7 @@ class RunResult:
 def load_policy(policy: str | Policy) -> Policy:
     """A shipped name, a checkpoint / IDM model path, or a Policy object (returned as it is)."""
     if isinstance(policy, str):
-        return policies.load(policy)
+        return planner_registry.load(policy)
     if not isinstance(policy, Policy):
         raise TypeError(f"{policy!r} is no Policy: it needs name, horizon and plan(features)")
     return policy
@@ -132,10 +132,10 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
     plots and messages (default: the source). Up to ``batch`` windows of a worker task run side
     by side in one SUMO simulation (1: one simulation per run; the same records).
     ``adapt_first_s`` [s] (``whole`` windows): the planners are adapted to each driver on the
-    maneuver's first seconds, which are then not scored (``replay_all.adapt_planners``)."""
+    maneuver's first seconds, which are then not scored (``window_replays.adapt_planners``)."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     if isinstance(source, pd.DataFrame):
         rows = source

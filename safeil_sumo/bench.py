@@ -35,7 +35,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from safeil_sumo import policies
+from safeil_sumo import planner_registry
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.features import planner_features
 from safeil_sumo.scenarios.catalogue import resolve_net
@@ -88,7 +88,7 @@ def closed_loop_steps_per_s(net: str, policy_name: str, max_time_s: float,
                             backend: str = "libsumo") -> tuple[float, int]:
     road = load_road(net)
     sc = safety_scenario(road, 0)
-    r = run_scenario(sc, policies.load(policy_name),
+    r = run_scenario(sc, planner_registry.load(policy_name),
                      LoopConfig(max_time_s=max_time_s, backend=backend))
     if r.summary["end_reason"] == "error":
         raise RuntimeError(r.summary["error"])
@@ -141,7 +141,7 @@ def sumo_share_us_per_step(net: str, sim_s: float) -> tuple[float, float]:
 def planner_us_per_call(policy, calls: int) -> float:
     """Mean time [us] of ``policy.plan`` on one feature vector (a policy object or a name)."""
     if isinstance(policy, str):
-        policy = policies.load(policy)
+        policy = planner_registry.load(policy)
     f = planner_features([1.75, 0.0, 1e-3], [-1.75, 0.0, 1e-3], 30.0, 27.0, 45.0)
     policy.plan(f)
     t0 = time.perf_counter()
@@ -195,7 +195,7 @@ def data_and_training(quick: bool, rows: dict, notes: list[str], calls: int) -> 
         return
     from safeil_sumo.learn.checkpoint import save_checkpoint
     from safeil_sumo.learn.inference import load_policy
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     train_set, val_set = split_by_maneuver(tuples, 0.2, seed=0)
     epochs = 3 if quick else 30
@@ -233,13 +233,13 @@ def peak_kb():
 
 _PEAK_SCRIPT = _PEAK_KB + """
 import sys
-from safeil_sumo import policies
+from safeil_sumo import planner_registry
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.runner import LoopConfig, run_scenario
 road = load_road(resolve_net("curved500"))
-r = run_scenario(safety_scenario(road, 0), policies.load(sys.argv[1]),
+r = run_scenario(safety_scenario(road, 0), planner_registry.load(sys.argv[1]),
                  LoopConfig(max_time_s=float(sys.argv[2])))
 print(peak_kb())  # KiB
 """
@@ -254,7 +254,7 @@ def closed_loop_peak_rss_mb(policy_name: str, sim_s: float) -> float:
 
 _SWEEP_SCRIPT = _PEAK_KB + """
 import json, sys, time
-from safeil_sumo.experiments.sweep import run_sweep
+from safeil_sumo.experiments.sweep_executor import run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
 n, workers, out, max_time = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 batch, policy = int(sys.argv[5]), sys.argv[6]
@@ -273,7 +273,7 @@ print(json.dumps({"wall_s": wall, "tasks": len(summary),
 def sweep_rows(quick: bool, policy: str, rows: dict, notes: list[str]) -> None:
     """curved500 sweeps with 1 and 2 workers, each in a fresh process: one scenario per
     simulation (100 scenarios) and batched (1,000 scenarios, the sweep's default batch)."""
-    from safeil_sumo.experiments.sweep import DEFAULT_BATCH
+    from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH
 
     plans = ([("", 6, "5", 1), ("_batched", 6, "5", 3)] if quick
              else [("", 100, "none", 1), ("_batched", 1000, "none", DEFAULT_BATCH)])
@@ -304,7 +304,7 @@ def multi_edge_rows(policy: str, quick: bool, rows: dict) -> None:
     one edge (curved500), µs per step of the loop alone; the wall time of a 10 km n74 drive
     (task start included) with a scripted 30 m/s leader and, full runs only, among SUMO's
     default traffic."""
-    from safeil_sumo.experiments.sweep import run_task
+    from safeil_sumo.experiments.sweep_executor import run_task
     from safeil_sumo.scenarios.spec import ScenarioSpec
 
     def task(**kw) -> tuple[float, dict]:
@@ -335,11 +335,11 @@ def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: di
     """Ego-steps/s of ``run_batch`` (lane placement, the sweeps') for N in BATCH_SIZES and of
     ``run_scenario`` (today's defaults) one scenario after another on the same scenarios, SUMO
     start included in both; the batch's time per ego-step per stage (StageClock)."""
-    from safeil_sumo.experiments.sweep import DEFAULT_BATCH
+    from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH
     from safeil_sumo.sim.batch import StageClock, run_batch
 
     road = load_road(net)
-    policy = policies.load(policy_name)
+    policy = planner_registry.load(policy_name)
     loop = LoopConfig(max_time_s=sim_s)
     sizes = (1, 8) if quick else BATCH_SIZES
     scenarios = [safety_scenario(road, i) for i in range(max(sizes))]
@@ -393,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="closed loop and planner only (no data, training, memory, sweep)")
     p.add_argument("--out", type=Path, default=Path("runs/bench.json"))
     args = p.parse_args(argv)
-    policy = args.policy or policies.default_policy_name()
+    policy = args.policy or planner_registry.default_policy_name()
     net = str(resolve_net("curved500"))
     sim_s = 5.0 if args.quick else 30.0
     calls = 2000 if args.quick else 20000

@@ -21,7 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import finite_float, nonnegative_int
 from safeil_sumo.learn.certificate import load_certificate, write_certificate
 from safeil_sumo.learn.certify import (

@@ -79,13 +79,13 @@ def format_table(table) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from safeil_sumo import policies
-    from safeil_sumo.experiments.sweep import run_sweep
+    from safeil_sumo import planner_registry
+    from safeil_sumo.experiments.sweep_executor import run_sweep
     from safeil_sumo.scenarios.spec import resolve_road
 
     try:
         for name in dict.fromkeys(args.policies):  # fail fast, before any run
-            policies.load(name)
+            planner_registry.load(name)
         specs = gp.probe_specs(args.policies, args.speeds, args.kinds, args.seed)
         resolve_road(gp.NET, (), *gp.STRETCH_KM)
     except (ValueError, OSError) as exc:

@@ -8,7 +8,7 @@ planned trajectory runs past the leader's predicted position (``pass_rate``), th
 2 m + 1 s margin, how many (speed, leader speed) pairs plan a SHORTER trajectory for a farther
 leader, and planned end speeds at named states. ``--out`` writes ``probe.csv`` (one row per
 planner) and ``probe_states.parquet`` (every state and plan). See
-:mod:`safeil_sumo.experiments.probe`.
+:mod:`safeil_sumo.experiments.leader_probe`.
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments.probe import probe
+from safeil_sumo.experiments.leader_probe import probe
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,7 +24,7 @@ from pathlib import Path
 import pandas as pd
 
 from safeil_sumo import api
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import (
     BRAKE_GUARD_OPTIONS,
     add_brake_guard_option,
@@ -44,9 +44,9 @@ from safeil_sumo.data.sources import (  # noqa: F401
     driver_of,
     load_source,
 )
+from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments import replay as rp
-from safeil_sumo.experiments import replay_all as ra
+from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.sim.brake_guard import BrakeGuard

@@ -46,7 +46,7 @@ import pandas as pd
 
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.stats import breakdown
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, comparable, run_sweep
+from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, comparable, run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -265,7 +265,7 @@ def _paper_like_window(source: str, maneuver: str | list[str] = "auto"
     some maneuvers or in all of ``source`` (10 Hz). Raises OSError/ValueError without the data."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     maneuvers, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
     if maneuver != "auto":
@@ -275,8 +275,8 @@ def _paper_like_window(source: str, maneuver: str | list[str] = "auto"
 
 
 def replay(out: Path, work: Path, seed: int) -> pd.DataFrame:
-    from safeil_sumo import policies as pol
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     sources = {"openacc": ("openacc", "auto"), "ngsim": ("ngsim", "auto")}
     synthetic = REPO / "data" / "synthetic" / "drives.parquet"
@@ -323,7 +323,7 @@ def openloop(out: Path, work: Path) -> pd.DataFrame:
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
     from safeil_sumo.learn.evaluate import open_loop_metrics
     from safeil_sumo.learn.inference import load_policy
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     datasets = {"synthetic": SHIPPED_DATA, "ngsim": REPO / "data" / "ngsim_tuples.parquet",
                 "openacc": REPO / "data" / "openacc_tuples.parquet"}
@@ -362,7 +362,7 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
                scenarios: int) -> pd.DataFrame:
     from safeil_sumo.data.tuples import Tuples
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     if not SHIPPED_DATA.is_file():
         print(f"[efficiency] skipped: {SHIPPED_DATA} missing (training/build_synthetic_dataset.py)")
@@ -406,8 +406,8 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
 
 def _efficiency_replay(checkpoints: list[str], work: Path) -> list[float]:
     """d_lead RMSE vs the human on the OpenACC paper-like maneuver (NaN without the data)."""
-    from safeil_sumo import policies as pol
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     try:
         mid, _, rows = _paper_like_window("openacc")
@@ -889,9 +889,9 @@ def _walls_readme(facts: dict) -> list[str]:
 
 def leader(out: Path, work: Path, workers: int, seed: int, variants: int) -> dict:
     """The static probe and the leader-response suite, every planner."""
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import suite
-    from safeil_sumo.experiments.probe import probe
+    from safeil_sumo.experiments.leader_probe import probe
 
     probes = []
     for p in POLICIES:
@@ -945,8 +945,8 @@ def _held_out_sources(tag: str):
 
 def humanlike(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     """Every 11 s window (every 20 s) of the maneuvers the shipped SafeIL held out, per source."""
-    from safeil_sumo.experiments import replay as rp
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import maneuver_replay as rp
+    from safeil_sumo.experiments import window_replays as ra
 
     rows = []
     for source, maneuvers, only in _held_out_sources("humanlike"):
@@ -970,8 +970,8 @@ def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -
     with :data:`WHOLE_POLICIES`, per source: ``humanlike_whole.csv`` (per planner),
     ``humanlike_whole_by_driver.csv`` (per planner and driver), ``humanlike_whole_<source>.png``.
     ``quick``: the first :data:`WHOLE_QUICK_MANEUVERS` held-out maneuvers per source."""
-    from safeil_sumo.experiments import replay as rp
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import maneuver_replay as rp
+    from safeil_sumo.experiments import window_replays as ra
 
     rows, drivers = [], []
     for source, maneuvers, only in _held_out_sources("whole"):
@@ -1005,8 +1005,8 @@ def instrument(out: Path, work: Path, workers: int, seed: int) -> list[dict]:
     its flags, apart from those the recording itself has."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay as rp
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import maneuver_replay as rp
+    from safeil_sumo.experiments import window_replays as ra
 
     rows = []
     for source, where in (("openacc", "openacc"), ("ngsim", "ngsim"),
@@ -1048,7 +1048,7 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
     with exact Poisson intervals, time gaps against the synthetic humans of the same road, and a
     map of where the flags happened (:mod:`safeil_sumo.experiments.n74_drives`)."""
     from safeil_sumo.experiments import n74_drives as nd
-    from safeil_sumo.experiments.sweep import run_sweep
+    from safeil_sumo.experiments.sweep_executor import run_sweep
     from safeil_sumo.learn.style import SETTING_RANGE_S
 
     # --quick: 1 km of each planner (a smoke test of the section)

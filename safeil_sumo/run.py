@@ -20,7 +20,7 @@ from pathlib import Path
 import pandas as pd
 from tqdm import tqdm
 
-from safeil_sumo import animate, api, policies
+from safeil_sumo import animate, api, planner_registry
 from safeil_sumo.cli_args import (
     BRAKE_GUARD_OPTIONS,
     add_scenario_options,
@@ -48,7 +48,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--policy", default=None,
                    help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
                         "IDM model .json "
-                        f"(default: {policies.default_policy_name()})")
+                        f"(default: {planner_registry.default_policy_name()})")
     add_scenario_options(p)
     p.add_argument("--backend", choices=("libsumo", "traci"), default="libsumo")
     p.add_argument("--gui", action="store_true", help="watch in sumo-gui (implies traci)")
@@ -71,7 +71,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             p.error("--gui needs a display (DISPLAY is not set): run without --gui, or under a "
                     "virtual display, e.g. xvfb-run -a python -m safeil_sumo.run --gui ...")
         args.backend = "traci"
-    args.policy = args.policy or policies.default_policy_name()
+    args.policy = args.policy or planner_registry.default_policy_name()
     return args
 
 
@@ -92,10 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         road = api.road(args.net, args.route, args.from_km, args.to_km, args.lane)
-        policy = policies.load(args.policy)
+        policy = planner_registry.load(args.policy)
         if args.time_gap is not None:
-            policy = policies.with_time_gap(policy, args.time_gap)
-    except (NetworkError, policies.PolicyError, ValueError) as exc:
+            policy = planner_registry.with_time_gap(policy, args.time_gap)
+    except (NetworkError, planner_registry.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     net_name = args.net if not args.net.endswith(".xml") else road.net_path.stem

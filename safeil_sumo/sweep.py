@@ -35,7 +35,7 @@ from safeil_sumo.cli_args import (
     scenario_fields,
 )
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
+from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
 
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
@@ -176,15 +176,15 @@ def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()
 
     for profile in dict.fromkeys(profiles):
         recorded_leaders.library(profile)
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
     from safeil_sumo.scenarios.spec import resolve_road
 
     for net in dict.fromkeys(nets):
         resolve_road(net, route, from_km, to_km, lane)
     for name in dict.fromkeys(policies_):
-        policy = policies.load(name)
+        policy = planner_registry.load(name)
         if time_gap_s is not None:
-            policies.with_time_gap(policy, time_gap_s)
+            planner_registry.with_time_gap(policy, time_gap_s)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,9 +21,9 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
      ("geometry", "bspline", "features", "policy", "atomic", "analytic", "idm", "safety_filter")),
     ("roads: SUMO nets and the geometry read from them",
      ("scenarios.track", "scenarios.road", "scenarios.network", "scenarios.route",
-      "scenarios.n74", "scenarios.catalogue", "scenarios.replay_road")),
+      "scenarios.n74", "scenarios.catalogue", "scenarios.recorded_road")),
     ("data, learning and the closed loop",
-     ("data.*", "learn.*", "sim.*", "policies")),
+     ("data.*", "learn.*", "sim.*", "planner_registry")),
     ("scenarios: specs built into the loop's Scenario",
      ("scenarios.spec", "scenarios.safety", "scenarios.recorded_leaders")),
     ("experiments: sweeps, replays, probes, metrics",
@@ -135,7 +135,7 @@ def test_layers_by_hand() -> None:
     assert layer_of("geometry") == 0
     assert layer_of("scenarios.road") == 1 and layer_of("scenarios.spec") == 3
     assert layer_of("sim.runner") == layer_of("learn.model") == 2
-    assert layer_of("experiments.sweep") == 4 and layer_of("run") == CLI_LAYER
+    assert layer_of("experiments.sweep_executor") == 4 and layer_of("run") == CLI_LAYER
     assert layer_of("envs.vector") == len(LAYERS) - 1
     assert layer_of("somewhere_new") is None
 

@@ -166,10 +166,10 @@ def test_placements_agree_on_the_paper_scenarios(road):
     scenarios of BC (it leaves its lane: the off-lane steps fall back to moveToXY) and blind
     cruises into slower leaders (SUMO's collision check at the same step: moveTo's position is
     where the step starts, so the step's own advance is taken off)."""
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
 
     cases = [safety_scenario(road, i) for i in range(10)]
-    policy = policies.load("bc")
+    policy = planner_registry.load("bc")
     xy = run_batch(cases, policy, LoopConfig(ego_placement="xy"))
     lane = run_batch(cases, policy, LoopConfig(ego_placement="lane"))
     _assert_same(lane, xy, atol=0.0)

@@ -116,7 +116,7 @@ def test_guard_prevents_the_avoidable_collision(policy):
     """Falsification's case (docs/falsification.md): a leader 27.6 m ahead at 22.7 m/s brakes
     gently (2.8 m/s^2) to a stop. Without the guard the planner collides; with it, the ego stops
     behind with TTC > 1 s, and the log shows the guard braking."""
-    from safeil_sumo.experiments.sweep import run_task
+    from safeil_sumo.experiments.sweep_executor import run_task
 
     spec = replace(GENTLE_BRAKING, policy=policy)
     off = run_task(replace(spec, brake_guard=False))
@@ -132,7 +132,7 @@ def test_guard_brakes_as_hard_as_the_car_can():
     24.8 m ahead at 15.8 m/s braking at 7.8 m/s^2 to a stop, the ego at 30 m/s, radar noise
     1.2 m. The guard brakes beyond the tracker's limit, up to the car's full 9 m/s^2: no
     collision (it collided at 8)."""
-    from safeil_sumo.experiments.sweep import run_task
+    from safeil_sumo.experiments.sweep_executor import run_task
 
     spec = ScenarioSpec(net="curved1000", policy="safeil", leader_kind="braking",
                         leader_speed_range_mps=(15.76, 15.76), initial_gap_m=24.81,
@@ -144,8 +144,8 @@ def test_guard_brakes_as_hard_as_the_car_can():
 
 
 def test_guard_is_logged_and_off_means_the_papers_loop():
-    from safeil_sumo import policies
-    from safeil_sumo.experiments.sweep import _task_parts
+    from safeil_sumo import planner_registry
+    from safeil_sumo.experiments.sweep_executor import _task_parts
     from safeil_sumo.sim.runner import run_scenario
 
     _, scenario, policy, loop = _task_parts(GENTLE_BRAKING)
@@ -154,20 +154,21 @@ def test_guard_is_logged_and_off_means_the_papers_loop():
     assert (on["guard_decel"] >= 0.0).all()  # 0 where it did not
     assert on.loc[on["guard_decel"] > 0, "accel_cmd"].to_numpy() == pytest.approx(
         -on.loc[on["guard_decel"] > 0, "guard_decel"].to_numpy())
-    off = run_scenario(scenario, policies.load("safeil"), replace(loop, brake_guard=None)).log
+    off = run_scenario(scenario, planner_registry.load("safeil"),
+                       replace(loop, brake_guard=None)).log
     assert off["guard_decel"].isna().all()
 
 
 def test_guard_stays_out_of_ordinary_following(curved500):
     """The paper's safety test (leader at a constant 25-32 m/s): the guard never acts, so the
     runs are the planner's own (same logs as without it)."""
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
     from safeil_sumo.scenarios.safety import safety_scenario
     from safeil_sumo.sim.batch import run_batch
     from safeil_sumo.sim.runner import LoopConfig
 
     scenarios = [safety_scenario(curved500, i, master_seed=0) for i in range(4)]
-    policy = policies.load("safeil")
+    policy = planner_registry.load("safeil")
     on = run_batch(scenarios, policy, LoopConfig())
     off = run_batch(scenarios, policy, LoopConfig(brake_guard=None))
     for a, b in zip(on, off, strict=True):

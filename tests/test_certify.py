@@ -13,7 +13,7 @@ import shutil
 import numpy as np
 import pytest
 
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.learn import bounds as bnd
 from safeil_sumo.learn import certify_margins as cm
 from safeil_sumo.learn.certificate import load_certificate, write_certificate

@@ -23,7 +23,7 @@ from safeil_sumo.learn.checkpoint import (
 )
 from safeil_sumo.learn.inference import MLPPolicy, load_policy
 from safeil_sumo.learn.model import PlannerMLP
-from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 from safeil_sumo.policy import Policy
 
 

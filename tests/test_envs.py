@@ -22,7 +22,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.utils.passive_env_checker import env_render_passive_checker
 
-from safeil_sumo import api, envs, policies
+from safeil_sumo import api, envs, planner_registry
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 
 pytest.importorskip("libsumo")
@@ -125,7 +125,7 @@ def test_brake_guard_option():
 
 def test_safeil_through_the_env_reproduces_run():
     """The shipped safeil planning from info["features"] gives run's flags and path."""
-    policy = policies.load("safeil")
+    policy = planner_registry.load("safeil")
     ref = api.run("curved500", policy, scenarios=2).summary
     env = gym.make(CURVED)
     try:
@@ -152,7 +152,7 @@ def test_vector_env_gives_the_single_envs_trajectories():
     """make_vec(vector_entry_point): sub-env i with seed s + i, through an autoreset, steps as a
     single env reset with seed s + i then reset again (to 1e-9: the single env runs on floats,
     the vector env on arrays, which differ by round-off)."""
-    policy = policies.load("analytic")
+    policy = planner_registry.load("analytic")
     n, steps = 3, 30
     venv = gym.make_vec(CURVED, num_envs=n, vectorization_mode="vector_entry_point",
                         max_time_s=1.5)
@@ -394,7 +394,7 @@ def test_n74_traffic_is_seeded_and_single_only():
     """N74Traffic-v0 (real libsumo, SUMO's traffic leads): reset(seed=s) twice in one process
     gives the same observations, rewards and leaders; another seed other traffic. The native
     vector env refuses num_envs > 1 clearly, before any SUMO starts."""
-    policy = policies.load("safeil")
+    policy = planner_registry.load("safeil")
     env = gym.make(N74, traffic="dense", max_time_s=4.0)
     try:
         o1, r1, _ = _drive(env, 1, policy, 40)
@@ -429,7 +429,7 @@ def test_replay_is_seeded_and_rewards_closeness_to_the_human():
     episode twice, another seed another; the default reward is -0.01 x the squared error of
     the gap against the human's at the same time (no flag on this maneuver)."""
     _need_openacc()
-    policy = policies.load("safeil")
+    policy = planner_registry.load("safeil")
     env = gym.make(REPLAY, radar_noise_m=0.5, max_time_s=3.0)
     try:
         o1, r1, _ = _drive(env, 11, policy, 100)
@@ -472,14 +472,14 @@ def test_safeil_through_the_replay_env_reproduces_the_replay_cli(tmp_path, capsy
     _need_openacc()
     import pandas as pd
 
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
     from safeil_sumo.replay import main as replay_main
 
     assert replay_main(["--source", "openacc", "--maneuver", "auto", "--policies", "safeil",
                         "--out", str(tmp_path / "cli")]) == 0
     want = pd.read_csv(tmp_path / "cli" / "metrics.csv").iloc[0]
-    policy = policies.load("safeil")
+    policy = planner_registry.load("safeil")
     env = gym.make(REPLAY)
     try:
         task = env.unwrapped.task

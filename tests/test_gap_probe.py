@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 from scipy.optimize import brentq
 
-from safeil_sumo import idm, policies
+from safeil_sumo import idm, planner_registry
 from safeil_sumo.experiments import gap_probe as gp
 from safeil_sumo.gap_probe import main
 
@@ -183,7 +183,7 @@ def test_step_specs() -> None:
     with pytest.raises(ValueError, match="unknown step kind"):
         gp.initial_gap_m("sideways", 25)
     pull = gp.probe_spec("idm", "pull_away", 25.0)
-    from safeil_sumo.experiments.sweep import leader_profile
+    from safeil_sumo.scenarios.spec import leader_profile
 
     prof = leader_profile(pull, 25.0)
     assert prof.speed_at(59.9) == 25.0 and prof.speed_at(61.5) == pytest.approx(26.5)
@@ -253,7 +253,7 @@ def test_idm_step_response_in_libsumo() -> None:
     r = gp.run_step("idm", "close", 15.0, after_s=30.0)
     assert r["status"] == "ok" and r["end_reason"] == "timeout" and r["flag"] == ""
     assert r["kind"] == "close" and r["gap_at_step_m"] == pytest.approx(5.0, abs=1e-3)
-    params = policies.load("idm").params
+    params = planner_registry.load("idm").params
     v = r["final_speed_mps"]
     assert v == pytest.approx(15.0, abs=0.1)
     expected = float(idm.equilibrium_gap(v, params)) / v  # ~1.0 s at 15 m/s
@@ -323,7 +323,7 @@ def test_shipped_safeil_regulates_the_gap_at_25_mps(kind):
     setting (the open-loop model drifted to 0.58 s after 'far' and took 73 s; the first
     closed-loop model settled at 1.16 s for a 1.61 s setting)."""
     pytest.importorskip("libsumo")
-    setting = policies.load("safeil").style["time_gap_s"]
+    setting = planner_registry.load("safeil").style["time_gap_s"]
     rec = gp.run_step("safeil", kind, 25.0)
     assert rec["status"] == "ok" and rec["end_reason"] != "collision" and not rec["flag"]
     assert rec["settled"] and rec["settling_time_s"] < 45.0

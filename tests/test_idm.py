@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from safeil_sumo import idm, policies
-from safeil_sumo.experiments.probe import probe, straight_lane_features
+from safeil_sumo import idm, planner_registry
+from safeil_sumo.experiments.leader_probe import probe, straight_lane_features
 
 P = idm.IDMParams(v0_mps=30.0, time_gap_s=1.2, s0_m=2.0, a_max_mps2=1.5, b_mps2=2.0)
 
@@ -100,7 +100,7 @@ def test_model_file_round_trip_and_errors(tmp_path) -> None:
     idm.save_model(path, {"openacc": fit, "ngsim": fit}, default="openacc",
                    per_driver={"openacc/f2": fit})
     assert idm.is_model_file(path)
-    planner = policies.load(str(path))
+    planner = planner_registry.load(str(path))
     assert isinstance(planner, idm.IDMPlanner) and planner.params == P
     assert idm.load_planner(path, fit="openacc/f2").params == P
     with pytest.raises(idm.IDMError, match="no fit"):
@@ -108,14 +108,14 @@ def test_model_file_round_trip_and_errors(tmp_path) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"format": idm.FORMAT, "type": "idm", "default": "x",
                                "fits": {"x": {"params": {"v0_mps": 30}}}}))
-    with pytest.raises(policies.PolicyError, match="lacks parameter"):
-        policies.load(str(bad))
+    with pytest.raises(planner_registry.PolicyError, match="lacks parameter"):
+        planner_registry.load(str(bad))
     with pytest.raises(idm.IDMError, match="default fit"):
         idm.save_model(path, {"openacc": fit}, default="ngsim")
 
 
 def test_shipped_idm_loads() -> None:
-    planner = policies.load("idm")
+    planner = planner_registry.load("idm")
     assert isinstance(planner, idm.IDMPlanner) and planner.name == "idm"
 
 
@@ -126,7 +126,7 @@ def test_idm_completes_curved500_in_libsumo() -> None:
     from safeil_sumo.sim.runner import LoopConfig, run_scenario
 
     road = load_road(resolve_net("curved500"))
-    rollout = run_scenario(safety_scenario(road, 0), policies.load("idm"), LoopConfig())
+    rollout = run_scenario(safety_scenario(road, 0), planner_registry.load("idm"), LoopConfig())
     assert rollout.summary["completed"], rollout.summary
     assert rollout.summary["flag"] == ""
 

@@ -11,13 +11,18 @@ import torch
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.experiments.probe import ProbeGrid, probe, recoverable, straight_lane_features
+from safeil_sumo.experiments.leader_probe import (
+    ProbeGrid,
+    probe,
+    recoverable,
+    straight_lane_features,
+)
 from safeil_sumo.learn.checkpoint import save_checkpoint
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.losses import BarrierConfig, barrier_terms, envelope_barrier_terms
 from safeil_sumo.learn.model import PlannerMLP, constant_speed_points
-from safeil_sumo.learn.train import (
+from safeil_sumo.learn.trainer import (
     TrainConfig,
     axis_weights,
     gap_monotone_penalty,

@@ -28,7 +28,7 @@ from safeil_sumo.learn.losses import (
     safe_loss,
 )
 from safeil_sumo.learn.model import PlannerMLP
-from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 from safeil_sumo.safety_filter import SafeSet, plan_margins
 
 REPO = Path(__file__).resolve().parents[1]
@@ -563,7 +563,7 @@ def test_train_cli_has_every_config_field_under_its_own_name() -> None:
     import dataclasses
     import importlib.util
 
-    from safeil_sumo.learn.train import TrainConfig
+    from safeil_sumo.learn.trainer import TrainConfig
 
     spec = importlib.util.spec_from_file_location("train_cli", REPO / "training" / "train.py")
     cli = importlib.util.module_from_spec(spec)

@@ -210,7 +210,7 @@ def test_population_drives_share_the_other_rows_seeds_then_new_ones():
 
 
 def test_population_specs_carry_their_setting():
-    from safeil_sumo.experiments.sweep import task_id
+    from safeil_sumo.experiments.sweep_executor import task_id
     from safeil_sumo.scenarios.spec import ScenarioSpec
 
     stretches = ((1.0, 2.0), (3.0, 4.0))

@@ -19,7 +19,7 @@ from fixtures_data import (
     straight_drive,
 )
 
-from safeil_sumo import policies as pol
+from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.importers import (
     NGSIM_LANE_WIDTH,
     import_ngsim_pairs,
@@ -32,9 +32,9 @@ from safeil_sumo.data.pipeline import (
     process_drive,
     remove_lane_changes,
 )
-from safeil_sumo.experiments import replay as rp
+from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.run import main as run_main
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios import recorded_road as rr
 from safeil_sumo.sim.recorded_ego import RecordedPath, RecordedPathError
 
 # ------------------------------------------------------------------------------------- pure

@@ -30,11 +30,12 @@ from safeil_sumo.data import importers
 from safeil_sumo.data.schema import SchemaError, load_drive, save_drive
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments.sweep import ScenarioSpec, run_sweep, task_id
+from safeil_sumo.experiments.sweep_executor import run_sweep, task_id
 from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
-from safeil_sumo.policies import MODELS_DIR, PolicyError
-from safeil_sumo.policies import load as load_policy
-from safeil_sumo.scenarios.replay_road import safe_name
+from safeil_sumo.planner_registry import MODELS_DIR, PolicyError
+from safeil_sumo.planner_registry import load as load_policy
+from safeil_sumo.scenarios.recorded_road import safe_name
+from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim.leaders import ProfileError, constant, from_file
 from safeil_sumo.sim.runner import EGO_ID, LEADER_ID, LoopConfig, Scenario, run_scenario
@@ -768,7 +769,7 @@ def test_run_default_folder_name_cannot_escape(tmp_path, monkeypatch, capsys):
 
     evil = AnalyticPlanner()
     object.__setattr__(evil, "name", "../../../escaped")  # frozen dataclass
-    monkeypatch.setattr(run_cli.policies, "load", lambda name: evil)
+    monkeypatch.setattr(run_cli.planner_registry, "load", lambda name: evil)
     work = tmp_path / "a" / "b" / "c"
     work.mkdir(parents=True)
     monkeypatch.chdir(work)

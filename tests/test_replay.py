@@ -12,8 +12,8 @@ import pytest
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data.schema import save_drive, validate_drive
-from safeil_sumo.experiments import replay as rp
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.experiments import maneuver_replay as rp
+from safeil_sumo.scenarios import recorded_road as rr
 from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
 
 R = 800.0  # [m] lane-centre radius of the synthetic recording
@@ -264,7 +264,7 @@ def test_cli_one_line_errors(tmp_path, capsys):
 
 
 def test_windows_modes_and_unknown_ids():
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     rows = pd.concat([arc_drive(35.0).assign(maneuver_id="a#0"),
                       arc_drive(8.0).assign(maneuver_id="b#0")], ignore_index=True)
@@ -276,7 +276,7 @@ def test_windows_modes_and_unknown_ids():
 
 
 def test_bootstrap_ci_is_seeded_and_brackets_the_median():
-    from safeil_sumo.experiments.replay_all import bootstrap_ci
+    from safeil_sumo.experiments.window_replays import bootstrap_ci
 
     v = np.random.default_rng(0).lognormal(1.0, 0.5, 200)
     lo, hi = bootstrap_ci(v, seed=3)
@@ -285,7 +285,7 @@ def test_bootstrap_ci_is_seeded_and_brackets_the_median():
 
 
 def test_bootstrap_ci_edge_cases() -> None:
-    from safeil_sumo.experiments.replay_all import bootstrap_ci
+    from safeil_sumo.experiments.window_replays import bootstrap_ci
 
     v = np.random.default_rng(0).lognormal(1.0, 0.5, 50)
     assert bootstrap_ci(v) == bootstrap_ci(v, seed=0)  # seeded by default
@@ -297,7 +297,7 @@ def test_bootstrap_ci_edge_cases() -> None:
 
 
 def test_headway_histogram_bins_by_hand() -> None:
-    from safeil_sumo.experiments.replay_all import _headway_hist
+    from safeil_sumo.experiments.window_replays import _headway_hist
 
     h = _headway_hist(np.array([0.05, 0.15, 0.15, 4.99, 5.0, 7.0, -0.1, np.nan, np.inf]))
     assert len(h) == 50 and sum(h) == 5  # 0.1 s bins over 0-5 s; beyond and NaN left out
@@ -309,7 +309,7 @@ def test_replay_aggregate_by_hand() -> None:
     out): gap RMSE median and mean with their seeded bootstrap CIs, medians of the other
     errors, flags, flags where the human had none, and collisions (flagged OR ended by one,
     each window once)."""
-    from safeil_sumo.experiments.replay_all import aggregate, bootstrap_ci, window_id
+    from safeil_sumo.experiments.window_replays import aggregate, bootstrap_ci, window_id
 
     gap_p = np.array([1.0, 2.0, 6.0, 0.5, 3.0, 4.0, 2.5, 8.0, 1.5, 0.8])
     df = pd.DataFrame({
@@ -386,7 +386,7 @@ def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
 
 
 def test_aggregate_counts_each_collision_window_once():
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     # window 1 flags a collision and ends in one; window 2 ends in a collision after a lane
     # departure flag; window 3 neither: 2 windows with a collision (a bitwise OR of the two
@@ -404,7 +404,7 @@ def test_aggregate_counts_each_collision_window_once():
 
 def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
     from safeil_sumo import replay as cli
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     drive = pd.concat([arc_drive(24.0).assign(recording_id="a"),
                        arc_drive(12.0, origin=(6.0e5, 4.9e6)).assign(recording_id="b")],
@@ -443,7 +443,7 @@ def test_literature_summary_by_hand() -> None:
     """The figures the car-following literature reports, over one group of windows: the worst
     window and its id, spacing RMSPE median and mean, time-gap RMSE median, the mean time-gap
     error's median and mean (NaN left out), and the windows that ended before the recording."""
-    from safeil_sumo.experiments.replay_all import literature_summary, window_id
+    from safeil_sumo.experiments.window_replays import literature_summary, window_id
 
     g = pd.DataFrame({
         "maneuver_id": ["a", "b", "c", "d"], "start_s": [0.0, 20.0, 0.0, 40.0],

@@ -17,8 +17,8 @@ import pandas as pd
 import pytest
 from test_replay import arc_drive
 
-from safeil_sumo.experiments import replay_all as ra
-from safeil_sumo.experiments.sweep import even_units
+from safeil_sumo.experiments import window_replays as ra
+from safeil_sumo.experiments.sweep_executor import even_units
 
 pytest.importorskip("libsumo")
 

@@ -133,7 +133,8 @@ def test_departures_are_placed_on_the_right_edge(tiny_net) -> None:
 
 
 def test_a_sweep_spec_without_a_route_keeps_its_json_and_task_id() -> None:
-    from safeil_sumo.experiments.sweep import ScenarioSpec, spec_fields, task_id
+    from safeil_sumo.experiments.sweep_executor import spec_fields, task_id
+    from safeil_sumo.scenarios.spec import ScenarioSpec
 
     plain = ScenarioSpec(net="x.net.xml")
     assert "route" not in plain.to_json()  # task ids of earlier sweeps are unchanged

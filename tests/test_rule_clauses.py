@@ -16,13 +16,13 @@ import torch
 
 from safeil_sumo import bspline, idm
 from safeil_sumo.experiments import suite
-from safeil_sumo.experiments.probe import straight_lane_features
-from safeil_sumo.experiments.replay_all import bootstrap_ci
+from safeil_sumo.experiments.leader_probe import straight_lane_features
+from safeil_sumo.experiments.window_replays import bootstrap_ci
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios import recorded_road as rr
 
-# ------------------------------------------------------------- 1. replay_road: drift low-pass
+# ------------------------------------------------------------- 1. recorded_road: drift low-pass
 
 
 def test_drift_correction_low_passes_position_noise() -> None:
@@ -44,7 +44,7 @@ def test_drift_correction_low_passes_position_noise() -> None:
     assert np.max(np.abs(err)) < 0.1
 
 
-# ------------------------------------------------------------ 2. replay_all: bootstrap quantiles
+# -------------------------------------------------------- 2. window_replays: bootstrap quantiles
 
 
 @pytest.mark.parametrize(("level", "z"), [(0.95, 1.960), (0.90, 1.645)])

@@ -18,7 +18,7 @@ import pytest
 from bad_policies import DriftLeft, blind_cruise
 from test_golden import GOLDEN_COLUMNS, compare_with_reference
 
-from safeil_sumo import api, policies
+from safeil_sumo import api, planner_registry
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
@@ -134,7 +134,7 @@ def test_external_plans_equal_the_policies_plans(road):
     stepper groups them) give the logs of letting the bound policies plan; the rows of ended
     scenarios are ignored (NaN here). Without bound policies, the plans' horizon is given."""
     cases = _mixed(road)
-    cases[0] = (cases[0][0], policies.load("safeil"))  # an MLP among the analytic planners
+    cases[0] = (cases[0][0], planner_registry.load("safeil"))  # an MLP among the analytic planners
     scenarios, pols = [sc for sc, _ in cases], [p for _, p in cases]
     loop = LoopConfig(max_time_s=12.0)
 

@@ -124,20 +124,20 @@ def test_checkpoint_with_a_style_input_count_mismatch_is_refused(tmp_path):
 
 
 def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
     from safeil_sumo.analytic import AnalyticPlanner
 
     styled = with_style_input(_style_model(), 1.5, 0.5)
     save_checkpoint(tmp_path / "m", styled, name="m", horizon=5.0)
-    p = policies.with_time_gap(policies.load(str(tmp_path / "m.safetensors")), 2.2)
+    p = planner_registry.with_time_gap(planner_registry.load(str(tmp_path / "m.safetensors")), 2.2)
     assert p.style == {"time_gap_s": 2.2}
-    idm = policies.with_time_gap(policies.load("idm"), 2.4)
+    idm = planner_registry.with_time_gap(planner_registry.load("idm"), 2.4)
     assert idm.params.time_gap_s == 2.4
-    assert policies.load("idm").params.time_gap_s != 2.4  # the shipped fit is untouched
-    with pytest.raises(policies.PolicyError, match="no time-gap setting"):
-        policies.with_time_gap(AnalyticPlanner(), 2.0)
-    with pytest.raises(policies.PolicyError, match="> 0"):
-        policies.with_time_gap(idm, 0.0)
+    assert planner_registry.load("idm").params.time_gap_s != 2.4  # the shipped fit is untouched
+    with pytest.raises(planner_registry.PolicyError, match="no time-gap setting"):
+        planner_registry.with_time_gap(AnalyticPlanner(), 2.0)
+    with pytest.raises(planner_registry.PolicyError, match="> 0"):
+        planner_registry.with_time_gap(idm, 0.0)
 
 
 # ------------------------------------------------------------------ adaptation in replays
@@ -155,7 +155,7 @@ def _arc_rows(duration: float, gap: float = 50.0):
 def test_adapted_windows_leave_out_the_adaptation_seconds():
     import pandas as pd
 
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     maneuvers = pd.concat([_arc_rows(40.0), _arc_rows(25.0).assign(maneuver_id="short#0")],
                           ignore_index=True)
@@ -175,8 +175,8 @@ def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
     from test_replay import V
 
     from safeil_sumo import idm
-    from safeil_sumo import policies as pol
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.experiments import window_replays as ra
 
     save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
                     horizon=5.0)
@@ -201,7 +201,7 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     """Real libsumo: the arc maneuver replayed from 10 s on with the planners adapted on its
     first 10 s; the record says so and covers the rest only."""
     pytest.importorskip("libsumo")
-    from safeil_sumo.experiments import replay_all as ra
+    from safeil_sumo.experiments import window_replays as ra
 
     maneuvers = _arc_rows(35.0)
     wins = ra.windows(maneuvers, "whole", adapt_s=10.0)
@@ -215,7 +215,7 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     # the IDM ran with the parameters fitted on the first 10 s, not the shipped ones
     from dataclasses import asdict
 
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
 
     assert set(rec["adapted"]) == {"idm", "recorded"} and rec["adapted"]["recorded"] == {}
     assert rec["adapted"]["idm"] != asdict(pol.load("idm").params)
@@ -231,7 +231,8 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
 
 
 def test_sweep_specs_carry_the_time_gap():
-    from safeil_sumo.experiments.sweep import ScenarioSpec, batch_key, task_id
+    from safeil_sumo.experiments.sweep_executor import batch_key, task_id
+    from safeil_sumo.scenarios.spec import ScenarioSpec
 
     plain = ScenarioSpec(policy="idm")
     set_ = ScenarioSpec(policy="idm", time_gap_s=2)

@@ -12,7 +12,7 @@ import pytest
 from safeil_sumo import run as run_cli
 from safeil_sumo import sweep as sweep_cli
 from safeil_sumo.experiments import suite
-from safeil_sumo.experiments.sweep import run_sweep, task_id
+from safeil_sumo.experiments.sweep_executor import run_sweep, task_id
 from safeil_sumo.scenarios import recorded_leaders as rl
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
 from safeil_sumo.scenarios.spec import resolve_road as _road
@@ -192,9 +192,9 @@ def test_recorded_profile_is_driven_in_sumo_within_5_cm_per_s(stop_and_go) -> No
     spec = ScenarioSpec(net="straight", index=0, leader_kind="recorded",
                         leader_profile=stop_and_go, max_time_s=30.0, policy="analytic")
     sc = build_scenario(spec, _road("straight"))
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
 
-    log = run_scenario(sc, policies.load("analytic"), LoopConfig()).log
+    log = run_scenario(sc, planner_registry.load("analytic"), LoopConfig()).log
     # the logged leader speed is SUMO's (read back each step) after the step it was set for
     expected = sc.leader.speed_at(log["t"].to_numpy() - 0.01)
     err = np.abs(log["leader_v"].to_numpy() - expected)

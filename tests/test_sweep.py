@@ -13,16 +13,14 @@ import pandas as pd
 import pytest
 
 from safeil_sumo.experiments import stats
-from safeil_sumo.experiments.sweep import (
-    ScenarioSpec,
-    build_scenario,
+from safeil_sumo.experiments.sweep_executor import (
     comparable,
-    leader_profile,
     run_sweep,
     run_task,
     task_id,
 )
 from safeil_sumo.scenarios.safety import safety_scenario
+from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, leader_profile
 from safeil_sumo.sweep import main as sweep_main
 
 SHORT = {"net": "straight", "policy": "analytic", "max_time_s": 2.0}
@@ -250,7 +248,7 @@ def test_cli_grid_breakdown_and_bad_arguments(tmp_path, capsys):
 # -- batches: many scenarios per SUMO simulation --------------------------------------------------
 
 def test_batches_group_shareable_specs_in_order():
-    from safeil_sumo.experiments.sweep import batch_key, batches
+    from safeil_sumo.experiments.sweep_executor import batch_key, batches
 
     specs = (short_specs(5) + short_specs(2, policy="bc")
              + [ScenarioSpec(index=9, net="n74", from_km=0.0, to_km=1.0, traffic="light")])

@@ -43,16 +43,16 @@ SCOPE = (
     "safeil_sumo.experiments.suite.x_aggregate__mutmut_*",
     "safeil_sumo.experiments.suite.x_family_of__mutmut_*",
     # the replay statistics
-    "safeil_sumo.experiments.replay_all.x_bootstrap_ci__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x_aggregate__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x_literature_summary__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x__column__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x__nan_stat__mutmut_*",
-    "safeil_sumo.experiments.replay_all.x__headway_hist__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x_bootstrap_ci__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x_aggregate__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x_literature_summary__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x__column__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x__nan_stat__mutmut_*",
+    "safeil_sumo.experiments.window_replays.x__headway_hist__mutmut_*",
     # the recorded leader's speed and its drift filter
-    "safeil_sumo.scenarios.replay_road.x_drift_corrected_speed__mutmut_*",
-    "safeil_sumo.scenarios.replay_road.x_leader_speed__mutmut_*",
-    "safeil_sumo.scenarios.replay_road.x_recorded_leader_travel__mutmut_*",
+    "safeil_sumo.scenarios.recorded_road.x_drift_corrected_speed__mutmut_*",
+    "safeil_sumo.scenarios.recorded_road.x_leader_speed__mutmut_*",
+    "safeil_sumo.scenarios.recorded_road.x_recorded_leader_travel__mutmut_*",
 )
 # mutmut's exit codes per mutant (mutmut/__main__.py: status_by_exit_code)
 KILLED = {1, 3}  # a test failed (3: pytest's internal error)

@@ -7,8 +7,9 @@ from the recipe of the earlier shipped model (synthetic data, absolute control p
 the recorded tuples only) to the shipped recipe, and measures each:
 
 - open loop: the held-out imitation error of the x control points per source [m^2];
-- the static probe (:mod:`safeil_sumo.experiments.probe`): plans that run past the predicted
-  leader on recoverable states, and (speed, leader speed) pairs whose plan shrinks as the gap grows;
+- the static probe (:mod:`safeil_sumo.experiments.leader_probe`): plans that run past the
+  predicted leader on recoverable states, and (speed, leader speed) pairs whose plan shrinks as
+  the gap grows;
 - closed loop: the validation battery (:mod:`safeil_sumo.experiments.selection`: flags and
   collisions over 12 scenarios), and the human-likeness replay of every 11 s window (every 20 s)
   of the held-out OpenACC maneuvers (median gap RMSE [m] against the human, flags).
@@ -72,7 +73,7 @@ def _slug(name: str) -> str:
 def train_variant(name: str, sources: tuple[str, ...], overrides: dict, cache: Path) -> Path:
     from safeil_sumo.data.tuples import Tuples
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-    from safeil_sumo.learn.train import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     prefix = cache / _slug(name)
     if prefix.with_suffix(".safetensors").is_file():
@@ -92,7 +93,7 @@ def mixed_held_out():
     every variant is scored on these (the synthetic-only variants held out other synthetic
     maneuvers, so their synthetic score is slightly optimistic)."""
     from safeil_sumo.data.tuples import Tuples
-    from safeil_sumo.learn.train import split_by_maneuver
+    from safeil_sumo.learn.trainer import split_by_maneuver
 
     return split_by_maneuver(Tuples.concat([Tuples.load(p) for p in SOURCES.values()]), 0.2, 0)[1]
 
@@ -112,10 +113,10 @@ def imitation_by_source(prefix: Path, va) -> dict[str, float]:
 
 def replay_windows(checkpoints: dict[str, str], held_out: list[str], work: Path) -> pd.DataFrame:
     """Gap RMSE of every policy on every 11 s window of the held-out OpenACC maneuvers."""
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
 
     maneuvers, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
     policies = {name: pol.load(path) for name, path in checkpoints.items()}
@@ -157,8 +158,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: missing datasets {missing}: run training/build_real_datasets.py and "
               "training/build_synthetic_dataset.py", file=sys.stderr)
         return 2
-    from safeil_sumo import policies as pol
-    from safeil_sumo.experiments.probe import probe
+    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.experiments.leader_probe import probe
     from safeil_sumo.experiments.selection import evaluate
 
     args.cache.mkdir(parents=True, exist_ok=True)

@@ -23,22 +23,25 @@ left-out driver's preference is unknown to the planner, as it is to the IDM.
 Writes ``<out>/windows.csv`` (one row per fold, policy and maneuver), ``<out>/per_driver.csv``,
 ``<out>/summary.csv`` and ``<out>/summary.md``; the fold models go to ``data/lodo/`` (not
 committed). Each fold costs one open-loop training (≤ 10 min on one core), one closed-loop
-fine-tune (≈ 7 min) and one IDM calibration; folds run ``--workers`` at a time, resumed where
-their files exist.
+fine-tune (≈ 7 min), both in-process (:func:`safeil_sumo.learn.trainer.train_checkpoint`,
+:func:`safeil_sumo.learn.finetune.finetune`), and one IDM calibration; folds run ``--workers`` at
+a time, each in a worker process of its own, resumed where their files exist.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing as mp
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "training"))
@@ -46,6 +49,8 @@ import train_shipped_models as shipped  # the shipped recipe, one source of trut
 
 from safeil_sumo.data.sources import driver_of
 from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.learn.finetune import finetune
+from safeil_sumo.learn.trainer import train_checkpoint
 
 SOURCES = ("openacc", "ngsim")
 WORK = REPO / "data" / "lodo"
@@ -80,6 +85,11 @@ def held_out_maneuvers(drivers: set[str]) -> dict[str, list[str]]:
     return out
 
 
+def _note(log: Path, text: str) -> None:
+    with log.open("a") as f:
+        f.write(text + "\n")
+
+
 def _run(cmd: list[str], log: Path) -> None:
     with log.open("a") as f:
         f.write(f"$ {' '.join(cmd)}\n")
@@ -102,20 +112,31 @@ def train_fold(k: int, drivers: set[str]) -> Path:
         t = Tuples.load(tuples_path(s))
         path = fold / f"{s}_tuples.parquet"
         t.subset(~np.isin(t.maneuver_id, held[s])).save(path)
-        real.append(str(path))
-    py = sys.executable
+        real.append(path)
     chosen = json.loads((shipped.MODELS / "selection.json").read_text())["chosen"]
     if not (fold / "safeil_openloop.safetensors").is_file():
-        _run(shipped.train_command(shipped.SAFEIL_CANDIDATES[chosen],
-                                   [str(shipped.SYNTHETIC), *real], fold / "safeil_openloop",
-                                   "safeil"), log)
+        config = shipped.SAFEIL_CANDIDATES[chosen]
+        _note(log, f"train_checkpoint({config}) -> {fold / 'safeil_openloop'}")
+        trained = train_checkpoint(config, [shipped.SYNTHETIC, *real], fold / "safeil_openloop",
+                                   "safeil")
+        _note(log, "\n".join(trained.notes))
     if not (fold / "safeil.safetensors").is_file():
-        _run(shipped.finetune_command(shipped.CLOSED_LOOP, fold / "safeil_openloop.safetensors",
-                                      real, fold / "safeil"), log)
+        _note(log, f"finetune({shipped.CLOSED_LOOP}) -> {fold / 'safeil'}")
+        tuned = finetune(shipped.CLOSED_LOOP, fold / "safeil_openloop.safetensors", real,
+                         fold / "safeil")
+        _note(log, "\n".join(tuned.notes))
     if not (fold / "idm.json").is_file():
-        _run([py, str(REPO / "training" / "fit_idm.py"), "--exclude-from",
+        _run([sys.executable, str(REPO / "training" / "fit_idm.py"), "--exclude-from",
               str(fold / "held_out.json"), "--out", str(fold / "idm.json")], log)
     return fold
+
+
+def run_fold(k: int, drivers: set[str], t0: float) -> pd.DataFrame:
+    """Train fold ``k`` without ``drivers``, then replay them: its windows table. Runs in a
+    worker process of its own (one torch thread)."""
+    fold = train_fold(k, drivers)
+    print(f"fold {k}: trained ({time.time() - t0:.0f} s)", flush=True)
+    return replay_fold(k, fold, workers=1)
 
 
 def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
@@ -206,15 +227,11 @@ def main(argv: list[str] | None = None) -> int:
         subprocess.run([sys.executable, str(REPO / "training" / "build_synthetic_dataset.py")],
                        check=True)
     folds = fold_drivers(args.folds)
-    t0 = time.perf_counter()
-
-    def one(k: int) -> pd.DataFrame:
-        fold = train_fold(k, folds[k])
-        print(f"fold {k}: trained ({time.perf_counter() - t0:.0f} s)", flush=True)
-        return replay_fold(k, fold, workers=1)
-
-    with ThreadPoolExecutor(args.workers) as pool:
-        df = pd.concat(list(pool.map(one, range(args.folds))), ignore_index=True)
+    t0 = time.time()
+    with ProcessPoolExecutor(args.workers, mp_context=mp.get_context("spawn"),
+                             initializer=torch.set_num_threads, initargs=(1,)) as pool:
+        runs = [pool.submit(run_fold, k, folds[k], t0) for k in range(args.folds)]
+        df = pd.concat([r.result() for r in runs], ignore_index=True)
     summary, per_driver = summarise(df)
     args.out.mkdir(parents=True, exist_ok=True)
     df.to_csv(args.out / "windows.csv", index=False)
@@ -222,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     summary.to_csv(args.out / "summary.csv", index=False)
     (args.out / "summary.md").write_text(markdown(summary, per_driver))
     print(markdown(summary, per_driver))
-    print(f"{args.folds} folds in {time.perf_counter() - t0:.0f} s")
+    print(f"{args.folds} folds in {time.time() - t0:.0f} s")
     return 0
 
 

@@ -2,9 +2,10 @@
 
     python training/train.py --data tuples.parquet --method safeil --out models/safeil
 
-Whole maneuvers are left out for validation (early stopping and the printed open-loop metrics).
-Writes ``<out>.safetensors`` + ``<out>.json`` (architecture, scaling, config, data fingerprint,
-metrics, per-epoch history). Every field of :class:`safeil_sumo.learn.train.TrainConfig` is an
+The command line of :func:`safeil_sumo.learn.trainer.train_checkpoint`. Whole maneuvers are left
+out for validation (early stopping and the printed open-loop metrics). Writes
+``<out>.safetensors`` + ``<out>.json`` (architecture, scaling, config, data fingerprint,
+metrics, per-epoch history). Every field of :class:`safeil_sumo.learn.trainer.TrainConfig` is an
 option under its own name (``--max-epochs``, ``--weight-decay``, ...; ``--epochs``, ``--threads``
 and ``--monotone-margin`` are kept as aliases), checked by the config itself.
 """
@@ -18,25 +19,9 @@ import sys
 from pathlib import Path
 
 from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args, finite_float
-from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-from safeil_sumo.learn.evaluate import open_loop_metrics
-from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.losses import LATERAL_MODES
 from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES
-from safeil_sumo.learn.train import METHODS, TrainConfig, split_by_maneuver, train
-from safeil_sumo.safety_filter import SafeSet
-
-SUMMARY_KEYS = (
-    "n", "cp_rmse", "cp_rmse_x", "cp_rmse_y", "ade", "fde", "ade_lateral", "target_fit_ade",
-    "min_margin_left_cp", "min_margin_right_cp", "min_margin_lead_cp", "violation_rate_any_cp",
-    "min_margin_left_spline", "min_margin_right_spline", "min_margin_lead_spline",
-    "violation_rate_any_spline", "hull_gap_rate", "min_margin_left_bern", "min_margin_right_bern",
-    "violation_rate_lateral_bern", "target_violation_rate_any_cp",
-    "target_violation_rate_lateral_cp", "target_violation_rate_lateral_bern",
-    "target_violation_rate_lateral_spline",
-)
-
+from safeil_sumo.learn.trainer import METHODS, TrainConfig, train_checkpoint
 
 # the names these options had before they were generated from TrainConfig
 ALIASES = {"max_epochs": ("--epochs",), "num_threads": ("--threads",),
@@ -83,41 +68,17 @@ def main(argv: list[str] | None = None) -> dict:
     """Train and save; returns the metrics. Bad input raises ValueError (see :func:`cli`)."""
     args = parse_args(argv)
     config = config_of(args)  # bad values fail here, before any data is read
-    tuples = Tuples.concat([Tuples.load(path) for path in args.data])
-    data_label = ",".join(map(str, args.data))
-    if len(tuples) == 0:
-        raise ValueError(f"{data_label}: no tuples to train on")
     val_ids = args.val_maneuvers.split(",") if args.val_maneuvers else None
-    tr, va = split_by_maneuver(tuples, args.val_fraction, config.seed, val_ids)
-    print(f"{data_label}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
-          f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "
-          f"horizon {tuples.horizon:g} s")
-    model, history = train(tr, va, config, progress=not args.no_progress)
-    safe_set = SafeSet(track=config.track, gap_min=config.gap_min, time_gap=config.time_gap)
-    best = history.epochs[history.best_epoch - 1]
-    metrics = {"best_epoch": history.best_epoch,
-               **{k: v for k, v in best.items() if k.startswith(("train_", "val_"))},
-               # which maneuvers were held out: a replay can then check "left out of training"
-               "data": data_label, "val_maneuvers": sorted(map(str, va.maneuvers))}
-    # Save, then evaluate the checkpoint through the numpy policy the closed loop will use.
-    save_checkpoint(
-        args.out, model, name=args.name or config.method, horizon=tuples.horizon, train_config=config,
-        data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
-    )
-    policy = load_policy(args.out)
-    for split, part in (("train", tr), ("val", va)):
-        if len(part):
-            om = open_loop_metrics(policy, part, safe_set)
-            metrics.update({f"open_loop_{split}_{k}": om[k] for k in SUMMARY_KEYS})
-    save_checkpoint(
-        args.out, model, name=args.name or config.method, horizon=tuples.horizon, train_config=config,
-        data_fingerprint=tuples_fingerprint(tuples), metrics=metrics, history=history,
-    )
+    result = train_checkpoint(config, args.data, args.out, args.name,
+                              val_fraction=args.val_fraction, val_maneuvers=val_ids,
+                              progress=not args.no_progress)
+    history = result.history
+    print("\n".join(result.notes))
     print(f"trained {config.method} in {history.seconds:.1f} s ({len(history.epochs)} epochs, "
           f"{history.samples_per_s:,.0f} samples/s), best epoch {history.best_epoch}")
-    print(json.dumps({"config": dataclasses.asdict(config), "metrics": metrics}, indent=1))
+    print(json.dumps({"config": dataclasses.asdict(config), "metrics": result.metrics}, indent=1))
     print(f"wrote {args.out}.safetensors and {args.out}.json")
-    return metrics
+    return result.metrics
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -13,7 +13,7 @@ for early stopping; their ids are stored in each checkpoint (``metrics.val_maneu
 Models, all on the same data and split:
 
 - ``safeil`` (default): ``safeil_openloop`` fine-tuned in closed loop with the driver's style as
-  an input (``training/closed_loop_finetune.py``, :mod:`safeil_sumo.learn.closed_loop`,
+  an input (:mod:`safeil_sumo.learn.finetune`, :mod:`safeil_sumo.learn.closed_loop`,
   :mod:`safeil_sumo.learn.style`): the planner drives a differentiable model of the longitudinal
   loop for 60 s behind the recorded leaders of the training maneuvers (OpenACC and NGSIM, half
   of the episodes from perturbed starts) and learns the human's gap and speed; a 10th input, the
@@ -37,16 +37,20 @@ Models, all on the same data and split:
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
+import multiprocessing as mp
 import shutil
 import subprocess
 import sys
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
+import torch
+
 from safeil_sumo.learn.closed_loop import FinetuneConfig
-from safeil_sumo.learn.train import TrainConfig
+from safeil_sumo.learn.finetune import finetune
+from safeil_sumo.learn.trainer import TrainConfig, train_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_DIR = REPO / "data"
@@ -56,7 +60,9 @@ MODELS = REPO / "safeil_sumo" / "models"
 WORK = DATA_DIR / "models"
 SEED = 0
 
-# the recipes are configs; option_argv turns them into the training scripts' options
+# the recipes are configs, trained in-process by learn.trainer.train_checkpoint and
+# learn.finetune.finetune (training/train.py and training/closed_loop_finetune.py are their
+# command lines)
 MIXED = TrainConfig(seed=SEED, longitudinal_only_sources=("openacc",))
 # envelope weight 0.01: with K = 1000 the envelope states' barrier still keeps every plan behind
 # the leader (probe 0 %, battery 0 flags), and costs the least human-likeness (weight 1 gave a
@@ -86,60 +92,18 @@ OTHERS = {
 }
 
 
-def option_argv(config: TrainConfig | FinetuneConfig) -> list[str]:
-    """The options that rebuild ``config`` through the script's generated parser
-    (:func:`safeil_sumo.cli_args.add_dataclass_options`): one per field that differs from the
-    default, so a command line reads like the recipe. Floats are written by ``repr``, which
-    parses back to the same float exactly: the trained weights depend on the values only."""
-    default = type(config)()
-    argv: list[str] = []
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        if value == getattr(default, f.name):
-            continue
-        flag = f.name.replace("_", "-")
-        if isinstance(value, bool):
-            argv.append(f"--{flag}" if value else f"--no-{flag}")
-        elif isinstance(value, tuple) and "int" in str(f.type):  # e.g. hidden: "64,64"
-            argv += [f"--{flag}", ",".join(map(str, value))]
-        elif isinstance(value, tuple):  # several values
-            argv += [f"--{flag}", *map(str, value)]
-        else:
-            argv += [f"--{flag}", repr(value) if isinstance(value, float) else str(value)]
-    return argv
-
-
-def train_command(config: TrainConfig, data: list[str], out: Path, name: str) -> list[str]:
-    """The ``training/train.py`` command that trains ``config`` on ``data`` into ``out``,
-    storing the policy name ``name``."""
-    return [sys.executable, str(REPO / "training" / "train.py"), "--data", *data,
-            "--name", name, "--out", str(out), "--no-progress", *option_argv(config)]
-
-
-def finetune_command(config: FinetuneConfig, init: Path, data: list[str], out: Path
-                     ) -> list[str]:
-    """The ``training/closed_loop_finetune.py`` command that fine-tunes the checkpoint
-    ``init`` with ``config`` on ``data`` into ``out``."""
-    return [sys.executable, str(REPO / "training" / "closed_loop_finetune.py"),
-            "--init", str(init), "--data", *data, "--out", str(out), "--no-progress",
-            *option_argv(config)]
-
-
 def _train_all(jobs: dict[str, tuple[TrainConfig, str]], parallel: int) -> dict[str, Path]:
-    """Train ``name -> (config, stored name)`` with ``parallel`` processes; the prefixes."""
-    data = [str(p) for p in (SYNTHETIC, *REAL)]
+    """Train ``name -> (config, stored name)``, ``parallel`` at a time (one process each, one
+    torch thread in each); the checkpoint prefixes."""
+    data = [SYNTHETIC, *REAL]
     WORK.mkdir(parents=True, exist_ok=True)
-    pending = list(jobs.items())
-    running: list[tuple[str, subprocess.Popen]] = []
-    while pending or running:
-        while pending and len(running) < parallel:
-            name, (config, stored_name) = pending.pop(0)
-            cmd = train_command(config, data, WORK / name, stored_name)
-            running.append((name, subprocess.Popen(cmd, stdout=subprocess.DEVNULL)))
-        name, proc = running.pop(0)
-        if proc.wait() != 0:
-            raise SystemExit(f"training {name} failed (exit {proc.returncode})")
-        print(f"trained {name}")
+    with ProcessPoolExecutor(parallel, mp_context=mp.get_context("spawn"),
+                             initializer=torch.set_num_threads, initargs=(1,)) as pool:
+        futures = {name: pool.submit(train_checkpoint, config, data, WORK / name, stored_name)
+                   for name, (config, stored_name) in jobs.items()}
+        for name, future in futures.items():
+            future.result()  # a failed training raises here
+            print(f"trained {name}")
     return {name: WORK / name for name in jobs}
 
 
@@ -183,9 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     best = Path(table["policy"].iloc[0]).with_suffix("")
     print(table[["policy", "collisions", "flags", "min_ttc_s", "val_imitation"]].to_string())
     _ship(best, "safeil_openloop")
-    subprocess.run(finetune_command(CLOSED_LOOP, MODELS / "safeil_openloop.safetensors",
-                                    [str(p) for p in REAL], WORK / "safeil"),
-                   check=True, stdout=subprocess.DEVNULL)
+    finetune(CLOSED_LOOP, MODELS / "safeil_openloop.safetensors", REAL, WORK / "safeil")
     _ship(WORK / "safeil", "safeil")
     records = table.drop(columns=["rank_key"]).to_dict(orient="records")
     for r in records:

@@ -1,8 +1,8 @@
 """The replay of a recorded maneuver as an env task (``safeil_sumo/Replay-v0``).
 
 The maneuver is rebuilt as ``python -m safeil_sumo.replay`` rebuilds it
-(:func:`safeil_sumo.experiments.replay.prepare_replay`): its road from the recorded ego lane
-(netconvert, into a folder of the env's own, removed when the env is collected), the leader
+(:func:`safeil_sumo.experiments.maneuver_replay.prepare_replay`): its road from the recorded ego
+lane (netconvert, into a folder of the env's own, removed when the env is collected), the leader
 driving the recorded speed profile (drift-corrected), the ego starting as the recorded human
 (position, heading relative to the lane, speed); the episode lasts the maneuver's window. The
 task keeps the human trace, so the env can reward closeness to the human
@@ -99,7 +99,7 @@ def replay_task(source: str = DEFAULT_SOURCE, maneuver: str = DEFAULT_MANEUVER,
     [s] caps the episode. ``lane_noise_c0_m``, ``radar_noise_m`` [m]: sensor noise (default
     none, as the CLI). ``ValueError`` for an unknown option, source or maneuver."""
     from safeil_sumo.data.sources import DEFAULT_DATA_DIR
-    from safeil_sumo.experiments import replay as rp
+    from safeil_sumo.experiments import maneuver_replay as rp
     from safeil_sumo.sim.sensors import SensorConfig
 
     if unknown:

@@ -296,7 +296,7 @@ def closed_loop_objective(policy: str, max_time_s: float = 30.0,
                           brake_guard: bool = True) -> Objective:
     """The objective of planner ``policy`` in SUMO: a batch of points decoded into specs and run
     side by side in ONE simulation (:func:`.sweep.run_tasks` drives ``sim.batch.run_batch``)."""
-    from safeil_sumo.experiments.sweep import run_tasks
+    from safeil_sumo.experiments.sweep_executor import run_tasks
 
     def evaluate(u: np.ndarray) -> list[Outcome]:
         specs = [decode(x, policy, max_time_s, brake_guard) for x in u]

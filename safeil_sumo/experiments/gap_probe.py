@@ -51,7 +51,7 @@ import numpy as np
 import pandas as pd
 
 from safeil_sumo.experiments.suite import MIN_SPEED_TIME_GAP
-from safeil_sumo.experiments.sweep import run_task
+from safeil_sumo.experiments.sweep_executor import run_task
 from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim.sensors import SensorConfig
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.experiments.sweep import run_task
+from safeil_sumo.experiments.sweep_executor import run_task
 from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim.monitors import event_starts
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo.experiments.sweep import DEFAULT_BATCH, run_sweep
+from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
 
 VALIDATION_SEED = 7919  # master seed of the battery (the reported tests use 0)

@@ -311,10 +311,11 @@ def envelope_terms(features: torch.Tensor, control_points: torch.Tensor, horizon
 
 @dataclass(frozen=True)
 class FinetuneConfig:
-    """Settings of the closed-loop fine-tune (``training/closed_loop_finetune.py``, one option
-    per field under its own name). Each field's meaning and unit is its ``help`` (field
+    """Settings of the closed-loop fine-tune (:func:`safeil_sumo.learn.finetune.finetune`; its
+    command line ``training/closed_loop_finetune.py`` has one option per field under its own
+    name). Each field's meaning and unit is its ``help`` (field
     metadata), the one place it is written. What the fine-tune keeps from the initial
-    checkpoint's :class:`~safeil_sumo.learn.train.TrainConfig` (barrier, envelope, monotonicity)
+    checkpoint's :class:`~safeil_sumo.learn.trainer.TrainConfig` (barrier, envelope, monotonicity)
     is not repeated here."""
 
     window: float = field(default=40.0, metadata={"help": "rollout length [s]"})

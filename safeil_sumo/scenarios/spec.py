@@ -4,7 +4,7 @@ The scenario layer of every closed-loop engine (one run, a sweep, the suite, the
 spec names the net, the policy, the leader and the sensors; :func:`resolve_road` loads its road
 (cached per process), :func:`build_scenario` draws the rest from the scenario seed
 (``scenario_seed(master_seed, index)``), so a task is identical alone or in a sweep of any size.
-Running specs (processes, Dask, resume) is :mod:`safeil_sumo.experiments.sweep`'s.
+Running specs (processes, Dask, resume) is :mod:`safeil_sumo.experiments.sweep_executor`'s.
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ class ScenarioSpec:
     net: str = "curved500"  # catalogue name (curved500, straight, curved<R>) or .net.xml path
     index: int = 0  # scenario index within the master seed [-]
     master_seed: int = 0  # with ``index`` gives the scenario seed (SUMO, sensors, draws) [-]
-    policy: str = "analytic"  # a name of safeil_sumo.policies.NAMES or a checkpoint/IDM path
+    # a name of safeil_sumo.planner_registry.NAMES or a checkpoint/IDM path
+    policy: str = "analytic"
     safety_filter: bool = False  # wrap the policy in the inference-time safety filter
     # collision-avoidance braking under the planner (safeil_sumo.sim.brake_guard); False: the
     # planner and tracker alone, the paper's loop. In the JSON only when True: specs of earlier
@@ -90,7 +91,8 @@ class ScenarioSpec:
     # of the JSON when ""
     lane: str = ""
     # the planner's preferred time gap [s] (an ACC's distance setting,
-    # :func:`safeil_sumo.policies.with_time_gap`); None: its default; left out of the JSON then
+    # :func:`safeil_sumo.planner_registry.with_time_gap`); None: its default; left out of the
+    # JSON then
     time_gap_s: float | None = None
 
     def __post_init__(self) -> None:

@@ -26,8 +26,9 @@ CONSTANT_SPEED_NAME = "constant_speed"
 class ConstantSpeedPath:
     """The ego's front bumper on ``lane`` (its centre line, in the replay road's frame) at arc
     length ``s0 + speed * t`` [m], heading along the lane, speed ``speed`` [m/s] for ``t >= 0``
-    [s]. An unbound instance (no lane) is what ``policies.load_for_replay("constant_speed")``
-    returns; :func:`safeil_sumo.experiments.replay.replay_policy` binds it to the maneuver it
+    [s]. An unbound instance (no lane) is what
+    ``planner_registry.load_for_replay("constant_speed")`` returns;
+    :func:`safeil_sumo.experiments.maneuver_replay.replay_policy` binds it to the maneuver it
     replays (the recorded start and initial speed)."""
 
     lane: Polyline | None = None

@@ -40,8 +40,8 @@ class RecordedPath:
     to a sample: 0.2 rad on the 4 m radii of GNSS wander at walking pace). ``lane_start_s``
     [m]: where along the lane the first sample lies (the walk starts there: a closed course
     passes the same place on every lap). An unbound instance (no samples) is what
-    ``policies.load("recorded")`` returns; :func:`safeil_sumo.experiments.replay.replay_maneuver`
-    binds it to the maneuver it replays.
+    ``planner_registry.load("recorded")`` returns;
+    :func:`safeil_sumo.experiments.maneuver_replay.replay_maneuver` binds it to the maneuver it replays.
     """
 
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))

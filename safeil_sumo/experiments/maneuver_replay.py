@@ -1,11 +1,11 @@
 """Human-likeness replay (paper IV-C/D): a recorded maneuver rebuilt in SUMO and driven closed-loop.
 
 The digital twin of a maneuver left out of training:
-- the road: the recorded ego lane (:mod:`safeil_sumo.scenarios.replay_road`);
+- the road: the recorded ego lane (:mod:`safeil_sumo.scenarios.recorded_road`);
 - the leader: driven by the RECORDED leader speed (``v_lead`` of the pipeline, else ``lead_v``,
   else ``v_x + d(lead_x)/dt``), placed at the recorded initial bumper gap on the ego lane, with
   the speed's slow drift from the recorded positions removed (``leader_drift_window_s``, see
-  :func:`safeil_sumo.scenarios.replay_road.drift_corrected_speed`): over a long maneuver the
+  :func:`safeil_sumo.scenarios.recorded_road.drift_corrected_speed`): over a long maneuver the
   leader stays where it was recorded, not metres off;
 - the ego: starts exactly at the recorded front-bumper position and speed, with the recorded
   heading relative to its lane (from the lane lines, :func:`recorded_heading`; the lateral
@@ -41,7 +41,7 @@ from safeil_sumo.data.importers import MIN_GAP
 from safeil_sumo.data.pipeline import body_outside_lines
 from safeil_sumo.experiments import metrics as hm
 from safeil_sumo.policy import Policy
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios import recorded_road as rr
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim.constant_speed_ego import ConstantSpeedPath

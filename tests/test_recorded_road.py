@@ -31,10 +31,10 @@ from safeil_sumo.data.importers import (
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import validate_drive
 from safeil_sumo.data.sources import ZALAZONE_MAX_CURVATURE, driver_of, load_source
-from safeil_sumo.experiments import replay as rp
+from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.geometry import Polyline
 from safeil_sumo.scenarios import network
-from safeil_sumo.scenarios import replay_road as rr
+from safeil_sumo.scenarios import recorded_road as rr
 from safeil_sumo.sim.recorded_ego import RecordedPath
 
 ZALAZONE_DIR = SHARED / "openacc_zalazone"

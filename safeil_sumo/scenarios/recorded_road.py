@@ -541,7 +541,7 @@ def build_replay_net(rows: pd.DataFrame, out_dir: Path, name: str,
         (tmp / f"{name}.nod.xml").write_text(network.nodes_xml(geo.shape, NODE_SHAPE_M))
         (tmp / f"{name}.edg.xml").write_text(network.edges_xml(
             geo.shape, config.lanes, geo.lane_width_m, config.speed_limit_mps))
-        version = network.run_netconvert(name, tmp, "safeil_sumo.scenarios.replay_road")
+        version = network.run_netconvert(name, tmp, "safeil_sumo.scenarios.recorded_road")
         (tmp / f"{name}.rou.xml").write_text(network.routes_xml())
         (tmp / f"{name}.sumocfg").write_text(network.sumocfg_xml(name))
         net = tmp / f"{name}.net.xml"

@@ -32,17 +32,7 @@ from tqdm import tqdm
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
-
-# the scenario layer; re-exported, these names were defined here before
-from safeil_sumo.scenarios.spec import (  # noqa: F401
-    DEFAULT_EGO_SPEED_MPS,
-    LEADER_KINDS,
-    MAX_SPEED_MPS,
-    ScenarioSpec,
-    build_scenario,
-    leader_profile,
-    resolve_road,
-)
+from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_road
 
 TIMING_FIELDS = ("wall_time_s", "steps_per_s", "task_wall_time_s")  # differ run to run
 STATUS_OK = "ok"
@@ -83,13 +73,13 @@ _SHARED_POLICIES: dict[tuple, Any] = {}
 
 
 def _load_policy(spec: ScenarioSpec, shared: bool = False):
-    from safeil_sumo import policies
+    from safeil_sumo import planner_registry
 
     # loaded fresh for every task: no state (e.g. filter counters) leaks between tasks; a
     # batch shares the (stateless) planner itself
     def load():
-        policy = policies.load(spec.policy)
-        return policy if spec.time_gap_s is None else policies.with_time_gap(policy,
+        policy = planner_registry.load(spec.policy)
+        return policy if spec.time_gap_s is None else planner_registry.with_time_gap(policy,
                                                                              spec.time_gap_s)
 
     if shared:
@@ -602,11 +592,9 @@ __all__ = [
     "DEFAULT_BATCH",
     "ScenarioSpec",
     "batches",
-    "build_scenario",
     "collect",
     "comparable",
     "even_units",
-    "leader_profile",
     "load_specs",
     "run_sweep",
     "run_task",

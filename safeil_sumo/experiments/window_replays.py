@@ -1,8 +1,8 @@
 """Human-likeness over the whole distribution: replay every maneuver window, aggregate, plot.
 
 One *task* is one window of one maneuver (rebuilt once in SUMO) driven by every policy; its
-metrics (one row per policy, :func:`safeil_sumo.experiments.replay.compare`) and the time-gap
-histograms of the human and each policy are written at once and atomically to
+metrics (one row per policy, :func:`safeil_sumo.experiments.maneuver_replay.compare`) and the
+time-gap histograms of the human and each policy are written at once and atomically to
 ``<out>/tasks/<task>.json``, so an interrupted run resumes (done windows are skipped). Windows
 run in ``workers`` processes (one libsumo each), up to ``batch`` windows of a worker's unit side
 by side in ONE SUMO simulation (:func:`run_windows`: each window on its own copy of its net,
@@ -46,9 +46,9 @@ import pandas as pd
 from tqdm import tqdm
 
 from safeil_sumo.atomic import atomic_path
+from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments import replay as rp
-from safeil_sumo.experiments.sweep import even_units
+from safeil_sumo.experiments.sweep_executor import even_units
 
 WINDOW_MODES = ("paper", "sliding", "whole")
 HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
@@ -161,7 +161,7 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> d
     from dataclasses import replace
 
     from safeil_sumo import idm
-    from safeil_sumo import policies as pol
+    from safeil_sumo import planner_registry as pol
     from safeil_sumo.learn.style import estimate_time_gap
 
     time_gap = estimate_time_gap(first_rows["lead_x"].to_numpy(float),
@@ -334,8 +334,8 @@ _STATE: dict = {}
 
 def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig,
           tasks: Path, tag: str) -> None:
-    from safeil_sumo import policies as pol
-    from safeil_sumo.experiments.sweep import _die_with_parent
+    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.experiments.sweep_executor import _die_with_parent
 
     _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
 

@@ -1,5 +1,9 @@
 """Training loop for SafeIL and its behavioural-cloning baseline (same network, data and loop).
 
+:func:`train` turns tuples into a model; :func:`train_checkpoint` turns Tuples files into a
+checkpoint (``training/train.py`` is its command line, ``training/train_shipped_models.py``
+calls it with the shipped recipes).
+
 Deterministic on CPU for a seed: ``torch.manual_seed`` for the initial weights, a private
 ``torch.Generator`` for shuffling, ``torch.use_deterministic_algorithms(True)`` and a fixed
 thread count during training (both restored afterwards). Tensors are sliced directly (no
@@ -12,14 +16,20 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
 from safeil_sumo.learn.envelope import sample_states
+from safeil_sumo.learn.evaluate import open_loop_metrics
+from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.losses import (
     BarrierConfig,
     LossTerms,
@@ -27,12 +37,24 @@ from safeil_sumo.learn.losses import (
     safe_loss,
 )
 from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES, PlannerMLP
+from safeil_sumo.safety_filter import SafeSet
 
 METHODS = ("safeil", "bc")
 TERMS = ("imitation", "barrier_left", "barrier_right", "barrier_lead", "total")
 ENVELOPE_TERM = "barrier_envelope"
 MONOTONE_TERM = "gap_monotone"
 MONOTONE_STEP_M = 2.0  # [m] gap increment of the monotonicity pairs
+# the open-loop metrics of the saved policy a checkpoint stores, per split
+# (``open_loop_<split>_<key>``)
+SUMMARY_KEYS = (
+    "n", "cp_rmse", "cp_rmse_x", "cp_rmse_y", "ade", "fde", "ade_lateral", "target_fit_ade",
+    "min_margin_left_cp", "min_margin_right_cp", "min_margin_lead_cp", "violation_rate_any_cp",
+    "min_margin_left_spline", "min_margin_right_spline", "min_margin_lead_spline",
+    "violation_rate_any_spline", "hull_gap_rate", "min_margin_left_bern", "min_margin_right_bern",
+    "violation_rate_lateral_bern", "target_violation_rate_any_cp",
+    "target_violation_rate_lateral_cp", "target_violation_rate_lateral_bern",
+    "target_violation_rate_lateral_spline",
+)
 
 
 @dataclass(frozen=True)
@@ -349,3 +371,72 @@ def _train(
         samples_per_s=n * len(epochs) / seconds, horizon=horizon, stopped_early=stopped_early,
     )
     return model, history
+
+
+@dataclass(frozen=True)
+class TrainedCheckpoint:
+    """What :func:`train_checkpoint` wrote: the checkpoint prefix (``<prefix>.safetensors`` and
+    ``<prefix>.json``), the metrics stored in it, the training history, and notes on the data
+    (tuples, maneuvers, the split, the horizon; one line each) for a command line to print."""
+
+    prefix: Path
+    metrics: dict[str, Any]
+    history: TrainHistory
+    notes: tuple[str, ...]
+
+
+def train_checkpoint(
+    config: TrainConfig,
+    data_paths: Sequence[str | Path],
+    out: str | Path,
+    name: str | None = None,
+    *,
+    val_fraction: float = 0.2,
+    val_maneuvers: Sequence[str] | None = None,
+    progress: bool = False,
+) -> TrainedCheckpoint:
+    """Train ``config`` on the Tuples files ``data_paths`` (concatenated) and write the
+    checkpoint ``out`` (a prefix), storing the policy name ``name`` (default: the method).
+
+    Whole maneuvers are left out for early stopping: ``val_maneuvers`` by id, else
+    ``val_fraction`` of each source's drawn with ``config.seed`` (:func:`split_by_maneuver`).
+    The checkpoint stores the architecture, scaling, config, data fingerprint, the metrics (the
+    best epoch's losses, the data, the held-out maneuvers, and the open-loop metrics of the saved
+    policy on both splits, :data:`SUMMARY_KEYS`) and the per-epoch history. Deterministic for a
+    seed. Raises ValueError for unreadable or empty data and unknown maneuver ids.
+    """
+    paths = [Path(p) for p in data_paths]
+    out = Path(out)
+    tuples = Tuples.concat([Tuples.load(path) for path in paths])
+    data_label = ",".join(map(str, paths))
+    if len(tuples) == 0:
+        raise ValueError(f"{data_label}: no tuples to train on")
+    val_ids = list(val_maneuvers) if val_maneuvers else None
+    tr, va = split_by_maneuver(tuples, val_fraction, config.seed, val_ids)
+    note = (f"{data_label}: {len(tuples)} tuples, {len(tuples.maneuvers)} maneuvers; "
+            f"train {len(tr)} ({len(tr.maneuvers)}), val {len(va)} ({len(va.maneuvers)}); "
+            f"horizon {tuples.horizon:g} s")
+    model, history = train(tr, va, config, progress=progress)
+    best = history.epochs[history.best_epoch - 1]
+    metrics: dict[str, Any] = {
+        "best_epoch": history.best_epoch,
+        **{k: v for k, v in best.items() if k.startswith(("train_", "val_"))},
+        # which maneuvers were held out: a replay can then check "left out of training"
+        "data": data_label, "val_maneuvers": sorted(map(str, va.maneuvers))}
+    fingerprint = tuples_fingerprint(tuples)
+
+    def save() -> None:
+        save_checkpoint(out, model, name=name or config.method, horizon=tuples.horizon,
+                        train_config=config, data_fingerprint=fingerprint, metrics=metrics,
+                        history=history)
+
+    # save, then evaluate the checkpoint through the numpy policy the closed loop will use
+    save()
+    policy = load_policy(out)
+    safe_set = SafeSet(track=config.track, gap_min=config.gap_min, time_gap=config.time_gap)
+    for split, part in (("train", tr), ("val", va)):
+        if len(part):
+            om = open_loop_metrics(policy, part, safe_set)
+            metrics.update({f"open_loop_{split}_{k}": om[k] for k in SUMMARY_KEYS})
+    save()
+    return TrainedCheckpoint(out, metrics, history, (note,))
