@@ -692,6 +692,26 @@ class ClosedLoop:
         step and what happened in it. An error ends every running scenario with
         ``end_reason="error"``, closes SUMO and is raised.
         """
+        n_all = len(self._runs)
+        ev = Events(np.zeros(n_all, bool), np.array([r.end_reason for r in self._runs], object),
+                    np.zeros(n_all, bool), np.zeros(n_all, bool), np.zeros(n_all, bool),
+                    np.zeros(n_all, int))
+        self._advance(plans, controls, ev)
+        return self._observation(), ev
+
+    def advance(self, plans: np.ndarray | None = None,
+                controls: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`step` for drivers that read only which scenarios still run
+        (:func:`.runner.run_scenario`, :func:`.batch.run_batch`): the same decision step, without
+        building its :class:`Observation` and :class:`Events`. Returns ``running`` ``(N,)`` bool
+        after the step (a copy)."""
+        self._advance(plans, controls, None)
+        return self._running.copy()
+
+    def _advance(self, plans: np.ndarray | None, controls: np.ndarray | None,
+                 ev: Events | None) -> None:
+        """The decision step of :meth:`step` (``ev``: filled with what happened; None: not
+        kept)."""
         live, api = self._live, self._api
         if live is None:
             raise RuntimeError("no scenario is running: call reset first" if not self._runs
@@ -703,10 +723,6 @@ class ClosedLoop:
         # bad plans or controls are refused; the run goes on
         held = self._checked_controls(live, controls)
         given = self._checked_plans(live, plans) if held is None else None
-        n_all = len(self._runs)
-        ev = Events(np.zeros(n_all, bool), np.array([r.end_reason for r in self._runs], object),
-                    np.zeros(n_all, bool), np.zeros(n_all, bool), np.zeros(n_all, bool),
-                    np.zeros(n_all, int))
         pending, self._pending = self._pending, []
         try:
             # each scenario's own time (a restarted one's starts at its k0)
@@ -725,7 +741,7 @@ class ClosedLoop:
                 self._k += 1
                 if not live.runs:
                     break
-            if live.runs:
+            if live.runs and ev is not None:
                 live.flush(ev)
             if pending:
                 live = self._start_restarted(live, api, pending, inserted=last)
@@ -737,7 +753,6 @@ class ClosedLoop:
         except Exception as exc:
             self._fail(exc)
             raise
-        return self._observation(), ev
 
     def restart(self, i: int, scenario: Scenario, policy: Policy | None = None,
                 horizon_s: float | None = None) -> None:
@@ -948,8 +963,8 @@ class ClosedLoop:
             return accel, steer
         return rows[:, 0].copy(), rows[:, 1].copy()
 
-    def _sub_step(self, live: _Live, api: sumo_api.SumoApi, k: int, last: bool, ev: Events
-                  ) -> None:
+    def _sub_step(self, live: _Live, api: sumo_api.SumoApi, k: int, last: bool,
+                  ev: Events | None) -> None:
         """Physics step ``k`` of every running scenario: drive, monitor, log, end."""
         moved = self._drive(live, api, k)
         rows, reason, departed, ttc_flag, hit = self._watch(live, api, k, moved)
@@ -1112,18 +1127,20 @@ class ClosedLoop:
         return rows, reason, departed, ttc_flag, hit
 
     def _end(self, live: _Live, api: sumo_api.SumoApi, ended: BoolOrArray, reason: Any,
-             ev: Events) -> None:
+             ev: Events | None) -> None:
         """The scenarios ``ended`` (rows) are sensed once more (their final observation) and
-        leave SUMO and the loop."""
+        leave SUMO and the loop (into ``ev``, unless None)."""
         xp = self._xp
         rows = xp.nonzero(ended)
         self._sense(live, rows)
-        live.flush(ev)
+        if ev is not None:
+            live.flush(ev)
         reasons = xp.rows(reason)
         for j in rows:
             r = live.runs[j]
             r.end_reason = str(reasons[j])
-            ev.ended[r.i], ev.end_reason[r.i] = True, r.end_reason
+            if ev is not None:
+                ev.ended[r.i], ev.end_reason[r.i] = True, r.end_reason
             self._running[r.i] = False
             for vid in (r.ego, *(r.lead.vehicle_ids() if r.lead is not None else ())):
                 with suppress(Exception):  # it may have left the network already
