@@ -119,10 +119,10 @@ Controls: TypeAlias = tuple[FloatOrArray, FloatOrArray]  # held acceleration, st
 # what a driver's move gives the log: steering, acceleration commands, the guard's deceleration
 Commands: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray]
 # what a sub-step's drive gives its watch: t, steer_cmd, accel_cmd, v, front_x, front_y, s, d,
-# heading, hit, the front bumper's rows (x, y) and the guard's deceleration
+# heading, hit and the guard's deceleration
 Moved: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray,
                          FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, BoolOrArray,
-                         list[float], list[float], FloatOrArray]
+                         FloatOrArray]
 
 
 class StageClock:
@@ -393,7 +393,7 @@ class PlanAndTrack:
                 live.integral, live.prev_error, self.controller, self.dt, xp)
             if self.guard is not None:  # brake harder where the situation needs it
                 demand = live.guard_demand
-                override = xp.logical_and(demand > 0.0, demand > -accel_cmd)
+                override = (demand > 0.0) & (demand > -accel_cmd)
                 guarded = xp.where(override, demand, 0.0)
                 # full braking if need be: the vehicle's limit, not the tracker's
                 accel_cmd = xp.where(override, xp.maximum(-demand, -self.full_brake_mps2),
@@ -914,17 +914,15 @@ class ClosedLoop:
             lefts, rights = _camera_fits(runs, fx_, fy_, _array(yaw))
             for j, r in enumerate(runs):
                 sen.add_lane_noise(lefts[j], rights[j], r.scenario.sensors, r.rng)
-        fxl, fyl, yl, vl = xp.rows(fx_), xp.rows(fy_), xp.rows(yaw), xp.rows(v)
-        v_lead, d_lead = [], []
-        for j, r in enumerate(runs):
+        leads: list[tuple[float, float]] = []  # per row: the leader's features v_lead, d_lead
+        for r, left, right, (fx, fy, yj, vj) in zip(runs, lefts, rights,
+                                                    xp.each(fx_, fy_, yaw, v)):
             rear, v_true = _leader_rear(r)
-            radar = sen.radar_leader(np.array((fxl[j], fyl[j])), yl[j], rear, v_true, lefts[j],
-                                     rights[j], r.scenario.sensors, r.rng)
-            vj, dj = sen.leader_features(radar, vl[j], r.scenario.sensors)
-            v_lead.append(vj)
-            d_lead.append(dj)
-        feats = planner_features(xp.from_rows(lefts), xp.from_rows(rights), v,
-                                 xp.from_rows(v_lead), xp.from_rows(d_lead))
+            radar = sen.radar_leader(np.array((fx, fy)), yj, rear, v_true, left, right,
+                                     r.scenario.sensors, r.rng)
+            leads.append(sen.leader_features(radar, vj, r.scenario.sensors))
+        v_lead, d_lead = xp.from_each(leads)
+        feats = planner_features(xp.from_rows(lefts), xp.from_rows(rights), v, v_lead, d_lead)
         if xp is FLOATS:
             f = feats.tolist()
             feature_log = (*f[:6], f[7], f[8])
@@ -998,19 +996,17 @@ class ClosedLoop:
         s, d, heading, live.ego_seg = c.project(front_x, front_y, live.ego_seg)
         if lap is not None:
             lap("project")
-        n = len(live.runs)
-        inside = (xp.rows(lane_placeable(d, s, v * dt, c.half_width, c.route_end))
-                  if self._on_lane else [False] * n)
-        fxl, fyl, vl, sl, yl = xp.rows(front_x), xp.rows(front_y), xp.rows(v), xp.rows(s), \
-            xp.rows(yaw)
+        inside = (lane_placeable(d, s, v * dt, c.half_width, c.route_end) if self._on_lane
+                  else c.no_flags)
         move_to = api.vehicle.moveTo if self._on_lane else None  # (a fake API may lack it)
         move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
-        for j, r in enumerate(live.runs):
-            if inside[j] and move_to is not None:  # inside: on_lane placement only
-                move_to(r.ego, *_lane_position(r, sl[j], vl[j] * dt))
+        for r, (fx, fy, vj, sj, yj, on_lane) in zip(live.runs,
+                                                     xp.each(front_x, front_y, v, s, yaw, inside)):
+            if on_lane and move_to is not None:  # inside: on_lane placement only
+                move_to(r.ego, *_lane_position(r, sj, vj * dt))
             else:
-                move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j], yaw_to_sumo_angle(yl[j]), 2)
-            set_speed(r.ego, vl[j])
+                move_to_xy(r.ego, "", -1, fx + r.dx, fy, yaw_to_sumo_angle(yj), 2)
+            set_speed(r.ego, vj)
             if r.lead is not None:
                 r.lead.command(api, k - r.k0)
         if lap is not None:
@@ -1026,34 +1022,31 @@ class ClosedLoop:
             hit = c.no_flags
         if lap is not None:
             lap("sumo_step")
-        return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded
+        return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, guarded
 
     def _read_leaders(self, live: _Live, api: sumo_api.SumoApi
                       ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
         """Each running scenario's leader after a step: its rear ``lead_x, lead_y`` [m] and
         true speed [m/s] (NaN: none; the true speed of a leader that ``needs_location`` comes
         once it is located)."""
-        xp, nan = self._xp, math.nan
-        lx, ly, lv = [], [], []
+        xp, none = self._xp, (math.nan, math.nan, math.nan)
+        read: list[tuple[float, float, float]] = []  # per row: rear x, y, true speed
         for r in live.runs:
             lead = r.lead
             # read: its pose, or False and None (no leader)
             if lead is not None and lead.read(api) and (pose := lead.leader) is not None:
-                (x, y), v = pose[0], lead.v
+                read.append((*pose[0], lead.v))
             else:
-                x = y = v = nan
-            lx.append(x)
-            ly.append(y)
-            lv.append(v)
+                read.append(none)
         if live.c.any_traffic:  # a leader met after none: its walk starts at the ego's segment
             from_ego = xp.from_rows([isinstance(r.lead, TrafficLeader) and r.lead.from_ego
                                      for r in live.runs])
             live.lead_seg = xp.where(from_ego, live.ego_seg, live.lead_seg)
-        return xp.from_rows(lx), xp.from_rows(ly), xp.from_rows(lv)
+        return xp.from_each(read)
 
     def _locate_leaders(self, live: _Live, rows: Rows, s_rear: FloatOrArray, gap: FloatOrArray,
                         v_lead: FloatOrArray, hit: BoolOrArray,
-                        front: tuple[list[float], list[float]], yaw: FloatOrArray,
+                        front: tuple[FloatOrArray, FloatOrArray], yaw: FloatOrArray,
                         count: bool = True) -> tuple[FloatOrArray, BoolOrArray]:
         """The leaders of ``rows`` (each with a leader) located on the ego lane (their true
         speeds, and for traffic the leaders met) and, where close, checked for footprint
@@ -1061,7 +1054,7 @@ class ClosedLoop:
         xp, vehicle = self._xp, self.vehicle
         near = self._near
         srl, gl, vll, hl = xp.rows(s_rear), xp.rows(gap), xp.rows(v_lead), xp.rows(hit)
-        fxl, fyl, yl = front[0], front[1], xp.rows(yaw)
+        fxl, fyl, yl = xp.rows(front[0]), xp.rows(front[1]), xp.rows(yaw)
         for j in rows:
             lead = live.runs[j].lead
             pose = lead.leader if lead is not None else None
@@ -1078,7 +1071,7 @@ class ClosedLoop:
         """Read the leaders, check footprints and run the monitors on the state at ``t + dt``;
         log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), each row's
         end reason (``""``: goes on) and the lane-departure, TTC and collision flags."""
-        t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded = moved
+        t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, guarded = moved
         c, st, n, xp = live.c, live.st, len(live.runs), self._xp
         lead_x, lead_y, v_lead = self._read_leaders(live, api)
         has_lead = xp.isfinite(lead_x)  # NaN: no leader
@@ -1090,8 +1083,8 @@ class ClosedLoop:
         yaw = st[2]
         fix = xp.nonzero(has_lead & ((gap < self._near) | c.located))
         if len(fix):
-            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit, (fxl, fyl),
-                                               yaw)
+            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
+                                               (front_x, front_y), yaw)
         if lap is not None:
             lap("project")
 
@@ -1174,7 +1167,7 @@ class ClosedLoop:
         fix = xp.nonzero(has_lead & ((gap < self._near) | c.traffic))
         if len(fix):
             v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
-                                               (xp.rows(front_x), xp.rows(front_y)), yaw,
+                                               (front_x, front_y), yaw,
                                                count=False)
         _, _, departed, ttc, ttc_flag, fraction = _monitors(
             c, vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead, xp)
