@@ -105,7 +105,7 @@ _LOGGED_FEATURES = [0, 1, 2, 3, 4, 5, 7, 8]  # c0l..c2r, v_lead, d_lead: the fea
 _OBS_FLOATS = np.array([_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc",
                                            "leader_v", "path_fraction")])
 _OBS_FLAGS = np.array([_COL[c] for c in ("lane_departure", "ttc_flag", "collision")])
-# the end reasons of a sub-step, in the order they are checked (_watch)
+# the end reasons of a sub-step, in the order they are checked (_watch's end conditions)
 _END_REASONS = ("completed", "collision", "off_road", "flag", "timeout")
 
 Pose: TypeAlias = tuple[float, float, float, float]  # front bumper x, y [m], yaw [rad], v [m/s]
@@ -965,17 +965,17 @@ class ClosedLoop:
                   ev: Events | None) -> None:
         """Physics step ``k`` of every running scenario: drive, monitor, log, end."""
         moved = self._drive(live, api, k)
-        rows, reason, departed, ttc_flag, hit = self._watch(live, api, k, moved)
+        rows, ends, departed, ttc_flag, hit = self._watch(live, api, k, moved)
         live.departed = live.departed | departed
         live.ttc_flag = live.ttc_flag | ttc_flag
         live.collision = live.collision | hit
         live.sub_steps += 1
-        ended = reason != ""
+        ended = ends[0] | ends[1] | ends[2] | ends[3] | ends[4]
         any_ended = self._xp.any(ended)
         if last or any_ended:  # the observation: each scenario's latest row
             self._last[live.at] = rows
-        if any_ended:
-            self._end(live, api, ended, reason, ev)
+        if any_ended:  # why: the first end condition met
+            self._end(live, api, ended, self._xp.select(ends, _END_REASONS, ""), ev)
         if self._sub_lap is not None:
             self._sub_lap("monitor")
 
@@ -1067,10 +1067,11 @@ class ClosedLoop:
         return xp.from_rows(vll), xp.from_rows(hl)
 
     def _watch(self, live: _Live, api: sumo_api.SumoApi, k: int, moved: Moved
-               ) -> tuple[Any, Any, BoolOrArray, BoolOrArray, BoolOrArray]:
+               ) -> tuple[Any, tuple[BoolOrArray, ...], BoolOrArray, BoolOrArray, BoolOrArray]:
         """Read the leaders, check footprints and run the monitors on the state at ``t + dt``;
-        log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), each row's
-        end reason (``""``: goes on) and the lane-departure, TTC and collision flags."""
+        log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), the end
+        conditions of ``_END_REASONS`` (each row's, in order) and the lane-departure, TTC and
+        collision flags."""
         t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, guarded = moved
         c, st, n, xp = live.c, live.st, len(live.runs), self._xp
         lead_x, lead_y, v_lead = self._read_leaders(live, api)
@@ -1113,11 +1114,9 @@ class ClosedLoop:
                 log[k - r.k0] = row
                 r.steps = k - r.k0 + 1
         loop = self.loop
-        reason = xp.select(
-            [s >= c.path_end, hit, xp.abs(d) > c.half_width + loop.offroad_stop_m,
-             (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max],
-            _END_REASONS, "")
-        return rows, reason, departed, ttc_flag, hit
+        ends = (s >= c.path_end, hit, xp.abs(d) > c.half_width + loop.offroad_stop_m,
+                (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max)
+        return rows, ends, departed, ttc_flag, hit
 
     def _end(self, live: _Live, api: sumo_api.SumoApi, ended: BoolOrArray, reason: Any,
              ev: Events | None) -> None:
