@@ -90,11 +90,12 @@ def run_batch(
         # one BLAS thread: the batch's matrices are small, and a sweep already runs one worker
         # per core (OpenBLAS's own threads made 2 workers at batch 256 run 2.1x slower)
         with threadpool_limits(limits=1, user_api="blas"):
-            obs = sim.reset(scenarios, policy)
-            while obs.running.any():
-                obs, events = sim.step()
-                for ended in np.flatnonzero(events.ended):
+            running = sim.reset(scenarios, policy).running
+            while running.any():
+                now = sim.advance()
+                for ended in np.flatnonzero(running & ~now):  # ended during this step
                     done(int(ended))
+                running = now
     except Exception:  # the stepper has ended every running scenario with the error
         if not sim.started:  # refused before SUMO started: bad input
             raise

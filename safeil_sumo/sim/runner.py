@@ -80,9 +80,9 @@ def run_scenario(
     """
     sim = ClosedLoop(loop, vehicle, controller, api_factory)
     try:
-        obs = sim.reset([scenario], policy)
-        while obs.running[0]:
-            obs, _ = sim.step()
+        running = sim.reset([scenario], policy).running
+        while running[0]:
+            running = sim.advance()
     except Exception:  # the stepper has ended the run with the error and closed SUMO
         if not sim.started:  # refused before SUMO started, or SUMO did not start
             raise

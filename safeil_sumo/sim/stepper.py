@@ -105,7 +105,7 @@ _LOGGED_FEATURES = [0, 1, 2, 3, 4, 5, 7, 8]  # c0l..c2r, v_lead, d_lead: the fea
 _OBS_FLOATS = np.array([_COL[c] for c in ("t", "x", "y", "yaw", "v", "s", "d", "gap", "ttc",
                                            "leader_v", "path_fraction")])
 _OBS_FLAGS = np.array([_COL[c] for c in ("lane_departure", "ttc_flag", "collision")])
-# the end reasons of a sub-step, in the order they are checked (_watch)
+# the end reasons of a sub-step, in the order they are checked (_watch's end conditions)
 _END_REASONS = ("completed", "collision", "off_road", "flag", "timeout")
 
 Pose: TypeAlias = tuple[float, float, float, float]  # front bumper x, y [m], yaw [rad], v [m/s]
@@ -119,10 +119,10 @@ Controls: TypeAlias = tuple[FloatOrArray, FloatOrArray]  # held acceleration, st
 # what a driver's move gives the log: steering, acceleration commands, the guard's deceleration
 Commands: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray]
 # what a sub-step's drive gives its watch: t, steer_cmd, accel_cmd, v, front_x, front_y, s, d,
-# heading, hit, the front bumper's rows (x, y) and the guard's deceleration
+# heading, hit and the guard's deceleration
 Moved: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray,
                          FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, BoolOrArray,
-                         list[float], list[float], FloatOrArray]
+                         FloatOrArray]
 
 
 class StageClock:
@@ -393,7 +393,7 @@ class PlanAndTrack:
                 live.integral, live.prev_error, self.controller, self.dt, xp)
             if self.guard is not None:  # brake harder where the situation needs it
                 demand = live.guard_demand
-                override = xp.logical_and(demand > 0.0, demand > -accel_cmd)
+                override = (demand > 0.0) & (demand > -accel_cmd)
                 guarded = xp.where(override, demand, 0.0)
                 # full braking if need be: the vehicle's limit, not the tracker's
                 accel_cmd = xp.where(override, xp.maximum(-demand, -self.full_brake_mps2),
@@ -692,6 +692,26 @@ class ClosedLoop:
         step and what happened in it. An error ends every running scenario with
         ``end_reason="error"``, closes SUMO and is raised.
         """
+        n_all = len(self._runs)
+        ev = Events(np.zeros(n_all, bool), np.array([r.end_reason for r in self._runs], object),
+                    np.zeros(n_all, bool), np.zeros(n_all, bool), np.zeros(n_all, bool),
+                    np.zeros(n_all, int))
+        self._advance(plans, controls, ev)
+        return self._observation(), ev
+
+    def advance(self, plans: np.ndarray | None = None,
+                controls: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`step` for drivers that read only which scenarios still run
+        (:func:`.runner.run_scenario`, :func:`.batch.run_batch`): the same decision step, without
+        building its :class:`Observation` and :class:`Events`. Returns ``running`` ``(N,)`` bool
+        after the step (a copy)."""
+        self._advance(plans, controls, None)
+        return self._running.copy()
+
+    def _advance(self, plans: np.ndarray | None, controls: np.ndarray | None,
+                 ev: Events | None) -> None:
+        """The decision step of :meth:`step` (``ev``: filled with what happened; None: not
+        kept)."""
         live, api = self._live, self._api
         if live is None:
             raise RuntimeError("no scenario is running: call reset first" if not self._runs
@@ -703,10 +723,6 @@ class ClosedLoop:
         # bad plans or controls are refused; the run goes on
         held = self._checked_controls(live, controls)
         given = self._checked_plans(live, plans) if held is None else None
-        n_all = len(self._runs)
-        ev = Events(np.zeros(n_all, bool), np.array([r.end_reason for r in self._runs], object),
-                    np.zeros(n_all, bool), np.zeros(n_all, bool), np.zeros(n_all, bool),
-                    np.zeros(n_all, int))
         pending, self._pending = self._pending, []
         try:
             # each scenario's own time (a restarted one's starts at its k0)
@@ -725,7 +741,7 @@ class ClosedLoop:
                 self._k += 1
                 if not live.runs:
                     break
-            if live.runs:
+            if live.runs and ev is not None:
                 live.flush(ev)
             if pending:
                 live = self._start_restarted(live, api, pending, inserted=last)
@@ -737,7 +753,6 @@ class ClosedLoop:
         except Exception as exc:
             self._fail(exc)
             raise
-        return self._observation(), ev
 
     def restart(self, i: int, scenario: Scenario, policy: Policy | None = None,
                 horizon_s: float | None = None) -> None:
@@ -899,17 +914,15 @@ class ClosedLoop:
             lefts, rights = _camera_fits(runs, fx_, fy_, _array(yaw))
             for j, r in enumerate(runs):
                 sen.add_lane_noise(lefts[j], rights[j], r.scenario.sensors, r.rng)
-        fxl, fyl, yl, vl = xp.rows(fx_), xp.rows(fy_), xp.rows(yaw), xp.rows(v)
-        v_lead, d_lead = [], []
-        for j, r in enumerate(runs):
+        leads: list[tuple[float, float]] = []  # per row: the leader's features v_lead, d_lead
+        for r, left, right, (fx, fy, yj, vj) in zip(runs, lefts, rights,
+                                                    xp.each(fx_, fy_, yaw, v)):
             rear, v_true = _leader_rear(r)
-            radar = sen.radar_leader(np.array((fxl[j], fyl[j])), yl[j], rear, v_true, lefts[j],
-                                     rights[j], r.scenario.sensors, r.rng)
-            vj, dj = sen.leader_features(radar, vl[j], r.scenario.sensors)
-            v_lead.append(vj)
-            d_lead.append(dj)
-        feats = planner_features(xp.from_rows(lefts), xp.from_rows(rights), v,
-                                 xp.from_rows(v_lead), xp.from_rows(d_lead))
+            radar = sen.radar_leader(np.array((fx, fy)), yj, rear, v_true, left, right,
+                                     r.scenario.sensors, r.rng)
+            leads.append(sen.leader_features(radar, vj, r.scenario.sensors))
+        v_lead, d_lead = xp.from_each(leads)
+        feats = planner_features(xp.from_rows(lefts), xp.from_rows(rights), v, v_lead, d_lead)
         if xp is FLOATS:
             f = feats.tolist()
             feature_log = (*f[:6], f[7], f[8])
@@ -948,21 +961,21 @@ class ClosedLoop:
             return accel, steer
         return rows[:, 0].copy(), rows[:, 1].copy()
 
-    def _sub_step(self, live: _Live, api: sumo_api.SumoApi, k: int, last: bool, ev: Events
-                  ) -> None:
+    def _sub_step(self, live: _Live, api: sumo_api.SumoApi, k: int, last: bool,
+                  ev: Events | None) -> None:
         """Physics step ``k`` of every running scenario: drive, monitor, log, end."""
         moved = self._drive(live, api, k)
-        rows, reason, departed, ttc_flag, hit = self._watch(live, api, k, moved)
+        rows, ends, departed, ttc_flag, hit = self._watch(live, api, k, moved)
         live.departed = live.departed | departed
         live.ttc_flag = live.ttc_flag | ttc_flag
         live.collision = live.collision | hit
         live.sub_steps += 1
-        ended = reason != ""
+        ended = ends[0] | ends[1] | ends[2] | ends[3] | ends[4]
         any_ended = self._xp.any(ended)
         if last or any_ended:  # the observation: each scenario's latest row
             self._last[live.at] = rows
-        if any_ended:
-            self._end(live, api, ended, reason, ev)
+        if any_ended:  # why: the first end condition met
+            self._end(live, api, ended, self._xp.select(ends, _END_REASONS, ""), ev)
         if self._sub_lap is not None:
             self._sub_lap("monitor")
 
@@ -983,19 +996,17 @@ class ClosedLoop:
         s, d, heading, live.ego_seg = c.project(front_x, front_y, live.ego_seg)
         if lap is not None:
             lap("project")
-        n = len(live.runs)
-        inside = (xp.rows(lane_placeable(d, s, v * dt, c.half_width, c.route_end))
-                  if self._on_lane else [False] * n)
-        fxl, fyl, vl, sl, yl = xp.rows(front_x), xp.rows(front_y), xp.rows(v), xp.rows(s), \
-            xp.rows(yaw)
+        inside = (lane_placeable(d, s, v * dt, c.half_width, c.route_end) if self._on_lane
+                  else c.no_flags)
         move_to = api.vehicle.moveTo if self._on_lane else None  # (a fake API may lack it)
         move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
-        for j, r in enumerate(live.runs):
-            if inside[j] and move_to is not None:  # inside: on_lane placement only
-                move_to(r.ego, *_lane_position(r, sl[j], vl[j] * dt))
+        for r, (fx, fy, vj, sj, yj, on_lane) in zip(live.runs,
+                                                     xp.each(front_x, front_y, v, s, yaw, inside)):
+            if on_lane and move_to is not None:  # inside: on_lane placement only
+                move_to(r.ego, *_lane_position(r, sj, vj * dt))
             else:
-                move_to_xy(r.ego, "", -1, fxl[j] + r.dx, fyl[j], yaw_to_sumo_angle(yl[j]), 2)
-            set_speed(r.ego, vl[j])
+                move_to_xy(r.ego, "", -1, fx + r.dx, fy, yaw_to_sumo_angle(yj), 2)
+            set_speed(r.ego, vj)
             if r.lead is not None:
                 r.lead.command(api, k - r.k0)
         if lap is not None:
@@ -1011,34 +1022,31 @@ class ClosedLoop:
             hit = c.no_flags
         if lap is not None:
             lap("sumo_step")
-        return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded
+        return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, guarded
 
     def _read_leaders(self, live: _Live, api: sumo_api.SumoApi
                       ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
         """Each running scenario's leader after a step: its rear ``lead_x, lead_y`` [m] and
         true speed [m/s] (NaN: none; the true speed of a leader that ``needs_location`` comes
         once it is located)."""
-        xp, nan = self._xp, math.nan
-        lx, ly, lv = [], [], []
+        xp, none = self._xp, (math.nan, math.nan, math.nan)
+        read: list[tuple[float, float, float]] = []  # per row: rear x, y, true speed
         for r in live.runs:
             lead = r.lead
             # read: its pose, or False and None (no leader)
             if lead is not None and lead.read(api) and (pose := lead.leader) is not None:
-                (x, y), v = pose[0], lead.v
+                read.append((*pose[0], lead.v))
             else:
-                x = y = v = nan
-            lx.append(x)
-            ly.append(y)
-            lv.append(v)
+                read.append(none)
         if live.c.any_traffic:  # a leader met after none: its walk starts at the ego's segment
             from_ego = xp.from_rows([isinstance(r.lead, TrafficLeader) and r.lead.from_ego
                                      for r in live.runs])
             live.lead_seg = xp.where(from_ego, live.ego_seg, live.lead_seg)
-        return xp.from_rows(lx), xp.from_rows(ly), xp.from_rows(lv)
+        return xp.from_each(read)
 
     def _locate_leaders(self, live: _Live, rows: Rows, s_rear: FloatOrArray, gap: FloatOrArray,
                         v_lead: FloatOrArray, hit: BoolOrArray,
-                        front: tuple[list[float], list[float]], yaw: FloatOrArray,
+                        front: tuple[FloatOrArray, FloatOrArray], yaw: FloatOrArray,
                         count: bool = True) -> tuple[FloatOrArray, BoolOrArray]:
         """The leaders of ``rows`` (each with a leader) located on the ego lane (their true
         speeds, and for traffic the leaders met) and, where close, checked for footprint
@@ -1046,7 +1054,7 @@ class ClosedLoop:
         xp, vehicle = self._xp, self.vehicle
         near = self._near
         srl, gl, vll, hl = xp.rows(s_rear), xp.rows(gap), xp.rows(v_lead), xp.rows(hit)
-        fxl, fyl, yl = front[0], front[1], xp.rows(yaw)
+        fxl, fyl, yl = xp.rows(front[0]), xp.rows(front[1]), xp.rows(yaw)
         for j in rows:
             lead = live.runs[j].lead
             pose = lead.leader if lead is not None else None
@@ -1059,11 +1067,12 @@ class ClosedLoop:
         return xp.from_rows(vll), xp.from_rows(hl)
 
     def _watch(self, live: _Live, api: sumo_api.SumoApi, k: int, moved: Moved
-               ) -> tuple[Any, Any, BoolOrArray, BoolOrArray, BoolOrArray]:
+               ) -> tuple[Any, tuple[BoolOrArray, ...], BoolOrArray, BoolOrArray, BoolOrArray]:
         """Read the leaders, check footprints and run the monitors on the state at ``t + dt``;
-        log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), each row's
-        end reason (``""``: goes on) and the lane-departure, TTC and collision flags."""
-        t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, fxl, fyl, guarded = moved
+        log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), the end
+        conditions of ``_END_REASONS`` (each row's, in order) and the lane-departure, TTC and
+        collision flags."""
+        t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, guarded = moved
         c, st, n, xp = live.c, live.st, len(live.runs), self._xp
         lead_x, lead_y, v_lead = self._read_leaders(live, api)
         has_lead = xp.isfinite(lead_x)  # NaN: no leader
@@ -1075,8 +1084,8 @@ class ClosedLoop:
         yaw = st[2]
         fix = xp.nonzero(has_lead & ((gap < self._near) | c.located))
         if len(fix):
-            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit, (fxl, fyl),
-                                               yaw)
+            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
+                                               (front_x, front_y), yaw)
         if lap is not None:
             lap("project")
 
@@ -1105,25 +1114,25 @@ class ClosedLoop:
                 log[k - r.k0] = row
                 r.steps = k - r.k0 + 1
         loop = self.loop
-        reason = xp.select(
-            [s >= c.path_end, hit, xp.abs(d) > c.half_width + loop.offroad_stop_m,
-             (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max],
-            _END_REASONS, "")
-        return rows, reason, departed, ttc_flag, hit
+        ends = (s >= c.path_end, hit, xp.abs(d) > c.half_width + loop.offroad_stop_m,
+                (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max)
+        return rows, ends, departed, ttc_flag, hit
 
     def _end(self, live: _Live, api: sumo_api.SumoApi, ended: BoolOrArray, reason: Any,
-             ev: Events) -> None:
+             ev: Events | None) -> None:
         """The scenarios ``ended`` (rows) are sensed once more (their final observation) and
-        leave SUMO and the loop."""
+        leave SUMO and the loop (into ``ev``, unless None)."""
         xp = self._xp
         rows = xp.nonzero(ended)
         self._sense(live, rows)
-        live.flush(ev)
+        if ev is not None:
+            live.flush(ev)
         reasons = xp.rows(reason)
         for j in rows:
             r = live.runs[j]
             r.end_reason = str(reasons[j])
-            ev.ended[r.i], ev.end_reason[r.i] = True, r.end_reason
+            if ev is not None:
+                ev.ended[r.i], ev.end_reason[r.i] = True, r.end_reason
             self._running[r.i] = False
             for vid in (r.ego, *(r.lead.vehicle_ids() if r.lead is not None else ())):
                 with suppress(Exception):  # it may have left the network already
@@ -1157,7 +1166,7 @@ class ClosedLoop:
         fix = xp.nonzero(has_lead & ((gap < self._near) | c.traffic))
         if len(fix):
             v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
-                                               (xp.rows(front_x), xp.rows(front_y)), yaw,
+                                               (front_x, front_y), yaw,
                                                count=False)
         _, _, departed, ttc, ttc_flag, fraction = _monitors(
             c, vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead, xp)
