@@ -655,8 +655,19 @@ def _head_readme(facts: dict, args: dict) -> list[str]:
         "OpenACC (longitudinal only), NGSIM and the default synthetic dataset, seed 0; the IDM "
         "fitted by `python training/fit_idm.py` on the same human maneuvers). The open-loop and "
         "sample-efficiency sections train the paper's recipe (no envelope states) per dataset."),
+        *_stale_readme(facts),
         "",
     ]
+
+
+def _stale_readme(facts: dict) -> list[str]:
+    """A warning naming the sections last run before the shipped models last changed."""
+    stale = outputs.sections_before("safeil_sumo/models", facts.get("section_git_commit", {}))
+    if not stale:
+        return []
+    return [(f"- **Run with earlier shipped models than these:** {', '.join(stale)} (each ran "
+             "at a commit before `safeil_sumo/models/` last changed; `--only "
+             f"{' '.join(stale)}` reruns them).")]
 
 
 def _safety_readme(facts: dict) -> list[str]:

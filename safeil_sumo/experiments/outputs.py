@@ -37,6 +37,32 @@ def git_commit(repo: Path | None = None) -> str:
         return "unknown"
 
 
+def sections_before(path: str, section_commits: dict[str, str],
+                    repo: Path | None = None) -> list[str]:
+    """The sections whose last run (``section_commits``: name -> commit, maybe ``-dirty``)
+    predates the last commit that changed ``path`` (e.g. the shipped models): they ran with
+    other files than the checkout holds. Empty when git cannot tell (no checkout, no history)."""
+    repo = repo or Path(__file__).resolve().parents[2]
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, text=True,
+                              timeout=10, check=False)
+
+    try:
+        changed = git("log", "-1", "--format=%H", "--", path).stdout.strip()
+        if not changed:
+            return []
+        stale = []
+        for name, commit in section_commits.items():
+            ran_at = commit.removesuffix("-dirty")
+            # exit 0: ``changed`` is an ancestor of (or is) the run's commit; 1: it is not
+            if git("merge-base", "--is-ancestor", changed, ran_at).returncode == 1:
+                stale.append(name)
+        return stale
+    except (OSError, subprocess.SubprocessError):
+        return []
+
+
 def versions() -> dict[str, str]:
     """Versions of the software that determines the numbers."""
     from importlib.metadata import PackageNotFoundError, version
