@@ -125,3 +125,13 @@ def test_lane_mode_in_a_batch_equals_one_scenario(bend):
         for col in ("s", "d", "v", "gap", "accel_cmd"):
             np.testing.assert_allclose(got[col].to_numpy(), one[col].to_numpy(), rtol=0,
                                        atol=1e-7, err_msg=col)
+
+
+def test_replay_cli_takes_the_lateral_mode():
+    from safeil_sumo.replay import parse_args
+
+    assert parse_args([]).lateral == "free"
+    assert parse_args(["--lateral", "lane"]).lateral == "lane"
+    with pytest.raises(SystemExit) as exc:
+        parse_args(["--lateral", "road"])
+    assert exc.value.code == 2
