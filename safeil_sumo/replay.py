@@ -52,6 +52,7 @@ from safeil_sumo.scenarios.road import NetworkError
 from safeil_sumo.sim.brake_guard import BrakeGuard
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
+from safeil_sumo.sim.loop_types import LATERAL_MODES
 from safeil_sumo.sim.sumo_api import SumoError
 
 
@@ -102,6 +103,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
     add_brake_guard_option(p)
+    p.add_argument("--lateral", choices=LATERAL_MODES, default="free",
+                   help="planned egos' lateral motion: free (default: the plan tracked by pure "
+                        "pursuit on the plant) or lane, an INSTRUMENT MODE for longitudinal-only "
+                        "evaluation: after every physics step the ego is put on the rebuilt lane "
+                        "centre at the station its own motion reached (the planner, with its "
+                        "normal features, the PID and the plant still drive the longitudinal "
+                        "part); for roads whose bends a planner cannot hold (ZalaZone, "
+                        "docs/human_likeness.md). recorded and constant_speed ignore it")
     p.add_argument("--seed", type=nonnegative_int, default=0)
     p.add_argument("--list", action="store_true", help="list the maneuvers and exit")
     p.add_argument("--animate", action="store_true",
@@ -148,7 +157,7 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
     config = rp.ReplayConfig(seed=args.seed)
     config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
-                                          brake_guard=brake_guard(args)))
+                                          brake_guard=brake_guard(args), lateral=args.lateral))
     table, agg = api.replay(
         maneuvers, args.policies, out, only or "all", args.windows, args.workers,
         args.duration, args.stride, config, progress=True,
@@ -158,6 +167,7 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
                   "duration_s": rp.PAPER_DURATION_S if args.duration is None
                   and args.windows != "whole" else args.duration or None,
                   "maneuvers": only or "all", "adapt_first_s": args.adapt_first_s,
+                  "lateral": args.lateral,
                   "batch": args.batch},
         batch=args.batch, adapt_first_s=args.adapt_first_s)
     failed = table.drop_duplicates(["maneuver_id", "start_s"])
@@ -204,12 +214,13 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path("runs") / f"replay_{rp.rr.safe_name(mid)}"
     config = rp.ReplayConfig(seed=args.seed)
     config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
-                                          brake_guard=brake_guard(args)))
+                                          brake_guard=brake_guard(args), lateral=args.lateral))
     try:
         with outputs.AtomicDir(out) as tmp:
             result = rp.replay_maneuver(rows, policies, tmp, config, maneuver_id=mid)
             rp.write_replay(result, tmp, {"source": args.source, "maneuver_start_s": start,
-                                          "policies": args.policies, "rate_hz": args.rate})
+                                          "policies": args.policies, "rate_hz": args.rate,
+                                          "lateral": args.lateral})
     except (rp.ReplayError, ProfileError, NetworkError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

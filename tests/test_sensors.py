@@ -126,3 +126,90 @@ def test_planner_features_of_one_car_equal_the_stacked_ones():
     assert one.shape == (9,) and one.dtype == np.float64
     assert np.array_equal(one, stacked)
     assert np.array_equal(one, planner_features(left, right, np.float64(31.5), 29.25, 48.125))
+
+
+def _circle(radius: float, length: float = 200.0, chord: float = 0.5):
+    """A left-turning circle of ``radius`` [m] from the origin heading +x, as a Polyline."""
+    from safeil_sumo.geometry import Polyline
+
+    arc = np.arange(0.0, length + chord, chord) / radius
+    return Polyline(np.column_stack([radius * np.sin(arc), radius * (1.0 - np.cos(arc))]))
+
+
+def test_view_range_within_turn_hand_computed():
+    """On a circle of radius R the chord between samples at arc lengths a and b points along the
+    tangent at (a + b) / 2, so chord i turns by (m_i - m_0) / R from chord 0: the range where the
+    turn reaches 0.3 rad is 0.3 R exactly (R = 50 m: 15 m; R = 100 m: 30 m). Turns below it keep
+    the whole view (R = 250 m over 60 m: 0.224 rad), and the view is never below its floor."""
+    offsets = np.linspace(0.0, 60.0, 16)
+
+    def points(radius: float) -> tuple[np.ndarray, np.ndarray]:
+        if math.isinf(radius):
+            return offsets.copy(), np.zeros(16)
+        arc = offsets / radius
+        return radius * np.sin(arc), radius * (1.0 - np.cos(arc))
+
+    for radius, expected in ((50.0, 15.0), (100.0, 30.0), (-50.0, 15.0), (250.0, 60.0),
+                             (500.0, 60.0), (math.inf, 60.0), (20.0, 10.0)):
+        x, y = points(radius)
+        got = sen.view_range_within_turn(x, y, offsets, 0.3, 10.0)
+        assert float(got) == pytest.approx(expected, abs=1e-9), radius
+    # stacked (K, n): each row its own range
+    rows = [points(r) for r in (50.0, 250.0, 100.0)]
+    got = sen.view_range_within_turn(np.stack([p[0] for p in rows]),
+                                     np.stack([p[1] for p in rows]), offsets, 0.3, 10.0)
+    np.testing.assert_allclose(got, [15.0, 60.0, 30.0], atol=1e-9)
+
+
+def test_camera_fits_a_tight_bend():
+    """An R = 50 m bend (the ZalaZone handling course's): over the whole 60 m view the cubic's
+    c2 has the wrong sign (the bend goes into c1 and c3, which the planners do not see); over
+    the range the line turns by <= 0.3 rad, c2 is the curvature's half within 4 %. The batched
+    points (ego_points_many) equal the scalar camera's."""
+    from safeil_sumo.sim.sensors import _ego_points, ego_points_many, polyfit3
+
+    line, ego = _circle(50.0), np.zeros(2)
+    whole = sen.SensorConfig(max_view_turn_rad=1e9)
+    c_whole = polyfit3(*_ego_points(line, 0.0, ego, 0.0, whole))
+    assert c_whole[2] < 0.0  # the defect: a left bend seen as curving right
+    c = polyfit3(*_ego_points(line, 0.0, ego, 0.0, CFG))
+    assert c[2] == pytest.approx(1.0 / 100.0, rel=0.04)
+    assert abs(c[0]) < 1e-3 and abs(c[1]) < 1e-3
+    rng = np.random.default_rng(5)
+    s0 = rng.uniform(0.0, 100.0, 6)
+    (xy, yaw) = line.point_at(s0)
+    ex, ey = xy[:, 0] + rng.normal(0, 0.3, 6), xy[:, 1] + rng.normal(0, 0.3, 6)
+    yaw = yaw + rng.normal(0, 0.05, 6)
+    bx, by = ego_points_many(line, s0, ex, ey, yaw, CFG)
+    for i in range(6):
+        sx, sy = _ego_points(line, s0[i], np.array([ex[i], ey[i]]), yaw[i], CFG)
+        np.testing.assert_allclose(bx[i], sx, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(by[i], sy, rtol=0, atol=1e-9)
+        assert sx[-1] < 20.0  # the view was shortened
+
+
+def test_lane_camera_equals_the_reference_in_a_tight_bend():
+    """LaneCamera (the loop's) and camera_lane_lines give the same lines where the view is
+    shortened (3 lanes on concentric circles, the ego lane R = 50 m)."""
+    from pathlib import Path
+
+    from safeil_sumo.scenarios.road import Lane, Road
+
+    lanes = []
+    for i in range(3):
+        radius = 50.0 - (i - 1) * 3.5
+        centre = _circle(radius, 150.0 * radius / 50.0)
+        lanes.append(Lane(f"bend_{i}", i, 3.5, centre.length, centre, centre.offset(1.75),
+                          centre.offset(-1.75)))
+    road = Road(Path("bend_fixture.net.xml"), "bend", tuple(lanes), 1, 0.0, 100.0, {})
+    camera = sen.LaneCamera(road, CFG, 0.0)
+    for s in (5.0, 20.0, 40.0, 60.0):
+        xy, yaw = lanes[1].centre.point_at(s)
+        ego = xy + np.array([0.2, -0.1])
+        want = sen.camera_lane_lines(road, ego, float(yaw) + 0.02, CFG)
+        got = camera.lane_lines(ego, float(yaw) + 0.02)
+        assert got[2] == want[2] == 1
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        assert got[0][2] == pytest.approx(1.0 / (2.0 * (50.0 - 1.75)), rel=0.05)
+        assert got[1][2] == pytest.approx(1.0 / (2.0 * (50.0 + 1.75)), rel=0.05)

@@ -22,6 +22,7 @@ from safeil_sumo.sim.leaders import SpeedProfile
 
 GUI_SCREENSHOT_AT_S = 1.0  # simulation time of LoopConfig.gui_screenshot [s]
 EGO_PLACEMENTS = ("xy", "lane")  # LoopConfig.ego_placement
+LATERAL_MODES = ("free", "lane")  # LoopConfig.lateral
 
 
 @dataclass(frozen=True)
@@ -83,8 +84,17 @@ class LoopConfig:
     # collision-avoidance braking under the planner (:mod:`.brake_guard`); None: the planner's
     # and tracker's commands alone (the paper's loop)
     brake_guard: BrakeGuard | None = field(default_factory=BrakeGuard)
+    # a planned ego's lateral motion: "free", the plan tracked by pure pursuit on the plant
+    # (the paper's loop); "lane", an INSTRUMENT MODE for longitudinal-only evaluation (a replay
+    # of a road whose bends a planner cannot hold, docs/human_likeness.md): after every physics
+    # step the ego is put on its lane centre (front bumper) at the station its own motion
+    # reached, heading along the lane, no side slip; the planner (with its normal features),
+    # the PID and the plant still drive the longitudinal part. Kinematic egos ignore it
+    lateral: str = "free"
 
     def __post_init__(self) -> None:
+        if self.lateral not in LATERAL_MODES:
+            raise ValueError(f"lateral must be one of {LATERAL_MODES}, got {self.lateral!r}")
         if self.ego_placement not in EGO_PLACEMENTS:
             raise ValueError(f"ego_placement must be one of {EGO_PLACEMENTS}, got "
                              f"{self.ego_placement!r}")

@@ -30,6 +30,13 @@ class SensorConfig:
 
     view_range_m: float = 60.0  # camera lane-line fit from x = 0 to this distance ahead [m]
     view_samples: int = 16  # boundary points for the cubic fit (every 4 m) [-]
+    # the lines are fitted only as far as they turn by at most this angle from where the camera
+    # looks (:func:`view_range_within_turn`): a cubic y(x) in the ego frame cannot follow a
+    # tighter bend over the whole view range (R = 50 m over 60 m turns 1.2 rad; its fit's c2 has
+    # the wrong sign). At 60 m it shortens the view only below R = 200 m (motorways, curved500
+    # and the golden tracks are untouched, bit for bit) [rad]
+    max_view_turn_rad: float = 0.3
+    min_view_range_m: float = 10.0  # the view is never shortened below this [m]
     radar_range_m: float = 150.0  # farthest detectable leader [m]
     # With no leader in range the paper's data has no sample; the closed loop must still feed
     # the planner, so "free road" is shown as a leader at the range limit at the ego's speed.
@@ -43,6 +50,9 @@ class SensorConfig:
     def __post_init__(self) -> None:
         if self.view_range_m <= 0 or self.radar_range_m <= 0 or self.view_samples < 4:
             raise ValueError("sensor ranges must be positive and view_samples >= 4")
+        if not self.max_view_turn_rad > 0 or not 0 < self.min_view_range_m <= self.view_range_m:
+            raise ValueError("max_view_turn_rad must be > 0 and min_view_range_m in "
+                             "(0, view_range_m]")
         for name in ("lane_noise_c0_m", "lane_noise_c1", "radar_noise_m",
                      "radar_speed_noise_mps", "quantization_m"):
             if getattr(self, name) < 0:
@@ -102,13 +112,54 @@ def _fit_from(
 def _ego_points(
     boundary: Polyline, s0: float, ego_xy: np.ndarray, ego_yaw: float, config: SensorConfig
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The boundary's points the camera fits, ``x, y (samples,)`` [m] in the ego frame."""
-    pts = boundary.xy_at(s0 + _view_offsets(config.view_range_m, config.view_samples))
-    # world_to_ego, unrolled (the same element-wise operations, no stacking)
+    """The boundary's points the camera fits, ``x, y (samples,)`` [m] in the ego frame (over
+    the view range, shortened where the line turns more than ``config.max_view_turn_rad``)."""
+    offsets = _view_offsets(config.view_range_m, config.view_samples)
+    x, y = _to_ego(boundary.xy_at(s0 + offsets), ego_xy, ego_yaw)
+    view = float(view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
+                                        config.min_view_range_m))
+    if view < config.view_range_m:
+        x, y = _to_ego(boundary.xy_at(s0 + np.linspace(0.0, view, config.view_samples)), ego_xy,
+                       ego_yaw)
+    return x, y
+
+
+def _to_ego(pts: np.ndarray, ego_xy: np.ndarray, ego_yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """World points ``(..., 2)`` in the ego frame, ``x, y (...)`` [m] (world_to_ego, unrolled:
+    the same element-wise operations, no stacking)."""
     c, s = math.cos(ego_yaw), math.sin(ego_yaw)
     d = pts - ego_xy
-    dx, dy = d[:, 0], d[:, 1]
+    dx, dy = d[..., 0], d[..., 1]
     return c * dx + s * dy, -s * dx + c * dy
+
+
+def view_range_within_turn(x: np.ndarray, y: np.ndarray, offsets: np.ndarray, max_turn_rad: float,
+                           min_range_m: float) -> np.ndarray:
+    """How far along a line the camera fits: the arc length [m] over which the line turns by at
+    most ``max_turn_rad`` from its first chord, of lines sampled at arc-length ``offsets (n,)``
+    [m], ``x, y (..., n)`` [m] (any frame); ``offsets[-1]`` (the whole view) where it turns less,
+    never below ``min_range_m``. Shape ``(...)``.
+
+    The turn of chord i is its angle to chord 0, placed at the chords' midpoints
+    ``m_i - m_0 = (offsets[i] + offsets[i + 1] - offsets[0] - offsets[1]) / 2``; the range is
+    linearly interpolated where the turn first exceeds ``max_turn_rad`` (e.g. a circle of
+    radius R sampled every 4 m: ``max_turn_rad * R``)."""
+    dx, dy = np.diff(x, axis=-1), np.diff(y, axis=-1)  # chords (..., n - 1)
+    turn = np.abs(np.arctan2(dx[..., :1] * dy - dy[..., :1] * dx,
+                             dx[..., :1] * dx + dy[..., :1] * dy))
+    mid = 0.5 * (offsets[:-1] + offsets[1:])
+    along = mid - mid[0]
+    over = turn > max_turn_rad
+    full = np.full(turn.shape[:-1], float(offsets[-1]))
+    if not over.any():
+        return full
+    i = np.argmax(over, axis=-1)  # the first chord beyond the turn (0 where none: unused)
+    i_prev = np.maximum(i - 1, 0)
+    t_prev = np.take_along_axis(turn, i_prev[..., None], -1)[..., 0]
+    t_over = np.take_along_axis(turn, i[..., None], -1)[..., 0]
+    frac = (max_turn_rad - t_prev) / np.maximum(t_over - t_prev, 1e-12)
+    cut = along[i_prev] + frac * (along[i] - along[i_prev])
+    return np.where(over.any(axis=-1), np.clip(cut, min_range_m, offsets[-1]), full)
 
 
 @lru_cache(maxsize=8)
@@ -302,7 +353,16 @@ class LaneCamera:
         c, s = math.cos(ego_yaw), math.sin(ego_yaw)
         d = pts - ego_xy
         dx, dy = d[..., 0], d[..., 1]
-        left, right = polyfit3_rows(c * dx + s * dy, -s * dx + c * dy)
+        x, y = c * dx + s * dy, -s * dx + c * dy
+        view = view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
+                                      config.min_view_range_m)
+        if (view < config.view_range_m).any():  # a tight bend: each line as far as it holds
+            xl, yl = _to_ego(lane.left_boundary.xy_at(
+                s_left + np.linspace(0.0, float(view[0]), config.view_samples)), ego_xy, ego_yaw)
+            xr, yr = _to_ego(lane.right_boundary.xy_at(
+                s_right + np.linspace(0.0, float(view[1]), config.view_samples)), ego_xy, ego_yaw)
+            x, y = np.stack((xl, xr)), np.stack((yl, yr))
+        left, right = polyfit3_rows(x, y)
         add_lane_noise(left, right, config, rng)
         return left, right, lane.index
 
@@ -322,9 +382,25 @@ class LaneCamera:
 def ego_points_many(line: Polyline, s0: np.ndarray, ego_x: np.ndarray, ego_y: np.ndarray,
                     ego_yaw: np.ndarray, config: SensorConfig) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_ego_points` of K cars with one camera setting on one line at once: the line's
-    points from arc lengths ``s0 (K,)`` [m] over the view range, in each car's frame,
-    ``x, y (K, samples)``."""
-    pts = line.xy_at(s0[:, None] + _view_offsets(config.view_range_m, config.view_samples))
-    c, s = np.cos(ego_yaw)[:, None], np.sin(ego_yaw)[:, None]
+    points from arc lengths ``s0 (K,)`` [m] over the view range (shortened per car where the
+    line turns more than ``config.max_view_turn_rad``, as :func:`_ego_points`), in each car's
+    frame, ``x, y (K, samples)``."""
+    offsets = _view_offsets(config.view_range_m, config.view_samples)
+    x, y = _ego_many(line, s0[:, None] + offsets, ego_x, ego_y, ego_yaw)
+    view = view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
+                                  config.min_view_range_m)
+    short = np.flatnonzero(view < config.view_range_m)
+    if len(short):
+        fraction = np.linspace(0.0, 1.0, config.view_samples)
+        x[short], y[short] = _ego_many(line, s0[short, None] + view[short, None] * fraction,
+                                       ego_x[short], ego_y[short], ego_yaw[short])
+    return x, y
+
+
+def _ego_many(line: Polyline, s: np.ndarray, ego_x: np.ndarray, ego_y: np.ndarray,
+              ego_yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The line's points at arc lengths ``s (K, samples)`` [m] in each of K cars' frames."""
+    pts = line.xy_at(s)
+    c, s_ = np.cos(ego_yaw)[:, None], np.sin(ego_yaw)[:, None]
     dx, dy = pts[..., 0] - ego_x[:, None], pts[..., 1] - ego_y[:, None]
-    return c * dx + s * dy, -s * dx + c * dy
+    return c * dx + s_ * dy, -s_ * dx + c * dy

@@ -321,6 +321,7 @@ class PlanAndTrack:
         self.lap = loop._sub_lap
         self.guard, self.period = loop.loop.brake_guard, loop._plan_every * loop.loop.step_s
         self.full_brake_mps2 = loop.vehicle.max_brake_decel_mps2
+        self.on_lane = loop.loop.lateral == "lane"  # LoopConfig.lateral: put on the lane centre
 
     def plan(self, live: _Live, given: np.ndarray | None, t: FloatOrArray, xp: Namespace,
              controls: Controls | None = None) -> None:
@@ -409,7 +410,20 @@ class PlanAndTrack:
         if self.lap is not None:
             self.lap("track")
         live.st = self.plant.step(live.st, steer_cmd, throttle, brake, xp)
+        if self.on_lane:
+            live.st = self._on_lane_centre(live, xp)
         return steer_cmd, accel_cmd, guarded
+
+    def _on_lane_centre(self, live: _Live, xp: Namespace) -> veh.PlantState:
+        """``LoopConfig.lateral = "lane"``: the plant's new state with its pose put on the ego
+        lane centre (:func:`on_lane_pose`) at the station its front bumper reached; the speeds,
+        yaw rate, steering and drive force as the plant left them."""
+        x, y, yaw, vx, vy, yaw_rate, steer, drive = live.st
+        d_front = self.vehicle.cog_to_front_bumper_m
+        fx, fy = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+        _, d, heading, live.ego_seg = live.c.project(fx, fy, live.ego_seg)
+        x, y, yaw = on_lane_pose(fx, fy, d, heading, d_front, xp)
+        return x, y, yaw, vx, vy, yaw_rate, steer, drive
 
 
 class Kinematic:
@@ -431,6 +445,18 @@ class Kinematic:
         live.st = tuple(xp.from_rows(col) for col in zip(*states))
         n = len(live.runs)
         return xp.full(n, math.nan), xp.full(n, math.nan), xp.full(n, math.nan)
+
+
+def on_lane_pose(fx: FloatOrArray, fy: FloatOrArray, d: FloatOrArray, heading: FloatOrArray,
+                 d_front: float, xp: Namespace = FLOATS
+                 ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
+    """``(x, y, yaw)`` of the centre of gravity of an ego whose front bumper ``fx, fy`` [m],
+    ``d`` [m] left of a lane centre heading ``heading`` [rad] there, is moved onto the centre:
+    the front bumper at the foot point, heading along the lane (``d_front`` [m]: centre of
+    gravity to front bumper)."""
+    cos_h, sin_h = xp.cos(heading), xp.sin(heading)
+    foot_x, foot_y = fx + d * sin_h, fy - d * cos_h
+    return foot_x - d_front * cos_h, foot_y - d_front * sin_h, heading
 
 
 def _scalar(value: FloatOrArray) -> float:
@@ -1243,13 +1269,14 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
     lines each camera sees, then one sampling and one stacked fit per (line, camera setting)."""
     fits = np.empty((2 * len(live), 4))  # row 2j: scenario j's left line, 2j + 1: its right
     xl, yl = x.tolist(), y.tolist()
-    groups: dict[tuple[int, float, int], tuple] = {}  # -> (line, camera, rows, arc lengths)
+    groups: dict[tuple[int, float, int, float, float], tuple] = {}  # -> (line, camera, rows, arc lengths)
     for j, r in enumerate(live):
         lane, s_left, s_right = r.camera.lane_stations(xl[j], yl[j])
         config = r.scenario.sensors
         for row, line, s0 in ((2 * j, lane.left_boundary, s_left),
                               (2 * j + 1, lane.right_boundary, s_right)):
-            key = (id(line), config.view_range_m, config.view_samples)  # what sampling reads
+            key = (id(line), config.view_range_m, config.view_samples,  # what sampling reads
+                   config.max_view_turn_rad, config.min_view_range_m)
             g = groups.setdefault(key, (line, config, [], []))
             g[2].append(row)
             g[3].append(s0)
