@@ -140,6 +140,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
+def replay_config(args: argparse.Namespace) -> rp.ReplayConfig:
+    """The replay's settings from the command line: seed, re-planning rate, brake guard and
+    lateral mode on the default loop."""
+    config = rp.ReplayConfig(seed=args.seed)
+    return replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
+                                        brake_guard=brake_guard(args), lateral=args.lateral))
+
+
 def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
     """``--maneuver all`` / a list: every window, in workers, resumable; table + aggregate."""
     if args.maneuver == "all":
@@ -155,9 +163,7 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
     for name in args.policies:  # fail fast on a bad policy, before any worker starts
         pol.load_for_replay(name)
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
-    config = rp.ReplayConfig(seed=args.seed)
-    config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
-                                          brake_guard=brake_guard(args), lateral=args.lateral))
+    config = replay_config(args)
     table, agg = api.replay(
         maneuvers, args.policies, out, only or "all", args.windows, args.workers,
         args.duration, args.stride, config, progress=True,
@@ -212,9 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = args.out or Path("runs") / f"replay_{rp.rr.safe_name(mid)}"
-    config = rp.ReplayConfig(seed=args.seed)
-    config = replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
-                                          brake_guard=brake_guard(args), lateral=args.lateral))
+    config = replay_config(args)
     try:
         with outputs.AtomicDir(out) as tmp:
             result = rp.replay_maneuver(rows, policies, tmp, config, maneuver_id=mid)

@@ -119,9 +119,15 @@ def _ego_points(
     view = float(view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
                                         config.min_view_range_m))
     if view < config.view_range_m:
-        x, y = _to_ego(boundary.xy_at(s0 + np.linspace(0.0, view, config.view_samples)), ego_xy,
-                       ego_yaw)
+        x, y = _points_within(boundary, s0, view, config.view_samples, ego_xy, ego_yaw)
     return x, y
+
+
+def _points_within(line: Polyline, s0: float, view_m: float, samples: int, ego_xy: np.ndarray,
+                   ego_yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """A line's ``samples`` points over a view shortened to ``view_m`` [m] from arc length
+    ``s0`` [m], ``x, y (samples,)`` [m] in the ego frame."""
+    return _to_ego(line.xy_at(s0 + np.linspace(0.0, view_m, samples)), ego_xy, ego_yaw)
 
 
 def _to_ego(pts: np.ndarray, ego_xy: np.ndarray, ego_yaw: float) -> tuple[np.ndarray, np.ndarray]:
@@ -350,17 +356,14 @@ class LaneCamera:
         offsets = _view_offsets(config.view_range_m, config.view_samples)
         pts = np.stack((lane.left_boundary.xy_at(s_left + offsets),
                         lane.right_boundary.xy_at(s_right + offsets)))
-        c, s = math.cos(ego_yaw), math.sin(ego_yaw)
-        d = pts - ego_xy
-        dx, dy = d[..., 0], d[..., 1]
-        x, y = c * dx + s * dy, -s * dx + c * dy
+        x, y = _to_ego(pts, ego_xy, ego_yaw)
         view = view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
                                       config.min_view_range_m)
         if (view < config.view_range_m).any():  # a tight bend: each line as far as it holds
-            xl, yl = _to_ego(lane.left_boundary.xy_at(
-                s_left + np.linspace(0.0, float(view[0]), config.view_samples)), ego_xy, ego_yaw)
-            xr, yr = _to_ego(lane.right_boundary.xy_at(
-                s_right + np.linspace(0.0, float(view[1]), config.view_samples)), ego_xy, ego_yaw)
+            (xl, yl), (xr, yr) = (
+                _points_within(line, s0, float(v), config.view_samples, ego_xy, ego_yaw)
+                for line, s0, v in ((lane.left_boundary, s_left, view[0]),
+                                    (lane.right_boundary, s_right, view[1])))
             x, y = np.stack((xl, xr)), np.stack((yl, yr))
         left, right = polyfit3_rows(x, y)
         add_lane_noise(left, right, config, rng)
