@@ -25,6 +25,7 @@ import numpy as np
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.features import FEATURE_NAMES, N_FEATURES
+from safeil_sumo.learn.towers import weight_across_towers
 
 if TYPE_CHECKING:
     from safeil_sumo.data.tuples import Tuples
@@ -240,6 +241,14 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
             )
         if not np.all(np.isfinite(arrays[key])):
             raise CheckpointError(f"{weights_path}: tensor {key} has non-finite values")
+    arch = meta["architecture"]
+    if arch.get("towers"):  # every reader (numpy, bounds) takes the stored weights as they are
+        n_linear = len(arch["hidden"]) + 1
+        across = weight_across_towers([arrays[f"net.{2 * j}.weight"] for j in range(n_linear)],
+                                      arch["n_features"], arch["hidden"])
+        if across > 0:
+            raise CheckpointError(f"{weights_path}: a towers checkpoint with non-zero weights "
+                                  f"across the towers (up to {across:.3g})")
     return arrays, meta
 
 
@@ -254,7 +263,8 @@ def load_model(path: str | Path) -> tuple[PlannerMLP, dict]:
     try:
         model = PlannerMLP(arch["hidden"], arch["activation"],
                            arch.get("output_mode", "absolute"),
-                           arch.get("horizon_s", meta["horizon_s"]), int(arch["n_features"]))
+                           arch.get("horizon_s", meta["horizon_s"]), int(arch["n_features"]),
+                           towers=bool(arch.get("towers", False)))
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from exc
     model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in arrays.items()})

@@ -298,14 +298,19 @@ def settling_loss(out: dict[str, torch.Tensor], gap_eq_m: torch.Tensor, dt_s: fl
 
 
 def envelope_terms(features: torch.Tensor, control_points: torch.Tensor, horizon: float,
-                   barrier: BarrierConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                   barrier: BarrierConfig, lane_by_steering: bool = False,
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(envelope, lane, leader)`` on envelope states ``features (N, 9+)`` and their plans
     ``(N, 3, 2)``: the envelope barrier (left + right + leader,
     :func:`~safeil_sumo.learn.losses.envelope_barrier_terms`, the open-loop training's), its
     lane part alone (left + right: ``K sum_k softplus(-b_k)`` over the exact Bernstein
     coefficients k = 1..6 of both lateral margins when ``barrier.lateral == "bernstein"``) and
-    its leader part, batch means."""
+    its leader part, batch means. ``lane_by_steering``: the lane terms pass no gradient to the x
+    control points, so the lane is kept by the lateral plan, never by a shorter plan."""
     terms = envelope_barrier_terms(features, control_points, horizon, barrier)
+    if lane_by_steering:
+        held = torch.stack([control_points[..., 0].detach(), control_points[..., 1]], dim=-1)
+        terms = (*envelope_barrier_terms(features, held, horizon, barrier)[:2], terms[2])
     return sum(terms), terms[0] + terms[1], terms[2]
 
 
@@ -360,6 +365,11 @@ class FinetuneConfig:
                 "window)"})
     style: bool = field(default=False, metadata={
         "help": "add the driver's preferred time gap as an input (learn/style.py)"})
+    towers: bool = field(default=False, metadata={
+        "help": "split the network into a longitudinal tower that never reads the lane lines "
+                "and a lateral one (learn/model.split_towers; hidden layers twice as wide): the "
+                "plan's length cannot depend on the lane's curvature; the lane barrier then "
+                "shapes the lateral plan only (closed_loop.envelope_terms lane_by_steering)"})
     seed: int = field(default=0, metadata={
         "help": "seed of the episodes drawn, the perturbations and the envelope states"})
 

@@ -53,7 +53,7 @@ from safeil_sumo.learn.closed_loop import (
     settling_loss,
 )
 from safeil_sumo.learn.envelope import sample_states
-from safeil_sumo.learn.model import PlannerMLP, with_style_input
+from safeil_sumo.learn.model import PlannerMLP, split_towers, with_style_input
 from safeil_sumo.learn.style import (
     TIME_GAP_RANGE_S,
     equilibrium_residual,
@@ -124,6 +124,9 @@ def _start(config: FinetuneConfig, init: Path, data_paths: Sequence[Path]) -> _S
         notes.append(f"style: time gap per training maneuver, median {median:.2f} s, quartiles "
                      f"{np.quantile(list(per_maneuver.values()), [0.25, 0.75]).round(2).tolist()}"
                      " s")
+    if config.towers and not model.towers:
+        model = split_towers(model)
+        notes.append(f"towers: hidden {list(model.hidden)}, the x control points read no lane line")
     return _Start(model, frozen, meta, base, float(meta["horizon_s"]), eps, feats, median,
                   style_default, tuple(notes))
 
@@ -157,7 +160,8 @@ def _iteration(config: FinetuneConfig, s: _Start, settling: SettlingConfig,
     if config.style:
         env = torch.cat([env, torch.as_tensor(rng.uniform(*TIME_GAP_RANGE_S, (len(env), 1)),
                                               dtype=torch.float32)], dim=1)
-    env_term, lane, lead = envelope_terms(env, model(env), horizon, base.barrier)
+    env_term, lane, lead = envelope_terms(env, model(env), horizon, base.barrier,
+                                          lane_by_steering=config.towers)
     mono = gap_monotone_penalty(model, env, margin_m=base.monotone_margin_m)
     equilibrium = torch.zeros(())
     if config.equilibrium_weight > 0:
@@ -222,7 +226,7 @@ def finetune(config: FinetuneConfig, init: str | Path, data_paths: Sequence[str 
         "equilibrium_weight": config.equilibrium_weight, "perturb": config.perturb,
         "settle_weight": config.settle_weight, "settle_after_s": settling.settle_after_s,
         "lane_weight": config.lane_weight, "leader_weight": config.leader_weight,
-        "anchor_envelope": config.anchor_envelope,
+        "anchor_envelope": config.anchor_envelope, "towers": config.towers,
         "seed": config.seed, "episodes": len(s.episodes), "seconds": seconds,
         "style": config.style, "final": log[-1], "first": log[0]}}
     save_checkpoint(out, s.model, name=s.meta["name"], horizon=s.horizon,

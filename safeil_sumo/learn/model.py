@@ -14,6 +14,15 @@ motion, ``x_i - v_x t_i`` with ``t_i = i T_h / 3`` (y unchanged). The x control 
 ~``v t`` (up to ~170 m) while the leader response is a few metres on top; in absolute mode that
 response is a tiny share of the output variance the MSE sees, in residual mode it is most of it.
 The constant-speed part is added back inside ``forward``, so callers always get control points.
+
+Towers (``towers=True``, beyond the paper): each hidden layer is split in two halves, a
+longitudinal tower and a lateral one, by fixed zero masks on the weights. The longitudinal tower
+reads the ego speed, the leader and the style inputs, never the lane lines, and alone feeds the
+x control points; the lateral tower reads everything and alone feeds the y control points. So
+how far the plan goes (speed and gap keeping) cannot depend on the lane's curvature or on where
+the ego sits in the lane, by construction. Still one plain MLP to everything downstream (numpy
+inference, bounds, checkpoints): the masked weights are stored as zeros. :func:`split_towers`
+builds one from a dense model (docs/human_likeness.md: why).
 """
 
 from __future__ import annotations
@@ -22,10 +31,12 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn.style import STYLE_NAMES
+from safeil_sumo.learn.towers import tower_masks
 
 N_OUTPUTS = 6
 ACTIVATIONS = ("tanh", "relu")
@@ -56,6 +67,7 @@ class PlannerMLP(nn.Module):
     def __init__(
         self, hidden: Sequence[int] = (64, 64), activation: str = "tanh",
         output_mode: str = "absolute", horizon: float = 5.0, n_features: int = N_FEATURES,
+        towers: bool = False,
     ) -> None:
         super().__init__()
         if output_mode not in OUTPUT_MODES:
@@ -69,6 +81,10 @@ class PlannerMLP(nn.Module):
             raise ValueError(f"n_features must be {N_FEATURES} or {N_FEATURES + len(STYLE_NAMES)}"
                              f" (with the style inputs {STYLE_NAMES}), got {n_features}")
         self.n_features = int(n_features)
+        self.towers = bool(towers)
+        if self.towers and any(h % 2 for h in self.hidden):
+            raise ValueError(f"towers split every hidden layer in halves: widths must be even, "
+                             f"got {self.hidden}")
         layers: list[nn.Module] = []
         width = self.n_features
         for h in self.hidden:
@@ -84,6 +100,12 @@ class PlannerMLP(nn.Module):
         self.register_buffer("feature_std", torch.ones(self.n_features))
         self.register_buffer("output_mean", torch.zeros(N_OUTPUTS))
         self.register_buffer("output_std", torch.ones(N_OUTPUTS))
+        if self.towers:
+            for j, mask in enumerate(tower_masks(self.n_features, self.hidden)):
+                # not persistent: the checkpoint stores the (zeroed) weights only
+                self.register_buffer(f"mask_{j}", torch.as_tensor(mask), persistent=False)
+                with torch.no_grad():  # masked weights start (and, gradient-free, stay) zero
+                    self.net[2 * j].weight.mul_(getattr(self, f"mask_{j}"))
 
     def set_scaling(self, features: np.ndarray, control_points: np.ndarray) -> None:
         """Set the buffers from training data: ``features (N, 9)``, ``control_points (N, 3, 2)``."""
@@ -101,7 +123,15 @@ class PlannerMLP(nn.Module):
 
     def forward_normalised(self, features: torch.Tensor) -> torch.Tensor:
         """Normalised outputs ``(N, 6)`` for ``features (N, 9)``."""
-        return self.net((features - self.feature_mean) / self.feature_std)
+        h = (features - self.feature_mean) / self.feature_std
+        if not self.towers:
+            return self.net(h)
+        for j, module in enumerate(self.net):
+            if j % 2:
+                h = module(h)
+            else:  # masked linear layer: the masked weights get no gradient
+                h = F.linear(h, module.weight * getattr(self, f"mask_{j // 2}"), module.bias)
+        return h
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         """Control points ``(N, 3, 2)`` [m] for ``features (N, n_features)``."""
@@ -127,7 +157,42 @@ class PlannerMLP(nn.Module):
         }
         if self.n_features > N_FEATURES:
             arch["style_names"] = list(STYLE_NAMES)
+        if self.towers:
+            arch["towers"] = True
         return arch
+
+    def masked_weight_max(self) -> float:
+        """Largest |weight| where a tower mask is zero (0 for a sound towers model or a dense one)."""
+        if not self.towers:
+            return 0.0
+        return max(float((self.net[2 * j].weight.detach() * (1 - getattr(self, f"mask_{j}"))).abs().max())
+                   for j in range(len(self.hidden) + 1))
+
+
+def split_towers(model: PlannerMLP) -> PlannerMLP:
+    """A towers model (every hidden layer twice as wide) from a dense ``model``: both towers
+    start as copies of it, the longitudinal one with its lane-line inputs cut. So the y control
+    points are exactly ``model``'s, and the x control points are ``model``'s for lane lines at
+    their training mean (a straight lane, the ego centred) whatever lanes it is given."""
+    if model.towers:
+        raise ValueError("the model already has towers")
+    out = PlannerMLP([2 * h for h in model.hidden], model.activation, model.output_mode,
+                     model.horizon, model.n_features, towers=True)
+    old = model.state_dict()
+    state = {k: v.clone() for k, v in old.items() if not k.startswith("net.")}
+    n_linear = len(model.hidden) + 1
+    for j in range(n_linear):
+        w, b = old[f"net.{2 * j}.weight"], old[f"net.{2 * j}.bias"]
+        if j == 0:
+            w_new = torch.cat([w, w])
+        elif j < n_linear - 1:
+            w_new = torch.block_diag(w, w)
+        else:
+            w_new = torch.cat([w, w], dim=1)
+        state[f"net.{2 * j}.weight"] = w_new * getattr(out, f"mask_{j}")
+        state[f"net.{2 * j}.bias"] = torch.cat([b, b]) if j < n_linear - 1 else b.clone()
+    out.load_state_dict(state)
+    return out
 
 
 V_X = 6  # column of the ego speed in the features (FEATURE_NAMES)
@@ -153,7 +218,7 @@ def with_style_input(model: PlannerMLP, style_mean: float, style_std: float) -> 
     if model.n_features != N_FEATURES:
         raise ValueError("the model already has style inputs")
     out = PlannerMLP(model.hidden, model.activation, model.output_mode, model.horizon,
-                     N_FEATURES + len(STYLE_NAMES))
+                     N_FEATURES + len(STYLE_NAMES), towers=model.towers)
     state = {k: v.clone() for k, v in model.state_dict().items()}
     w0 = state["net.0.weight"]
     state["net.0.weight"] = torch.cat([w0, torch.zeros(w0.shape[0], len(STYLE_NAMES))], dim=1)

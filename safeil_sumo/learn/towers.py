@@ -1,0 +1,44 @@
+"""The two-tower masks of the planner MLP (learn/model.py ``towers=True``), in plain numpy so
+the checkpoint loader can check a towers checkpoint without torch.
+
+The first half of every hidden layer is the longitudinal tower: it reads the ego speed, the
+leader and the style inputs, never the lane lines, and alone feeds the x control points. The
+second half, the lateral tower, reads every input and alone feeds the y control points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+LANE_FEATURES = tuple(range(6))  # c0l, c1l, c2l, c0r, c1r, c2r: never read by the x tower
+X_OUTPUTS, Y_OUTPUTS = (0, 2, 4), (1, 3, 5)  # of (x1, y1, x2, y2, x3, y3)
+N_OUTPUTS = 6
+
+
+def tower_masks(n_features: int, hidden: Sequence[int]) -> list[np.ndarray]:
+    """0/1 masks ``(n_out, n_in)`` float32 of every linear layer of a towers MLP (first half of
+    each hidden layer: the longitudinal tower; the rest: the lateral tower)."""
+    widths = [int(n_features), *(int(h) for h in hidden)]
+    masks = []
+    for j, (n_in, n_out) in enumerate(zip(widths[:-1], widths[1:], strict=True)):
+        m = np.ones((n_out, n_in), np.float32)
+        if j == 0:
+            m[: n_out // 2, list(LANE_FEATURES)] = 0.0
+        else:  # two towers, no crossing
+            m[: n_out // 2, n_in // 2:] = 0.0
+            m[n_out // 2:, : n_in // 2] = 0.0
+        masks.append(m)
+    last = np.ones((N_OUTPUTS, widths[-1]), np.float32)
+    last[list(X_OUTPUTS), widths[-1] // 2:] = 0.0
+    last[list(Y_OUTPUTS), : widths[-1] // 2] = 0.0
+    return [*masks, last]
+
+
+def weight_across_towers(weights: Sequence[np.ndarray], n_features: int,
+                         hidden: Sequence[int]) -> float:
+    """Largest |w| of ``weights`` (one ``(n_out, n_in)`` per linear layer) where the masks are 0."""
+    masks = tower_masks(n_features, hidden)
+    return max(float(np.max(np.abs(np.asarray(w) * (1.0 - m)))) for w, m in
+               zip(weights, masks, strict=True))
