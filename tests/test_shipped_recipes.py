@@ -57,7 +57,7 @@ OLD_OPEN_LOOP = {
 }
 OLD_CLOSED_LOOP = ["--window", "60", "--iters", "400", "--style", "--equilibrium-weight", "1",
                    "--perturb", "0.5", "--settle-weight", "3", "--settle-after", "20",
-                   "--lane-weight", "1", "--leader-weight", "1", "--seed", "0"]
+                   "--lane-weight", "1", "--leader-weight", "1", "--towers", "--seed", "0"]
 DATA = ["synthetic.parquet", "openacc.parquet", "ngsim.parquet"]
 
 
