@@ -7,6 +7,9 @@ on its lane centre (:mod:`safeil_sumo.sim.constant_speed_ego`)."""
 
 from __future__ import annotations
 
+import hashlib
+import json
+from functools import lru_cache
 from pathlib import Path
 
 from safeil_sumo.analytic import AnalyticPlanner
@@ -27,6 +30,37 @@ class PolicyError(ValueError):
 def shipped_checkpoint(name: str) -> Path:
     """Path of a shipped model's weights (``models/<name>.safetensors``)."""
     return MODELS_DIR / f"{name}.safetensors"
+
+
+def fingerprint(name_or_path: str) -> str:
+    """What a cached result of this policy depends on, for sweep and replay task ids: the sha256
+    of the weights of a shipped or given checkpoint (as its sidecar records it), of an IDM model
+    file's bytes; the name itself for a planner without a file (or a file that does not exist:
+    loading it fails later, with its own error). A retrained model so never reuses the cached
+    results of the model before."""
+    if name_or_path in SHIPPED:
+        path = shipped_checkpoint(name_or_path)
+    elif name_or_path == "idm":
+        path = MODELS_DIR / "idm.json"
+    else:
+        path = Path(name_or_path)
+    try:
+        stat = path.stat()
+    except (OSError, ValueError):
+        return name_or_path
+    return _file_fingerprint(str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+
+
+@lru_cache(maxsize=64)
+def _file_fingerprint(path: str, mtime_ns: int, size: int) -> str:
+    """(``mtime_ns`` and ``size`` key the cache: a rewritten file is read again.)"""
+    p = Path(path)
+    if p.suffix == ".safetensors":
+        try:
+            return str(json.loads(p.with_suffix(".json").read_text())["weights_sha256"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # no readable sidecar: hash the weights themselves
+    return hashlib.sha256(p.read_bytes()).hexdigest()
 
 
 def default_policy_name() -> str:

@@ -283,3 +283,26 @@ def test_killed_worker_loses_only_its_batch(tmp_path):
     out = run_sweep(specs, tmp_path / "out", workers=2, task_fn=counter, progress=False, batch=2)
     assert list(out["status"]) == ["failed", "failed", "ok", "ok", "ok"]
     assert out.loc[:1, "error"].str.contains("WorkerDied").all()
+
+
+def test_a_retrained_checkpoint_never_resumes_the_results_of_the_one_before(tmp_path):
+    """The task id carries the policy's weights: the same spec with another checkpoint at the
+    same path gets a new id (a sweep or replay then runs it again), the same weights the same."""
+    import json
+    import shutil
+
+    from safeil_sumo import planner_registry as reg
+
+    ckpt = tmp_path / "m.safetensors"
+    for name in ("safetensors", "json"):
+        shutil.copyfile(reg.MODELS_DIR / f"bc.{name}", tmp_path / f"m.{name}")
+    spec = ScenarioSpec(net="curved500", policy=str(ckpt))
+    before = task_id(spec)
+    assert task_id(spec) == before
+    assert reg.fingerprint(str(ckpt)) == reg.fingerprint("bc")
+    for name in ("safetensors", "json"):  # "retrained": other weights, same path
+        shutil.copyfile(reg.MODELS_DIR / f"safeil_paper.{name}", tmp_path / f"m.{name}")
+    assert task_id(spec) != before
+    sha = json.loads((reg.MODELS_DIR / "safeil_paper.json").read_text())["weights_sha256"]
+    assert reg.fingerprint(str(ckpt)) == sha
+    assert reg.fingerprint("analytic") == "analytic"

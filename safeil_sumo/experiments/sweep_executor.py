@@ -30,6 +30,7 @@ from typing import Any
 import pandas as pd
 from tqdm import tqdm
 
+from safeil_sumo import planner_registry
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_road
@@ -47,6 +48,8 @@ def task_id(spec: ScenarioSpec) -> str:
     The prefix is sanitised, so a task id can never leave the tasks folder.
     """
     text = json.dumps(spec.to_json(), sort_keys=True, separators=(",", ":"))
+    # the policy's weights too: a retrained model never resumes the model before's results
+    text += "|" + planner_registry.fingerprint(spec.policy)
     digest = hashlib.sha256(text.encode()).hexdigest()[:12]
     net = Path(spec.net).name.removesuffix(".net.xml")
     policy = Path(spec.policy).name.removesuffix(".safetensors")

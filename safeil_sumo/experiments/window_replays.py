@@ -45,6 +45,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from safeil_sumo import planner_registry
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
@@ -363,9 +364,11 @@ def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[s
     ``batch`` > 1: up to ``batch`` windows per worker task run side by side in one SUMO
     simulation (:func:`run_windows`; the same records); 1: one simulation per run."""
     config = config or rp.ReplayConfig()
-    # a window's result holds every policy: its file name carries the policies and the config,
-    # so a rerun with other policies or settings never reuses a stale result
-    tag = hashlib.sha256(json.dumps([sorted(policy_names), repr(config)]).encode()).hexdigest()[:8]
+    # a window's result holds every policy: its file name carries the policies (with their
+    # weights' fingerprints) and the config, so a rerun with other policies, settings or a
+    # retrained model never reuses a stale result
+    policies = sorted(f"{n}@{planner_registry.fingerprint(n)}" for n in policy_names)
+    tag = hashlib.sha256(json.dumps([policies, repr(config)]).encode()).hexdigest()[:8]
     tasks = Path(out_dir) / "tasks"
     tasks.mkdir(parents=True, exist_ok=True)
 
