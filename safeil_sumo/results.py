@@ -14,6 +14,8 @@ Sections (``--only`` picks some; every sweep is resumable, its task files live i
 - ``whole``: the same held-out maneuvers replayed whole (start to end), beside the
   ``constant_speed`` baseline: gap RMSE median, mean and worst, spacing RMSPE, time-gap error,
   per planner and per driver;
+- ``unseen``: every whole ZalaZone maneuver (24 drivers never used in training or calibration)
+  replayed with the same planners in the longitudinal instrument mode (``--lateral lane``);
 - ``lodo``: ``training/leave_one_driver_out.py``: the shipped recipe trained without each
   OpenACC driver (and a quarter of the NGSIM drivers), the left-out drivers replayed whole;
 - ``ablation``: ``training/leader_following_ablation.py`` (one lever at a time);
@@ -83,7 +85,7 @@ COLORS = {"safeil": "tab:green", "safeil_openloop": "tab:cyan", "safeil_paper": 
           "idm_population": "tab:orange"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
-            "humanlike", "whole", "lodo", "ablation", "instrument", "n74", "falsify")
+            "humanlike", "whole", "unseen", "lodo", "ablation", "instrument", "n74", "falsify")
 # the whole-maneuver replays: the planners, the naive baseline and the instrument's floor
 WHOLE_POLICIES = ("safeil", "safeil_openloop", "idm", "analytic", "bc", "constant_speed",
                   "recorded")
@@ -473,9 +475,9 @@ def _pct(rate: float, low: float | None = None, high: float | None = None) -> st
     return text + (f" [{100 * low:.3g}, {100 * high:.3g}]" if low is not None else "")
 
 
-def _whole_readme(whole: list[dict]) -> list[str]:
-    """The README section of :func:`whole`: one row per source and planner."""
-    rows = [dict(
+def _whole_rows(whole: list[dict]) -> list[dict]:
+    """The table rows of :func:`whole` / :func:`unseen` facts, formatted."""
+    return [dict(
         r, planner=LABELS.get(r["policy"], r["policy"]),
         span=f"{r['maneuvers']} ({r['shortest_s']:.0f}–{r['longest_s']:.0f} s)",
         med=f"{r['gap_rmse_median_m']:.2f} [{r['gap_rmse_median_lo']:.2f}, "
@@ -486,6 +488,20 @@ def _whole_readme(whole: list[dict]) -> list[str]:
         rmspe=f"{100 * r['spacing_rmspe_median']:.1f} / {100 * r['spacing_rmspe_mean']:.1f} %",
         tg_err=f"{r['time_gap_error_median_s']:+.2f} / {r['time_gap_error_mean_s']:+.2f}")
         for r in whole]
+
+
+WHOLE_COLUMNS = {"source": "source", "span": "maneuvers (length)", "planner": "planner",
+                 "med": "gap RMSE median [95 % CI] [m]", "mean": "mean [95 % CI] [m]",
+                 "worst": "worst [m] (maneuver)", "rmspe": "spacing RMSPE median / mean",
+                 "time_gap_rmse_median_s": "time-gap RMSE median [s]",
+                 "tg_err": "time-gap error median / mean [s]", "flags": "flags",
+                 "flags_beyond_human": "flags where the human has none",
+                 "collisions": "collisions", "ended_early": "runs ended early"}
+
+
+def _whole_readme(whole: list[dict]) -> list[str]:
+    """The README section of :func:`whole`: one row per source and planner."""
+    rows = _whole_rows(whole)
     return [
         "## Human-likeness over whole held-out maneuvers", "",
         "The maneuvers of the previous section (held out of the shipped SafeIL's training), each "
@@ -502,17 +518,27 @@ def _whole_readme(whole: list[dict]) -> list[str]:
         "bootstrap 95 % intervals; worst: the largest gap RMSE and its maneuver. Per driver "
         "(an OpenACC file's follower, an NGSIM follower vehicle): "
         "`humanlike_whole_by_driver.csv`.", "",
-        _md_table(rows, {"source": "source", "span": "maneuvers (length)",
-                         "planner": "planner", "med": "gap RMSE median [95 % CI] [m]",
-                         "mean": "mean [95 % CI] [m]", "worst": "worst [m] (maneuver)",
-                         "rmspe": "spacing RMSPE median / mean",
-                         "time_gap_rmse_median_s": "time-gap RMSE median [s]",
-                         "tg_err": "time-gap error median / mean [s]",
-                         "flags": "flags", "flags_beyond_human":
-                         "flags where the human has none", "collisions": "collisions",
-                         "ended_early": "runs ended early"}),
+        _md_table(rows, WHOLE_COLUMNS),
         "", *[f"![{s} whole](humanlike_whole_{s}.png)"
               for s in dict.fromkeys(r["source"] for r in whole)], ""]
+
+
+def _unseen_readme(unseen: list[dict]) -> list[str]:
+    """The README section of :func:`unseen`."""
+    return [
+        "## Drivers no planner has seen: ZalaZone, whole maneuvers", "",
+        "`python -m safeil_sumo.results --only unseen`: every whole maneuver of "
+        "`../shared/data/openacc_zalazone` (24 human follower pairs in 8 car models on a "
+        "handling course, 0–20 m/s; never used in training or in the IDM's calibration) "
+        "replayed with `python -m safeil_sumo.replay --source zalazone --maneuver all --windows "
+        "whole --lateral lane --policies " + " ".join(WHOLE_POLICIES) + "`. `--lateral lane` "
+        "keeps the ego on the rebuilt lane centre at the station its own motion reached: the "
+        "planners drive the gap and speed only, since the course's bends (R down to 45 m) are "
+        "far tighter than any lane the networks were trained on (docs/human_likeness.md); "
+        "lateral errors and lane flags mean nothing here. Columns as in the previous section; "
+        "per car: `unseen_whole_by_driver.csv`.", "",
+        _md_table(_whole_rows(unseen), WHOLE_COLUMNS), "",
+        "![zalazone whole](unseen_whole_zalazone.png)", ""]
 
 
 def _n74_readme(n74: dict) -> list[str]:
@@ -624,6 +650,7 @@ def write_readme(out: Path, facts: dict) -> None:
     lines += _replay_readme(facts) if facts.get("replay") else []
     lines += _humanlike_readme(facts) if facts.get("humanlike") else []
     lines += _whole_readme(facts["whole"]) if facts.get("whole") else []
+    lines += _unseen_readme(facts["unseen"]) if facts.get("unseen") else []
     lines += _instrument_readme(facts) if facts.get("instrument") else []
     lines += _leader_readme(facts) if facts.get("leader") else []
     lines += _lodo_readme(out) if facts.get("lodo") else []
@@ -982,19 +1009,53 @@ def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -
     ``humanlike_whole_by_driver.csv`` (per planner and driver), ``humanlike_whole_<source>.png``.
     ``quick``: the first :data:`WHOLE_QUICK_MANEUVERS` held-out maneuvers per source."""
     from safeil_sumo.experiments import maneuver_replay as rp
+
+    sources = [(source, maneuvers, only[:WHOLE_QUICK_MANEUVERS] if quick else only)
+               for source, maneuvers, only in _held_out_sources("whole")]
+    return _replay_whole(out, work, workers, sources, rp.ReplayConfig(seed=seed), seed,
+                         "humanlike_whole", "whole")
+
+
+def unseen(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> list[dict]:
+    """Every whole ZalaZone maneuver (24 drivers no planner or IDM fit has seen) replayed with
+    :data:`WHOLE_POLICIES` in the longitudinal instrument mode (``--lateral lane``: the ego is
+    kept on the lane centre, the planners drive the gap): ``unseen_whole.csv``,
+    ``unseen_whole_by_driver.csv``, ``unseen_whole_zalazone.png``. ``quick``: the first
+    :data:`WHOLE_QUICK_MANEUVERS` maneuvers."""
+    from dataclasses import replace
+
+    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+    from safeil_sumo.data.sources import load_source
+    from safeil_sumo.experiments import maneuver_replay as rp
+
+    try:
+        maneuvers, _ = process_drive(load_source("zalazone"), PipelineConfig(rate_hz=10.0))
+    except (OSError, ValueError) as exc:
+        print(f"[unseen] zalazone skipped: {exc}")
+        return []
+    only = sorted(set(maneuvers["maneuver_id"].astype(str)))
+    only = only[:WHOLE_QUICK_MANEUVERS] if quick else only
+    config = rp.ReplayConfig(seed=seed)
+    config = replace(config, loop=replace(config.loop, lateral="lane"))
+    return _replay_whole(out, work, workers, [("zalazone", maneuvers, only)], config, seed,
+                         "unseen_whole", "unseen")
+
+
+def _replay_whole(out: Path, work: Path, workers: int, sources: list, config, seed: int,
+                  stem: str, tag: str) -> list[dict]:
+    """Replay ``sources`` ``[(source, maneuvers, ids)]`` whole with :data:`WHOLE_POLICIES` and
+    ``config``: ``<stem>.csv`` (per source and planner, returned), ``<stem>_by_driver.csv``
+    and ``<stem>_<source>.png`` in ``out``; ``work/<tag>_<source>`` holds the tasks."""
     from safeil_sumo.experiments import window_replays as ra
 
     rows, drivers = [], []
-    for source, maneuvers, only in _held_out_sources("whole"):
-        if quick:
-            only = only[:WHOLE_QUICK_MANEUVERS]
+    for source, maneuvers, only in sources:
         wins = ra.windows(maneuvers, "whole", only=only)
-        folder = work / f"whole_{source}"
-        records = ra.replay_all(maneuvers, wins, list(WHOLE_POLICIES), folder,
-                                rp.ReplayConfig(seed=seed), workers)
+        folder = work / f"{tag}_{source}"
+        records = ra.replay_all(maneuvers, wins, list(WHOLE_POLICIES), folder, config, workers)
         df, agg = ra.write(folder, records, {"source": source, "maneuvers": only,
                                              "windows_mode": "whole"}, seed, f"{source} whole")
-        shutil.copyfile(folder / "replay_all.png", out / f"humanlike_whole_{source}.png")
+        shutil.copyfile(folder / "replay_all.png", out / f"{stem}_{source}.png")
         ok = df[df["status"] == "ok"].drop_duplicates("maneuver_id")
         span = {"maneuvers": len(only), "failed": len(records) - len(ok),
                 "shortest_s": float(ok["duration_s"].min()) if len(ok) else math.nan,
@@ -1002,11 +1063,11 @@ def whole(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -
         rows += [dict(r, source=source, **span) for r in agg.to_dict("records")]
         drivers += [dict(r, source=source) for r in
                     ra.aggregate(df, seed, ("policy", "driver")).to_dict("records")]
-        print(f"[whole] {source}: {len(ok)} of {len(only)} held-out maneuvers replayed whole "
+        print(f"[{tag}] {source}: {len(ok)} of {len(only)} maneuvers replayed whole "
               f"({span['shortest_s']:.0f}-{span['longest_s']:.0f} s)")
     if rows:
-        _save_csv(pd.DataFrame(rows), out / "humanlike_whole.csv")
-        _save_csv(pd.DataFrame(drivers), out / "humanlike_whole_by_driver.csv")
+        _save_csv(pd.DataFrame(rows), out / f"{stem}.csv")
+        _save_csv(pd.DataFrame(drivers), out / f"{stem}_by_driver.csv")
     return rows
 
 
@@ -1364,6 +1425,7 @@ def _section_runs(a: argparse.Namespace) -> dict[str, Callable[[], object]]:
         "leader": lambda: leader(a.out, a.work, a.workers, a.seed, 1 if a.quick else 3),
         "humanlike": lambda: humanlike(a.out, a.work, a.workers, a.seed),
         "whole": lambda: whole(a.out, a.work, a.workers, a.seed, a.quick),
+        "unseen": lambda: unseen(a.out, a.work, a.workers, a.seed, a.quick),
         "lodo": lambda: lodo(a.out, a.workers),
         "ablation": lambda: ablation(a.out, a.workers),
         "instrument": lambda: instrument(a.out, a.work, a.workers, a.seed),
