@@ -80,7 +80,8 @@ def test_finetune_cli_parses_every_field_under_its_own_name():
     config = FinetuneConfig(window=8.0, stride=4.0, iters=2, batch=4, lr=1e-5 / 3,
                             speed_weight=0.5, lateral_weight=1.0, anchor_envelope=False,
                             lane_weight=0.5, leader_weight=0.25, equilibrium_weight=1.0,
-                            perturb=0.5, settle_weight=1.0, settle_after=2.0, style=True, seed=7)
+                            perturb=0.5, settle_weight=1.0, settle_after=2.0, style=True,
+                            towers=True, seed=7)
     default = FinetuneConfig()
     for f in dataclasses.fields(config):
         assert getattr(config, f.name) != getattr(default, f.name), f.name  # all covered
@@ -88,7 +89,8 @@ def test_finetune_cli_parses_every_field_under_its_own_name():
             "--batch", "4", "--lr", repr(1e-5 / 3), "--speed-weight", "0.5",
             "--lateral-weight", "1.0", "--no-anchor-envelope", "--lane-weight", "0.5",
             "--leader-weight", "0.25", "--equilibrium-weight", "1.0", "--perturb", "0.5",
-            "--settle-weight", "1.0", "--settle-after", "2.0", "--style", "--seed", "7"]
+            "--settle-weight", "1.0", "--settle-after", "2.0", "--style", "--towers", "--seed",
+            "7"]
     args = finetune_cli.build_parser().parse_args(argv)
     assert dataclass_from_args(FinetuneConfig, args) == config
     assert dataclass_from_args(FinetuneConfig, finetune_cli.build_parser().parse_args(
