@@ -241,15 +241,21 @@ def load_checkpoint(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
             )
         if not np.all(np.isfinite(arrays[key])):
             raise CheckpointError(f"{weights_path}: tensor {key} has non-finite values")
-    arch = meta["architecture"]
-    if arch.get("towers"):  # every reader (numpy, bounds) takes the stored weights as they are
-        n_linear = len(arch["hidden"]) + 1
-        across = weight_across_towers([arrays[f"net.{2 * j}.weight"] for j in range(n_linear)],
-                                      arch["n_features"], arch["hidden"])
-        if across > 0:
-            raise CheckpointError(f"{weights_path}: a towers checkpoint with non-zero weights "
-                                  f"across the towers (up to {across:.3g})")
+    _check_towers(arrays, meta["architecture"], weights_path)
     return arrays, meta
+
+
+def _check_towers(arrays: dict[str, np.ndarray], arch: dict, weights_path: Path) -> None:
+    """A towers checkpoint must store zeros across its towers: every reader (numpy inference,
+    the certifier's bounds) takes the stored weights as they are."""
+    if not arch.get("towers"):
+        return
+    n_linear = len(arch["hidden"]) + 1
+    across = weight_across_towers([arrays[f"net.{2 * j}.weight"] for j in range(n_linear)],
+                                  arch["n_features"], arch["hidden"])
+    if across > 0:
+        raise CheckpointError(f"{weights_path}: a towers checkpoint with non-zero weights "
+                              f"across the towers (up to {across:.3g})")
 
 
 def load_model(path: str | Path) -> tuple[PlannerMLP, dict]:

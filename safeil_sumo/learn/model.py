@@ -161,13 +161,6 @@ class PlannerMLP(nn.Module):
             arch["towers"] = True
         return arch
 
-    def masked_weight_max(self) -> float:
-        """Largest |weight| where a tower mask is zero (0 for a sound towers model or a dense one)."""
-        if not self.towers:
-            return 0.0
-        return max(float((self.net[2 * j].weight.detach() * (1 - getattr(self, f"mask_{j}"))).abs().max())
-                   for j in range(len(self.hidden) + 1))
-
 
 def split_towers(model: PlannerMLP) -> PlannerMLP:
     """A towers model (every hidden layer twice as wide) from a dense ``model``: both towers

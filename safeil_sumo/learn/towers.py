@@ -9,6 +9,7 @@ second half, the lateral tower, reads every input and alone feeds the y control 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import pairwise
 
 import numpy as np
 
@@ -22,7 +23,7 @@ def tower_masks(n_features: int, hidden: Sequence[int]) -> list[np.ndarray]:
     each hidden layer: the longitudinal tower; the rest: the lateral tower)."""
     widths = [int(n_features), *(int(h) for h in hidden)]
     masks = []
-    for j, (n_in, n_out) in enumerate(zip(widths[:-1], widths[1:], strict=True)):
+    for j, (n_in, n_out) in enumerate(pairwise(widths)):
         m = np.ones((n_out, n_in), np.float32)
         if j == 0:
             m[: n_out // 2, list(LANE_FEATURES)] = 0.0
