@@ -45,6 +45,8 @@ def fingerprint(name_or_path: str) -> str:
     else:
         path = Path(name_or_path)
     try:
+        if not path.is_file():
+            return name_or_path
         stat = path.stat()
     except (OSError, ValueError):
         return name_or_path

@@ -131,3 +131,43 @@ def test_lane_by_steering_passes_no_lane_gradient_to_the_plan_length():
     assert (grads[True][1][..., 0] == 0).all()
     torch.testing.assert_close(grads[True][1][..., 1], grads[False][1][..., 1])
     assert (grads[True][3][..., 0] > 0).all()  # the leader (60 m ahead) still pulls x back
+
+
+def test_a_longitudinal_fine_tune_leaves_the_lateral_plan_exactly():
+    """Adam steps on a loss of every output, the gradients kept on the longitudinal tower only:
+    the y control points are bit-identical, the x ones moved."""
+    from safeil_sumo.learn.model import keep_only_longitudinal_gradients
+
+    towers = split_towers(_dense())
+    f = _features(64)
+    before = towers(f).detach().clone()
+    opt = torch.optim.Adam(towers.parameters(), lr=1e-2)
+    for _ in range(5):
+        loss = towers(f).pow(2).sum()
+        opt.zero_grad()
+        loss.backward()
+        keep_only_longitudinal_gradients(towers)
+        torch.nn.utils.clip_grad_norm_(towers.parameters(), 10.0)
+        opt.step()
+    after = towers(f).detach()
+    assert torch.equal(after[..., 1], before[..., 1])
+    assert (after[..., 0] - before[..., 0]).abs().max() > 1e-3
+    with pytest.raises(ValueError, match="towers"):
+        keep_only_longitudinal_gradients(_dense())
+
+
+def test_shipped_safeil_stops_behind_a_braking_leader_on_the_curve():
+    """libsumo: the leader-response suite's case that a towers fine-tune which also trained the
+    lateral tower failed (curved500, leader braking at 4 m/s^2 to a stop, 50 m ahead): at
+    walking pace its lateral plan swung 3 m off and it left the lane at 12.9 s. The shipped
+    `safeil` (lateral tower kept exactly) stops behind it in its lane."""
+    from safeil_sumo.experiments.sweep_executor import run_task
+    from safeil_sumo.scenarios.spec import ScenarioSpec
+
+    spec = ScenarioSpec(net="curved500", index=21001, master_seed=6, policy="safeil",
+                        leader_kind="braking", brake_time_s=5.0, brake_decel_mps2=4.0,
+                        brake_to_mps=0.0, ego_speed_mps=30.0, max_time_s=40.0,
+                        stop_on_flag=False, initial_gap_m=50.0)
+    out = run_task(spec)
+    assert out["status"] == "ok" and out["flag"] == "" and out["end_reason"] != "collision"
+    assert out["min_gap_m"] > 2.0 and out["max_abs_lateral_offset_m"] < 0.5

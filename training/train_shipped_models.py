@@ -22,7 +22,8 @@ Models, all on the same data and split:
   barrier and the monotonicity penalty stay in the loss, and the lane-keeping outputs are held to
   ``safeil_openloop``'s. The network is split in two towers (:func:`safeil_sumo.learn.model.
   split_towers`): the plan's length (speed and gap keeping) reads no lane line, so a bend cannot
-  slow it, and the lane barrier shapes the lateral plan only.
+  slow it, and only that longitudinal tower is trained: the lateral plan is
+  ``safeil_openloop``'s, exactly.
 - ``safeil_openloop``: SafeIL with the exact Bernstein lane bound, the network predicting the
   control points relative to constant-speed motion (``--output-mode residual``), and the barrier
   also on states drawn across the operating envelope (``--envelope-weight 0.01``) with a
@@ -85,10 +86,10 @@ SAFEIL_CANDIDATES = {
 # more at weight 1 (docs/certification.md: sampled lane violations 36 % -> 0.5 % of envelope
 # states, leader 0.76 % -> 0.005 %, certified leader margin 98.0 -> 99.9 %; probe 12 of 12
 # settled within 45 s)
-# towers: the x control points read no lane line, and the lane barrier shapes the lateral plan
-# only (docs/human_likeness.md: on the 24 unseen ZalaZone drivers' whole drives gap RMSE
-# 33.5 / 26.4 / 61.5 m -> 5.17 / 6.07 / 15.9 m, median / mean / worst; the calibrated IDM 7.45 /
-# 7.79 / 28.5 m)
+# towers: the x control points read no lane line and only the longitudinal tower is trained
+# (the lateral plan stays safeil_openloop's exactly; docs/human_likeness.md: on the 24 unseen
+# ZalaZone drivers' whole drives gap RMSE 33.5 / 26.4 / 61.5 m -> 5.13 / 5.94 / 17.0 m,
+# median / mean / worst; the calibrated IDM 7.45 / 7.79 / 28.5 m)
 CLOSED_LOOP = FinetuneConfig(window=60.0, iters=400, style=True, equilibrium_weight=1.0,
                              perturb=0.5, settle_weight=3.0, settle_after=20.0,
                              lane_weight=1.0, leader_weight=1.0, towers=True, seed=SEED)

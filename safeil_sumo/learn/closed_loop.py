@@ -368,8 +368,8 @@ class FinetuneConfig:
     towers: bool = field(default=False, metadata={
         "help": "split the network into a longitudinal tower that never reads the lane lines "
                 "and a lateral one (learn/model.split_towers; hidden layers twice as wide): the "
-                "plan's length cannot depend on the lane's curvature; the lane barrier then "
-                "shapes the lateral plan only (closed_loop.envelope_terms lane_by_steering)"})
+                "plan's length cannot depend on the lane's curvature; only the longitudinal "
+                "tower is trained, the lateral plan stays the initial model's exactly"})
     seed: int = field(default=0, metadata={
         "help": "seed of the episodes drawn, the perturbations and the envelope states"})
 

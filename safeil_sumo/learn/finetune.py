@@ -53,7 +53,12 @@ from safeil_sumo.learn.closed_loop import (
     settling_loss,
 )
 from safeil_sumo.learn.envelope import sample_states
-from safeil_sumo.learn.model import PlannerMLP, split_towers, with_style_input
+from safeil_sumo.learn.model import (
+    PlannerMLP,
+    keep_only_longitudinal_gradients,
+    split_towers,
+    with_style_input,
+)
 from safeil_sumo.learn.style import (
     TIME_GAP_RANGE_S,
     equilibrium_residual,
@@ -181,6 +186,8 @@ def _iteration(config: FinetuneConfig, s: _Start, settling: SettlingConfig,
         loss = loss + config.leader_weight * lead
     opt.zero_grad(set_to_none=True)
     loss.backward()
+    if model.towers:  # the lateral plan stays the initial model's, exactly
+        keep_only_longitudinal_gradients(model)
     torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
     opt.step()
     named = {"envelope": env_term, "lane": lane, "leader": lead, "monotone": mono,

@@ -36,7 +36,7 @@ from torch import nn
 
 from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn.style import STYLE_NAMES
-from safeil_sumo.learn.towers import tower_masks
+from safeil_sumo.learn.towers import longitudinal_rows, tower_masks
 
 N_OUTPUTS = 6
 ACTIVATIONS = ("tanh", "relu")
@@ -160,6 +160,20 @@ class PlannerMLP(nn.Module):
         if self.towers:
             arch["towers"] = True
         return arch
+
+
+def keep_only_longitudinal_gradients(model: PlannerMLP) -> None:
+    """Zero every gradient of ``model`` (a towers model, after ``backward``) outside the
+    longitudinal tower and the x outputs, so an optimiser step (Adam, SGD: a parameter whose
+    gradient is always zero never moves) leaves the lateral plan exactly as it was."""
+    if not model.towers:
+        raise ValueError("only a towers model has a longitudinal tower")
+    for j, rows in enumerate(longitudinal_rows(model.hidden)):
+        layer = model.net[2 * j]
+        keep = torch.as_tensor(rows, dtype=layer.weight.dtype)
+        for p in (layer.weight, layer.bias):
+            if p.grad is not None:
+                p.grad.mul_(keep.reshape(-1, *([1] * (p.dim() - 1))))
 
 
 def split_towers(model: PlannerMLP) -> PlannerMLP:

@@ -43,3 +43,16 @@ def weight_across_towers(weights: Sequence[np.ndarray], n_features: int,
     masks = tower_masks(n_features, hidden)
     return max(float(np.max(np.abs(np.asarray(w) * (1.0 - m)))) for w, m in
                zip(weights, masks, strict=True))
+
+
+def longitudinal_rows(hidden: Sequence[int]) -> list[np.ndarray]:
+    """0/1 row masks ``(n_out,)`` of every linear layer of a towers MLP: 1 on the longitudinal
+    tower's units and the x outputs (what a fine-tune of the longitudinal plan alone trains)."""
+    rows = []
+    for h in hidden:
+        r = np.zeros(int(h), np.float32)
+        r[: int(h) // 2] = 1.0
+        rows.append(r)
+    last = np.zeros(N_OUTPUTS, np.float32)
+    last[list(X_OUTPUTS)] = 1.0
+    return [*rows, last]
