@@ -32,18 +32,21 @@ def shipped_checkpoint(name: str) -> Path:
     return MODELS_DIR / f"{name}.safetensors"
 
 
+def policy_file(name_or_path: str) -> Path:
+    """The file a policy is loaded from: a shipped model's weights, the shipped IDM's model file
+    for ``idm``, else the path given (which may not exist, or name no file at all)."""
+    if name_or_path in SHIPPED:
+        return shipped_checkpoint(name_or_path)
+    return MODELS_DIR / "idm.json" if name_or_path == "idm" else Path(name_or_path)
+
+
 def fingerprint(name_or_path: str) -> str:
     """What a cached result of this policy depends on, for sweep and replay task ids: the sha256
     of the weights of a shipped or given checkpoint (as its sidecar records it), of an IDM model
     file's bytes; the name itself for a planner without a file (or a file that does not exist:
     loading it fails later, with its own error). A retrained model so never reuses the cached
     results of the model before."""
-    if name_or_path in SHIPPED:
-        path = shipped_checkpoint(name_or_path)
-    elif name_or_path == "idm":
-        path = MODELS_DIR / "idm.json"
-    else:
-        path = Path(name_or_path)
+    path = policy_file(name_or_path)
     try:
         if not path.is_file():
             return name_or_path
@@ -85,22 +88,18 @@ def load(name_or_path: str) -> Policy:
         return AnalyticPlanner()
     if name_or_path == "idm" or (name_or_path.endswith(".json")
                                  and idm.is_model_file(name_or_path)):
-        path = MODELS_DIR / "idm.json" if name_or_path == "idm" else Path(name_or_path)
         try:
-            return idm.load_planner(path)
+            return idm.load_planner(policy_file(name_or_path))
         except idm.IDMError as exc:
             raise PolicyError(f"cannot load the IDM planner: {exc}") from exc
-    if name_or_path in SHIPPED:
-        path = shipped_checkpoint(name_or_path)
-        if not path.is_file():
+    path = policy_file(name_or_path)
+    if not path.is_file():
+        if name_or_path in SHIPPED:
             raise PolicyError(f"the shipped {name_or_path!r} model is missing ({path})")
-    else:
-        path = Path(name_or_path)
-        if not path.is_file():
-            raise PolicyError(
-                f"unknown policy {name_or_path!r}: use one of {', '.join(NAMES)}, a checkpoint "
-                "path (.safetensors) or an IDM model file (.json)"
-            )
+        raise PolicyError(
+            f"unknown policy {name_or_path!r}: use one of {', '.join(NAMES)}, a checkpoint "
+            "path (.safetensors) or an IDM model file (.json)"
+        )
     from safeil_sumo.learn.inference import load_policy  # torch-free numpy inference
 
     try:

@@ -36,9 +36,8 @@ from torch import nn
 
 from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn.style import STYLE_NAMES
-from safeil_sumo.learn.towers import longitudinal_rows, tower_masks
+from safeil_sumo.learn.towers import N_OUTPUTS, longitudinal_rows, tower_masks
 
-N_OUTPUTS = 6
 ACTIVATIONS = ("tanh", "relu")
 OUTPUT_MODES = ("absolute", "residual")
 # A feature that is (nearly) constant in the training data keeps std 1 instead of exploding.
