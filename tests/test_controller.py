@@ -113,6 +113,29 @@ def test_lookahead_past_the_plan_end_follows_the_final_tangent():
     assert np.allclose([gx, gy], end + 25.0 * tangent, atol=1e-9)
 
 
+@pytest.mark.parametrize("cp, ahead", [
+    # a stop planned at walking pace (curved500, the leader braking to a halt): the spline
+    # reaches 5.6 m and curls back to 4.4 m; ahead of it: the chord from the ego to its end
+    ([[4.55, 0.07], [5.56, 0.2], [4.44, 0.07]], (4.44, 0.07)),
+    # a plan ending behind the ego: straight ahead
+    ([[-1.0, 0.3], [-2.0, 0.5], [-3.0, 0.4]], (1.0, 0.0)),
+])
+def test_a_plan_that_curls_back_is_extended_ahead_never_behind(cp, ahead):
+    """With a lookahead circle enclosing the whole plan, the target is on the plan's extension:
+    it must lie ahead of the ego (following the final tangent back would put it 1,000 m behind
+    and 70-120 m to the side: full steering lock at a stop)."""
+    from safeil_sumo.sim.controller import make_targets
+
+    cp = np.array(cp)
+    direction = np.array(ahead) / np.hypot(*ahead)
+    batch = make_targets(cp[None], np.array([HORIZON]), np.zeros(1), np.zeros(1), np.zeros(1))
+    for path in (make_target(cp, HORIZON, (0.0, 0.0, 0.0)).path,
+                 np.stack([batch.path_x[0], batch.path_y[0]], axis=1)):
+        np.testing.assert_allclose(path[-1], path[-2] + 1000.0 * direction, atol=1e-9)
+    gx, gy = lookahead_point(make_target(cp, HORIZON, (0.0, 0.0, 0.0)).segments, -2.7, 0.0, 9.0)
+    assert gx > 0.0 and abs(gy) < 0.5
+
+
 # --- plan evaluation ------------------------------------------------------------------------
 
 

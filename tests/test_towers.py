@@ -133,10 +133,12 @@ def test_lane_by_steering_passes_no_lane_gradient_to_the_plan_length():
     assert (grads[True][3][..., 0] > 0).all()  # the leader (60 m ahead) still pulls x back
 
 
-def test_a_longitudinal_fine_tune_leaves_the_lateral_plan_exactly():
-    """Adam steps on a loss of every output, the gradients kept on the longitudinal tower only:
-    the y control points are bit-identical, the x ones moved."""
-    from safeil_sumo.learn.model import keep_only_longitudinal_gradients
+@pytest.mark.parametrize("tower, kept, moved", [("longitudinal", 1, 0), ("lateral", 0, 1)])
+def test_training_one_tower_leaves_the_other_towers_plan_exactly(tower, kept, moved):
+    """Adam steps on a loss of every output, the gradients kept on one tower only: the other
+    tower's control points (y for the longitudinal tower, x for the lateral one) are
+    bit-identical, its own moved."""
+    from safeil_sumo.learn.model import keep_only_tower_gradients
 
     towers = split_towers(_dense())
     f = _features(64)
@@ -146,14 +148,16 @@ def test_a_longitudinal_fine_tune_leaves_the_lateral_plan_exactly():
         loss = towers(f).pow(2).sum()
         opt.zero_grad()
         loss.backward()
-        keep_only_longitudinal_gradients(towers)
+        keep_only_tower_gradients(towers, tower)
         torch.nn.utils.clip_grad_norm_(towers.parameters(), 10.0)
         opt.step()
     after = towers(f).detach()
-    assert torch.equal(after[..., 1], before[..., 1])
-    assert (after[..., 0] - before[..., 0]).abs().max() > 1e-3
+    assert torch.equal(after[..., kept], before[..., kept])
+    assert (after[..., moved] - before[..., moved]).abs().max() > 1e-3
     with pytest.raises(ValueError, match="towers"):
-        keep_only_longitudinal_gradients(_dense())
+        keep_only_tower_gradients(_dense(), tower)
+    with pytest.raises(ValueError, match="tower must be"):
+        keep_only_tower_gradients(towers, "vertical")
 
 
 def test_shipped_safeil_stops_behind_a_braking_leader_on_the_curve():

@@ -55,7 +55,7 @@ from safeil_sumo.learn.closed_loop import (
 from safeil_sumo.learn.envelope import sample_states
 from safeil_sumo.learn.model import (
     PlannerMLP,
-    keep_only_longitudinal_gradients,
+    keep_only_tower_gradients,
     split_towers,
     with_style_input,
 )
@@ -187,7 +187,7 @@ def _iteration(config: FinetuneConfig, s: _Start, settling: SettlingConfig,
     opt.zero_grad(set_to_none=True)
     loss.backward()
     if model.towers:  # the lateral plan stays the initial model's, exactly
-        keep_only_longitudinal_gradients(model)
+        keep_only_tower_gradients(model, "longitudinal")
     torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
     opt.step()
     named = {"envelope": env_term, "lane": lane, "leader": lead, "monotone": mono,

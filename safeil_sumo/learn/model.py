@@ -36,7 +36,7 @@ from torch import nn
 
 from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn.style import STYLE_NAMES
-from safeil_sumo.learn.towers import N_OUTPUTS, longitudinal_rows, tower_masks
+from safeil_sumo.learn.towers import N_OUTPUTS, tower_masks, tower_rows
 
 ACTIVATIONS = ("tanh", "relu")
 OUTPUT_MODES = ("absolute", "residual")
@@ -161,13 +161,14 @@ class PlannerMLP(nn.Module):
         return arch
 
 
-def keep_only_longitudinal_gradients(model: PlannerMLP) -> None:
-    """Zero every gradient of ``model`` (a towers model, after ``backward``) outside the
-    longitudinal tower and the x outputs, so an optimiser step (Adam, SGD: a parameter whose
-    gradient is always zero never moves) leaves the lateral plan exactly as it was."""
+def keep_only_tower_gradients(model: PlannerMLP, tower: str = "longitudinal") -> None:
+    """Zero every gradient of ``model`` (a towers model, after ``backward``) outside ``tower``
+    (``"longitudinal"``: its units and the x outputs; ``"lateral"``: its units and the y
+    outputs), so an optimiser step (Adam, SGD: a parameter whose gradient is always zero never
+    moves) leaves the other tower's plan exactly as it was."""
     if not model.towers:
-        raise ValueError("only a towers model has a longitudinal tower")
-    for j, rows in enumerate(longitudinal_rows(model.hidden)):
+        raise ValueError("only a towers model has towers")
+    for j, rows in enumerate(tower_rows(model.hidden, tower)):
         layer = model.net[2 * j]
         keep = torch.as_tensor(rows, dtype=layer.weight.dtype)
         for p in (layer.weight, layer.bias):

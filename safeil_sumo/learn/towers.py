@@ -45,9 +45,15 @@ def weight_across_towers(weights: Sequence[np.ndarray], n_features: int,
                zip(weights, masks, strict=True))
 
 
-def longitudinal_rows(hidden: Sequence[int]) -> list[np.ndarray]:
-    """0/1 row masks ``(n_out,)`` of every linear layer of a towers MLP: 1 on the longitudinal
-    tower's units and the x outputs (what a fine-tune of the longitudinal plan alone trains)."""
+TOWERS = ("longitudinal", "lateral")
+
+
+def tower_rows(hidden: Sequence[int], tower: str) -> list[np.ndarray]:
+    """0/1 row masks ``(n_out,)`` of every linear layer of a towers MLP: 1 on ``tower``'s units
+    and outputs (the longitudinal tower: the first half of each hidden layer and the x outputs;
+    the lateral one: the rest and the y outputs), i.e. what training that tower alone moves."""
+    if tower not in TOWERS:
+        raise ValueError(f"tower must be one of {TOWERS}, got {tower!r}")
     rows = []
     for h in hidden:
         r = np.zeros(int(h), np.float32)
@@ -55,4 +61,5 @@ def longitudinal_rows(hidden: Sequence[int]) -> list[np.ndarray]:
         rows.append(r)
     last = np.zeros(N_OUTPUTS, np.float32)
     last[list(X_OUTPUTS)] = 1.0
-    return [*rows, last]
+    rows.append(last)
+    return rows if tower == "longitudinal" else [1.0 - r for r in rows]

@@ -223,6 +223,9 @@ def make_targets(
     forward = np.broadcast_to(np.array([1.0, 0.0]), (n, 2))
     t0 = _units(cp[:, 0], forward)
     t1 = _units(cp[:, 2] - cp[:, 1], _units(cp[:, 2] - cp[:, 0], t0))
+    chord = _units(cp[:, 2], forward)
+    # a plan that stops curls back at its end: extend it ahead, never back past the ego
+    t1 = np.where(t1[:, :1] > 0.0, t1, np.where(chord[:, :1] > 0.0, chord, forward))
     path[:, 0] = -_BACK_EXTENSION_M * t0
     path[:, -1] = path[:, -2] + _FRONT_EXTENSION_M * t1
     coeff = []
@@ -333,6 +336,9 @@ def make_target(
     forward = np.array([1.0, 0.0])
     t0 = _unit(cp[0], forward)
     t1 = _unit(cp[2] - cp[1], _unit(cp[2] - cp[0], t0))
+    if t1[0] <= 0.0:  # a plan that stops curls back: extend it ahead, never back past the ego
+        chord = _unit(cp[2], forward)
+        t1 = chord if chord[0] > 0.0 else forward
     path = np.empty((n_samples + 2, 2))
     path[0] = -_BACK_EXTENSION_M * t0
     path[1:-1] = pts

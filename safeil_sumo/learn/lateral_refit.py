@@ -1,0 +1,183 @@
+"""Refit a towers planner's lateral plan to its own longitudinal plan.
+
+A towers checkpoint (:func:`safeil_sumo.learn.model.split_towers`) fine-tuned in closed loop
+keeps the lateral tower of the open-loop model it started from, whose y control points were
+learned together with *that* model's x control points. The fine-tune changes how far the plan
+reaches (on a bend the open-loop model planned shorter), so at speed on a tight bend the kept y
+points sit where the open-loop plan's x would have put them, not where the new x does, and the
+plan's end leaves the lane (``certify``: counterexamples on most of the lane envelope).
+
+The refit keeps what the open-loop model learned about lane keeping, its lateral offset from
+the lane centre along the plan, and carries it over to the new plan's length:
+
+    target y(tau) = centre(x_new(tau)) + [y_ref(tau) - centre(x_ref(tau))]
+
+with ``centre`` the lane-centre polynomial (the mean of both lines), ``(x_ref, y_ref)`` the
+reference (open-loop) plan and ``x_new`` the towers model's own plan; the y control points are
+its least-squares cubic fit (:func:`lateral_targets`). Only the lateral tower is trained (the
+x control points stay bit-identical), by plain regression on states drawn across the operating
+envelope and from the data, with the envelope barrier's lane terms on top. Where the plans are
+equally long (slow, or the fine-tune did not change x) the target is the reference's y exactly,
+so low-speed lane keeping is kept.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.learn import spline
+from safeil_sumo.learn.checkpoint import load_model, save_checkpoint
+from safeil_sumo.learn.closed_loop import envelope_terms
+from safeil_sumo.learn.envelope import sample_states
+from safeil_sumo.learn.losses import C0L, C0R
+from safeil_sumo.learn.model import PlannerMLP, keep_only_tower_gradients
+from safeil_sumo.learn.style import TIME_GAP_RANGE_S
+from safeil_sumo.learn.trainer import TrainConfig
+
+N_FEATURES_PAPER = 9
+
+
+@dataclass(frozen=True)
+class LateralRefitConfig:
+    """Settings of :func:`refit_lateral` (``training/refit_lateral.py`` has one option per
+    field under its own name; the meaning and unit of each is its ``help``)."""
+
+    steps: int = field(default=8000, metadata={"help": "optimiser steps"})
+    batch: int = field(default=2048, metadata={
+        "help": "states per step: half drawn across the envelope, half data states"})
+    lr: float = field(default=1e-3, metadata={
+        "help": "Adam learning rate, decayed linearly to 0 over the steps [-]"})
+    lane_weight: float = field(default=0.01, metadata={
+        "help": "weight of the envelope barrier's lane terms (K softplus(-b_k) on the exact "
+                "Bernstein coefficients of both lateral margins) on the envelope states; 0.01 "
+                "is the open-loop recipe's envelope weight [-]"})
+    n_tau: int = field(default=21, metadata={
+        "help": "points along the plan at which the target path is fitted [-]"})
+    seed: int = field(default=0, metadata={"help": "seed of the states drawn"})
+
+    def __post_init__(self) -> None:
+        if self.steps < 1 or self.batch < 2 or self.n_tau < 4:
+            raise ValueError(f"steps >= 1, batch >= 2 and n_tau >= 4 needed, got {self.steps}, "
+                             f"{self.batch}, {self.n_tau}")
+        if self.lr <= 0 or self.lane_weight < 0:
+            raise ValueError(f"lr > 0 and lane_weight >= 0 needed, got {self.lr}, "
+                             f"{self.lane_weight}")
+
+
+def _line(coef: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``c0 + c1 x + c2 x^2`` for ``coef (N, 3)`` at ``x (N, M)``."""
+    return coef[:, 0, None] + coef[:, 1, None] * x + coef[:, 2, None] * x * x
+
+
+def lateral_targets(features: torch.Tensor, reference: torch.Tensor, new_x: torch.Tensor,
+                    n_tau: int = 21) -> torch.Tensor:
+    """The y control points ``(N, 3)`` [m] that carry the reference plans' lateral offsets from
+    the lane centre over to new plan lengths: the least-squares cubic (origin fixed) through
+    ``centre(x_new(tau)) + y_ref(tau) - centre(x_ref(tau))`` at ``n_tau`` points ``tau`` in
+    [0, 1], for ``features (N, >= 6)`` (the lane lines' ``c0, c1, c2``), reference plans
+    ``(N, 3, 2)`` and new x control points ``(N, 3)``. Exact (the target is a cubic) on straight
+    lanes, or where the new plan has the reference's x."""
+    dtype = reference.dtype
+    tau = torch.linspace(0.0, 1.0, n_tau, dtype=dtype)
+    free = spline.basis(tau)[:, 1:]  # (M, 3): the origin's coefficient is 0
+    centre = 0.5 * (features[:, C0L:C0L + 3] + features[:, C0R:C0R + 3]).to(dtype)
+    x_ref, y_ref = reference[..., 0] @ free.T, reference[..., 1] @ free.T  # (N, M)
+    x_new = new_x.to(dtype) @ free.T
+    target = _line(centre, x_new) + y_ref - _line(centre, x_ref)
+    return target @ torch.linalg.pinv(free).T
+
+
+@dataclass(frozen=True)
+class RefitResult:
+    path: Path
+    metrics: dict
+
+
+def _with_style(states: torch.Tensor, model: PlannerMLP, rng: np.random.Generator
+                ) -> torch.Tensor:
+    """States with style inputs drawn across the trained range if ``model`` reads them."""
+    if model.n_features == N_FEATURES_PAPER:
+        return states
+    style = rng.uniform(*TIME_GAP_RANGE_S, (len(states), model.n_features - N_FEATURES_PAPER))
+    return torch.cat([states, torch.as_tensor(style, dtype=states.dtype)], dim=1)
+
+
+def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str | Path,
+                  data_paths: Sequence[str | Path], out: str | Path,
+                  progress: bool = False) -> RefitResult:
+    """Refit the lateral tower of the towers checkpoint ``init`` to the targets of
+    :func:`lateral_targets` from the checkpoint ``reference`` (a 9-input planner, e.g.
+    ``safeil_openloop``) on envelope states and the states of the Tuples files ``data_paths``,
+    and write the checkpoint ``out`` (a prefix) with ``init``'s name, horizon, configs and
+    metrics plus ``lateral_refit``. The x control points are kept exactly. Deterministic for a
+    seed (one torch thread while it runs)."""
+    init, out = Path(init), Path(out)
+    model, meta = load_model(init)
+    ref, _ = load_model(reference)
+    if not model.towers:
+        raise ValueError(f"{init}: not a towers checkpoint (nothing to refit: its lateral plan "
+                         "is trained with the longitudinal one)")
+    if ref.n_features != N_FEATURES_PAPER:
+        raise ValueError(f"{reference}: the reference must read the paper's 9 features, "
+                         f"it reads {ref.n_features}")
+    for p in ref.parameters():
+        p.requires_grad_(False)
+    horizon = float(meta["horizon_s"])
+    barrier = TrainConfig.from_dict(meta["train_config"]).barrier
+    data = torch.as_tensor(Tuples.concat([Tuples.load(p) for p in data_paths]).features,
+                           dtype=torch.float32)
+    prev_threads = torch.get_num_threads()
+    try:
+        torch.manual_seed(config.seed)
+        torch.set_num_threads(1)
+        rng = np.random.default_rng([config.seed, 5])
+        gen = torch.Generator().manual_seed(config.seed)
+        opt = torch.optim.Adam(model.parameters(), lr=config.lr)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 1.0 - k / config.steps)
+        half = config.batch // 2
+        start = time.perf_counter()
+        log = []
+        model.train()
+        for _ in tqdm(range(config.steps), disable=not progress, desc="lateral refit"):
+            env = torch.as_tensor(sample_states(half, rng), dtype=torch.float32)
+            rows = torch.randint(len(data), (config.batch - half,), generator=gen)
+            states = _with_style(torch.cat([env, data[rows]]), model, rng)
+            pred = model(states)
+            with torch.no_grad():
+                target = lateral_targets(states, ref(states[:, :N_FEATURES_PAPER]),
+                                         pred[..., 0], config.n_tau)
+            fit = (pred[..., 1] - target).pow(2).sum(dim=-1).mean()
+            lane = envelope_terms(states[:half], pred[:half], horizon, barrier,
+                                  lane_by_steering=True)[1]
+            loss = fit + config.lane_weight * lane
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            keep_only_tower_gradients(model, "lateral")
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            opt.step()
+            sched.step()
+            log.append({"fit_m2": float(fit.detach()), "lane": float(lane.detach()),
+                        "loss": float(loss.detach())})
+        model.eval()
+        seconds = time.perf_counter() - start
+    finally:
+        torch.set_num_threads(prev_threads)
+    last = {k: float(np.mean([row[k] for row in log[-100:]])) for k in log[-1]}
+    metrics = {**meta.get("metrics", {}), "lateral_refit": {
+        "init": str(init), "reference": str(reference), "steps": config.steps,
+        "batch": config.batch, "lr": config.lr, "lane_weight": config.lane_weight,
+        "n_tau": config.n_tau, "seed": config.seed, "seconds": seconds,
+        "first": log[0], "last_100_mean": last}}
+    save_checkpoint(out, model, name=meta["name"], horizon=horizon,
+                    train_config=meta["train_config"],
+                    data_fingerprint=meta.get("data_fingerprint"), metrics=metrics,
+                    style_default=meta.get("style_default"))
+    return RefitResult(out, metrics)

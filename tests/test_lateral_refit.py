@@ -1,0 +1,125 @@
+"""The lateral refit of a towers planner (learn/lateral_refit.py): targets by hand and by
+property, and a tiny refit that keeps the x control points bit for bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safeil_sumo.learn.checkpoint import load_model, save_checkpoint
+from safeil_sumo.learn.lateral_refit import LateralRefitConfig, lateral_targets, refit_lateral
+from safeil_sumo.learn.model import PlannerMLP, split_towers, with_style_input
+from safeil_sumo.learn.trainer import TrainConfig
+
+
+def _lane(c0l=1.75, c1=0.0, c2=0.0, c0r=-1.75) -> torch.Tensor:
+    return torch.tensor([[c0l, c1, c2, c0r, c1, c2, 25.0, 25.0, 50.0]], dtype=torch.float64)
+
+
+def _plan(xs, ys) -> torch.Tensor:
+    return torch.tensor([list(zip(xs, ys, strict=True))], dtype=torch.float64)
+
+
+def test_straight_lane_by_hand():
+    """A straight lane at slope 0.02: the target is y_ref + c1 (x_new - x_ref) at each point."""
+    y = lateral_targets(_lane(c1=0.02), _plan([10, 20, 30], [0.1, 0.2, 0.3]),
+                        torch.tensor([[20.0, 40.0, 60.0]], dtype=torch.float64))
+    torch.testing.assert_close(y, torch.tensor([[0.3, 0.6, 0.9]], dtype=torch.float64))
+
+
+def test_a_plan_on_the_centre_of_a_bend_stays_on_it_at_twice_the_length():
+    """Lane centre y = k x^2 / 2, k = 0.004, a reference plan x = 30 tau on it (its y Bernstein
+    coefficients of 450 k tau^2: 0, 0, 150 k, 450 k); twice as long, x = 60 tau: y coefficients
+    0, 0, 600 k, 1800 k, i.e. free points (0, 2.4, 7.2) m."""
+    k = 0.004
+    y = lateral_targets(_lane(c2=k / 2), _plan([10, 20, 30], [0, 150 * k, 450 * k]),
+                        torch.tensor([[20.0, 40.0, 60.0]], dtype=torch.float64))
+    torch.testing.assert_close(y, torch.tensor([[0.0, 2.4, 7.2]], dtype=torch.float64))
+
+
+def test_the_offset_from_the_centre_is_carried_over():
+    """The ego 0.5 m left of the centre on a straight lane, a reference plan going back to the
+    centre by its second point: the longer plan also reaches the centre (y = -0.5 m) and stays."""
+    lane = _lane(c0l=1.25, c0r=-2.25)  # centre at y = -0.5 in the ego frame
+    y = lateral_targets(lane, _plan([10, 20, 30], [-0.5, -0.5, -0.5]),
+                        torch.tensor([[25.0, 50.0, 75.0]], dtype=torch.float64))
+    torch.testing.assert_close(y, torch.tensor([[-0.5, -0.5, -0.5]], dtype=torch.float64))
+
+
+@settings(max_examples=60, deadline=None)
+@given(c=st.lists(st.floats(-0.05, 0.05), min_size=3, max_size=3),
+       k=st.floats(-0.004, 0.004), width=st.floats(3.0, 4.0),
+       xs=st.lists(st.floats(0.0, 60.0), min_size=3, max_size=3),
+       ys=st.lists(st.floats(-2.0, 2.0), min_size=3, max_size=3))
+def test_same_length_gives_the_reference_back(c, k, width, xs, ys):
+    """Where the new plan has the reference's x, the target is the reference's y, exactly (up
+    to rounding), whatever the lane."""
+    x = np.cumsum(xs)
+    lane = _lane(c0l=width / 2 + c[0], c1=c[1], c2=k / 2, c0r=-width / 2 + c[0])
+    ref = _plan(x, ys)
+    y = lateral_targets(lane, ref, ref[..., 0])
+    torch.testing.assert_close(y, ref[..., 1], atol=1e-8, rtol=0)
+
+
+def _towers_checkpoint(tmp_path):
+    from test_learn import make_tuples
+
+    tup = make_tuples(n_maneuvers=3, per_maneuver=40, curved=True)
+    data = tmp_path / "tuples.parquet"
+    tup.save(data)
+    torch.manual_seed(0)
+    dense = PlannerMLP(hidden=(16, 16), output_mode="residual")
+    dense.set_scaling(tup.features, tup.control_points)
+    with torch.no_grad():
+        for p in dense.net.parameters():
+            p.normal_(0.0, 0.3)
+    cfg = TrainConfig(envelope_weight=0.01, output_mode="residual", barrier_lateral="bernstein")
+    save_checkpoint(tmp_path / "ref", dense, name="safeil", horizon=5.0, train_config=cfg)
+    towers = split_towers(with_style_input(dense, 1.5, 0.5))
+    with torch.no_grad():  # a different plan length than the reference's
+        towers.net[-1].bias[[0, 2, 4]] += 0.5
+    save_checkpoint(tmp_path / "towers", towers, name="safeil", horizon=5.0, train_config=cfg,
+                    style_default={"time_gap_s": 1.5})
+    return data
+
+
+def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path):
+    data = _towers_checkpoint(tmp_path)
+    config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0)
+    result = refit_lateral(config, tmp_path / "towers.safetensors", tmp_path / "ref.safetensors",
+                           [data], tmp_path / "out")
+    before, _ = load_model(tmp_path / "towers.safetensors")
+    after, meta = load_model(tmp_path / "out.safetensors")
+    ref, _ = load_model(tmp_path / "ref.safetensors")
+    from safeil_sumo.data.tuples import Tuples
+    from safeil_sumo.learn.envelope import sample_states
+
+    states = np.concatenate([sample_states(500, np.random.default_rng(3)),
+                             Tuples.load(data).features])  # the states it is trained on
+    f = torch.as_tensor(np.c_[states, np.full(len(states), 1.5)], dtype=torch.float32)
+    with torch.no_grad():
+        assert torch.equal(after(f)[..., 0], before(f)[..., 0])
+        target = lateral_targets(f, ref(f[:, :9]), before(f)[..., 0])
+        err_before = (before(f)[..., 1] - target).pow(2).mean()
+        err_after = (after(f)[..., 1] - target).pow(2).mean()
+    assert err_after < 0.7 * err_before
+    run = meta["metrics"]["lateral_refit"]
+    assert run["steps"] == 200 and {"fit_m2", "lane"} <= set(run["last_100_mean"])
+    assert meta["style_default"] == {"time_gap_s": 1.5}
+    assert result.path == tmp_path / "out"
+    with pytest.raises(ValueError, match="not a towers"):
+        refit_lateral(config, tmp_path / "ref.safetensors", tmp_path / "ref.safetensors",
+                      [data], tmp_path / "bad")
+    with pytest.raises(ValueError, match="9 features"):
+        refit_lateral(config, tmp_path / "towers.safetensors",
+                      tmp_path / "towers.safetensors", [data], tmp_path / "bad")
+
+
+def test_config_refuses_nonsense():
+    with pytest.raises(ValueError, match="steps"):
+        LateralRefitConfig(steps=0)
+    with pytest.raises(ValueError, match="lane_weight"):
+        LateralRefitConfig(lane_weight=-1.0)
