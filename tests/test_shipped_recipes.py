@@ -119,9 +119,10 @@ def _without_timings(meta: dict) -> dict:
                             if k not in ("seconds", "samples_per_s")}
         meta["history"] = [{k: v for k, v in e.items() if k != "seconds"}
                            for e in meta["history"]]
-    loop = meta["metrics"].get("closed_loop")
-    if loop is not None:
-        meta["metrics"]["closed_loop"] = {k: v for k, v in loop.items() if k != "seconds"}
+    for stage in ("closed_loop", "lateral_refit"):
+        run = meta["metrics"].get(stage)
+        if run is not None:
+            meta["metrics"][stage] = {k: v for k, v in run.items() if k != "seconds"}
     return meta
 
 
@@ -219,3 +220,20 @@ def test_finetune_gives_the_command_lines_checkpoint(tmp_path):
     assert torch.get_num_threads() == threads  # restored
     assert result.metrics["closed_loop"]["iters"] == 3 and "episodes" in result.notes[0]
     assert_same_checkpoint(tmp_path / "fn", tmp_path / "cli")
+
+
+def test_lateral_refit_gives_the_command_lines_checkpoint(tmp_path):
+    """A tiny lateral refit in this process and through ``training/refit_lateral.py`` in a fresh
+    one: the same checkpoint; the recipe's config is the default one at the shipped seed."""
+    from test_lateral_refit import _towers_checkpoint
+
+    from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
+
+    data = _towers_checkpoint(tmp_path)
+    init, ref = tmp_path / "towers.safetensors", tmp_path / "ref.safetensors"
+    _run_script("refit_lateral", "--init", str(init), "--reference", str(ref), "--data",
+                str(data), "--steps", "5", "--batch", "32", "--out", str(tmp_path / "cli"),
+                "--no-progress")
+    refit_lateral(LateralRefitConfig(steps=5, batch=32), init, ref, [data], tmp_path / "fn")
+    assert_same_checkpoint(tmp_path / "fn", tmp_path / "cli")
+    assert shipped.LATERAL == LateralRefitConfig(seed=shipped.SEED)
