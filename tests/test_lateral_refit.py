@@ -123,3 +123,31 @@ def test_config_refuses_nonsense():
         LateralRefitConfig(steps=0)
     with pytest.raises(ValueError, match="lane_weight"):
         LateralRefitConfig(lane_weight=-1.0)
+
+
+def test_offsets_taken_on_the_straightened_lane_follow_the_bend_geometrically():
+    """The reference's plan made for the lane straightened (on its centre, y = 0) and the new
+    plan twice as long on a bend k = 0.004: the target is the bend's centre at the new x,
+    (0, 600 k, 1800 k) = (0, 2.4, 7.2) m, as if the reference had planned on the bend itself."""
+    k = 0.004
+    straight = _lane()
+    y = lateral_targets(_lane(c2=k / 2), _plan([10, 20, 30], [0.0, 0.0, 0.0]),
+                        torch.tensor([[20.0, 40.0, 60.0]], dtype=torch.float64),
+                        reference_features=straight)
+    torch.testing.assert_close(y, torch.tensor([[0.0, 2.4, 7.2]], dtype=torch.float64))
+
+
+def test_bend_states_keep_the_lateral_acceleration_and_stay_recoverable():
+    from safeil_sumo.learn.lateral_refit import _bend_states
+
+    cfg = LateralRefitConfig(bend_share=0.5, bend_curvature=1 / 40, bend_lateral_accel=4.0)
+    s = _bend_states(20000, np.random.default_rng(0), cfg)
+    kappa, v, v_lead, gap = np.abs(2 * s[:, 2]), s[:, 6], s[:, 7], s[:, 8]
+    np.testing.assert_array_equal(s[:, 2], s[:, 5])  # both lines bend alike
+    assert kappa.max() > 0.9 / 40 and kappa.max() <= 1 / 40
+    assert (v * v * kappa <= 4.0 + 1e-9).all()
+    assert v.max() > 30.0  # gentle bends keep the envelope's speeds
+    closing = np.maximum(v - v_lead, 0.0)
+    assert (gap > closing**2 / 12.0).all()
+    with pytest.raises(ValueError, match="bend_share"):
+        LateralRefitConfig(bend_share=1.0)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +36,8 @@ from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn import spline
 from safeil_sumo.learn.checkpoint import load_model, save_checkpoint
 from safeil_sumo.learn.closed_loop import envelope_terms
-from safeil_sumo.learn.envelope import sample_states
-from safeil_sumo.learn.losses import C0L, C0R
+from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
+from safeil_sumo.learn.losses import C0L, C0R, V_LEAD, V_X
 from safeil_sumo.learn.model import PlannerMLP, keep_only_tower_gradients
 from safeil_sumo.learn.style import TIME_GAP_RANGE_S
 from safeil_sumo.learn.trainer import TrainConfig
@@ -59,6 +59,19 @@ class LateralRefitConfig:
         "help": "weight of the envelope barrier's lane terms (K softplus(-b_k) on the exact "
                 "Bernstein coefficients of both lateral margins) on the envelope states; 0.01 "
                 "is the open-loop recipe's envelope weight [-]"})
+    straight_reference: bool = field(default=False, metadata={
+        "help": "take the reference's offsets from the lane centre on the same state with the "
+                "lane straightened (c2 = 0): its lane keeping (back to the centre from an "
+                "offset or heading error), with the bend itself followed geometrically; so the "
+                "target holds on bends tighter than the reference ever saw"})
+    bend_share: float = field(default=0.0, metadata={
+        "help": "share of the envelope states drawn on tighter bends, up to "
+                "--bend-curvature, at speeds keeping the lateral acceleration v^2 kappa within "
+                "--bend-lateral-accel (0: the envelope's curvatures only) [-]"})
+    bend_curvature: float = field(default=1.0 / 40.0, metadata={
+        "help": "largest curvature of the tighter bends [1/m]"})
+    bend_lateral_accel: float = field(default=4.0, metadata={
+        "help": "largest lateral acceleration of the tighter bends' states [m/s^2]"})
     n_tau: int = field(default=21, metadata={
         "help": "points along the plan at which the target path is fitted [-]"})
     seed: int = field(default=0, metadata={"help": "seed of the states drawn"})
@@ -70,6 +83,11 @@ class LateralRefitConfig:
         if self.lr <= 0 or self.lane_weight < 0:
             raise ValueError(f"lr > 0 and lane_weight >= 0 needed, got {self.lr}, "
                              f"{self.lane_weight}")
+        if not (0.0 <= self.bend_share < 1.0 and self.bend_curvature > 0
+                and self.bend_lateral_accel > 0):
+            raise ValueError(f"bend_share in [0, 1), bend_curvature > 0 and bend_lateral_accel "
+                             f"> 0 needed, got {self.bend_share}, {self.bend_curvature}, "
+                             f"{self.bend_lateral_accel}")
 
 
 def _line(coef: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -78,20 +96,27 @@ def _line(coef: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 def lateral_targets(features: torch.Tensor, reference: torch.Tensor, new_x: torch.Tensor,
-                    n_tau: int = 21) -> torch.Tensor:
+                    n_tau: int = 21, reference_features: torch.Tensor | None = None
+                    ) -> torch.Tensor:
     """The y control points ``(N, 3)`` [m] that carry the reference plans' lateral offsets from
     the lane centre over to new plan lengths: the least-squares cubic (origin fixed) through
     ``centre(x_new(tau)) + y_ref(tau) - centre(x_ref(tau))`` at ``n_tau`` points ``tau`` in
     [0, 1], for ``features (N, >= 6)`` (the lane lines' ``c0, c1, c2``), reference plans
     ``(N, 3, 2)`` and new x control points ``(N, 3)``. Exact (the target is a cubic) on straight
-    lanes, or where the new plan has the reference's x."""
+    lanes, or where the new plan has the reference's x. ``reference_features``: the states the
+    reference plans were made for, if not ``features`` (e.g. the lane straightened): the
+    offsets are taken from their lane centre."""
     dtype = reference.dtype
+    if reference_features is None:
+        reference_features = features
     tau = torch.linspace(0.0, 1.0, n_tau, dtype=dtype)
     free = spline.basis(tau)[:, 1:]  # (M, 3): the origin's coefficient is 0
     centre = 0.5 * (features[:, C0L:C0L + 3] + features[:, C0R:C0R + 3]).to(dtype)
+    centre_ref = 0.5 * (reference_features[:, C0L:C0L + 3]
+                        + reference_features[:, C0R:C0R + 3]).to(dtype)
     x_ref, y_ref = reference[..., 0] @ free.T, reference[..., 1] @ free.T  # (N, M)
     x_new = new_x.to(dtype) @ free.T
-    target = _line(centre, x_new) + y_ref - _line(centre, x_ref)
+    target = _line(centre, x_new) + y_ref - _line(centre_ref, x_ref)
     return target @ torch.linalg.pinv(free).T
 
 
@@ -108,6 +133,26 @@ def _with_style(states: torch.Tensor, model: PlannerMLP, rng: np.random.Generato
         return states
     style = rng.uniform(*TIME_GAP_RANGE_S, (len(states), model.n_features - N_FEATURES_PAPER))
     return torch.cat([states, torch.as_tensor(style, dtype=states.dtype)], dim=1)
+
+
+def _bend_states(n: int, rng: np.random.Generator, config: LateralRefitConfig) -> np.ndarray:
+    """Envelope states on bends up to ``config.bend_curvature``, both speeds scaled down where
+    ``v^2 kappa`` would exceed ``config.bend_lateral_accel`` (slower: still recoverable)."""
+    k = config.bend_curvature
+    states = sample_states(n, rng, replace(EnvelopeConfig(), curvature_1pm=(-k, k)))
+    kappa = np.abs(2.0 * states[:, C0L + 2])
+    v_max = np.sqrt(config.bend_lateral_accel / np.maximum(kappa, 1e-9))
+    scale = np.minimum(1.0, v_max / np.maximum(states[:, V_X], 1e-9))
+    states[:, V_X] *= scale
+    states[:, V_LEAD] *= scale
+    return states
+
+
+def _straightened(states: torch.Tensor) -> torch.Tensor:
+    out = states.clone()
+    out[:, C0L + 2] = 0.0
+    out[:, C0R + 2] = 0.0
+    return out
 
 
 def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str | Path,
@@ -147,15 +192,20 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
         log = []
         model.train()
         for _ in tqdm(range(config.steps), disable=not progress, desc="lateral refit"):
-            env = torch.as_tensor(sample_states(half, rng), dtype=torch.float32)
+            n_bend = int(round(config.bend_share * half))
+            env = torch.as_tensor(np.concatenate([sample_states(half - n_bend, rng),
+                                                  _bend_states(n_bend, rng, config)]),
+                                  dtype=torch.float32)
             rows = torch.randint(len(data), (config.batch - half,), generator=gen)
             states = _with_style(torch.cat([env, data[rows]]), model, rng)
             pred = model(states)
             with torch.no_grad():
-                target = lateral_targets(states, ref(states[:, :N_FEATURES_PAPER]),
-                                         pred[..., 0], config.n_tau)
+                seen = states[:, :N_FEATURES_PAPER]
+                if config.straight_reference:
+                    seen = _straightened(seen)
+                target = lateral_targets(states, ref(seen), pred[..., 0], config.n_tau, seen)
             fit = (pred[..., 1] - target).pow(2).sum(dim=-1).mean()
-            lane = envelope_terms(states[:half], pred[:half], horizon, barrier,
+            lane = envelope_terms(states[:half - n_bend], pred[:half - n_bend], horizon, barrier,
                                   lane_by_steering=True)[1]
             loss = fit + config.lane_weight * lane
             opt.zero_grad(set_to_none=True)
@@ -174,7 +224,9 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
     metrics = {**meta.get("metrics", {}), "lateral_refit": {
         "init": str(init), "reference": str(reference), "steps": config.steps,
         "batch": config.batch, "lr": config.lr, "lane_weight": config.lane_weight,
-        "n_tau": config.n_tau, "seed": config.seed, "seconds": seconds,
+        "straight_reference": config.straight_reference, "bend_share": config.bend_share,
+        "bend_curvature": config.bend_curvature,
+        "bend_lateral_accel": config.bend_lateral_accel, "n_tau": config.n_tau, "seed": config.seed, "seconds": seconds,
         "first": log[0], "last_100_mean": last}}
     save_checkpoint(out, model, name=meta["name"], horizon=horizon,
                     train_config=meta["train_config"],
