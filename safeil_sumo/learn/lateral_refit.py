@@ -188,11 +188,11 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
         opt = torch.optim.Adam(model.parameters(), lr=config.lr)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 1.0 - k / config.steps)
         half = config.batch // 2
+        n_bend = round(config.bend_share * half)  # of the envelope half
         start = time.perf_counter()
         log = []
         model.train()
         for _ in tqdm(range(config.steps), disable=not progress, desc="lateral refit"):
-            n_bend = int(round(config.bend_share * half))
             env = torch.as_tensor(np.concatenate([sample_states(half - n_bend, rng),
                                                   _bend_states(n_bend, rng, config)]),
                                   dtype=torch.float32)
