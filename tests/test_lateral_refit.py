@@ -86,9 +86,13 @@ def _towers_checkpoint(tmp_path):
     return data
 
 
-def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path):
+@pytest.mark.parametrize("straight, bends", [(False, 0.0), (True, 0.25)])
+def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path, straight, bends):
+    from safeil_sumo.learn.lateral_refit import _straightened
+
     data = _towers_checkpoint(tmp_path)
-    config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0)
+    config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
+                                straight_reference=straight, bend_share=bends)
     result = refit_lateral(config, tmp_path / "towers.safetensors", tmp_path / "ref.safetensors",
                            [data], tmp_path / "out")
     before, _ = load_model(tmp_path / "towers.safetensors")
@@ -102,7 +106,8 @@ def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path):
     f = torch.as_tensor(np.c_[states, np.full(len(states), 1.5)], dtype=torch.float32)
     with torch.no_grad():
         assert torch.equal(after(f)[..., 0], before(f)[..., 0])
-        target = lateral_targets(f, ref(f[:, :9]), before(f)[..., 0])
+        seen = _straightened(f[:, :9]) if straight else f[:, :9]
+        target = lateral_targets(f, ref(seen), before(f)[..., 0], reference_features=seen)
         err_before = (before(f)[..., 1] - target).pow(2).mean()
         err_after = (after(f)[..., 1] - target).pow(2).mean()
     assert err_after < 0.7 * err_before

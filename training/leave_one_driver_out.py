@@ -6,7 +6,7 @@ Generalisation across drivers (issue 20): the shipped ``safeil`` held out 20 % o
 but the drivers of those maneuvers also drove training maneuvers. Here each fold leaves whole
 drivers out of everything, trains ``safeil`` with the shipped two-stage recipe
 (``training/train_shipped_models.py``: the open-loop stage with the chosen candidate's options,
-then the closed-loop fine-tune with the style input) and calibrates the IDM on the same data
+the closed-loop fine-tune of the longitudinal tower with the style input, the lateral refit) and calibrates the IDM on the same data
 (``training/fit_idm.py --exclude-from``), then replays every maneuver of the left-out drivers
 whole, in SUMO, beside the ``constant_speed`` baseline; the OpenACC drivers also adapted
 (``replay --adapt-first-s 60``: the planner's time-gap setting estimated and the IDM refitted on
@@ -23,8 +23,9 @@ left-out driver's preference is unknown to the planner, as it is to the IDM.
 Writes ``<out>/windows.csv`` (one row per fold, policy and maneuver), ``<out>/per_driver.csv``,
 ``<out>/summary.csv`` and ``<out>/summary.md``; the fold models go to ``data/lodo/`` (not
 committed). Each fold costs one open-loop training (≤ 10 min on one core), one closed-loop
-fine-tune (≈ 7 min), both in-process (:func:`safeil_sumo.learn.trainer.train_checkpoint`,
-:func:`safeil_sumo.learn.finetune.finetune`), and one IDM calibration; folds run ``--workers`` at
+fine-tune (≈ 22 min), one lateral refit (≈ 3 min), all in-process
+(:func:`safeil_sumo.learn.trainer.train_checkpoint`, :func:`safeil_sumo.learn.finetune.finetune`,
+:func:`safeil_sumo.learn.lateral_refit.refit_lateral`), and one IDM calibration; folds run ``--workers`` at
 a time, each in a worker process of its own, resumed where their files exist.
 """
 
@@ -50,6 +51,7 @@ import train_shipped_models as shipped  # the shipped recipe, one source of trut
 from safeil_sumo.data.sources import driver_of
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.finetune import finetune
+from safeil_sumo.learn.lateral_refit import refit_lateral
 from safeil_sumo.learn.trainer import train_checkpoint
 
 SOURCES = ("openacc", "ngsim")
@@ -120,11 +122,16 @@ def train_fold(k: int, drivers: set[str]) -> Path:
         trained = train_checkpoint(config, [shipped.SYNTHETIC, *real], fold / "safeil_openloop",
                                    "safeil")
         _note(log, "\n".join(trained.notes))
-    if not (fold / "safeil.safetensors").is_file():
-        _note(log, f"finetune({shipped.CLOSED_LOOP}) -> {fold / 'safeil'}")
+    if not (fold / "safeil_cl.safetensors").is_file():
+        _note(log, f"finetune({shipped.CLOSED_LOOP}) -> {fold / 'safeil_cl'}")
         tuned = finetune(shipped.CLOSED_LOOP, fold / "safeil_openloop.safetensors", real,
-                         fold / "safeil")
+                         fold / "safeil_cl")
         _note(log, "\n".join(tuned.notes))
+    if not (fold / "safeil.safetensors").is_file():
+        _note(log, f"refit_lateral({shipped.LATERAL}) -> {fold / 'safeil'}")
+        refit_lateral(shipped.LATERAL, fold / "safeil_cl.safetensors",
+                      fold / "safeil_openloop.safetensors", [shipped.SYNTHETIC, *real],
+                      fold / "safeil")
     if not (fold / "idm.json").is_file():
         _run([sys.executable, str(REPO / "training" / "fit_idm.py"), "--exclude-from",
               str(fold / "held_out.json"), "--out", str(fold / "idm.json")], log)

@@ -59,15 +59,16 @@ class LateralRefitConfig:
         "help": "weight of the envelope barrier's lane terms (K softplus(-b_k) on the exact "
                 "Bernstein coefficients of both lateral margins) on the envelope states; 0.01 "
                 "is the open-loop recipe's envelope weight [-]"})
-    straight_reference: bool = field(default=False, metadata={
+    straight_reference: bool = field(default=True, metadata={
         "help": "take the reference's offsets from the lane centre on the same state with the "
                 "lane straightened (c2 = 0): its lane keeping (back to the centre from an "
                 "offset or heading error), with the bend itself followed geometrically; so the "
                 "target holds on bends tighter than the reference ever saw"})
-    bend_share: float = field(default=0.0, metadata={
+    bend_share: float = field(default=0.25, metadata={
         "help": "share of the envelope states drawn on tighter bends, up to "
                 "--bend-curvature, at speeds keeping the lateral acceleration v^2 kappa within "
-                "--bend-lateral-accel (0: the envelope's curvatures only) [-]"})
+                "--bend-lateral-accel (0: the envelope's curvatures only; the training lanes "
+                "have R >= 250 m, a handling course R = 45-80 m) [-]"})
     bend_curvature: float = field(default=1.0 / 40.0, metadata={
         "help": "largest curvature of the tighter bends [1/m]"})
     bend_lateral_accel: float = field(default=4.0, metadata={
