@@ -10,22 +10,26 @@ plan's end leaves the lane (``certify``: counterexamples on most of the lane env
 The refit keeps what the open-loop model learned about lane keeping, its lateral offset from
 the lane centre along the plan, and carries it over to the new plan's length:
 
-    target y(tau) = centre(x_new(tau)) + [y_ref(tau) - centre(x_ref(tau))]
+    target y(tau) = centre(x_new(tau)) + [y_ref(tau) - centre_ref(x_ref(tau))]
 
-with ``centre`` the lane-centre polynomial (the mean of both lines), ``(x_ref, y_ref)`` the
-reference (open-loop) plan and ``x_new`` the towers model's own plan; the y control points are
-its least-squares cubic fit (:func:`lateral_targets`). Only the lateral tower is trained (the
-x control points stay bit-identical), by plain regression on states drawn across the operating
-envelope and from the data, with the envelope barrier's lane terms on top. Where the plans are
-equally long (slow, or the fine-tune did not change x) the target is the reference's y exactly,
-so low-speed lane keeping is kept.
+with ``centre`` the lane-centre polynomial (the mean of both lines; ``centre_ref`` that of the
+lane the reference planned for), ``(x_ref, y_ref)`` the reference (open-loop) plan and
+``x_new`` the towers model's own plan; the y control points are its least-squares cubic fit (:func:`lateral_targets`). By default the reference plans for the
+same state with the lane straightened (``straight_reference``): its offsets are its lane keeping
+(back to the centre from an offset or a heading error), learned on nearly straight lanes, and
+the bend is followed geometrically; a share of the states lies on bends tighter than any
+training lane (``bend_share``), where the reference alone would extrapolate. Only the lateral
+tower is trained (the x control points stay bit-identical), by plain regression on states drawn
+across the operating envelope and from the data, with the envelope barrier's lane terms on top.
+Where the plans are equally long (slow, or the fine-tune did not change x) on a straight lane
+the target is the reference's y exactly, so low-speed lane keeping is kept.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +37,7 @@ import torch
 from tqdm.auto import tqdm
 
 from safeil_sumo.data.tuples import Tuples
+from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn import spline
 from safeil_sumo.learn.checkpoint import load_model, save_checkpoint
 from safeil_sumo.learn.closed_loop import envelope_terms
@@ -41,8 +46,6 @@ from safeil_sumo.learn.losses import C0L, C0R, V_LEAD, V_X
 from safeil_sumo.learn.model import PlannerMLP, keep_only_tower_gradients
 from safeil_sumo.learn.style import TIME_GAP_RANGE_S
 from safeil_sumo.learn.trainer import TrainConfig
-
-N_FEATURES_PAPER = 9
 
 
 @dataclass(frozen=True)
@@ -130,9 +133,9 @@ class RefitResult:
 def _with_style(states: torch.Tensor, model: PlannerMLP, rng: np.random.Generator
                 ) -> torch.Tensor:
     """States with style inputs drawn across the trained range if ``model`` reads them."""
-    if model.n_features == N_FEATURES_PAPER:
+    if model.n_features == N_FEATURES:
         return states
-    style = rng.uniform(*TIME_GAP_RANGE_S, (len(states), model.n_features - N_FEATURES_PAPER))
+    style = rng.uniform(*TIME_GAP_RANGE_S, (len(states), model.n_features - N_FEATURES))
     return torch.cat([states, torch.as_tensor(style, dtype=states.dtype)], dim=1)
 
 
@@ -171,7 +174,7 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
     if not model.towers:
         raise ValueError(f"{init}: not a towers checkpoint (nothing to refit: its lateral plan "
                          "is trained with the longitudinal one)")
-    if ref.n_features != N_FEATURES_PAPER:
+    if ref.n_features != N_FEATURES:
         raise ValueError(f"{reference}: the reference must read the paper's 9 features, "
                          f"it reads {ref.n_features}")
     for p in ref.parameters():
@@ -201,7 +204,7 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
             states = _with_style(torch.cat([env, data[rows]]), model, rng)
             pred = model(states)
             with torch.no_grad():
-                seen = states[:, :N_FEATURES_PAPER]
+                seen = states[:, :N_FEATURES]
                 if config.straight_reference:
                     seen = _straightened(seen)
                 target = lateral_targets(states, ref(seen), pred[..., 0], config.n_tau, seen)
@@ -223,11 +226,7 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
         torch.set_num_threads(prev_threads)
     last = {k: float(np.mean([row[k] for row in log[-100:]])) for k in log[-1]}
     metrics = {**meta.get("metrics", {}), "lateral_refit": {
-        "init": str(init), "reference": str(reference), "steps": config.steps,
-        "batch": config.batch, "lr": config.lr, "lane_weight": config.lane_weight,
-        "straight_reference": config.straight_reference, "bend_share": config.bend_share,
-        "bend_curvature": config.bend_curvature,
-        "bend_lateral_accel": config.bend_lateral_accel, "n_tau": config.n_tau, "seed": config.seed, "seconds": seconds,
+        "init": str(init), "reference": str(reference), **asdict(config), "seconds": seconds,
         "first": log[0], "last_100_mean": last}}
     save_checkpoint(out, model, name=meta["name"], horizon=horizon,
                     train_config=meta["train_config"],
