@@ -204,3 +204,29 @@ def test_single_sample_plans_are_not_overwritten(data: Tuples, tmp_path: Path) -
     a_copy = a.copy()
     policy.plan(data.features[1] * 2)
     np.testing.assert_array_equal(a, a_copy)
+
+
+def test_the_same_weights_give_the_same_file_in_every_process(tmp_path: Path) -> None:
+    """safetensors writes its metadata map in hash order, which changes between processes (and
+    between maps in one process): the weights file of one model, saved in fresh processes,
+    must still be byte-identical (its sha256 keys caches and certificates)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, torch\n"
+        "from safeil_sumo.learn.checkpoint import save_checkpoint\n"
+        "from safeil_sumo.learn.model import PlannerMLP\n"
+        "for k in range(4):\n"
+        "    torch.manual_seed(0)\n"
+        "    save_checkpoint(f'{sys.argv[1]}_{k}', PlannerMLP(hidden=(4,)), name='bc', horizon=5.0)\n"
+    )
+    for run in range(3):
+        subprocess.run([sys.executable, "-c", script, str(tmp_path / f"p{run}")], check=True)
+    files = sorted(tmp_path.glob("p*.safetensors"))
+    assert len(files) == 12
+    assert len({f.read_bytes() for f in files}) == 1
+    blob = files[0].read_bytes()
+    header = json.loads(blob[8 : 8 + struct.unpack("<Q", blob[:8])[0]])
+    assert list(header) == sorted(header)
+    load_checkpoint(files[0])  # still a valid checkpoint

@@ -96,6 +96,19 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
+def canonical_safetensors(blob: bytes) -> bytes:
+    """``blob`` (a safetensors file) with its JSON header's keys sorted, padded with spaces to
+    its length: safetensors writes its ``__metadata__`` map in hash order, which differs from
+    process to process, so the same weights would get a different file (and sha256) each time.
+    The tensors' offsets are relative to the data after the header, so they stay valid."""
+    n = int.from_bytes(blob[:8], "little")
+    header = json.loads(blob[8 : 8 + n])
+    text = json.dumps(header, sort_keys=True, separators=(",", ":")).encode()
+    if len(text) > n:  # cannot happen for the same keys and values; keep the original then
+        return blob
+    return blob[:8] + text + b" " * (n - len(text)) + blob[8 + n :]
+
+
 def _atomic_write(path: Path, data: bytes) -> None:
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
@@ -129,7 +142,8 @@ def save_checkpoint(
         k: v.detach().to(torch.float32).contiguous().numpy()
         for k, v in model.state_dict().items()
     }
-    blob = st_save(arrays, metadata={"format": FORMAT, "format_version": str(FORMAT_VERSION)})
+    blob = canonical_safetensors(
+        st_save(arrays, metadata={"format": FORMAT, "format_version": str(FORMAT_VERSION)}))
     meta: dict[str, Any] = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
