@@ -219,7 +219,8 @@ def test_the_same_weights_give_the_same_file_in_every_process(tmp_path: Path) ->
         "from safeil_sumo.learn.model import PlannerMLP\n"
         "for k in range(4):\n"
         "    torch.manual_seed(0)\n"
-        "    save_checkpoint(f'{sys.argv[1]}_{k}', PlannerMLP(hidden=(4,)), name='bc', horizon=5.0)\n"
+        "    model = PlannerMLP(hidden=(4,))\n"
+        "    save_checkpoint(f'{sys.argv[1]}_{k}', model, name='bc', horizon=5.0)\n"
     )
     for run in range(3):
         subprocess.run([sys.executable, "-c", script, str(tmp_path / f"p{run}")], check=True)

@@ -14,9 +14,10 @@ the lane centre along the plan, and carries it over to the new plan's length:
 
 with ``centre`` the lane-centre polynomial (the mean of both lines; ``centre_ref`` that of the
 lane the reference planned for), ``(x_ref, y_ref)`` the reference (open-loop) plan and
-``x_new`` the towers model's own plan; the y control points are its least-squares cubic fit (:func:`lateral_targets`). By default the reference plans for the
-same state with the lane straightened (``straight_reference``): its offsets are its lane keeping
-(back to the centre from an offset or a heading error), learned on nearly straight lanes, and
+``x_new`` the towers model's own plan; the y control points are its least-squares cubic fit
+(:func:`lateral_targets`). By default the reference plans for the same state with the lane
+straightened (``straight_reference``): its offsets are its lane keeping (back to the centre
+from an offset or a heading error), learned on nearly straight lanes, and
 the bend is followed geometrically; a share of the states lies on bends tighter than any
 training lane (``bend_share``), where the reference alone would extrapolate. Only the lateral
 tower is trained (the x control points stay bit-identical), by plain regression on states drawn
