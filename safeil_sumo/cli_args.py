@@ -212,13 +212,14 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
     ``--max-epochs``, plus any ``aliases``), defaulting to the field's default and typed by it:
     a float is finite, a bool is ``--x/--no-x``, a tuple of ints is comma-separated, another
     tuple takes several values. Values are checked by ``cls.__post_init__`` when the instance is
-    built (:func:`dataclass_from_args`), so each rule lives in one place."""
+    built (:func:`dataclass_from_args`), so each rule lives in one place. Each option's help is
+    ``helps[name]``, else the field's ``help`` metadata, else its name."""
     defaults = cls()
     for f in dataclasses.fields(cls):
         default = getattr(defaults, f.name)
         flags = ["--" + f.name.replace("_", "-"), *(aliases or {}).get(f.name, ())]
-        kw: dict = {"dest": f.name, "default": default,
-                    "help": f"{(helps or {}).get(f.name, f.name)} (default {default!r})"}
+        text = (helps or {}).get(f.name, f.metadata.get("help", f.name))
+        kw: dict = {"dest": f.name, "default": default, "help": f"{text} (default {default!r})"}
         if isinstance(default, bool):
             kw["action"] = argparse.BooleanOptionalAction
         elif isinstance(default, float):

@@ -12,7 +12,6 @@ keeps from the initial checkpoint: see there). Every field of
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args
@@ -28,8 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
                     default=Path("safeil_sumo/models/safeil_openloop.safetensors"))
     ap.add_argument("--data", type=Path, nargs="+", required=True, help="tuple Parquet files")
     ap.add_argument("--out", type=Path, required=True, help="checkpoint prefix")
-    helps = {f.name: f.metadata["help"] for f in dataclasses.fields(FinetuneConfig)}
-    add_dataclass_options(ap, FinetuneConfig, helps=helps)
+    add_dataclass_options(ap, FinetuneConfig)
     ap.add_argument("--no-progress", action="store_true")
     return ap
 

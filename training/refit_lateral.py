@@ -13,7 +13,6 @@ is an option under its own name, checked by the config itself.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args
@@ -28,8 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="9-input checkpoint whose lane keeping is carried over")
     ap.add_argument("--data", type=Path, nargs="+", required=True, help="tuple Parquet files")
     ap.add_argument("--out", type=Path, required=True, help="checkpoint prefix")
-    helps = {f.name: f.metadata["help"] for f in dataclasses.fields(LateralRefitConfig)}
-    add_dataclass_options(ap, LateralRefitConfig, helps=helps)
+    add_dataclass_options(ap, LateralRefitConfig)
     ap.add_argument("--no-progress", action="store_true")
     return ap
 
