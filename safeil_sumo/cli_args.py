@@ -236,6 +236,15 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
         parser.add_argument(*flags, **kw)
 
 
+def config_or_usage_error(parser: argparse.ArgumentParser, cls: type, args: argparse.Namespace):
+    """:func:`dataclass_from_args`, its config's own check failing as a usage error (exit 2 with
+    the message), as a bad option value would."""
+    try:
+        return dataclass_from_args(cls, args)
+    except ValueError as exc:
+        parser.error(str(exc))
+
+
 def dataclass_from_args(cls: type, args: argparse.Namespace):
     """``cls`` built from the options :func:`add_dataclass_options` added (``ValueError`` from
     its checks)."""

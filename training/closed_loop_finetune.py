@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args
+from safeil_sumo.cli_args import add_dataclass_options, config_or_usage_error
 from safeil_sumo.learn.closed_loop import FinetuneConfig
 from safeil_sumo.learn.finetune import finetune
 
@@ -35,10 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
-    try:
-        config = dataclass_from_args(FinetuneConfig, args)
-    except ValueError as exc:  # the config's own checks: a usage error
-        ap.error(str(exc))
+    config = config_or_usage_error(ap, FinetuneConfig, args)
     result = finetune(config, args.init, args.data, args.out, progress=not args.no_progress)
     run = result.metrics["closed_loop"]
     print("\n".join(result.notes))

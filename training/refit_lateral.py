@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args
+from safeil_sumo.cli_args import add_dataclass_options, config_or_usage_error
 from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
 
 
@@ -35,10 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
-    try:
-        config = dataclass_from_args(LateralRefitConfig, args)
-    except ValueError as exc:
-        ap.error(str(exc))
+    config = config_or_usage_error(ap, LateralRefitConfig, args)
     result = refit_lateral(config, args.init, args.reference, args.data, args.out,
                            progress=not args.no_progress)
     run = result.metrics["lateral_refit"]
