@@ -8,7 +8,8 @@ A plan is three control points ``(3, 2)`` [m] in the ego frame at plan time (ori
 centre, x forward, y left), over a horizon ``T_h`` [s] (see :mod:`safeil_sumo.bspline`). At plan time
 :func:`make_target` precomputes everything the per-step :func:`track` needs: dense path samples in
 the plan frame (extended backwards along the initial tangent and forwards along the final tangent,
-so a lookahead past either end still finds a point) and the cubic's power-basis coefficients in
+so a lookahead past either end still finds a point; a plan that curls back at its end, a stop,
+is extended ahead along the chord to its end instead, never back past the ego) and the cubic's power-basis coefficients in
 time, from which speed and acceleration are a handful of float operations.
 
 Pure pursuit steers the rear axle towards the path point at distance ``L_d`` ahead:
