@@ -164,7 +164,8 @@ def test_shipped_safeil_stops_behind_a_braking_leader_on_the_curve():
     """libsumo: the leader-response suite's case that a towers fine-tune which also trained the
     lateral tower failed (curved500, leader braking at 4 m/s^2 to a stop, 50 m ahead): at
     walking pace its lateral plan swung 3 m off and it left the lane at 12.9 s. The shipped
-    `safeil` (lateral tower kept exactly) stops behind it in its lane."""
+    `safeil` (lateral tower refitted to its plan length, learn/lateral_refit.py, tracked with
+    curled-back stop plans extended ahead) stops behind it in its lane."""
     from safeil_sumo.experiments.sweep_executor import run_task
     from safeil_sumo.scenarios.spec import ScenarioSpec
 
