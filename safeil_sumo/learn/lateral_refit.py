@@ -91,7 +91,7 @@ class LateralRefitConfig:
                 "lie 50 standard deviations out and the inherited tower saturates there"})
     concentric_bends: bool = field(default=False, metadata={
         "help": "draw the tighter bends' two lane lines concentric, as a camera sees them (the "
-                "inner line bends more: kappa / (1 -+ kappa w / 2), 5 %% at R = 40 m), instead of "
+                "inner line bends more: kappa / (1 -+ kappa w / 2), by 5 percent at R = 40 m), instead of "
                 "with one curvature for both"})
     n_tau: int = field(default=21, metadata={
         "help": "points along the plan at which the target path is fitted [-]"})
