@@ -133,7 +133,7 @@ def test_a_fresh_lateral_tower_starts_straight_keeps_x_and_is_scaled_to_its_stat
 
     data = _towers_checkpoint(tmp_path)
     config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
-                                fresh_tower=True, concentric_bends=True,
+                                fresh_tower=True, bend_line_split=2.0,
                                 bend_heading_error=0.08, bend_lateral_accel=6.0)
     ref, _ = load_model(tmp_path / "ref.safetensors")
     states = torch.tensor(np.array(Tuples.load(data).features), dtype=torch.float32)
@@ -223,14 +223,15 @@ def test_concentric_bend_lines_by_hand():
     0.02 / (1 - 0.035) = 0.0207254 1/m, the right one 0.02 / 1.035 = 0.0193237 1/m (c2 = half);
     a right bend mirrors it. ZalaZone's camera gave c2 = -0.0079 / -0.0084 at a centre of
     -0.0163 1/m: the same 6 % split."""
-    from safeil_sumo.learn.lateral_refit import _concentric
+    from safeil_sumo.learn.lateral_refit import _split_lines
 
     states = np.zeros((2, 9))
     states[:, 0], states[:, 3] = 1.75, -1.75
     states[0, [2, 5]] = 0.01
     states[1, [2, 5]] = -0.01
-    out = _concentric(states)
+    out = _split_lines(states)
     np.testing.assert_allclose(out[0, [2, 5]], [0.0103627, 0.0096618], atol=1e-7)
     np.testing.assert_allclose(out[1, [2, 5]], [-0.0096618, -0.0103627], atol=1e-7)
     np.testing.assert_array_equal(np.delete(out, [2, 5], axis=1),
                                   np.delete(states, [2, 5], axis=1))
+    np.testing.assert_array_equal(_split_lines(states, 0.0), states)  # no split: as drawn

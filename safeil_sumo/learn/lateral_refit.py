@@ -89,10 +89,12 @@ class LateralRefitConfig:
                 "the lane features and y outputs scaled to the refit's own states and targets: "
                 "the reference's highway data spread c2 by 0.0002, so a handling course's bends "
                 "lie 50 standard deviations out and the inherited tower saturates there"})
-    concentric_bends: bool = field(default=False, metadata={
-        "help": "draw the tighter bends' two lane lines concentric, as a camera sees them (the "
-                "inner line bends more: kappa / (1 -+ kappa w / 2), by 5 percent at R = 40 m), instead of "
-                "with one curvature for both"})
+    bend_line_split: float = field(default=0.0, metadata={
+        "help": "how the tighter bends' two lane lines differ: each state's lines bend by "
+                "kappa / (1 -+ s kappa w / 2), s drawn uniformly in [0, this] (0: one curvature "
+                "for both; s = 1: concentric, as a camera sees a bend, the inner line bending "
+                "more, by 5 percent at R = 40 m); a range teaches the plan to follow the centre "
+                "whatever the split [-]"})
     n_tau: int = field(default=21, metadata={
         "help": "points along the plan at which the target path is fitted [-]"})
     seed: int = field(default=0, metadata={"help": "seed of the states drawn"})
@@ -109,9 +111,10 @@ class LateralRefitConfig:
             raise ValueError(f"bend_share in [0, 1), bend_curvature > 0 and bend_lateral_accel "
                              f"> 0 needed, got {self.bend_share}, {self.bend_curvature}, "
                              f"{self.bend_lateral_accel}")
-        if self.bend_heading_error < 0 or self.bend_offset_m < 0:
-            raise ValueError(f"bend_heading_error >= 0 and bend_offset_m >= 0 needed, got "
-                             f"{self.bend_heading_error}, {self.bend_offset_m}")
+        if self.bend_heading_error < 0 or self.bend_offset_m < 0 or self.bend_line_split < 0:
+            raise ValueError(f"bend_heading_error, bend_offset_m and bend_line_split >= 0 "
+                             f"needed, got {self.bend_heading_error}, {self.bend_offset_m}, "
+                             f"{self.bend_line_split}")
 
 
 def _line(coef: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -167,8 +170,8 @@ def _bend_states(n: int, rng: np.random.Generator, config: LateralRefitConfig) -
     states = sample_states(n, rng, replace(EnvelopeConfig(), curvature_1pm=(-k, k),
                                            heading_error=(-h, h), lateral_offset_m=(-o, o)))
     kappa = np.abs(2.0 * states[:, C0L + 2])  # the centre line's
-    if config.concentric_bends:
-        states = _concentric(states)
+    if config.bend_line_split > 0.0:
+        states = _split_lines(states, rng.uniform(0.0, config.bend_line_split, len(states)))
     v_max = np.sqrt(config.bend_lateral_accel / np.maximum(kappa, 1e-9))
     scale = np.minimum(1.0, v_max / np.maximum(states[:, V_X], 1e-9))
     states[:, V_X] *= scale
@@ -176,14 +179,15 @@ def _bend_states(n: int, rng: np.random.Generator, config: LateralRefitConfig) -
     return states
 
 
-def _concentric(states: np.ndarray) -> np.ndarray:
-    """The states' lane lines made concentric about the centre line's curvature ``kappa``
-    (``c2 = kappa / 2`` of both lines on input): the left line's curvature ``kappa / (1 - kappa
-    w / 2)``, the right one's ``kappa / (1 + kappa w / 2)``, ``w`` the lane width (y to the
-    left: a left bend, kappa > 0, has the left line inside)."""
+def _split_lines(states: np.ndarray, split: np.ndarray | float = 1.0) -> np.ndarray:
+    """The states' lane lines (``c2 = kappa / 2`` of both on input) bent apart about the centre
+    line's curvature ``kappa``: the left line's curvature ``kappa / (1 - s kappa w / 2)``, the
+    right one's ``kappa / (1 + s kappa w / 2)``, ``w`` the lane width, ``s`` = ``split`` (one
+    per state, or one for all). ``s = 1``: concentric (y to the left: a left bend, kappa > 0,
+    has the left line inside)."""
     out = states.copy()
     kappa = 2.0 * states[:, C0L + 2]
-    half = 0.5 * (states[:, C0L] - states[:, C0R])
+    half = 0.5 * (states[:, C0L] - states[:, C0R]) * split
     out[:, C0L + 2] = 0.5 * kappa / (1.0 - kappa * half)
     out[:, C0R + 2] = 0.5 * kappa / (1.0 + kappa * half)
     return out
