@@ -92,7 +92,8 @@ def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path, straigh
 
     data = _towers_checkpoint(tmp_path)
     config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
-                                straight_reference=straight, bend_share=bends)
+                                straight_reference=straight, bend_share=bends,
+                                fresh_tower=False, bend_line_split=0.0)
     result = refit_lateral(config, tmp_path / "towers.safetensors", tmp_path / "ref.safetensors",
                            [data], tmp_path / "out")
     before, _ = load_model(tmp_path / "towers.safetensors")
@@ -189,7 +190,8 @@ def test_offsets_taken_on_the_straightened_lane_follow_the_bend_geometrically():
 def test_bend_states_keep_the_lateral_acceleration_and_stay_recoverable():
     from safeil_sumo.learn.lateral_refit import _bend_states
 
-    cfg = LateralRefitConfig(bend_share=0.5, bend_curvature=1 / 40, bend_lateral_accel=4.0)
+    cfg = LateralRefitConfig(bend_share=0.5, bend_curvature=1 / 40, bend_lateral_accel=4.0,
+                             bend_line_split=0.0)
     s = _bend_states(20000, np.random.default_rng(0), cfg)
     kappa, v, v_lead, gap = np.abs(2 * s[:, 2]), s[:, 6], s[:, 7], s[:, 8]
     np.testing.assert_array_equal(s[:, 2], s[:, 5])  # both lines bend alike
