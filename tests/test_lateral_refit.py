@@ -92,7 +92,8 @@ def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path, straigh
 
     data = _towers_checkpoint(tmp_path)
     config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
-                                straight_reference=straight, bend_share=bends)
+                                straight_reference=straight, bend_share=bends,
+                                fresh_tower=False, bend_line_split=0.0)
     result = refit_lateral(config, tmp_path / "towers.safetensors", tmp_path / "ref.safetensors",
                            [data], tmp_path / "out")
     before, _ = load_model(tmp_path / "towers.safetensors")
@@ -123,6 +124,50 @@ def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path, straigh
                       tmp_path / "towers.safetensors", [data], tmp_path / "bad")
 
 
+def test_a_fresh_lateral_tower_starts_straight_keeps_x_and_is_scaled_to_its_states(tmp_path):
+    """fresh_tower: the lateral rows re-drawn (seeded, none across the towers), the y outputs
+    start at their targets' mean, the lane features scaled to the refit's states, the x plan
+    bit for bit the same; and a whole refit from it is reproducible and fits its targets."""
+    from safeil_sumo.data.tuples import Tuples
+    from safeil_sumo.learn.lateral_refit import _fresh_lateral_tower
+    from safeil_sumo.learn.towers import weight_across_towers
+
+    data = _towers_checkpoint(tmp_path)
+    config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
+                                fresh_tower=True, bend_line_split=2.0,
+                                bend_heading_error=0.08, bend_lateral_accel=6.0)
+    ref, _ = load_model(tmp_path / "ref.safetensors")
+    states = torch.tensor(np.array(Tuples.load(data).features), dtype=torch.float32)
+    f = torch.cat([states, torch.full((len(states), 1), 1.5)], dim=1)
+    fresh = []
+    for _ in range(2):
+        model, _ = load_model(tmp_path / "towers.safetensors")
+        before = model(f).detach()
+        _fresh_lateral_tower(model, ref, states, config)
+        fresh.append(model)
+        with torch.no_grad():
+            after = model(f)
+        assert torch.equal(after[..., 0], before[..., 0])
+        torch.testing.assert_close(after[..., 1], model.output_mean[[1, 3, 5]].expand(len(f), 3))
+        assert not torch.equal(after[..., 1], before[..., 1])
+        weights = [m.weight.detach().numpy() for m in model.net
+                   if isinstance(m, torch.nn.Linear)]
+        assert weight_across_towers(weights, model.n_features, model.hidden) == 0.0
+        assert (model.feature_std[:6] > 0.0).all()
+        assert model.feature_std[2] > 1e-3  # the bends' curvature spread, not the data's
+    for a, b in zip(fresh[0].state_dict().values(), fresh[1].state_dict().values(),
+                    strict=True):
+        assert torch.equal(a, b)
+    outs = [refit_lateral(config, tmp_path / "towers.safetensors", tmp_path / "ref.safetensors",
+                          [data], tmp_path / f"out{i}") for i in range(2)]
+    assert (tmp_path / "out0.safetensors").read_bytes() == (tmp_path / "out1.safetensors"
+                                                             ).read_bytes()
+    assert outs[0].metrics["lateral_refit"]["fresh_tower"] is True
+    last = outs[0].metrics["lateral_refit"]["last_100_mean"]["fit_m2"]
+    first = outs[0].metrics["lateral_refit"]["first"]["fit_m2"]
+    assert last < 0.2 * first
+
+
 def test_config_refuses_nonsense():
     with pytest.raises(ValueError, match="steps"):
         LateralRefitConfig(steps=0)
@@ -145,7 +190,8 @@ def test_offsets_taken_on_the_straightened_lane_follow_the_bend_geometrically():
 def test_bend_states_keep_the_lateral_acceleration_and_stay_recoverable():
     from safeil_sumo.learn.lateral_refit import _bend_states
 
-    cfg = LateralRefitConfig(bend_share=0.5, bend_curvature=1 / 40, bend_lateral_accel=4.0)
+    cfg = LateralRefitConfig(bend_share=0.5, bend_curvature=1 / 40, bend_lateral_accel=4.0,
+                             bend_line_split=0.0)
     s = _bend_states(20000, np.random.default_rng(0), cfg)
     kappa, v, v_lead, gap = np.abs(2 * s[:, 2]), s[:, 6], s[:, 7], s[:, 8]
     np.testing.assert_array_equal(s[:, 2], s[:, 5])  # both lines bend alike
@@ -156,3 +202,38 @@ def test_bend_states_keep_the_lateral_acceleration_and_stay_recoverable():
     assert (gap > closing**2 / 12.0).all()
     with pytest.raises(ValueError, match="bend_share"):
         LateralRefitConfig(bend_share=1.0)
+
+
+@pytest.mark.parametrize("heading, offset", [(0.03, 0.6), (0.08, 0.8)])
+def test_bend_states_span_the_heading_and_offset_asked_for(heading, offset):
+    from safeil_sumo.learn.lateral_refit import _bend_states
+
+    cfg = LateralRefitConfig(bend_heading_error=heading, bend_offset_m=offset)
+    s = _bend_states(20000, np.random.default_rng(1), cfg)
+    c1 = s[:, 1]
+    # the ego's offset from the centre: the centre is at -offset in the ego frame
+    centre = 0.5 * (s[:, 0] + s[:, 3])
+    assert np.abs(c1).max() <= heading and np.abs(c1).max() > 0.95 * heading
+    np.testing.assert_array_equal(s[:, 1], s[:, 4])  # both lines share the slope
+    assert np.abs(centre).max() <= offset + 1e-9 and np.abs(centre).max() > 0.95 * offset
+    with pytest.raises(ValueError, match="bend_heading_error"):
+        LateralRefitConfig(bend_heading_error=-0.01)
+
+
+def test_concentric_bend_lines_by_hand():
+    """A left bend of the centre's curvature 0.02 1/m in a 3.5 m lane: the left (inner) line
+    0.02 / (1 - 0.035) = 0.0207254 1/m, the right one 0.02 / 1.035 = 0.0193237 1/m (c2 = half);
+    a right bend mirrors it. ZalaZone's camera gave c2 = -0.0079 / -0.0084 at a centre of
+    -0.0163 1/m: the same 6 % split."""
+    from safeil_sumo.learn.lateral_refit import _split_lines
+
+    states = np.zeros((2, 9))
+    states[:, 0], states[:, 3] = 1.75, -1.75
+    states[0, [2, 5]] = 0.01
+    states[1, [2, 5]] = -0.01
+    out = _split_lines(states)
+    np.testing.assert_allclose(out[0, [2, 5]], [0.0103627, 0.0096618], atol=1e-7)
+    np.testing.assert_allclose(out[1, [2, 5]], [-0.0096618, -0.0103627], atol=1e-7)
+    np.testing.assert_array_equal(np.delete(out, [2, 5], axis=1),
+                                  np.delete(states, [2, 5], axis=1))
+    np.testing.assert_array_equal(_split_lines(states, 0.0), states)  # no split: as drawn
