@@ -114,18 +114,21 @@ GENTLE_BRAKING = ScenarioSpec(
 @pytest.mark.parametrize("policy", ["safeil", "idm"])
 def test_guard_prevents_the_avoidable_collision(policy):
     """Falsification's case (docs/falsification.md): a leader 27.6 m ahead at 22.7 m/s brakes
-    gently (2.8 m/s^2) to a stop. Without the guard the planner is flagged, TTC below 1 s (the
-    IDM, and `safeil` before its towers, to within 0.5 s: min TTC 0.79 s now); with it, the ego
-    stops behind with TTC > 1 s, and the log shows the guard braking."""
+    gently (2.8 m/s^2) to a stop. With the guard, the ego stops behind with TTC > 1 s and the
+    log shows the guard braking; without it the planner alone comes closer: the IDM is flagged
+    (TTC below 1 s), `safeil` keeps 1.37 s TTC and 1.2 m (the model shipped before it: 0.79 s,
+    flagged; before its towers it collided), against 2.19 s and 2.3 m with the guard."""
     from safeil_sumo.experiments.sweep_executor import run_task
 
     spec = replace(GENTLE_BRAKING, policy=policy)
     off = run_task(replace(spec, brake_guard=False))
     on = run_task(spec)
     assert off["status"] == on["status"] == "ok"
-    assert off["flag"] == "ttc" and off["min_ttc_s"] < 1.0
     assert on["flag"] == "" and on["min_ttc_s"] > 1.0 and on["min_gap_m"] > 0.5
     assert on["brake_guard_s"] > 0.5 and math.isnan(off["brake_guard_s"])
+    assert off["min_ttc_s"] < on["min_ttc_s"] - 0.5 and off["min_gap_m"] < on["min_gap_m"]
+    if policy == "idm":
+        assert off["flag"] == "ttc" and off["min_ttc_s"] < 1.0
 
 
 def test_guard_brakes_as_hard_as_the_car_can():
