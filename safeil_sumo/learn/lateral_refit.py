@@ -170,8 +170,10 @@ def _with_style(states: torch.Tensor, model: PlannerMLP, rng: np.random.Generato
 
 
 def _bend_states(n: int, rng: np.random.Generator, config: LateralRefitConfig) -> np.ndarray:
-    """Envelope states on bends up to ``config.bend_curvature``, both speeds scaled down where
-    ``v^2 kappa`` would exceed ``config.bend_lateral_accel`` (slower: still recoverable)."""
+    """Envelope states on bends up to ``config.bend_curvature``, with heading errors and offsets
+    up to ``config.bend_heading_error`` and ``config.bend_offset_m`` and the lines bent apart by
+    up to ``config.bend_line_split``; both speeds scaled down where ``v^2 kappa`` would exceed
+    ``config.bend_lateral_accel`` (slower: still recoverable)."""
     k = config.bend_curvature
     h, o = config.bend_heading_error, config.bend_offset_m
     states = sample_states(n, rng, replace(EnvelopeConfig(), curvature_1pm=(-k, k),
@@ -207,12 +209,20 @@ def _straightened(states: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def _n_plain_and_bend(config: LateralRefitConfig) -> tuple[int, int]:
+    """How many of a batch's first half (the envelope states) are on the envelope's own lanes
+    (first; the lane terms act on them) and how many on the tighter bends (after them)."""
+    half = config.batch // 2
+    n_bend = round(config.bend_share * half)
+    return half - n_bend, n_bend
+
+
 def _draw_batch(config: LateralRefitConfig, data: torch.Tensor, model: PlannerMLP,
                 rng: np.random.Generator, gen: torch.Generator) -> torch.Tensor:
     """One batch of states: envelope states (the bend states last), then data states."""
-    half = config.batch // 2
-    n_bend = round(config.bend_share * half)
-    env = torch.as_tensor(np.concatenate([sample_states(half - n_bend, rng),
+    n_plain, n_bend = _n_plain_and_bend(config)
+    half = n_plain + n_bend
+    env = torch.as_tensor(np.concatenate([sample_states(n_plain, rng),
                                           _bend_states(n_bend, rng, config)]),
                           dtype=torch.float32)
     rows = torch.randint(len(data), (config.batch - half,), generator=gen)
@@ -292,8 +302,7 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
         gen = torch.Generator().manual_seed(config.seed)
         opt = torch.optim.Adam(model.parameters(), lr=config.lr)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda k: 1.0 - k / config.steps)
-        half = config.batch // 2
-        n_bend = round(config.bend_share * half)  # the envelope half's last states
+        n_plain, _ = _n_plain_and_bend(config)
         start = time.perf_counter()
         log = []
         model.train()
@@ -305,7 +314,7 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
             with torch.no_grad():
                 target = _targets(config, states, ref, pred)
             fit = (pred[..., 1] - target).pow(2).sum(dim=-1).mean()
-            lane = envelope_terms(states[:half - n_bend], pred[:half - n_bend], horizon, barrier,
+            lane = envelope_terms(states[:n_plain], pred[:n_plain], horizon, barrier,
                                   lane_by_steering=True)[1]
             loss = fit + config.lane_weight * lane
             opt.zero_grad(set_to_none=True)
