@@ -140,3 +140,38 @@ def lateral_margin_bernstein(
     xx6 = square_bernstein(full[..., 0])
     c0 = line[..., 0, None] + np.asarray(offset, dtype=float)[..., None]
     return c0 + line[..., 1, None] * x6 + line[..., 2, None] * xx6 - y6
+
+
+# ------------------------------------------------ a lateral plan that follows the lane by construction
+#
+# ``lane_following_y`` builds the y control points from the x control points and the lane lines:
+# the least-squares cubic (origin fixed, at ``LANE_FIT_TAU``) through the lane centre along the
+# plan, plus an offset from the centre at each control point bounded by the lane's free half
+# width. The centre's linear part is a cubic already (exact); its curvature part ``c2 x(tau)^2``
+# (degree 6) is fitted, so on a bend the plan follows the centre instead of cutting it along the
+# control points' chords, and the convex hull keeps it in the lane up to that fit's residual.
+
+LANE_FIT_TAU = np.linspace(0.0, 1.0, 21)  # where the centre is fitted (the lateral refit's grid)
+LANE_FREE = basis(LANE_FIT_TAU)[:, 1:]  # (21, 3): the origin's coefficient is 0
+LANE_FIT = np.linalg.pinv(LANE_FREE)  # (3, 21)
+
+
+def lane_following_y(lines: np.ndarray, x: np.ndarray, z: np.ndarray,
+                     keep_m: float) -> np.ndarray:
+    """y control points ``(..., 3)`` [m] of plans with x control points ``x (..., 3)`` [m] in the
+    lane of ``lines (..., 6)`` (``c0l, c1l, c2l, c0r, c1r, c2r``), offset from its centre by
+    ``h_i tanh(z_i)`` (``z (..., 3)``: the network's lateral outputs): ``h_i`` is the lane's
+    half width at ``x_i`` less ``keep_m`` [m] (half the track plus a clearance), floored at 0.
+
+    ``y_i = cm0 + cm1 x_i + cm2 s_i + h_i tanh(z_i)``, ``cm`` the centre line (the mean of both
+    lines), ``s`` the least-squares cubic of ``x(tau)^2`` at :data:`LANE_FIT_TAU`.
+    """
+    lines, x, z = (np.asarray(a, dtype=float) for a in (lines, x, z))
+    centre = 0.5 * (lines[..., 0:3] + lines[..., 3:6])
+    half = 0.5 * (lines[..., 0:3] - lines[..., 3:6])
+    xs = x @ LANE_FREE.T  # (..., 21)
+    s = (xs * xs) @ LANE_FIT.T
+    h = np.maximum(half[..., 0, None] + half[..., 1, None] * x + half[..., 2, None] * x * x
+                   - keep_m, 0.0)
+    return (centre[..., 0, None] + centre[..., 1, None] * x + centre[..., 2, None] * s
+            + h * np.tanh(z))

@@ -193,3 +193,82 @@ def test_basis_clips_tau_takes_scalars_and_vanishes_beyond_degree() -> None:
     line = np.array([1.5, 0.01, 0.002])
     np.testing.assert_array_equal(bspline.lateral_margin_bernstein(CP, line),
                                   bspline.lateral_margin_bernstein(CP, line, 0.0))
+
+
+# ------------------------------------------------ lane_following_y: a lateral plan that follows the lane
+
+KEEP = 0.93  # [m] half a 1.76 m track plus 0.05 m
+
+
+def _lines(width: float, offset: float, heading: float, kappa: float) -> np.ndarray:
+    """Concentric-enough lines of a lane ``width`` wide, the ego ``offset`` left of its centre."""
+    return np.array([width / 2 - offset, heading, kappa / 2, -width / 2 - offset, heading,
+                     kappa / 2])
+
+
+def test_lane_following_y_by_hand() -> None:
+    x = np.array([10.0, 20.0, 30.0])
+    # centred on a straight lane, no offset asked: straight ahead
+    assert np.allclose(bspline.lane_following_y(_lines(3.5, 0.0, 0.0, 0.0), x, np.zeros(3), KEEP),
+                       0.0, atol=1e-12)
+    # 0.25 m right of the centre: the control points on the centre line (y = +0.25)
+    assert np.allclose(bspline.lane_following_y(_lines(3.5, -0.25, 0.0, 0.0), x, np.zeros(3),
+                                                KEEP), 0.25)
+    # a huge z saturates at the free half width: 1.75 - 0.93 = 0.82 m left of the centre
+    assert np.allclose(bspline.lane_following_y(_lines(3.5, 0.0, 0.0, 0.0), x,
+                                                np.full(3, 40.0), KEEP), 0.82)
+    # a lane narrower than the track leaves no room: the centre
+    assert np.allclose(bspline.lane_following_y(_lines(1.6, 0.0, 0.0, 0.0), x,
+                                                np.full(3, 40.0), KEEP), 0.0)
+    # a heading error: the centre's slope times x
+    assert np.allclose(bspline.lane_following_y(_lines(3.5, 0.0, 0.02, 0.0), x, np.zeros(3),
+                                                KEEP), 0.02 * x)
+
+
+def test_lane_following_y_follows_a_bend_exactly_at_constant_speed() -> None:
+    # x(tau) = L tau (control points L/3, 2L/3, L): the centre (kappa/2) L^2 tau^2 is a cubic
+    # with control points (kappa/2) L^2 [0, 1/3, 1]; the control points on the centre line
+    # itself ((kappa/2) x_i^2 = [1/9, 4/9, 1]) would cut the bend inwards
+    length, kappa = 150.0, 1.0 / 250.0
+    x = length * np.array([1.0, 2.0, 3.0]) / 3.0
+    y = bspline.lane_following_y(_lines(3.5, 0.0, 0.0, kappa), x, np.zeros(3), KEEP)
+    assert np.allclose(y, kappa / 2 * length**2 * np.array([0.0, 1.0 / 3.0, 1.0]), atol=1e-9)
+    tau = np.linspace(0.0, 1.0, 11)
+    plan = bspline.evaluate(np.stack([x, y], axis=-1), tau)
+    assert np.allclose(plan[:, 1], kappa / 2 * plan[:, 0] ** 2, atol=1e-9)
+
+
+def test_lane_following_y_torch_equals_numpy() -> None:
+    rng = np.random.default_rng(3)
+    lines = np.stack([_lines(w, o, h, k) for w, o, h, k in zip(
+        rng.uniform(3.0, 4.0, 50), rng.uniform(-1, 1, 50), rng.uniform(-0.1, 0.1, 50),
+        rng.uniform(-0.03, 0.03, 50), strict=True)])
+    x = np.sort(rng.uniform(0, 150, (50, 3)), axis=1)
+    z = rng.normal(size=(50, 3)) * 3
+    want = bspline.lane_following_y(lines, x, z, KEEP)
+    got = tspline.lane_following_y(torch.as_tensor(lines), torch.as_tensor(x), torch.as_tensor(z),
+                                   KEEP)
+    assert np.allclose(got.numpy(), want, atol=1e-10)
+
+
+@settings(max_examples=300, deadline=None)
+@given(width=st.floats(3.3, 3.8), offset=st.floats(-0.6, 0.6), heading=st.floats(-0.03, 0.03),
+       kappa=st.floats(-1.0 / 250.0, 1.0 / 250.0), speed=st.floats(0.0, 40.0),
+       accel=st.floats(-6.0, 3.0),
+       z=arrays(np.float64, 3, elements=st.floats(-50.0, 50.0)))
+def test_lane_following_plan_stays_in_the_lane_whatever_the_network_says(
+        width, offset, heading, kappa, speed, accel, z) -> None:
+    # every output z of the network, on the certification envelope's lanes and a plan that
+    # accelerates or brakes (to a stop) over 5 s: the whole spline keeps half the track
+    # inside both lines (up to the centre fit's residual, 1 cm)
+    t = np.array([1.0, 2.0, 3.0]) * 5.0 / 3.0
+    stop = speed / -accel if accel < 0 else np.inf
+    tt = np.minimum(t, stop)
+    x = speed * tt + 0.5 * accel * tt * tt
+    lines = _lines(width, offset, heading, kappa)
+    y = bspline.lane_following_y(lines, x, z, KEEP)
+    plan = bspline.evaluate(np.stack([x, y], axis=-1), np.linspace(0.0, 1.0, 401))
+    px, py = plan[:, 0], plan[:, 1]
+    left = lines[0] + lines[1] * px + lines[2] * px**2 - 0.88 - py
+    right = py - (lines[3] + lines[4] * px + lines[5] * px**2) - 0.88
+    assert min(left.min(), right.min()) >= -0.01

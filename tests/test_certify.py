@@ -188,6 +188,13 @@ def test_style_range_is_an_input_dimension(safeil: MLPPolicy) -> None:
         certify(pol.load("bc"), env, budget=Budget(boxes=1), progress=False)
 
 
+def test_a_lane_following_head_is_refused_not_misread() -> None:
+    policy = pol.load("safeil")
+    policy.lateral_mode = "lane"  # its y outputs would be offsets, not control points
+    with pytest.raises(CertifyError, match="offsets from the lane"):
+        certify(policy, budget=Budget(boxes=1), progress=False)
+
+
 def test_margin_bounds_contain_the_reference_margins(safeil: MLPPolicy) -> None:
     env = cm.CertEnvelope()
     props = cm.Properties.from_metadata(safeil.metadata)

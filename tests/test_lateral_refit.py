@@ -168,11 +168,49 @@ def test_a_fresh_lateral_tower_starts_straight_keeps_x_and_is_scaled_to_its_stat
     assert last < 0.2 * first
 
 
+def test_a_lane_mode_refit_keeps_x_follows_the_lane_at_start_and_fits(tmp_path):
+    """lateral_mode 'lane': the y outputs become offsets from the lane centre; a fresh tower
+    starts on the centre (z = 0), x is kept bit for bit, the mode and the head's width are
+    stored, and the refit fits its targets."""
+    from safeil_sumo import bspline
+    from safeil_sumo.data.tuples import Tuples
+
+    data = _towers_checkpoint(tmp_path)
+    config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
+                                lateral_mode="lane", lane_clearance_m=0.05)
+    out = refit_lateral(config, tmp_path / "towers.safetensors", tmp_path / "ref.safetensors",
+                        [data], tmp_path / "lane")
+    before, _ = load_model(tmp_path / "towers.safetensors")
+    after, meta = load_model(tmp_path / "lane.safetensors")
+    assert meta["architecture"]["lateral_mode"] == "lane"
+    assert after.lane_keep_m == pytest.approx(0.5 * 1.76 + 0.05)
+    states = np.array(Tuples.load(data).features)
+    f = torch.as_tensor(np.c_[states, np.full(len(states), 1.5)], dtype=torch.float32)
+    with torch.no_grad():
+        assert torch.equal(after(f)[..., 0], before(f)[..., 0])
+        y = after(f)[..., 1].double().numpy()
+    x = before(f)[..., 0].detach().double().numpy()
+    # within the free half width of the lane at every control point
+    on_centre = bspline.lane_following_y(states[:, :6], x, np.zeros_like(x), after.lane_keep_m)
+    free = np.abs(bspline.lane_following_y(states[:, :6], x, np.full_like(x, 50.0),
+                                           after.lane_keep_m) - on_centre)
+    assert (np.abs(y - on_centre) <= free + 1e-5).all()
+    run = out.metrics["lateral_refit"]
+    assert run["lateral_mode"] == "lane"
+    # the random reference asks for offsets far beyond the lane, which the head cannot reach:
+    # the fit falls (untrained it stays), but not to the absolute head's 20 %
+    assert run["last_100_mean"]["fit_m2"] < 0.85 * run["first"]["fit_m2"]
+
+
 def test_config_refuses_nonsense():
     with pytest.raises(ValueError, match="steps"):
         LateralRefitConfig(steps=0)
     with pytest.raises(ValueError, match="lane_weight"):
         LateralRefitConfig(lane_weight=-1.0)
+    with pytest.raises(ValueError, match="lateral_mode"):
+        LateralRefitConfig(lateral_mode="frenet")
+    with pytest.raises(ValueError, match="fresh_tower"):
+        LateralRefitConfig(lateral_mode="lane", fresh_tower=False)
 
 
 def test_offsets_taken_on_the_straightened_lane_follow_the_bend_geometrically():

@@ -8,6 +8,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from safeil_sumo import bspline
 from safeil_sumo.learn.checkpoint import CheckpointError, load_model, save_checkpoint
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.model import PlannerMLP, split_towers, with_style_input
@@ -97,6 +98,32 @@ def test_checkpoint_round_trip_and_numpy_inference(tmp_path):
     policy = load_policy(tmp_path / "t")
     np.testing.assert_allclose(policy.plan(f[:, :9].double().numpy()),
                                towers(f).detach().numpy(), atol=1e-4)
+
+
+def test_lane_mode_round_trip_numpy_equals_torch_and_follows_the_lane(tmp_path):
+    towers = split_towers(_dense(style=True))
+    towers.lateral_mode, towers.lane_keep_m = "lane", 0.93
+    save_checkpoint(tmp_path / "l", towers, name="l", horizon=5.0,
+                    style_default={"time_gap_s": 1.4})
+    model, meta = load_model(tmp_path / "l")
+    assert meta["architecture"]["lateral_mode"] == "lane"
+    assert (model.lateral_mode, model.lane_keep_m) == ("lane", 0.93)
+    f = _features(8, n_features=10)
+    f[:, 9] = 1.4
+    plans = towers(f)
+    torch.testing.assert_close(model(f), plans)
+    policy = load_policy(tmp_path / "l")
+    features = f[:, :9].double().numpy()
+    np.testing.assert_allclose(policy.plan(features), plans.detach().numpy(), atol=1e-4)
+    np.testing.assert_allclose(policy.plan(features[0]), plans[0].detach().numpy(), atol=1e-4)
+    # the y control points are the lane head's, from the network's x and raw lateral outputs
+    raw = towers.forward_normalised(f) * towers.output_std + towers.output_mean
+    want = bspline.lane_following_y(features[:, :6], plans[..., 0].detach().double().numpy(),
+                                    raw[:, 1::2].detach().double().numpy(), 0.93)
+    np.testing.assert_allclose(plans[..., 1].detach().numpy(), want, atol=1e-4)
+    # the x control points do not depend on the mode
+    towers.lateral_mode = "absolute"
+    torch.testing.assert_close(towers(f)[..., 0], plans[..., 0])
 
 
 def test_a_towers_checkpoint_with_weights_across_the_towers_is_refused(tmp_path):

@@ -304,6 +304,10 @@ def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
     unknown = set(margins) - set(MARGINS)
     if unknown or not margins:
         raise CertifyError(f"margins must be among {MARGINS}, got {list(margins)}")
+    if getattr(policy, "lateral_mode", "absolute") != "absolute":
+        raise CertifyError(f"{policy.name}: its lateral outputs are offsets from the lane "
+                           f"centre (lateral_mode {policy.lateral_mode!r}); the bounds here "
+                           "take them as y control points, so it cannot be certified yet")
     style_range, style = _style_setting(policy, env)
     props = props or Properties.from_metadata(policy.metadata, env.brake_mps2)
     layers = planner_layers(policy, style_range)

@@ -284,7 +284,9 @@ def load_model(path: str | Path) -> tuple[PlannerMLP, dict]:
         model = PlannerMLP(arch["hidden"], arch["activation"],
                            arch.get("output_mode", "absolute"),
                            arch.get("horizon_s", meta["horizon_s"]), int(arch["n_features"]),
-                           towers=bool(arch.get("towers", False)))
+                           towers=bool(arch.get("towers", False)),
+                           lateral_mode=arch.get("lateral_mode", "absolute"),
+                           lane_keep_m=float(arch.get("lane_keep_m", 0.0)))
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from exc
     model.load_state_dict({k: torch.from_numpy(v.copy()) for k, v in arrays.items()})

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from safeil_sumo.bspline import lane_following_y
 from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
 
@@ -73,6 +74,12 @@ class MLPPolicy:
             np.arange(1, 4) * (float(architecture.get("horizon_s", horizon)) / 3.0)
             if mode == "residual" else None
         )
+        # lateral mode "lane": the y outputs are z, the plan follows the lane centre with
+        # bounded offsets (bspline.lane_following_y)
+        self.lateral_mode = architecture.get("lateral_mode", "absolute")
+        if self.lateral_mode not in ("absolute", "lane"):
+            raise CheckpointError(f"unsupported lateral mode {self.lateral_mode!r}")
+        self.lane_keep_m = float(architecture.get("lane_keep_m", 0.0))
 
     def set_style(self, **style: float) -> None:
         """Set the style inputs, e.g. ``set_style(time_gap_s=2.0)`` [s]; a value outside the
@@ -129,6 +136,8 @@ class MLPPolicy:
         out = out.reshape(3, 2)
         if self._residual_times is not None:
             out[:, 0] += f[6] * self._residual_times
+        if self.lateral_mode == "lane":
+            out[:, 1] = lane_following_y(f[:6], out[:, 0], out[:, 1], self.lane_keep_m)
         return out
 
     def plan(self, features: np.ndarray) -> np.ndarray:
@@ -150,6 +159,9 @@ class MLPPolicy:
         out = out.reshape(f.shape[:-1] + (3, 2))
         if self._residual_times is not None:
             out[..., 0] += f[..., 6, None] * self._residual_times
+        if self.lateral_mode == "lane":
+            out[..., 1] = lane_following_y(f[..., :6], out[..., 0], out[..., 1],
+                                           self.lane_keep_m)
         return out
 
 

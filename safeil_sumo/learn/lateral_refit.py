@@ -51,7 +51,7 @@ from safeil_sumo.learn.checkpoint import load_model, save_checkpoint
 from safeil_sumo.learn.closed_loop import envelope_terms
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.losses import C0L, C0R, V_LEAD, V_X
-from safeil_sumo.learn.model import PlannerMLP, keep_only_tower_gradients
+from safeil_sumo.learn.model import LATERAL_MODES, PlannerMLP, keep_only_tower_gradients
 from safeil_sumo.learn.style import TIME_GAP_RANGE_S
 from safeil_sumo.learn.towers import LANE_FEATURES, Y_OUTPUTS, tower_rows
 from safeil_sumo.learn.trainer import TrainConfig
@@ -102,6 +102,15 @@ class LateralRefitConfig:
                 "for both; s = 1: concentric, as a camera sees a bend, the inner line bending "
                 "more, by 5 percent at R = 40 m); a range teaches the plan to follow the centre "
                 "whatever the split [-]"})
+    lateral_mode: str = field(default="absolute", metadata={
+        "help": "what the lateral tower outputs: 'absolute', the y control points [m] (the "
+                "paper's); 'lane', offsets from the lane centre bounded by the lane's free half "
+                "width, the centre along the plan built from the lane lines "
+                "(bspline.lane_following_y): the plan follows any bend by construction "
+                "(needs --fresh-tower)"})
+    lane_clearance_m: float = field(default=0.05, metadata={
+        "help": "with --lateral-mode lane: how far inside the lane (beyond half the track) the "
+                "control points' offsets stay [m]"})
     n_tau: int = field(default=21, metadata={
         "help": "points along the plan at which the target path is fitted [-]"})
     seed: int = field(default=0, metadata={"help": "seed of the states drawn"})
@@ -118,6 +127,12 @@ class LateralRefitConfig:
             raise ValueError(f"bend_share in [0, 1), bend_curvature > 0 and bend_lateral_accel "
                              f"> 0 needed, got {self.bend_share}, {self.bend_curvature}, "
                              f"{self.bend_lateral_accel}")
+        if self.lateral_mode not in LATERAL_MODES or self.lane_clearance_m < 0:
+            raise ValueError(f"lateral_mode one of {LATERAL_MODES} and lane_clearance_m >= 0 "
+                             f"needed, got {self.lateral_mode!r}, {self.lane_clearance_m}")
+        if self.lateral_mode == "lane" and not self.fresh_tower:
+            raise ValueError("lateral_mode 'lane' needs fresh_tower: an inherited lateral tower "
+                             "outputs y control points, not offsets")
         if self.bend_heading_error < 0 or self.bend_offset_m < 0 or self.bend_line_split < 0:
             raise ValueError(f"bend_heading_error, bend_offset_m and bend_line_split >= 0 "
                              f"needed, got {self.bend_heading_error}, {self.bend_offset_m}, "
@@ -252,8 +267,9 @@ def _fresh_lateral_tower(model: PlannerMLP, ref: PlannerMLP, data: torch.Tensor,
         model.feature_mean[lane] = states[:, lane].mean(dim=0)
         model.feature_std[lane] = states[:, lane].std(dim=0)
         y = list(Y_OUTPUTS)
-        model.output_mean[y] = targets.mean(dim=0)
-        model.output_std[y] = targets.std(dim=0)
+        lane_mode = model.lateral_mode == "lane"  # the y outputs are z: tanh's own scale
+        model.output_mean[y] = 0.0 if lane_mode else targets.mean(dim=0)
+        model.output_std[y] = 1.0 if lane_mode else targets.std(dim=0)
         linears = [m for m in model.net if isinstance(m, torch.nn.Linear)]
         rows = tower_rows(model.hidden, "lateral")
         fan_in = [model.n_features] + [h // 2 for h in model.hidden]
@@ -306,6 +322,9 @@ def refit_lateral(config: LateralRefitConfig, init: str | Path, reference: str |
         start = time.perf_counter()
         log = []
         model.train()
+        if config.lateral_mode == "lane":
+            model.lateral_mode = "lane"
+            model.lane_keep_m = 0.5 * barrier.track + config.lane_clearance_m
         if config.fresh_tower:
             _fresh_lateral_tower(model, ref, data, config)
         for _ in tqdm(range(config.steps), disable=not progress, desc="lateral refit"):

@@ -35,11 +35,13 @@ import torch.nn.functional as F
 from torch import nn
 
 from safeil_sumo.features import N_FEATURES
+from safeil_sumo.learn import spline
 from safeil_sumo.learn.style import STYLE_NAMES
 from safeil_sumo.learn.towers import N_OUTPUTS, tower_masks, tower_rows
 
 ACTIVATIONS = ("tanh", "relu")
 OUTPUT_MODES = ("absolute", "residual")
+LATERAL_MODES = ("absolute", "lane")
 # A feature that is (nearly) constant in the training data keeps std 1 instead of exploding.
 MIN_STD = 1e-6
 
@@ -66,11 +68,18 @@ class PlannerMLP(nn.Module):
     def __init__(
         self, hidden: Sequence[int] = (64, 64), activation: str = "tanh",
         output_mode: str = "absolute", horizon: float = 5.0, n_features: int = N_FEATURES,
-        towers: bool = False,
+        towers: bool = False, lateral_mode: str = "absolute", lane_keep_m: float = 0.0,
     ) -> None:
         super().__init__()
         if output_mode not in OUTPUT_MODES:
             raise ValueError(f"output_mode must be one of {OUTPUT_MODES}, got {output_mode!r}")
+        if lateral_mode not in LATERAL_MODES:
+            raise ValueError(f"lateral_mode must be one of {LATERAL_MODES}, got {lateral_mode!r}")
+        # "absolute": the y outputs are the y control points [m] (the paper's); "lane": they
+        # are z, the plan follows the lane centre with bounded offsets h tanh(z)
+        # (bspline.lane_following_y; h: the half width less lane_keep_m [m])
+        self.lateral_mode = lateral_mode
+        self.lane_keep_m = float(lane_keep_m)
         self.hidden = tuple(int(h) for h in hidden)
         self.activation = activation
         self.output_mode = output_mode
@@ -140,6 +149,10 @@ class PlannerMLP(nn.Module):
             times = torch.as_tensor(control_times(self.horizon), dtype=out.dtype)
             x = out[..., 0] + features[..., V_X, None] * times
             out = torch.stack([x, out[..., 1]], dim=-1)
+        if self.lateral_mode == "lane":
+            y = spline.lane_following_y(features[..., :6], out[..., 0], out[..., 1],
+                                        self.lane_keep_m)
+            out = torch.stack([out[..., 0], y], dim=-1)
         return out
 
     @property
@@ -158,6 +171,9 @@ class PlannerMLP(nn.Module):
             arch["style_names"] = list(STYLE_NAMES)
         if self.towers:
             arch["towers"] = True
+        if self.lateral_mode != "absolute":
+            arch["lateral_mode"] = self.lateral_mode
+            arch["lane_keep_m"] = self.lane_keep_m
         return arch
 
 

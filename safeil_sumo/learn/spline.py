@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from safeil_sumo.bspline import ELEVATE_3_TO_6, PRODUCT_WEIGHTS
+from safeil_sumo.bspline import ELEVATE_3_TO_6, LANE_FIT, LANE_FREE, PRODUCT_WEIGHTS
 
 
 def basis(tau: torch.Tensor, derivative: int = 0) -> torch.Tensor:
@@ -57,3 +57,19 @@ def lateral_margin_bernstein(
     xx6 = torch.einsum("kij,...i,...j->...k", weights, x, x)
     c0 = line[..., 0, None] + torch.as_tensor(offset, dtype=full.dtype)[..., None]
     return c0 + line[..., 1, None] * x6 + line[..., 2, None] * xx6 - y6
+
+
+def lane_following_y(lines: torch.Tensor, x: torch.Tensor, z: torch.Tensor,
+                     keep_m: float) -> torch.Tensor:
+    """Torch twin of :func:`safeil_sumo.bspline.lane_following_y`: y control points ``(..., 3)``
+    [m] following the lane of ``lines (..., 6)``, offset from its centre by ``h_i tanh(z_i)``."""
+    free = torch.as_tensor(LANE_FREE, dtype=x.dtype)
+    fit = torch.as_tensor(LANE_FIT, dtype=x.dtype)
+    centre = 0.5 * (lines[..., 0:3] + lines[..., 3:6])
+    half = 0.5 * (lines[..., 0:3] - lines[..., 3:6])
+    xs = x @ free.T
+    s = (xs * xs) @ fit.T
+    h = torch.clamp(half[..., 0, None] + half[..., 1, None] * x + half[..., 2, None] * x * x
+                    - keep_m, min=0.0)
+    return (centre[..., 0, None] + centre[..., 1, None] * x + centre[..., 2, None] * s
+            + h * torch.tanh(z))
