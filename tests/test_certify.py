@@ -13,6 +13,7 @@ import shutil
 import numpy as np
 import pytest
 
+from safeil_sumo import bspline
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.learn import bounds as bnd
 from safeil_sumo.learn import certify_margins as cm
@@ -128,6 +129,16 @@ def test_one_hidden_unit_by_hand() -> None:
 # ------------------------------------------------------------------ the planner as one network
 
 
+def _plans(policy: MLPPolicy, outputs: np.ndarray, features: np.ndarray) -> np.ndarray:
+    """Plans ``(N, 6)`` from the composed network's plan rows ``outputs (N, 6)``: themselves,
+    or for a lane-following head x and the lane head's y from its offsets' z."""
+    if policy.lateral_mode != "lane":
+        return outputs
+    x, z = outputs[:, 0::2], outputs[:, 1::2]
+    y = bspline.lane_following_y(features[:, :6], x, z, policy.lane_keep_m)
+    return np.stack([x, y], axis=-1).reshape(-1, 6)
+
+
 @pytest.fixture(scope="module")
 def safeil() -> MLPPolicy:
     return pol.load("safeil")
@@ -164,15 +175,16 @@ def test_the_composed_network_is_the_planner(name: str) -> None:
     layers = cm.planner_layers(policy, style_range=False)
     z = root_lo + rng.uniform(size=(500, 7)) * (root_hi - root_lo)
     y = bnd.forward(layers, z)
-    np.testing.assert_allclose(y[:, :6], policy.plan(env.features(z)).reshape(-1, 6), atol=1e-9)
+    np.testing.assert_allclose(_plans(policy, y[:, :6], env.features(z)),
+                               policy.plan(env.features(z)).reshape(-1, 6), atol=1e-9)
     np.testing.assert_allclose(y[:, 6:], env.features(z), atol=1e-12)
     centre = root_lo + rng.uniform(size=(40, 7)) * (root_hi - root_lo)
     half = (root_hi - root_lo) * rng.uniform(0.005, 0.05, (40, 7))
     lo, hi = np.maximum(centre - half, root_lo), np.minimum(centre + half, root_hi)
     pts = inside(lo, hi, 100, rng)
-    plans = policy.plan(env.features(pts)).reshape(40, 100, 6)
+    outs = bnd.forward(layers, pts.reshape(-1, 7))[:, :6].reshape(40, 100, 6)
     out_lo, out_hi = bnd.output_bounds(layers, lo, hi)
-    assert np.all(plans >= out_lo[:, None, :6] - TOL) and np.all(plans <= out_hi[:, None, :6] + TOL)
+    assert np.all(outs >= out_lo[:, None, :6] - TOL) and np.all(outs <= out_hi[:, None, :6] + TOL)
 
 
 def test_style_range_is_an_input_dimension(safeil: MLPPolicy) -> None:
@@ -183,16 +195,55 @@ def test_style_range_is_an_input_dimension(safeil: MLPPolicy) -> None:
     policy = pol.load("safeil")
     for k in range(len(z)):
         policy.set_style(time_gap_s=z[k, 7])
-        np.testing.assert_allclose(y[k, :6], policy.plan(env.features(z[k])).ravel(), atol=1e-9)
+        f = env.features(z[k])
+        np.testing.assert_allclose(_plans(policy, y[k, None, :6], f[None])[0],
+                                   policy.plan(f).ravel(), atol=1e-9)
     with pytest.raises(CertifyError, match="no style input"):
         certify(pol.load("bc"), env, budget=Budget(boxes=1), progress=False)
 
 
-def test_a_lane_following_head_is_refused_not_misread() -> None:
+def test_a_head_and_properties_of_different_modes_are_refused() -> None:
     policy = pol.load("safeil")
-    policy.lateral_mode = "lane"  # its y outputs would be offsets, not control points
-    with pytest.raises(CertifyError, match="offsets from the lane"):
-        certify(policy, budget=Budget(boxes=1), progress=False)
+    props = cm.Properties.from_metadata(policy.metadata)
+    other = cm.Properties(props.horizon_s, props.track_m, lane_keep_m=(
+        None if policy.lateral_mode == "lane" else 0.93))
+    with pytest.raises(CertifyError, match="lane_keep_m"):
+        certify(policy, props=other, budget=Budget(boxes=1), progress=False)
+
+
+def test_the_lane_heads_bound_holds_whatever_its_offsets() -> None:
+    """lane_head_lane_lower on random boxes, x intervals and offsets' intervals: at random
+    points inside, the exact Bernstein coefficients of lane_following_y's plans are never below
+    it; with exact x and centred offsets it is within a few cm of them (not vacuous)."""
+    props = cm.Properties(horizon_s=5.0, lane_keep_m=0.93)
+    env = cm.CertEnvelope()
+    root_lo, root_hi = env.root_boxes()["leader"]
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        centre = root_lo + rng.uniform(size=7) * (root_hi - root_lo)
+        half = (root_hi - root_lo) * rng.uniform(0.0005, 0.1)
+        lo, hi = np.maximum(centre - half, root_lo), np.minimum(centre + half, root_hi)
+        x_lo = np.sort(rng.uniform(-20.0, 200.0, 3))
+        x_w, t_lo = rng.uniform(0.0, 10.0, 3), rng.uniform(-1.0, 1.0, 3)
+        t_hi = np.minimum(t_lo + rng.uniform(0.0, 0.5, 3), 1.0)
+        bound = cm.lane_head_lane_lower(props, lo[None], hi[None], x_lo[None],
+                                        (x_lo + x_w)[None], t_lo[None], t_hi[None])[0]
+        for _ in range(10):
+            f = env.features(lo + rng.uniform(size=7) * (hi - lo))
+            x = x_lo + rng.uniform(size=3) * x_w
+            y = bspline.lane_following_y(f[:6], x, np.arctanh(
+                t_lo + rng.uniform(size=3) * (t_hi - t_lo)), 0.93)
+            plan = np.stack([x, y], axis=-1)
+            m = np.r_[bspline.lateral_margin_bernstein(plan, f[0:3], -0.88)[1:],
+                      -bspline.lateral_margin_bernstein(plan, f[3:6], 0.88)[1:]]
+            assert np.all(m >= bound - 1e-9)
+    # tight on a point: a straight centred lane, x exact, offsets 0 -> the exact coefficients
+    z = np.array([3.5, 0.0, 0.0, 0.0, 25.0, 0.0, 50.0])
+    x = np.array([25.0, 50.0, 75.0])
+    bound = cm.lane_head_lane_lower(props, z[None], z[None], x[None], x[None], 0.0, 0.0)[0]
+    y = bspline.lane_following_y(env.features(z)[:6], x, np.zeros(3), 0.93)
+    exact = -bspline.lateral_margin_bernstein(np.stack([x, y], -1), env.features(z)[3:6], 0.88)
+    np.testing.assert_allclose(bound[6:], exact[1:], atol=1e-9)
 
 
 def test_margin_bounds_contain_the_reference_margins(safeil: MLPPolicy) -> None:

@@ -304,12 +304,12 @@ def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
     unknown = set(margins) - set(MARGINS)
     if unknown or not margins:
         raise CertifyError(f"margins must be among {MARGINS}, got {list(margins)}")
-    if getattr(policy, "lateral_mode", "absolute") != "absolute":
-        raise CertifyError(f"{policy.name}: its lateral outputs are offsets from the lane "
-                           f"centre (lateral_mode {policy.lateral_mode!r}); the bounds here "
-                           "take them as y control points, so it cannot be certified yet")
     style_range, style = _style_setting(policy, env)
     props = props or Properties.from_metadata(policy.metadata, env.brake_mps2)
+    if (policy.lateral_mode == "lane") != (props.lane_keep_m is not None):
+        raise CertifyError(f"{policy.name}: lateral mode {policy.lateral_mode!r} but the "
+                           f"properties' lane_keep_m is {props.lane_keep_m}: the lane margin "
+                           "would be bounded for the other head")
     layers = planner_layers(policy, style_range)
     start = time.perf_counter()
     share = 1.0 / len(margins)

@@ -34,7 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo.bspline import ELEVATE_3_TO_6, PRODUCT_WEIGHTS, lateral_margin_bernstein
+from safeil_sumo.bspline import (
+    ELEVATE_3_TO_6,
+    LANE_FIT,
+    LANE_FREE,
+    PRODUCT_WEIGHTS,
+    lateral_margin_bernstein,
+)
 from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn import bounds as bnd
 from safeil_sumo.learn.envelope import EnvelopeConfig
@@ -137,13 +143,19 @@ class Properties:
     gap_min_m: float = 0.0  # extra leader gap [m] (where braking can reach it)
     time_gap_margin_s: float = 0.0  # extra leader gap per ego speed [s] (idem)
     brake_mps2: float = 6.0  # the feasibility of that extra gap, as in training [m/s^2]
+    # a lane-following lateral head (architecture "lateral_mode": "lane"): its offsets'
+    # bound, half the track plus a clearance [m]; None: the paper's head (y control points)
+    lane_keep_m: float | None = None
 
     @classmethod
     def from_metadata(cls, meta: dict, brake_mps2: float = 6.0) -> Properties:
         tc = meta.get("train_config") or {}
+        arch = meta.get("architecture") or {}
+        keep = float(arch["lane_keep_m"]) if arch.get("lateral_mode") == "lane" else None
         return cls(horizon_s=float(meta["horizon_s"]), track_m=float(tc.get("track", 1.76)),
                    gap_min_m=float(tc.get("gap_min", 0.0)),
-                   time_gap_margin_s=float(tc.get("time_gap", 0.0)), brake_mps2=brake_mps2)
+                   time_gap_margin_s=float(tc.get("time_gap", 0.0)), brake_mps2=brake_mps2,
+                   lane_keep_m=keep)
 
     @property
     def times(self) -> np.ndarray:
@@ -339,6 +351,67 @@ def _quadratic_lower(sigma, pw, x_lo, x_hi, x_m, x_w):
     return coef, cst, gap
 
 
+# (7, 3, 3): the quadratic forms R_k(x) = xx6_k - (E S)_k of the free x control points: the
+# degree-6 Bernstein coefficients of x(tau)^2 less those of its least-squares cubic S (the lane
+# head's fit of the centre's curvature part, elevated): what the fit leaves of the bend
+_FIT_RESIDUAL = PRODUCT_WEIGHTS[:, 1:, 1:] - np.einsum(
+    "ki,im,ma,mb->kab", ELEVATE_3_TO_6[:, 1:], LANE_FIT, LANE_FREE, LANE_FREE)
+
+
+def _quadratic_form_interval(q: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds ``(N, K)`` x2 of ``x^T q_k x`` for ``q (K, 3, 3)`` over boxes ``[x_lo, x_hi]
+    (N, 3)``: the tighter of the products' intervals and the centred form ``R(m) + 2 m^T q
+    delta + delta^T q delta``, ``|delta| <= r`` (sound both)."""
+    p_lo, p_hi = _interval_product(x_lo[:, :, None], x_hi[:, :, None], x_lo[:, None, :],
+                                   x_hi[:, None, :])
+    diag = np.arange(3)
+    p_lo[:, diag, diag] = np.where((x_lo > 0) | (x_hi < 0),
+                                   np.minimum(x_lo ** 2, x_hi ** 2), 0.0)
+    p_hi[:, diag, diag] = np.maximum(x_lo ** 2, x_hi ** 2)
+    q_pos, q_neg = np.maximum(q, 0.0), np.minimum(q, 0.0)
+    lo = np.einsum("kab,nab->nk", q_pos, p_lo) + np.einsum("kab,nab->nk", q_neg, p_hi)
+    hi = np.einsum("kab,nab->nk", q_pos, p_hi) + np.einsum("kab,nab->nk", q_neg, p_lo)
+    m, r = 0.5 * (x_lo + x_hi), 0.5 * (x_hi - x_lo)
+    centre = np.einsum("kab,na,nb->nk", q, m, m)
+    spread = 2.0 * np.abs(np.einsum("kab,na->nkb", q, m)) @ r[:, :, None]
+    spread = spread[..., 0] + np.einsum("kab,na,nb->nk", np.abs(q), r, r)
+    return np.maximum(lo, centre - spread), np.minimum(hi, centre + spread)
+
+
+def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
+                         x_lo: np.ndarray, x_hi: np.ndarray, t_lo: np.ndarray | float = -1.0,
+                         t_hi: np.ndarray | float = 1.0) -> np.ndarray:
+    """Sound lower bounds ``(N, 12)`` of the lane rows (``left_b1..6, right_b1..6``) of a
+    lane-following head (:func:`safeil_sumo.bspline.lane_following_y`, ``props.lane_keep_m``)
+    over envelope boxes ``[lo, hi] (N, n_z)`` whose x control points lie in ``[x_lo, x_hi]
+    (N, 3)`` and offsets' ``t_i = tanh(z_i)`` in ``[t_lo, t_hi]`` (default: whatever the
+    network says, ``[-1, 1]``).
+
+    The envelope's lines are concentric (``c1``, ``c2`` shared, half distance ``w/2``), so with
+    ``y_i = cm0 + cm1 x_i + cm2 S_i + h t_i``, ``h = w/2 - keep >= 0``, the left margin's
+    Bernstein coefficient ``k`` is exactly ``w/2 (1 - T_k) + keep T_k - T/2 - E_k0 offset + c2
+    R_k(x)`` with ``T_k = sum_i E_ki t_i``, the right one ``w/2 (1 + T_k) - keep T_k - T/2 +
+    E_k0 offset - c2 R_k(x)``: the network enters through x, in the curvature fit's residual
+    ``R_k``, and through the offsets' ``T_k`` (each term bounded over the box)."""
+    keep, half = float(props.lane_keep_m), 0.5 * props.track_m
+    e = ELEVATE_3_TO_6  # (7, 4), >= 0
+    t_lo = np.broadcast_to(np.asarray(t_lo, float), x_lo.shape)
+    t_hi = np.broadcast_to(np.asarray(t_hi, float), x_lo.shape)
+    big_t_lo, big_t_hi = t_lo @ e[:, 1:].T, t_hi @ e[:, 1:].T  # (N, 7)
+    r_lo, r_hi = _quadratic_form_interval(_FIT_RESIDUAL, x_lo, x_hi)
+    c2r_lo, c2r_hi = _interval_product(0.5 * lo[:, CURV, None], 0.5 * hi[:, CURV, None],
+                                       r_lo, r_hi)
+    w_lo = lo[:, W, None]
+    left = (0.5 * w_lo * (1.0 - big_t_hi) + keep * big_t_hi - half - e[:, 0] * hi[:, OFF, None]
+            + c2r_lo)
+    right = (0.5 * w_lo * (1.0 + big_t_lo) - keep * big_t_lo - half + e[:, 0] * lo[:, OFF, None]
+             - c2r_hi)
+    out = np.concatenate([left[:, 1:], right[:, 1:]], axis=1)
+    wide = 0.5 * lo[:, W] >= keep  # else h is clipped at 0 and the formula does not apply
+    return np.where(wide[:, None], out, -np.inf)
+
+
 @dataclass(frozen=True)
 class BoxBounds:
     """Bounds on a batch of ``N`` boxes: ``lower (N, 15)`` of each margin row, the linear
@@ -371,11 +444,18 @@ def bound_boxes(layers: list[bnd.Layer], props: Properties, lo: np.ndarray, hi: 
         y_lo[:, :6] = np.maximum(y_lo[:, :6], out.lower[:, :6])
         y_hi[:, :6] = np.minimum(y_hi[:, :6], -out.lower[:, 6:])
     C, const, gaps = property_objective(props, f_lo, f_hi, y_lo[:, :6], y_hi[:, :6])
+    lane_head = need_plan and props.lane_keep_m is not None
+    if lane_head:  # its lane rows in closed form below: here only a placeholder row each
+        lane = MARGIN_ROWS["lane"]
+        C[:, lane], const[:, lane], gaps[:, lane] = 0.0, 0.0, 0.0
     C, const, gaps = C[:, rows], const[:, rows], gaps[:, rows]
     lin = bnd.crown(nb, layers, C, const, record=True)
     interval = const + np.einsum("nmk,nk->nm", np.maximum(C, 0.0), y_lo) \
         + np.einsum("nmk,nk->nm", np.minimum(C, 0.0), y_hi)
     score = bnd.split_scores(nb, lin)
+    if lane_head:
+        return _with_lane_head_rows(props, lo, hi, y_lo[:, :6], y_hi[:, :6], out, rows,
+                                    BoxBounds(np.maximum(lin.lower, interval), lin.coef, score))
     if need_plan:
         # the McCormick gaps: c1 x and c2 Q halve with heading / curvature, the rest with the
         # plan's width, shared among the dimensions by its sensitivity to them
@@ -388,6 +468,32 @@ def bound_boxes(layers: list[bnd.Layer], props: Properties, lo: np.ndarray, hi: 
         score[..., HEAD] += 0.5 * gaps[..., 0]
         score[..., CURV] += 0.5 * gaps[..., 1]
     return BoxBounds(np.maximum(lin.lower, interval), lin.coef, score)
+
+
+def _with_lane_head_rows(props: Properties, lo: np.ndarray, hi: np.ndarray, out_lo: np.ndarray,
+                         out_hi: np.ndarray, plan: bnd.LinearBound, rows: slice,
+                         bounds: BoxBounds) -> BoxBounds:
+    """``bounds`` with the lane rows of a lane-following head from
+    :func:`lane_head_lane_lower` (no linear coefficients), and split scores for them: the
+    curvature fit's residual shrinks with the curvature's width and with the x control points'
+    (shared among the dimensions by their sensitivity, as for the paper's head); the plan's
+    interval ``[out_lo, out_hi] (N, 6)`` holds x1, z1, x2, z2, x3, z3."""
+    lower, coef, score = bounds.lower.copy(), bounds.coef.copy(), bounds.score.copy()
+    lane = np.arange(15)[rows][np.isin(np.arange(15)[rows], np.arange(3, 15))]
+    at = np.searchsorted(np.arange(15)[rows], lane)
+    # the network's outputs: x control points and the offsets' z (t = tanh z, monotone)
+    lower[:, at] = lane_head_lane_lower(props, lo, hi, out_lo[:, 0::2], out_hi[:, 0::2],
+                                        np.tanh(out_lo[:, 1::2]),
+                                        np.tanh(out_hi[:, 1::2]))[:, lane - 3]
+    coef[:, at] = 0.0
+    width = hi - lo
+    x_sens = np.abs(plan.coef[:, 0:6:2]).sum(axis=1) + np.abs(plan.coef[:, 6:12:2]).sum(axis=1)
+    infl = x_sens * width
+    infl = infl / np.maximum(infl.sum(axis=1, keepdims=True), 1e-300)
+    deficit = np.clip(-lower[:, at], 0.0, 1e6)
+    score[:, at] = 0.5 * deficit[..., None] * infl[:, None]
+    score[:, at, CURV] += 0.5 * deficit
+    return BoxBounds(lower, coef, score)
 
 
 # ------------------------------------------------------------------ volumes
