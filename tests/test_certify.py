@@ -246,6 +246,31 @@ def test_the_lane_heads_bound_holds_whatever_its_offsets() -> None:
     np.testing.assert_allclose(bound[6:], exact[1:], atol=1e-9)
 
 
+def test_the_residual_bound_from_linear_plan_bounds_holds() -> None:
+    """_residual_from_linear_x: x between two linear functions of the box coordinates (as
+    CROWN gives them), any x between them at any point of the box: R_k(x) inside its bounds
+    (dropping the gap between the two linear bounds fails this)."""
+    rng = np.random.default_rng(8)
+    n, d = 200, 7
+    lo = rng.uniform(-1.0, 1.0, (n, d))
+    hi = lo + rng.uniform(0.0, 0.5, (n, d))
+    a = rng.normal(0.0, 20.0, (n, 3, d))
+    a[:, :, 0] = np.abs(a[:, :, 0]) * [1.0, 2.0, 3.0]
+    c = rng.uniform(0.0, 100.0, (n, 3))
+    gap = rng.uniform(0.0, 3.0, (n, 3))
+    # rows 0..5: lower bounds of (x1, z1, x2, z2, x3, z3); 6..11: of their negatives
+    coef = np.concatenate([np.repeat(a, 2, axis=1), -np.repeat(a, 2, axis=1)], axis=1)
+    const = np.concatenate([np.repeat(c - gap, 2, axis=1), -np.repeat(c + gap, 2, axis=1)],
+                           axis=1)
+    plan = bnd.LinearBound(coef, const, np.zeros((n, 12)))
+    r_lo, r_hi = cm._residual_from_linear_x(plan, lo, hi)
+    for _ in range(50):
+        z = lo + rng.uniform(size=(n, d)) * (hi - lo)
+        x = np.einsum("nid,nd->ni", a, z) + c + rng.uniform(-1.0, 1.0, (n, 3)) * gap
+        r = np.einsum("kab,na,nb->nk", cm._FIT_RESIDUAL, x, x)
+        assert np.all(r >= r_lo - 1e-6) and np.all(r <= r_hi + 1e-6)
+
+
 def test_margin_bounds_contain_the_reference_margins(safeil: MLPPolicy) -> None:
     env = cm.CertEnvelope()
     props = cm.Properties.from_metadata(safeil.metadata)

@@ -379,14 +379,48 @@ def _quadratic_form_interval(q: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray
     return np.maximum(lo, centre - spread), np.minimum(hi, centre + spread)
 
 
+def _residual_from_linear_x(plan: bnd.LinearBound, lo: np.ndarray, hi: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds ``(N, 7)`` x2 of ``R_k(x)`` from the plan's linear bounds in the envelope
+    coordinates (``plan``: CROWN of ``[eye(6); -eye(6)]``, so ``A z + a <= x <= B z + b``).
+
+    Over a box ``z = m + delta``: ``x = c + C delta + e``, ``C = (A + B) / 2`` and ``|e| <=
+    eps``, so ``R(x) = R(c) + 2 (Q c)^T (C delta + e) + u^T Q u``, ``|u| <= |C| rho + eps``.
+    Unlike the x intervals this keeps the control points' correlation (a faster plan moves all
+    three, and ``R``, homogeneous of degree 2, barely changes along ``x`` itself)."""
+    m, rho = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    a_lo, c_lo = plan.coef[:, 0:6:2], plan.const[:, 0:6:2]  # x >= A z + a
+    b_hi, c_hi = -plan.coef[:, 6:12:2], -plan.const[:, 6:12:2]  # x <= B z + b
+    big_c = 0.5 * (a_lo + b_hi)  # (N, 3, n_z)
+    at_m_lo = np.einsum("nid,nd->ni", a_lo, m) + c_lo
+    at_m_hi = np.einsum("nid,nd->ni", b_hi, m) + c_hi
+    c = 0.5 * (at_m_lo + at_m_hi)
+    half_d = 0.5 * (b_hi - a_lo)  # (N, 3, n_z)
+    eps = 0.5 * (at_m_hi - at_m_lo) + np.einsum("nid,nd->ni", np.abs(half_d), rho)
+    eps = np.maximum(eps, 0.0)
+    qc = np.einsum("kab,nb->nka", _FIT_RESIDUAL, c)  # (N, 7, 3)
+    centre = np.einsum("nka,na->nk", qc, c)
+    slope = 2.0 * np.einsum("nka,nad->nkd", qc, big_c)  # (N, 7, n_z)
+    spread = np.einsum("nkd,nd->nk", np.abs(slope), rho) + 2.0 * np.einsum(
+        "nka,na->nk", np.abs(qc), eps)
+    u = np.einsum("nad,nd->na", np.abs(big_c), rho) + eps
+    spread += np.einsum("kab,na,nb->nk", np.abs(_FIT_RESIDUAL), u, u)
+    return centre - spread, centre + spread
+
+
 def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
                          x_lo: np.ndarray, x_hi: np.ndarray, t_lo: np.ndarray | float = -1.0,
-                         t_hi: np.ndarray | float = 1.0) -> np.ndarray:
+                         t_hi: np.ndarray | float = 1.0,
+                         residual: tuple[np.ndarray, np.ndarray] | None = None,
+                         terms: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Sound lower bounds ``(N, 12)`` of the lane rows (``left_b1..6, right_b1..6``) of a
     lane-following head (:func:`safeil_sumo.bspline.lane_following_y`, ``props.lane_keep_m``)
     over envelope boxes ``[lo, hi] (N, n_z)`` whose x control points lie in ``[x_lo, x_hi]
     (N, 3)`` and offsets' ``t_i = tanh(z_i)`` in ``[t_lo, t_hi]`` (default: whatever the
-    network says, ``[-1, 1]``).
+    network says, ``[-1, 1]``). ``residual``: bounds ``(N, 7)`` x2 of ``R_k(x)`` known
+    otherwise (e.g. :func:`_residual_from_linear_x`), intersected with the box's own.
+    ``terms``: also return how wide each row's terms are over the box ``(N, 12, 3)``: the
+    residual's, the offsets' and the lane width and offset's (what splitting could remove).
 
     The envelope's lines are concentric (``c1``, ``c2`` shared, half distance ``w/2``), so with
     ``y_i = cm0 + cm1 x_i + cm2 S_i + h t_i``, ``h = w/2 - keep >= 0``, the left margin's
@@ -400,6 +434,8 @@ def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
     t_hi = np.broadcast_to(np.asarray(t_hi, float), x_lo.shape)
     big_t_lo, big_t_hi = t_lo @ e[:, 1:].T, t_hi @ e[:, 1:].T  # (N, 7)
     r_lo, r_hi = _quadratic_form_interval(_FIT_RESIDUAL, x_lo, x_hi)
+    if residual is not None:
+        r_lo, r_hi = np.maximum(r_lo, residual[0]), np.minimum(r_hi, residual[1])
     c2r_lo, c2r_hi = _interval_product(0.5 * lo[:, CURV, None], 0.5 * hi[:, CURV, None],
                                        r_lo, r_hi)
     w_lo = lo[:, W, None]
@@ -409,7 +445,16 @@ def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
              - c2r_hi)
     out = np.concatenate([left[:, 1:], right[:, 1:]], axis=1)
     wide = 0.5 * lo[:, W] >= keep  # else h is clipped at 0 and the formula does not apply
-    return np.where(wide[:, None], out, -np.inf)
+    out = np.where(wide[:, None], out, -np.inf)
+    if not terms:
+        return out
+    side = np.concatenate([np.ones(6), np.ones(6)])[None, :]
+    widths = np.stack([
+        np.concatenate([(c2r_hi - c2r_lo)[:, 1:]] * 2, axis=1),
+        np.concatenate([((0.5 * w_lo - keep) * (big_t_hi - big_t_lo))[:, 1:]] * 2, axis=1),
+        side * (np.tile(e[1:, 0], 2)[None, :] * (hi[:, OFF] - lo[:, OFF])[:, None]
+                + 0.5 * (hi[:, W] - lo[:, W])[:, None])], axis=-1)
+    return out, widths
 
 
 @dataclass(frozen=True)
@@ -482,17 +527,26 @@ def _with_lane_head_rows(props: Properties, lo: np.ndarray, hi: np.ndarray, out_
     lane = np.arange(15)[rows][np.isin(np.arange(15)[rows], np.arange(3, 15))]
     at = np.searchsorted(np.arange(15)[rows], lane)
     # the network's outputs: x control points and the offsets' z (t = tanh z, monotone)
-    lower[:, at] = lane_head_lane_lower(props, lo, hi, out_lo[:, 0::2], out_hi[:, 0::2],
-                                        np.tanh(out_lo[:, 1::2]),
-                                        np.tanh(out_hi[:, 1::2]))[:, lane - 3]
+    bound, widths = lane_head_lane_lower(
+        props, lo, hi, out_lo[:, 0::2], out_hi[:, 0::2], np.tanh(out_lo[:, 1::2]),
+        np.tanh(out_hi[:, 1::2]), _residual_from_linear_x(plan, lo, hi), terms=True)
+    lower[:, at], widths = bound[:, lane - 3], widths[:, lane - 3]
     coef[:, at] = 0.0
     width = hi - lo
-    x_sens = np.abs(plan.coef[:, 0:6:2]).sum(axis=1) + np.abs(plan.coef[:, 6:12:2]).sum(axis=1)
-    infl = x_sens * width
-    infl = infl / np.maximum(infl.sum(axis=1, keepdims=True), 1e-300)
-    deficit = np.clip(-lower[:, at], 0.0, 1e6)
-    score[:, at] = 0.5 * deficit[..., None] * infl[:, None]
-    score[:, at, CURV] += 0.5 * deficit
+
+    def share(rows: slice) -> np.ndarray:  # each dimension's share of these outputs' width
+        sens = np.abs(plan.coef[:, rows]).sum(axis=1) + np.abs(plan.coef[:, 6:12][:, rows]
+                                                                ).sum(axis=1)
+        infl = sens * width
+        return infl / np.maximum(infl.sum(axis=1, keepdims=True), 1e-300)
+
+    # the residual shrinks with the curvature's and the x control points' widths, the
+    # offsets' term with the lateral outputs', the corner term with the width's and offset's
+    score[:, at] = (0.5 * widths[..., 0, None] * share(slice(0, 6, 2))[:, None]
+                    + widths[..., 1, None] * share(slice(1, 6, 2))[:, None])
+    score[:, at, CURV] += 0.5 * widths[..., 0]
+    score[:, at, OFF] += widths[..., 2]
+    score[:, at, W] += 0.5 * widths[..., 2]
     return BoxBounds(lower, coef, score)
 
 
