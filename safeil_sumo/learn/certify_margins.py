@@ -448,12 +448,11 @@ def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
     out = np.where(wide[:, None], out, -np.inf)
     if not terms:
         return out
-    side = np.concatenate([np.ones(6), np.ones(6)])[None, :]
     widths = np.stack([
         np.concatenate([(c2r_hi - c2r_lo)[:, 1:]] * 2, axis=1),
         np.concatenate([((0.5 * w_lo - keep) * (big_t_hi - big_t_lo))[:, 1:]] * 2, axis=1),
-        side * (np.tile(e[1:, 0], 2)[None, :] * (hi[:, OFF] - lo[:, OFF])[:, None]
-                + 0.5 * (hi[:, W] - lo[:, W])[:, None])], axis=-1)
+        np.tile(e[1:, 0], 2)[None, :] * (hi[:, OFF] - lo[:, OFF])[:, None]
+        + 0.5 * (hi[:, W] - lo[:, W])[:, None]], axis=-1)
     return out, widths
 
 
