@@ -231,6 +231,25 @@ class Polyline:
             object.__setattr__(self, "_np", arrays)
         return arrays
 
+    def max_turn(self, length_m: float) -> float:
+        """The most the polyline turns [rad] within any stretch of ``length_m`` [m] of arc
+        length: the largest sum of its vertices' absolute turning angles there (cached per
+        length). Within a stretch that turns less than pi, every segment, and so every chord
+        between two of its points (a positive sum of its segments), points within that angle of
+        every other; the extensions beyond the ends add no turn."""
+        cache: dict[float, float] = self.__dict__.setdefault("_max_turn", {})
+        turn = cache.get(length_m)
+        if turn is None:
+            heading = np.array(self._py[6])
+            # each inner vertex's turn, and their running sum (at[j]: vertices before j)
+            turns = np.abs((np.diff(heading) + np.pi) % (2.0 * np.pi) - np.pi)
+            at = np.concatenate([[0.0], np.cumsum(turns)])
+            inner = self.s[1:-1]
+            # a stretch's inner vertices all lie within length_m of the first of them
+            end = np.searchsorted(inner, inner + length_m, side="right")
+            turn = cache[length_m] = float(np.max(at[end] - at[:-1], initial=0.0))
+        return turn
+
     def _foot(self, x: float, y: float, i: int) -> tuple[float, float, float]:
         """``(squared distance, clipped along, d)`` of a point to segment ``i``, in
         :meth:`project`'s arithmetic (same rounding, so ties resolve alike; ends extend)."""
