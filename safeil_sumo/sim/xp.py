@@ -57,10 +57,6 @@ def _and(a: bool, b: bool) -> bool:
     return a and b
 
 
-def _isnan(value: float) -> bool:
-    return math.isnan(value)
-
-
 def _row(values: list[T]) -> list[T]:
     return values  # one scenario's log row: the list as built
 
@@ -90,7 +86,7 @@ def _select(conditions: Sequence[object], choices: Sequence[T], default: T) -> T
 
 FLOATS = SimpleNamespace(
     where=_where, minimum=min, maximum=max, clip=_clip, abs=abs,
-    logical_or=_or, logical_and=_and, isnan=_isnan, isfinite=math.isfinite,
+    logical_or=_or, logical_and=_and, isnan=math.isnan, isfinite=math.isfinite,
     cos=math.cos, sin=math.sin, tan=math.tan, atan=math.atan, atan2=math.atan2,
     sqrt=math.sqrt, hypot=math.hypot, exp=math.exp,
     # the loop's rows (one scenario)
