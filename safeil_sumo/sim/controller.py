@@ -35,7 +35,7 @@ from safeil_sumo.sim.vehicle import (
     available_drive_force,
     resistance_force,
 )
-from safeil_sumo.sim.xp import FLOATS, FloatOrArray, Namespace
+from safeil_sumo.sim.xp import FLOATS, FloatOrArray, Namespace, clip, maximum
 
 # how far the sampled path is extended beyond its ends along the end tangents [m]
 _BACK_EXTENSION_M = 50.0
@@ -428,7 +428,7 @@ def lookahead_point(
         if 0 <= k < n_seg:
             ax, ay = xs[k] - px, ys[k] - py
             dot = ax * seg_dx[k] + ay * seg_dy[k]
-            u = min(max(-dot / seg_len2[k], 0.0), 1.0)
+            u = clip(-dot / seg_len2[k], 0.0, 1.0)
             f2 = ax * ax + ay * ay + u * (2.0 * dot + u * seg_len2[k])  # |d + u e|^2
             if f2 < best[0]:
                 best = (f2, k, u)
@@ -451,8 +451,7 @@ def lookahead_point(
     sx, sy, qa = seg_dx[j], seg_dy[j], seg_len2[j]
     qb = ax * sx + ay * sy
     qc = ax * ax + ay * ay - ld2
-    s = (-qb + math.sqrt(max(qb * qb - qa * qc, 0.0))) / qa
-    s = min(max(s, 0.0), 1.0)
+    s = clip((-qb + math.sqrt(maximum(qb * qb - qa * qc, 0.0))) / qa, 0.0, 1.0)
     return px + ax + s * sx, py + ay + s * sy
 
 
