@@ -1001,10 +1001,10 @@ class ClosedLoop:
         s_rear, _, _, live.lead_seg = _project(c.project, xp, lead_x, lead_y, live.lead_seg)
         gap = xp.where(has_lead, s_rear - s, math.inf)
         yaw = st[2]
-        locate = has_lead & ((gap < self._near) | c.located)
-        if xp.any(locate):
-            v_lead, hit = self._locate_leaders(live, xp.nonzero(locate), s_rear, gap, v_lead,
-                                               hit, (front_x, front_y), yaw)
+        fix = xp.nonzero(has_lead & ((gap < self._near) | c.located))
+        if len(fix):
+            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
+                                               (front_x, front_y), yaw)
         if lap is not None:
             lap("project")
 
