@@ -16,8 +16,7 @@ are per running scenario, one float each with :data:`FLOATS` (N = 1) or arrays `
 :data:`ARRAYS`, and what is per scenario by nature (SUMO's calls, the radar) goes through
 Python lists of the rows: ``rows(value)`` is such a list, ``from_rows(list)`` the value again,
 ``full(n, value)`` a constant, ``nonzero(mask)`` the rows where a flag is set, ``select``
-numpy's ``select``, ``any`` whether any row is set and ``columns(values)`` the log's rows (a
-list of floats at N = 1, an array ``(n, columns)`` else). ``each(*values)`` iterates over the
+numpy's ``select`` and ``any`` whether any row is set. ``each(*values)`` iterates over the
 rows of several values at once (a tuple per row: ``rows`` of each, zipped; one call at N = 1)
 and ``from_each(tuples)`` is its inverse (the values of per-row tuples).
 """
@@ -72,10 +71,6 @@ def _and(a: bool, b: bool) -> bool:
     return a and b
 
 
-def _row(values: list[T]) -> list[T]:
-    return values  # one scenario's log row: the list as built
-
-
 def _each(*values: T) -> tuple[tuple[T, ...]]:
     return (values,)  # the one row: the values themselves
 
@@ -107,7 +102,7 @@ FLOATS = SimpleNamespace(
     # the loop's rows (one scenario)
     rows=lambda value: [value], from_rows=lambda values: values[0],
     full=lambda n, value: value, nonzero=lambda mask: [0] if mask else [],
-    select=_select, any=bool, columns=_row, each=_each, from_each=_from_each,
+    select=_select, any=bool, each=_each, from_each=_from_each,
 )
 
 def _clip_arrays(value: np.ndarray, lo: FloatOrArray, hi: FloatOrArray) -> np.ndarray:
@@ -122,6 +117,6 @@ ARRAYS = SimpleNamespace(
     # the loop's rows (n scenarios)
     rows=np.ndarray.tolist, from_rows=np.array,
     full=lambda n, value: np.full(n, value, dtype=float), nonzero=np.flatnonzero,
-    select=np.select, any=np.any, columns=lambda parts: np.array(parts).T, each=_each_arrays,
+    select=np.select, any=np.any, each=_each_arrays,
     from_each=_from_each_arrays,
 )
