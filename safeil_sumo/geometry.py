@@ -168,10 +168,11 @@ class Polyline:
         """
         xs, ys, tx, ty, seg_len, s_at, heading = self._py
         last = len(seg_len) - 1
-        i = min(max(hint, 0), last)
+        i = hint if 0 <= hint <= last else min(max(hint, 0), last)
         prev = -1
-        for _ in range(last + 1):
-            along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
+        while True:  # a walk one way (a turn back stops it): at most last + 1 segments
+            rx, ry = x - xs[i], y - ys[i]
+            along = rx * tx[i] + ry * ty[i]
             if along >= seg_len[i] and i < last:
                 step = i + 1
             elif along < 0.0 and i > 0:
@@ -183,18 +184,15 @@ class Polyline:
             prev, i = i, step
         # Near a vertex a point inside a bend projects into both neighbouring segments and one
         # outside into neither: like project(), keep the nearest foot (ties: the lower index).
-        along = (x - xs[i]) * tx[i] + (y - ys[i]) * ty[i]
-        candidates = [i]
-        if i > 0 and (along <= 0.0
-                      or (x - xs[i - 1]) * tx[i - 1] + (y - ys[i - 1]) * ty[i - 1]
-                      <= seg_len[i - 1]):
-            candidates.insert(0, i - 1)
-        if i < last and (along >= seg_len[i]
-                         or (x - xs[i + 1]) * tx[i + 1] + (y - ys[i + 1]) * ty[i + 1] >= 0.0):
-            candidates.append(i + 1)
-        if len(candidates) == 1:  # the common case: the foot is inside segment i only
-            d = tx[i] * (y - ys[i]) - ty[i] * (x - xs[i])
-            return s_at[i] + along, d, heading[i], i
+        before = i > 0 and (along <= 0.0
+                            or (x - xs[i - 1]) * tx[i - 1] + (y - ys[i - 1]) * ty[i - 1]
+                            <= seg_len[i - 1])
+        after = i < last and (along >= seg_len[i]
+                              or (x - xs[i + 1]) * tx[i + 1] + (y - ys[i + 1]) * ty[i + 1] >= 0.0)
+        if not (before or after):  # the common case: the foot is inside segment i only
+            return s_at[i] + along, tx[i] * ry - ty[i] * rx, heading[i], i
+        candidates = [i - 1] if before else []
+        candidates += [i, i + 1] if after else [i]
         best = min(candidates, key=lambda k: self._foot(x, y, k)[0])  # first minimum
         _, along, d = self._foot(x, y, best)
         return s_at[best] + along, d, heading[best], best
@@ -230,6 +228,25 @@ class Polyline:
             arrays = tuple(np.array(a) for a in self._py)
             object.__setattr__(self, "_np", arrays)
         return arrays
+
+    def max_turn(self, length_m: float) -> float:
+        """The most the polyline turns [rad] within any stretch of ``length_m`` [m] of arc
+        length: the largest sum of its vertices' absolute turning angles there (cached per
+        length). Within a stretch that turns less than pi, every segment, and so every chord
+        between two of its points (a positive sum of its segments), points within that angle of
+        every other; the extensions beyond the ends add no turn."""
+        cache: dict[float, float] = self.__dict__.setdefault("_max_turn", {})
+        turn = cache.get(length_m)
+        if turn is None:
+            heading = np.array(self._py[6])
+            # each inner vertex's turn, and their running sum (at[j]: vertices before j)
+            turns = np.abs((np.diff(heading) + np.pi) % (2.0 * np.pi) - np.pi)
+            at = np.concatenate([[0.0], np.cumsum(turns)])
+            inner = self.s[1:-1]
+            # a stretch's inner vertices all lie within length_m of the first of them
+            end = np.searchsorted(inner, inner + length_m, side="right")
+            turn = cache[length_m] = float(np.max(at[end] - at[:-1], initial=0.0))
+        return turn
 
     def _foot(self, x: float, y: float, i: int) -> tuple[float, float, float]:
         """``(squared distance, clipped along, d)`` of a point to segment ``i``, in

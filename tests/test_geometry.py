@@ -261,6 +261,23 @@ def test_arc_length_helpers_hand_computed():
     assert len(Polyline(np.array([[0.0, 0.0], [1.0, 0.0]])).resample(5.0).points) == 2
 
 
+def test_max_turn_hand_computed():
+    """The vertices' turns summed over the worst stretch: the L-shaped line above turns by
+    atan2(3, 4) at s = 5 and by pi / 2 at s = 11 (6 m apart); a straight line not at all."""
+    line = Polyline(np.array([[0.0, 0.0], [3.0, 4.0], [3.0, 10.0], [11.0, 10.0]]))
+    first, second = math.pi / 2 - math.atan2(4, 3), math.pi / 2
+    assert line.max_turn(5.0) == pytest.approx(second, abs=1e-12)  # one bend at a time
+    assert line.max_turn(6.0) == pytest.approx(first + second, abs=1e-12)  # both: 6 m apart
+    assert line.max_turn(100.0) == pytest.approx(first + second, abs=1e-12)
+    assert line.max_turn(6.0) is line.max_turn(6.0)  # cached per length
+    assert Polyline(np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 0.0]])).max_turn(60.0) == 0.0
+    assert Polyline(np.array([[0.0, 0.0], [1.0, 0.0]])).max_turn(60.0) == 0.0
+    # a zigzag turns both ways, 2 atan(0.1) at each vertex (every 1.005 m): the absolute turns
+    # add up, three of them within 3 m
+    zigzag = Polyline(np.array([[float(i), 0.1 * (i % 2)] for i in range(20)]))
+    assert zigzag.max_turn(3.0) == pytest.approx(3 * 2 * math.atan(0.1), abs=1e-12)
+
+
 def test_projection_of_a_single_segment_and_of_an_uneven_bend():
     seg = Polyline(np.array([[0.0, 0.0], [10.0, 0.0]]))
     s, d = seg.project(np.array([[-5.0, 1.0], [15.0, -2.0], [4.0, 3.0]]))

@@ -213,3 +213,50 @@ def test_lane_camera_equals_the_reference_in_a_tight_bend():
         np.testing.assert_array_equal(got[1], want[1])
         assert got[0][2] == pytest.approx(1.0 / (2.0 * (50.0 - 1.75)), rel=0.05)
         assert got[1][2] == pytest.approx(1.0 / (2.0 * (50.0 + 1.75)), rel=0.05)
+
+
+def test_the_view_check_is_skipped_only_where_no_chord_can_turn_too_much():
+    """A line's turn bound (Polyline.max_turn over the view range) is never below the turn of
+    a chord the view check computes (random wavy lines, random stations and poses), and where
+    it is below the threshold the camera skips the check with the same lines: the view is
+    whole, as the check would have kept it (curved500's lines turn 0.12 rad over 60 m)."""
+    from safeil_sumo.geometry import Polyline
+    from safeil_sumo.sim.sensors import _may_turn_too_much, _view_offsets
+
+    rng = np.random.default_rng(11)
+    offsets = _view_offsets(CFG.view_range_m, CFG.view_samples)
+    for wave in (0.001, 0.005, 0.02):
+        heading = np.cumsum(rng.normal(0.0, wave, 400))
+        steps = rng.uniform(0.3, 3.0, 400)
+        line = Polyline(np.column_stack([np.cumsum(steps * np.cos(heading)),
+                                         np.cumsum(steps * np.sin(heading))]))
+        bound = line.max_turn(CFG.view_range_m)
+        s0 = rng.uniform(-20.0, line.length, 200)
+        pts = line.xy_at(s0[:, None] + offsets)
+        dx, dy = np.diff(pts[..., 0], axis=-1), np.diff(pts[..., 1], axis=-1)
+        turn = np.abs(np.arctan2(dx[:, :1] * dy - dy[:, :1] * dx, dx[:, :1] * dx + dy[:, :1] * dy))
+        assert turn.max() <= bound + 1e-12
+        if not _may_turn_too_much(line, CFG):
+            view = sen.view_range_within_turn(pts[..., 0], pts[..., 1], offsets,
+                                              CFG.max_view_turn_rad, CFG.min_view_range_m)
+            assert (view == CFG.view_range_m).all()
+    assert not _may_turn_too_much(_circle(500.0), CFG)
+    assert _may_turn_too_much(_circle(50.0), CFG)
+
+
+def test_lane_camera_skipping_the_view_check_equals_the_reference(curved500):
+    """On curved500 the loop's camera skips the view check (its lines turn too little): the
+    same lines, bit for bit, as camera_lane_lines, which always checks."""
+    from safeil_sumo.sim.sensors import _may_turn_too_much
+
+    lane = curved500.lanes[curved500.ego_lane]
+    assert not _may_turn_too_much(lane.left_boundary, CFG)
+    camera = sen.LaneCamera(curved500, CFG, curved500.path_start_s)
+    for s in np.linspace(curved500.path_start_s, curved500.path_end_s - 70.0, 9):
+        xy, yaw = lane.centre.point_at(s)
+        ego = xy + np.array([0.3, -0.2])
+        want = sen.camera_lane_lines(curved500, ego, float(yaw) - 0.01, CFG)
+        got = camera.lane_lines(ego, float(yaw) - 0.01)
+        assert got[2] == want[2]
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])

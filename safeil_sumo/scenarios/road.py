@@ -105,7 +105,9 @@ class Road:
 
     def piece_index_at(self, s: float) -> int:
         """Index in ``ego_pieces`` of :meth:`piece_at`."""
-        return min(bisect.bisect_right(self._piece_ends, s), len(self.ego_pieces) - 1)
+        k, last = bisect.bisect_right(self._piece_ends, s), len(self.ego_pieces) - 1
+        # min(k, last), without the builtin's argument parsing (~4x a comparison; every step)
+        return last if k > last else k  # noqa: FURB136
 
     def lanes_at(self, s: float) -> tuple[int, int]:
         """Lowest and highest lane index offered at arc length ``s`` [m] of the ego lane (a

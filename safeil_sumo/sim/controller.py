@@ -35,7 +35,7 @@ from safeil_sumo.sim.vehicle import (
     available_drive_force,
     resistance_force,
 )
-from safeil_sumo.sim.xp import FLOATS, FloatOrArray, Namespace
+from safeil_sumo.sim.xp import FLOATS, FloatOrArray, Namespace, clip, maximum
 
 # how far the sampled path is extended beyond its ends along the end tangents [m]
 _BACK_EXTENSION_M = 50.0
@@ -299,9 +299,27 @@ def plan_speed_and_accel(coeff_x: Sequence[FloatOrArray], coeff_y: Sequence[Floa
     velocity's magnitude would make it creep forwards into the car it is told to stay behind).
     Floats, or with ``xp=ARRAYS`` coefficients, ``horizon`` and ``t`` of arrays ``(N,)``.
     """
+    return (plan_speed(coeff_x, coeff_y, horizon, t, xp),
+            plan_accel(coeff_x, coeff_y, horizon, t, xp))
+
+
+def plan_speed(coeff_x: Sequence[FloatOrArray], coeff_y: Sequence[FloatOrArray],
+               horizon: FloatOrArray, t: FloatOrArray, xp: Namespace = FLOATS) -> FloatOrArray:
+    """The speed of :func:`plan_speed_and_accel` alone (the tracker reads the speed and the
+    acceleration at different times)."""
     cx, cy = coeff_x, coeff_y
     tc = xp.clip(t, 0.0, horizon)
     vx = cx[1] + tc * (2.0 * cx[2] + 3.0 * cx[3] * tc)
+    vy = cy[1] + tc * (2.0 * cy[2] + 3.0 * cy[3] * tc)
+    return xp.where(vx < 0.0, 0.0, xp.hypot(vx, vy))  # backwards: stop
+
+
+def plan_accel(coeff_x: Sequence[FloatOrArray], coeff_y: Sequence[FloatOrArray],
+               horizon: FloatOrArray, t: FloatOrArray, xp: Namespace = FLOATS) -> FloatOrArray:
+    """The tangential acceleration of :func:`plan_speed_and_accel` alone."""
+    cx, cy = coeff_x, coeff_y
+    tc = xp.clip(t, 0.0, horizon)
+    vx = cx[1] + tc * (2.0 * cx[2] + 3.0 * cx[3] * tc)  # plan_speed's velocity
     vy = cy[1] + tc * (2.0 * cy[2] + 3.0 * cy[3] * tc)
     v = xp.hypot(vx, vy)
     ax = 2.0 * cx[2] + 6.0 * cx[3] * tc
@@ -310,8 +328,7 @@ def plan_speed_and_accel(coeff_x: Sequence[FloatOrArray], coeff_y: Sequence[Floa
     # side finite)
     accel = xp.where(v < 1e-6, xp.hypot(ax, ay), (vx * ax + vy * ay) / xp.maximum(v, 1e-6))
     accel = xp.where(t > horizon, 0.0, accel)
-    backwards = vx < 0.0
-    return xp.where(backwards, 0.0, v), xp.where(backwards, 0.0, accel)
+    return xp.where(vx < 0.0, 0.0, accel)  # backwards: no feed-forward
 
 
 def _unit(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -404,37 +421,37 @@ def lookahead_point(
     i0 = int(d2.argmin())
     d2 = d2.tolist()
     xs, ys = seg.xs, seg.ys  # xs[k] - px == dx[k] exactly: the scalar work stays in floats
-    n_seg = len(seg.seg_len2)
+    seg_dx, seg_dy, seg_len2 = seg.seg_dx, seg.seg_dy, seg.seg_len2
+    n_seg = len(seg_len2)
     best = (math.inf, 0, 0.0)  # (squared distance, segment, parameter)
     for k in (i0 - 1, i0):
         if 0 <= k < n_seg:
             ax, ay = xs[k] - px, ys[k] - py
-            dot = ax * seg.seg_dx[k] + ay * seg.seg_dy[k]
-            u = min(max(-dot / seg.seg_len2[k], 0.0), 1.0)
-            f2 = ax * ax + ay * ay + u * (2.0 * dot + u * seg.seg_len2[k])  # |d + u e|^2
+            dot = ax * seg_dx[k] + ay * seg_dy[k]
+            u = clip(-dot / seg_len2[k], 0.0, 1.0)
+            f2 = ax * ax + ay * ay + u * (2.0 * dot + u * seg_len2[k])  # |d + u e|^2
             if f2 < best[0]:
                 best = (f2, k, u)
     f2, k, u = best
     ld2 = ld * ld
     if f2 >= ld2:
         return (
-            px + (xs[k] - px) + u * seg.seg_dx[k],
-            py + (ys[k] - py) + u * seg.seg_dy[k],
+            px + (xs[k] - px) + u * seg_dx[k],
+            py + (ys[k] - py) + u * seg_dy[k],
         )
     # first end vertex of segments k, k+1, ... outside the circle
-    j = k + 1
-    while j < len(d2) and d2[j] < ld2:
+    j, n = k + 1, len(d2)
+    while j < n and d2[j] < ld2:
         j += 1
-    if j == len(d2):
+    if j == n:
         return xs[-1], ys[-1]
     j -= 1  # the segment that crosses the circle
     # larger root of |d + s e|^2 = ld^2 on segment j: the crossing ahead
     ax, ay = xs[j] - px, ys[j] - py
-    sx, sy, qa = seg.seg_dx[j], seg.seg_dy[j], seg.seg_len2[j]
+    sx, sy, qa = seg_dx[j], seg_dy[j], seg_len2[j]
     qb = ax * sx + ay * sy
     qc = ax * ax + ay * ay - ld2
-    s = (-qb + math.sqrt(max(qb * qb - qa * qc, 0.0))) / qa
-    s = min(max(s, 0.0), 1.0)
+    s = clip((-qb + math.sqrt(maximum(qb * qb - qa * qc, 0.0))) / qa, 0.0, 1.0)
     return px + ax + s * sx, py + ay + s * sy
 
 
@@ -519,10 +536,10 @@ def track_values(
 
     # --- longitudinal: PID on speed + plan acceleration feed-forward ----------------------------
     horizon = target.horizon_s
-    v_ref, _ = plan_speed_and_accel(target.coeff_x, target.coeff_y, horizon,
-                                    t_since_plan + params.speed_preview_s, xp)
-    _, a_ref = plan_speed_and_accel(target.coeff_x, target.coeff_y, horizon,
-                                    t_since_plan + params.accel_preview_s, xp)
+    v_ref = plan_speed(target.coeff_x, target.coeff_y, horizon,
+                       t_since_plan + params.speed_preview_s, xp)
+    a_ref = plan_accel(target.coeff_x, target.coeff_y, horizon,
+                       t_since_plan + params.accel_preview_s, xp)
     error = v_ref - v
     if prev_error is None:
         prev_error = math.nan
@@ -538,8 +555,9 @@ def track_values(
     # the integrator also stops where the powertrain saturates (power limit at high speed)
     hi_plant = (available_drive_force(v, vehicle, xp)
                 - resistance_force(v, vehicle, xp)) / vehicle.mass_kg
-    windup = xp.logical_or(xp.logical_and(accel > xp.minimum(hi, hi_plant), error > 0.0),
-                           xp.logical_and(accel < lo, error < 0.0))
+    # flags: | and & are logical_or and logical_and
+    windup = (((accel > xp.minimum(hi, hi_plant)) & (error > 0.0))
+              | ((accel < lo) & (error < 0.0)))
     integral = where(windup, integral0, integral)  # anti-windup: stop integrating into it
     accel = base + params.ki * integral
     accel = xp.clip(accel, lo, hi)

@@ -49,7 +49,7 @@ def lane_departure(min_offset: FloatOrArray, max_offset: FloatOrArray, lane_widt
                    margin: FloatOrArray = 0.0, xp: Namespace = FLOATS) -> BoolOrArray:
     """True when any part of the footprint lies outside ``±(lane_width/2 + margin)`` [m]."""
     half = 0.5 * lane_width + margin
-    return xp.logical_or(max_offset > half, min_offset < -half)
+    return (max_offset > half) | (min_offset < -half)  # flags: | is logical_or
 
 
 def footprint_offset_range(front_d: FloatOrArray, heading_error: FloatOrArray, length: float,

@@ -11,11 +11,11 @@
 
 :class:`.stepper.ClosedLoop` calls a provider at fixed points of a physics step: ``start``
 after the ego's insertion, ``command(api, k)`` before SUMO's step ``k``, ``read(api)`` after
-it (True: there is a leader), and, for the scenarios whose leader ``needs_location`` (or is
-close to the ego), ``located(s_rear, gap)`` once its rear is projected on the ego lane. What the
-loop reads from it: ``leader`` ``(rear_xy, v_sumo, yaw, front_xy)`` or None, ``v`` its true
-speed [m/s], ``length`` and ``width`` [m] (the footprint check), ``no`` the log's
-``leader_no``.
+it, and, for the scenarios whose leader ``needs_location`` (or is close to the ego),
+``located(s_rear, gap)`` once its rear is projected on the ego lane. What the loop reads from
+it: what ``read`` returns, ``(rear_x, rear_y, v)`` (:data:`NO_LEADER`: no leader), ``leader``
+``(rear_xy, v_sumo, yaw, front_xy)`` or None, ``v`` its true speed [m/s], ``length`` and
+``width`` [m] (the footprint check), ``no`` the log's ``leader_no``.
 """
 
 from __future__ import annotations
@@ -35,6 +35,9 @@ from safeil_sumo.sim.sumo_setup import leader_speeds
 # what the loop reads of a leader after a step: ``(rear_xy, v_sumo, yaw, front_xy)`` [m, m/s,
 # rad, m], in the original track's coordinates
 LeaderPose: TypeAlias = tuple[tuple[float, float], float, float, tuple[float, float]]
+# what ``read`` returns: the leader's rear x, y [m] (the original track's) and true speed [m/s]
+LeaderRead: TypeAlias = tuple[float, float, float]
+NO_LEADER: LeaderRead = (math.nan, math.nan, math.nan)  # read: there is no leader
 
 
 class ScriptedLeader:
@@ -75,25 +78,27 @@ class ScriptedLeader:
                 api.vehicle.setSpeed(self.veh_id, v_cmd)
                 self.cmd = v_cmd
 
-    def read(self, api: SumoApi) -> bool:
-        """Its pose and true speed after a step (in the original track's coordinates)."""
+    def read(self, api: SumoApi) -> LeaderRead:
+        """Its pose and true speed after a step (in the original track's coordinates): its
+        rear x, y and true speed (:data:`NO_LEADER` once it has left)."""
         if self.gone:
-            return False
+            return NO_LEADER
+        vehicle = api.vehicle
         try:
-            fx, fy = api.vehicle.getPosition(self.veh_id)
-            yaw = sumo_angle_to_yaw(api.vehicle.getAngle(self.veh_id))
-            v = api.vehicle.getSpeed(self.veh_id)
+            fx, fy = vehicle.getPosition(self.veh_id)
+            yaw = sumo_angle_to_yaw(vehicle.getAngle(self.veh_id))
+            v = vehicle.getSpeed(self.veh_id)
         # libsumo/traci raise TraCIException for a vehicle that has arrived
         except Exception:  # noqa: BLE001
             self.gone, self.leader = True, None
-            return False
+            return NO_LEADER
         length = self.length
         rx, ry = fx - length * math.cos(yaw), fy - length * math.sin(yaw)
         if self.dx:  # in the original track's coordinates
             rx, fx = rx - self.dx, fx - self.dx
         self.leader = (rx, ry), v, yaw, (fx, fy)
-        self.v = v / self.scale
-        return True
+        self.v = v_true = v / self.scale
+        return rx, ry, v_true
 
     def located(self, s_rear: float, gap: float, count: bool = True) -> float:
         """Its rear at ``s_rear`` [m along the ego lane]: the next command's scale is the SUMO
@@ -138,13 +143,14 @@ class TrafficLeader:
     def command(self, api: SumoApi, k: int) -> None:
         pass  # SUMO drives it
 
-    def read(self, api: SumoApi) -> bool:
-        """Whichever vehicle ``getLeader`` names, its pose and size."""
+    def read(self, api: SumoApi) -> LeaderRead:
+        """Whichever vehicle ``getLeader`` names, its pose and size: its rear x, y and 0.0
+        (its true speed comes with ``located``; :data:`NO_LEADER`: none)."""
         self.from_ego = not self.id
         self.id, self.leader, self.v = "", None, 0.0
         lead_id = trf.read_leader(api, self.ego_id, self.dist)
         if not lead_id:
-            return False
+            return NO_LEADER
         try:
             if lead_id not in self.sizes:
                 self.sizes[lead_id] = (api.vehicle.getLength(lead_id),
@@ -154,11 +160,11 @@ class TrafficLeader:
             yaw = sumo_angle_to_yaw(api.vehicle.getAngle(lead_id))
             v = api.vehicle.getSpeed(lead_id)
         except Exception:  # noqa: BLE001  # it arrived (left the network) this step
-            return False
+            return NO_LEADER
         rear = (fx - length * math.cos(yaw), fy - length * math.sin(yaw))
         self.id, self.leader = lead_id, (rear, v, yaw, (fx, fy))
         self.length, self.width = length, width
-        return True
+        return rear[0], rear[1], 0.0
 
     def located(self, s_rear: float, gap: float, count: bool = True) -> float:
         """Its rear at ``s_rear`` [m along the ego lane], ``gap`` [m] ahead of the ego: its true

@@ -168,6 +168,20 @@ def view_range_within_turn(x: np.ndarray, y: np.ndarray, offsets: np.ndarray, ma
     return np.where(over.any(axis=-1), np.clip(cut, min_range_m, offsets[-1]), full)
 
 
+# the margin [rad] below max_view_turn_rad under which a line's turn bound lets the camera skip
+# view_range_within_turn: its chord angles come from rounded points (~1e-11 rad off on
+# metre-long chords), far less than this
+_TURN_MARGIN_RAD = 1e-3
+
+
+def _may_turn_too_much(line: Polyline, config: SensorConfig) -> bool:
+    """Whether :func:`view_range_within_turn` may shorten the view on ``line``: False where no
+    stretch of the view range turns by more than ``max_view_turn_rad`` (less the margin; e.g. a
+    circle of radius above ``view_range_m / max_view_turn_rad``): then no chord turns more
+    from the first and the check would keep the whole view range."""
+    return line.max_turn(config.view_range_m) > config.max_view_turn_rad - _TURN_MARGIN_RAD
+
+
 @lru_cache(maxsize=8)
 def _view_offsets(view_range_m: float, samples: int) -> np.ndarray:
     """Arc-length offsets ``(samples,)`` [m] of the fitted boundary points (read-only, shared)."""
@@ -357,6 +371,11 @@ class LaneCamera:
         pts = np.stack((lane.left_boundary.xy_at(s_left + offsets),
                         lane.right_boundary.xy_at(s_right + offsets)))
         x, y = _to_ego(pts, ego_xy, ego_yaw)
+        if not (_may_turn_too_much(lane.left_boundary, config)
+                or _may_turn_too_much(lane.right_boundary, config)):
+            left, right = polyfit3_rows(x, y)  # the whole view range: no chord turns too much
+            add_lane_noise(left, right, config, rng)
+            return left, right, lane.index
         view = view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
                                       config.min_view_range_m)
         if (view < config.view_range_m).any():  # a tight bend: each line as far as it holds
@@ -390,6 +409,8 @@ def ego_points_many(line: Polyline, s0: np.ndarray, ego_x: np.ndarray, ego_y: np
     frame, ``x, y (K, samples)``."""
     offsets = _view_offsets(config.view_range_m, config.view_samples)
     x, y = _ego_many(line, s0[:, None] + offsets, ego_x, ego_y, ego_yaw)
+    if not _may_turn_too_much(line, config):
+        return x, y
     view = view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
                                   config.min_view_range_m)
     short = np.flatnonzero(view < config.view_range_m)

@@ -70,7 +70,7 @@ from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.batch_net import mixed_batch_net, prefixed
 from safeil_sumo.sim.loop_types import GUI_SCREENSHOT_AT_S, LoopConfig, Rollout, Scenario
-from safeil_sumo.sim.providers import LeaderPose, ScriptedLeader, TrafficLeader
+from safeil_sumo.sim.providers import NO_LEADER, LeaderPose, ScriptedLeader, TrafficLeader
 from safeil_sumo.sim.rollout_log import _Log, finish
 from safeil_sumo.sim.sumo_setup import (
     EGO_ID,
@@ -118,11 +118,11 @@ Rows: TypeAlias = Sequence[int] | np.ndarray  # row indices of the running scena
 Controls: TypeAlias = tuple[FloatOrArray, FloatOrArray]  # held acceleration, steering commands
 # what a driver's move gives the log: steering, acceleration commands, the guard's deceleration
 Commands: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray]
-# what a sub-step's drive gives its watch: t, steer_cmd, accel_cmd, v, front_x, front_y, s, d,
-# heading, hit and the guard's deceleration
+# what a sub-step's drive gives the rest of it: t, steer_cmd, accel_cmd, the guard's
+# deceleration, v, front_x, front_y, s, d, heading and hit
 Moved: TypeAlias = tuple[FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray,
-                         FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, BoolOrArray,
-                         FloatOrArray]
+                         FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray, FloatOrArray,
+                         BoolOrArray]
 
 
 class StageClock:
@@ -240,7 +240,8 @@ class _Scenario:
         self.rows: list[list[float] | np.ndarray] | np.ndarray | None = (
             [] if not copies else np.empty((self.n_max, log_width)))
         self.steps = 0  # rows filled
-        self.lane_ids: dict[str, str] = {}  # SUMO lane id -> its id in this run
+        # the ego route's SUMO lane ids (sumo_lane_position's) -> their ids in this run
+        self.lane_ids = {p.lane_id: self.rename(p.lane_id) for p in road.ego_pieces}
 
     def add(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
         """Insert the ego (and the scripted leader, or the traffic) on this scenario's track;
@@ -274,15 +275,6 @@ def _leader_rear(sc: _Scenario) -> tuple[tuple[float, float] | None, float]:
     if lead is None or pose is None:
         return None, 0.0
     return pose[0], lead.v
-
-
-def _lane_position(sc: _Scenario, s: float, advance_m: float) -> tuple[str, float]:
-    """:func:`.sumo_setup.sumo_lane_position` on the scenario's track in this run."""
-    lane, pos = sumo_lane_position(sc.road, s, advance_m)
-    copy = sc.lane_ids.get(lane)
-    if copy is None:
-        copy = sc.lane_ids[lane] = sc.rename(lane)
-    return copy, pos
 
 
 def _kinematic_state(pose: Pose, vehicle: veh.VehicleParams) -> veh.PlantState:
@@ -400,10 +392,10 @@ class PlanAndTrack:
                 accel_cmd = xp.where(override, xp.maximum(-demand, -self.full_brake_mps2),
                                      accel_cmd)
             else:
-                guarded = xp.full(len(live.runs), math.nan)
+                guarded = live.c.nans
         elif controls is not None:  # commands from outside, held over the period
             accel_cmd, steer_cmd = controls
-            guarded = xp.full(len(live.runs), math.nan)
+            guarded = live.c.nans
         else:
             raise RuntimeError("nothing to track: each step plans (or holds commands) first")
         throttle, brake = veh.pedals_from_accel_vx(accel_cmd, vx, vehicle, xp)
@@ -443,8 +435,8 @@ class Kinematic:
             assert r.pose_at is not None, "a run's egos are all kinematic or none (check_scope)"
             states.append(_kinematic_state(r.pose_at(tj), self.vehicle))
         live.st = tuple(xp.from_rows(col) for col in zip(*states))
-        n = len(live.runs)
-        return xp.full(n, math.nan), xp.full(n, math.nan), xp.full(n, math.nan)
+        nans = live.c.nans
+        return nans, nans, nans
 
 
 def on_lane_pose(fx: FloatOrArray, fy: FloatOrArray, d: FloatOrArray, heading: FloatOrArray,
@@ -633,6 +625,7 @@ class ClosedLoop:
         # a leader's rear this close [m] ahead of the ego's front is checked for footprint overlap
         self._near = 2.0 * vehicle.length_m
         self._dt = loop.step_s
+        self._offroad_m, self._stop_on_flag = loop.offroad_stop_m, loop.stop_on_flag
         self._plan_every = max(round(1.0 / (loop.plan_rate_hz * loop.step_s)), 1)
         # sumo-gui shows the true pose: always moveToXY there
         self._on_lane = loop.ego_placement == "lane" and not loop.gui
@@ -814,7 +807,6 @@ class ClosedLoop:
         self._runs[i] = r = _Scenario(
             i, scenario, policy, _horizon(policy, horizon_s), self.loop, self.vehicle, old.dx,
             len(self.columns), True, old.generation + 1)
-        r.lane_ids = old.lane_ids  # the same copy of the track
         self._pending.append(r)
 
     def _start_restarted(self, live: _Live, api: sumo_api.SumoApi, pending: list[_Scenario],
@@ -989,21 +981,74 @@ class ClosedLoop:
 
     def _sub_step(self, live: _Live, api: sumo_api.SumoApi, k: int, last: bool,
                   ev: Events | None) -> None:
-        """Physics step ``k`` of every running scenario: drive, monitor, log, end."""
-        moved = self._drive(live, api, k)
-        rows, ends, departed, ttc_flag, hit = self._watch(live, api, k, moved)
-        live.departed = live.departed | departed
-        live.ttc_flag = live.ttc_flag | ttc_flag
-        live.collision = live.collision | hit
-        live.sub_steps += 1
+        """Physics step ``k`` of every running scenario: drive (:meth:`_drive`), then on the
+        state at ``t + dt``: read the leaders, check footprints, run the monitors, log the step
+        (the full row: ``(n, 44)``, 44 floats at N = 1), end the scenarios that end."""
+        t, steer_cmd, accel_cmd, guarded, v, front_x, front_y, s, d, heading, hit = self._drive(
+            live, api, k)
+        c, st, xp, lap = live.c, live.st, self._xp, self._sub_lap
+        # each leader's rear x, y [m] and true speed [m/s] (NaN: none; the true speed of a
+        # leader that needs_location comes once it is located)
+        lead_x, lead_y, v_lead = xp.from_each([r.lead.read(api) if r.lead is not None
+                                               else NO_LEADER for r in live.runs])
+        if c.any_traffic:  # a leader met after none: its walk starts at the ego's segment
+            from_ego = xp.from_rows([isinstance(r.lead, TrafficLeader) and r.lead.from_ego
+                                     for r in live.runs])
+            live.lead_seg = xp.where(from_ego, live.ego_seg, live.lead_seg)
+        if lap is not None:
+            lap("sumo_read")
+        has_lead = xp.isfinite(lead_x)  # NaN: no leader
+        s_rear, _, _, live.lead_seg = _project(c.project, xp, lead_x, lead_y, live.lead_seg)
+        gap = xp.where(has_lead, s_rear - s, math.inf)
+        yaw = st[2]
+        fix = xp.nonzero(has_lead & ((gap < self._near) | c.located))
+        if len(fix):
+            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
+                                               (front_x, front_y), yaw)
+        if lap is not None:
+            lap("project")
+
+        d_min, d_max, departed, ttc, ttc_flag, fraction = _monitors(
+            c, self.vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead, xp)
+        lead_no = (xp.from_rows([r.lead.no if r.lead is not None and r.lead.leader is not None
+                                 else math.nan for r in live.runs])
+                   if c.any_traffic else xp.where(has_lead, 0.0, math.nan))
+        rows: Any = [  # the log's columns (_Log.COLUMNS): floats at N = 1, arrays (n,) else
+            t + self._dt, st[0], st[1], yaw, v, st[4], st[5], st[6], front_x, front_y,
+            steer_cmd, accel_cmd, s, d, d_min, d_max, *live.feature_log, lead_x, lead_y, v_lead,
+            gap, ttc, departed, ttc_flag, hit, fraction, *live.plan_log, lead_no, guarded,
+        ]
+        if xp is FLOATS:  # one scenario: a list append per step
+            run = live.runs[0]
+            log = run.rows
+            assert isinstance(log, list), "a running scenario's log is kept (a list at N = 1)"
+            log.append(rows if self._col_idx is None else np.asarray(rows)[self._col_idx])
+            run.steps = k + 1
+        else:  # each scenario's own step (a restarted one's starts at its k0)
+            rows = np.array(rows).T
+            logged = rows if self._col_idx is None else rows[:, self._col_idx]
+            for r, row in zip(live.runs, logged):
+                log = r.rows
+                assert isinstance(log, np.ndarray), "a running scenario's log is kept"
+                log[k - r.k0] = row
+                r.steps = k - r.k0 + 1
+
+        if ev is not None:  # the decision step's flags (only Events reads them)
+            live.departed = live.departed | departed
+            live.ttc_flag = live.ttc_flag | ttc_flag
+            live.collision = live.collision | hit
+            live.sub_steps += 1
+        # the end conditions of _END_REASONS, in order
+        ends = (s >= c.path_end, hit, xp.abs(d) > c.half_width + self._offroad_m,
+                (departed | ttc_flag) & self._stop_on_flag, k + 1 - c.k0 >= c.n_max)
         ended = ends[0] | ends[1] | ends[2] | ends[3] | ends[4]
-        any_ended = self._xp.any(ended)
+        any_ended = xp.any(ended)
         if last or any_ended:  # the observation: each scenario's latest row
             self._last[live.at] = rows
         if any_ended:  # why: the first end condition met
-            self._end(live, api, ended, self._xp.select(ends, _END_REASONS, ""), ev)
-        if self._sub_lap is not None:
-            self._sub_lap("monitor")
+            self._end(live, api, ended, xp.select(ends, _END_REASONS, ""), ev)
+        if lap is not None:
+            lap("monitor")
 
     def _drive(self, live: _Live, api: sumo_api.SumoApi, k: int) -> Moved:
         """Drive the egos (track and plant, or their recorded poses), find each front bumper on
@@ -1022,17 +1067,18 @@ class ClosedLoop:
         s, d, heading, live.ego_seg = c.project(front_x, front_y, live.ego_seg)
         if lap is not None:
             lap("project")
+        # moveTo on the lane where placeable (ego_placement "lane" only), else moveToXY
         inside = (lane_placeable(d, s, v * dt, c.half_width, c.route_end) if self._on_lane
                   else c.no_flags)
-        move_to = api.vehicle.moveTo if self._on_lane else None  # (a fake API may lack it)
-        move_to_xy, set_speed = api.vehicle.moveToXY, api.vehicle.setSpeed
+        vehicle = api.vehicle
         for r, (fx, fy, vj, sj, yj, on_lane) in zip(live.runs,
                                                      xp.each(front_x, front_y, v, s, yaw, inside)):
-            if on_lane and move_to is not None:  # inside: on_lane placement only
-                move_to(r.ego, *_lane_position(r, sj, vj * dt))
+            if on_lane:
+                lane, pos = sumo_lane_position(r.road, sj, vj * dt)
+                vehicle.moveTo(r.ego, r.lane_ids[lane], pos)
             else:
-                move_to_xy(r.ego, "", -1, fx + r.dx, fy, yaw_to_sumo_angle(yj), 2)
-            set_speed(r.ego, vj)
+                vehicle.moveToXY(r.ego, "", -1, fx + r.dx, fy, yaw_to_sumo_angle(yj), 2)
+            vehicle.setSpeed(r.ego, vj)
             if r.lead is not None:
                 r.lead.command(api, k - r.k0)
         if lap is not None:
@@ -1048,27 +1094,7 @@ class ClosedLoop:
             hit = c.no_flags
         if lap is not None:
             lap("sumo_step")
-        return t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, guarded
-
-    def _read_leaders(self, live: _Live, api: sumo_api.SumoApi
-                      ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
-        """Each running scenario's leader after a step: its rear ``lead_x, lead_y`` [m] and
-        true speed [m/s] (NaN: none; the true speed of a leader that ``needs_location`` comes
-        once it is located)."""
-        xp, none = self._xp, (math.nan, math.nan, math.nan)
-        read: list[tuple[float, float, float]] = []  # per row: rear x, y, true speed
-        for r in live.runs:
-            lead = r.lead
-            # read: its pose, or False and None (no leader)
-            if lead is not None and lead.read(api) and (pose := lead.leader) is not None:
-                read.append((*pose[0], lead.v))
-            else:
-                read.append(none)
-        if live.c.any_traffic:  # a leader met after none: its walk starts at the ego's segment
-            from_ego = xp.from_rows([isinstance(r.lead, TrafficLeader) and r.lead.from_ego
-                                     for r in live.runs])
-            live.lead_seg = xp.where(from_ego, live.ego_seg, live.lead_seg)
-        return xp.from_each(read)
+        return t, steer_cmd, accel_cmd, guarded, v, front_x, front_y, s, d, heading, hit
 
     def _locate_leaders(self, live: _Live, rows: Rows, s_rear: FloatOrArray, gap: FloatOrArray,
                         v_lead: FloatOrArray, hit: BoolOrArray,
@@ -1091,58 +1117,6 @@ class ClosedLoop:
                 hl[j] = footprints_overlap((fxl[j], fyl[j]), yl[j], vehicle, pose, lead.length,
                                            lead.width)
         return xp.from_rows(vll), xp.from_rows(hl)
-
-    def _watch(self, live: _Live, api: sumo_api.SumoApi, k: int, moved: Moved
-               ) -> tuple[Any, tuple[BoolOrArray, ...], BoolOrArray, BoolOrArray, BoolOrArray]:
-        """Read the leaders, check footprints and run the monitors on the state at ``t + dt``;
-        log the step. Returns the full log rows (``(n, 44)``; 44 floats at N = 1), the end
-        conditions of ``_END_REASONS`` (each row's, in order) and the lane-departure, TTC and
-        collision flags."""
-        t, steer_cmd, accel_cmd, v, front_x, front_y, s, d, heading, hit, guarded = moved
-        c, st, n, xp = live.c, live.st, len(live.runs), self._xp
-        lead_x, lead_y, v_lead = self._read_leaders(live, api)
-        has_lead = xp.isfinite(lead_x)  # NaN: no leader
-        lap = self._sub_lap
-        if lap is not None:
-            lap("sumo_read")
-        s_rear, _, _, live.lead_seg = _project(c.project, xp, lead_x, lead_y, live.lead_seg)
-        gap = xp.where(has_lead, s_rear - s, math.inf)
-        yaw = st[2]
-        fix = xp.nonzero(has_lead & ((gap < self._near) | c.located))
-        if len(fix):
-            v_lead, hit = self._locate_leaders(live, fix, s_rear, gap, v_lead, hit,
-                                               (front_x, front_y), yaw)
-        if lap is not None:
-            lap("project")
-
-        d_min, d_max, departed, ttc, ttc_flag, fraction = _monitors(
-            c, self.vehicle, yaw, heading, s, d, v, gap, v_lead, has_lead, xp)
-        lead_no = (xp.from_rows([r.lead.no if r.lead is not None and r.lead.leader is not None
-                                 else math.nan for r in live.runs])
-                   if c.any_traffic else xp.where(has_lead, 0.0, math.nan))
-        rows = xp.columns([
-            xp.full(n, t + self._dt), st[0], st[1], yaw, v, st[4], st[5], st[6], front_x,
-            front_y, steer_cmd, accel_cmd, s, d, d_min, d_max, *live.feature_log, lead_x, lead_y,
-            v_lead, gap, ttc, departed, ttc_flag, hit, fraction, *live.plan_log, lead_no,
-            guarded,
-        ])
-        logged = rows if self._col_idx is None else np.asarray(rows)[..., self._col_idx]
-        if xp is FLOATS:  # one scenario: a list append per step
-            run = live.runs[0]
-            log = run.rows
-            assert isinstance(log, list), "a running scenario's log is kept (a list at N = 1)"
-            log.append(logged)
-            run.steps = k + 1
-        else:  # each scenario's own step (a restarted one's starts at its k0)
-            for r, row in zip(live.runs, logged):
-                log = r.rows
-                assert isinstance(log, np.ndarray), "a running scenario's log is kept"
-                log[k - r.k0] = row
-                r.steps = k - r.k0 + 1
-        loop = self.loop
-        ends = (s >= c.path_end, hit, xp.abs(d) > c.half_width + loop.offroad_stop_m,
-                (departed | ttc_flag) & loop.stop_on_flag, k + 1 - c.k0 >= c.n_max)
-        return rows, ends, departed, ttc_flag, hit
 
     def _end(self, live: _Live, api: sumo_api.SumoApi, ended: BoolOrArray, reason: Any,
              ev: Events | None) -> None:
@@ -1331,6 +1305,7 @@ class _Fixed:
     traffic: BoolOrArray  # (n,) bool: the leader is SUMO's traffic
     any_traffic: bool
     no_flags: BoolOrArray  # (n,) bool: False in every row (not written to)
+    nans: FloatOrArray  # (n,) NaN in every row (not written to)
     planners: list[tuple[Policy | None, np.ndarray | slice]]  # (planner, rows): a call each
     unplanned: bool  # a row has no policy: step needs its plans
     # (x, y, segment) -> s, d, heading, segment on each row's ego lane centre: the one polyline,
@@ -1359,7 +1334,8 @@ class _Fixed:
             n_max=col(lambda r: r.n_max), horizon=col(lambda r: r.horizon),
             located=col(lambda r: r.lead is not None and r.lead.needs_location),
             traffic=xp.from_rows(traffic), any_traffic=any(traffic),
-            no_flags=xp.from_rows([False] * len(live)), planners=planners,
+            no_flags=xp.from_rows([False] * len(live)), nans=xp.full(len(live), math.nan),
+            planners=planners,
             unplanned=any(policy is None for policy, _ in planners), project=project,
             k0=col(lambda r: r.k0))
 

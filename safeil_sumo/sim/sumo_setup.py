@@ -23,7 +23,7 @@ from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario
-from safeil_sumo.sim.xp import BoolOrArray, FloatOrArray
+from safeil_sumo.sim.xp import BoolOrArray, FloatOrArray, clip
 
 EGO_ID = "ego"
 LEADER_ID = "leader"
@@ -103,7 +103,7 @@ def sumo_lane_position(road: Road, s: float, advance_m: float = 0.0) -> tuple[st
     if pos < 0.0 and k > 0:  # the step crosses into this lane from the one before
         p = road.ego_pieces[k - 1]
         pos += p.sumo_length
-    return p.lane_id, min(max(pos, 0.0), p.sumo_length)
+    return p.lane_id, clip(pos, 0.0, p.sumo_length)
 
 
 def max_steps(scenario: Scenario, loop: LoopConfig) -> int:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import ClassVar, TypeAlias, cast
 
 from safeil_sumo.sim.xp import FLOATS, FloatOrArray, Namespace
@@ -92,14 +93,14 @@ class VehicleParams:
         """Distance [m] from the CoG forward to the front bumper."""
         return self.lf_m + self.front_overhang_m
 
-    @property
+    @cached_property  # read every physics step by the tracker
     def understeer_gradient(self) -> float:
         """``K_us`` [rad/(m/s^2)]: steady state ``delta = L / R + K_us a_y`` of the linear model."""
         m, L = self.mass_kg, self.wheelbase_m
         cf, cr = self.cornering_stiffness_front_npr, self.cornering_stiffness_rear_npr
         return m / L * (self.lr_m / cf - self.lf_m / cr)
 
-    @property
+    @cached_property  # read every physics step (pedals_from_accel_vx)
     def max_brake_force_n(self) -> float:
         """Brake force [N] at full pedal."""
         return self.mass_kg * self.max_brake_decel_mps2
@@ -264,7 +265,7 @@ class Plant:
         target = throttle * drive - brake * self.max_brake_force
         # brake circuit dynamics whenever braking is involved (applying or releasing); a first-
         # order lag, or none for a time constant <= 0 (decay None)
-        braking = xp.logical_or(target < 0.0, force0 < 0.0)
+        braking = (target < 0.0) | (force0 < 0.0)  # flags: | is logical_or
         fx_brake = target if self.brake_decay is None else (
             target + (force0 - target) * self.brake_decay)
         fx_drive = target if self.drive_decay is None else (
