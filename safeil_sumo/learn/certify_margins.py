@@ -517,25 +517,25 @@ def bound_boxes(layers: list[bnd.Layer], props: Properties, lo: np.ndarray, hi: 
 def _with_lane_head_rows(props: Properties, lo: np.ndarray, hi: np.ndarray, out_lo: np.ndarray,
                          out_hi: np.ndarray, plan: bnd.LinearBound, rows: slice,
                          bounds: BoxBounds) -> BoxBounds:
-    """``bounds`` with the lane rows of a lane-following head from
-    :func:`lane_head_lane_lower` (no linear coefficients), and split scores for them: the
-    curvature fit's residual shrinks with the curvature's width and with the x control points'
-    (shared among the dimensions by their sensitivity, as for the paper's head); the plan's
-    interval ``[out_lo, out_hi] (N, 6)`` holds x1, z1, x2, z2, x3, z3."""
+    """``bounds`` (its ``rows`` of the 15) with the lane rows of a lane-following head from
+    :func:`lane_head_lane_lower` (no linear coefficients) and split scores for them, each
+    term's width given to the dimensions that narrow it; the plan's interval ``[out_lo,
+    out_hi] (N, 6)`` and linear bounds ``plan`` hold x1, z1, x2, z2, x3, z3."""
     lower, coef, score = bounds.lower.copy(), bounds.coef.copy(), bounds.score.copy()
-    lane = np.arange(15)[rows][np.isin(np.arange(15)[rows], np.arange(3, 15))]
-    at = np.searchsorted(np.arange(15)[rows], lane)
+    kept = np.arange(15)[rows]
+    at = np.flatnonzero(kept >= 3)  # where the lane rows sit among those returned
+    lane = kept[at] - 3  # and which of the 12 they are
     # the network's outputs: x control points and the offsets' z (t = tanh z, monotone)
     bound, widths = lane_head_lane_lower(
         props, lo, hi, out_lo[:, 0::2], out_hi[:, 0::2], np.tanh(out_lo[:, 1::2]),
         np.tanh(out_hi[:, 1::2]), _residual_from_linear_x(plan, lo, hi), terms=True)
-    lower[:, at], widths = bound[:, lane - 3], widths[:, lane - 3]
+    lower[:, at], widths = bound[:, lane], widths[:, lane]
     coef[:, at] = 0.0
     width = hi - lo
 
-    def share(rows: slice) -> np.ndarray:  # each dimension's share of these outputs' width
-        sens = np.abs(plan.coef[:, rows]).sum(axis=1) + np.abs(plan.coef[:, 6:12][:, rows]
-                                                                ).sum(axis=1)
+    def share(outputs: slice) -> np.ndarray:  # each dimension's share of these outputs' width
+        sens = np.abs(plan.coef[:, outputs]).sum(axis=1) + np.abs(plan.coef[:, 6:12][:, outputs]
+                                                                   ).sum(axis=1)
         infl = sens * width
         return infl / np.maximum(infl.sum(axis=1, keepdims=True), 1e-300)
 
