@@ -31,6 +31,11 @@ targets only on the bends it had seen (docs/human_likeness.md, "A fresh lateral 
 bends").
 Where the plans are equally long (slow, or the fine-tune did not change x) on a straight lane
 the target is the reference's y exactly, so low-speed lane keeping is kept.
+
+With ``lateral_mode="lane"`` (the shipped recipe) the tower no longer outputs y: it outputs the
+offsets of :func:`safeil_sumo.bspline.lane_following_y`, which builds the centre part of the
+target in closed form from the lane lines and the plan's own x, and bounds the offsets by the
+room the lane leaves; the refit fits the same targets through it.
 """
 
 from __future__ import annotations
