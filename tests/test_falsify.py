@@ -232,6 +232,38 @@ def test_cli_refuses_bad_options(capsys) -> None:
         assert exit_.value.code == 2
 
 
+def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeypatch) -> None:
+    """run_or_load reads a finished search back for the same policy weights, and searches
+    again when the policy's file changed (a retrained model must not inherit the old model's
+    failures). The planted objective stands in for SUMO: the point is the cache."""
+    import shutil
+
+    from safeil_sumo import planner_registry
+
+    weights = tmp_path / "m.safetensors"
+    shutil.copy(planner_registry.policy_file("bc"), weights)
+    shutil.copy(planner_registry.policy_file("bc").with_suffix(".json"),
+                weights.with_suffix(".json"))
+    calls, real_search = [], fz.search
+
+    def counted(config, objective, *args):
+        calls.append(1)
+        return real_search(config, planted)
+
+    monkeypatch.setattr(fz, "search", counted)
+    monkeypatch.setattr(fz, "closed_loop_objective", lambda *args: planted)
+    cfg = fz.SearchConfig(method="random", budget=20, batch=10, seed=0)
+    folder = tmp_path / "study"
+    first = fz.run_or_load(str(weights), cfg, folder)
+    again = fz.run_or_load(str(weights), cfg, folder)
+    assert len(calls) == 1 and np.array_equal(first.scores, again.scores)
+    for suffix in (".safetensors", ".json"):  # retrained: other weights in the same file
+        shutil.copy(planner_registry.policy_file("safeil_paper").with_suffix(suffix),
+                    weights.with_suffix(suffix))
+    fz.run_or_load(str(weights), cfg, folder)
+    assert len(calls) == 2
+
+
 def test_results_section_from_toy_searches(tmp_path, monkeypatch) -> None:
     """``results --only falsify``'s table, curves, worst cases and README lines (searches on
     the planted objective instead of SUMO)."""

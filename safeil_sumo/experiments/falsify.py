@@ -403,9 +403,14 @@ def write_worst(result: SearchResult, policy: str, folder: Path, stem: str = "wo
 def run_or_load(policy: str, config: SearchConfig, folder: Path, progress: bool = False
                 ) -> SearchResult:
     """The search of ``policy`` under ``config``, read from ``folder`` if a run with the same
-    config finished there, else run (in SUMO) and saved: ``evaluations.csv``, ``config.json``."""
+    config and the same policy weights finished there, else run (in SUMO) and saved:
+    ``evaluations.csv``, ``config.json`` (with the policy's fingerprint, so a retrained model
+    never reads the searches of the model before)."""
+    from safeil_sumo import planner_registry
+
     done = folder / "evaluations.csv"
-    cfg = {"policy": policy, **asdict(config)}
+    cfg = {"policy": policy, "policy_fingerprint": planner_registry.fingerprint(policy),
+           **asdict(config)}
     if done.is_file() and (folder / "config.json").is_file() and json.loads(
             (folder / "config.json").read_text()) == cfg:
         return from_table(pd.read_csv(done, keep_default_na=False,
