@@ -251,6 +251,28 @@ def _interval_product(al, ah, bl, bh):
     return c.min(0), c.max(0)
 
 
+def _product_intervals(x_lo: np.ndarray, x_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Intervals ``(N, 3, 3)`` x2 of the products ``x_i x_j`` over boxes ``[x_lo, x_hi] (N, 3)``
+    (the squares exactly)."""
+    p_lo, p_hi = _interval_product(x_lo[:, :, None], x_hi[:, :, None], x_lo[:, None, :],
+                                   x_hi[:, None, :])
+    diag = np.arange(3)
+    p_lo[:, diag, diag] = np.where((x_lo > 0) | (x_hi < 0),
+                                   np.minimum(x_lo ** 2, x_hi ** 2), 0.0)
+    p_hi[:, diag, diag] = np.maximum(x_lo ** 2, x_hi ** 2)
+    return p_lo, p_hi
+
+
+def _width_shares(plan: bnd.LinearBound, width: np.ndarray, outputs: slice) -> np.ndarray:
+    """Each box dimension's share ``(N, n_z)`` of how wide the plan outputs ``outputs`` are:
+    their linear bounds' sensitivity to it (``plan``: CROWN of ``[eye(6); -eye(6)]``) times its
+    width ``(N, n_z)``, normalised."""
+    sens = np.abs(plan.coef[:, outputs]).sum(axis=1) + np.abs(plan.coef[:, 6:12][:, outputs]
+                                                               ).sum(axis=1)
+    infl = sens * width
+    return infl / np.maximum(infl.sum(axis=1, keepdims=True), 1e-300)
+
+
 def property_objective(props: Properties, f_lo: np.ndarray, f_hi: np.ndarray,
                        y_lo: np.ndarray, y_hi: np.ndarray) -> tuple[np.ndarray, np.ndarray,
                                                                     np.ndarray]:
@@ -281,13 +303,7 @@ def property_objective(props: Properties, f_lo: np.ndarray, f_hi: np.ndarray,
     x_m, x_w = 0.5 * (x_lo + x_hi), x_hi - x_lo
     e = ELEVATE_3_TO_6[:, 1:]  # (7, 3), >= 0
     pw = PRODUCT_WEIGHTS[:, 1:, 1:]  # (7, 3, 3), >= 0
-    # interval of x_i x_j (squares exactly)
-    p_lo, p_hi = _interval_product(x_lo[:, :, None], x_hi[:, :, None], x_lo[:, None, :],
-                                   x_hi[:, None, :])
-    diag = np.arange(3)
-    sq_lo = np.where((x_lo > 0) | (x_hi < 0), np.minimum(x_lo ** 2, x_hi ** 2), 0.0)
-    p_lo[:, diag, diag] = sq_lo
-    p_hi[:, diag, diag] = np.maximum(x_lo ** 2, x_hi ** 2)
+    p_lo, p_hi = _product_intervals(x_lo, x_hi)
     half = 0.5 * props.track_m
     for side, (s, col, off) in enumerate(((1.0, 0, -half), (-1.0, 3, half))):
         c1_lo, c1_hi = f_lo[:, col + 1], f_hi[:, col + 1]
@@ -363,12 +379,7 @@ def _quadratic_form_interval(q: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray
     """Bounds ``(N, K)`` x2 of ``x^T q_k x`` for ``q (K, 3, 3)`` over boxes ``[x_lo, x_hi]
     (N, 3)``: the tighter of the products' intervals and the centred form ``R(m) + 2 m^T q
     delta + delta^T q delta``, ``|delta| <= r`` (sound both)."""
-    p_lo, p_hi = _interval_product(x_lo[:, :, None], x_hi[:, :, None], x_lo[:, None, :],
-                                   x_hi[:, None, :])
-    diag = np.arange(3)
-    p_lo[:, diag, diag] = np.where((x_lo > 0) | (x_hi < 0),
-                                   np.minimum(x_lo ** 2, x_hi ** 2), 0.0)
-    p_hi[:, diag, diag] = np.maximum(x_lo ** 2, x_hi ** 2)
+    p_lo, p_hi = _product_intervals(x_lo, x_hi)
     q_pos, q_neg = np.maximum(q, 0.0), np.minimum(q, 0.0)
     lo = np.einsum("kab,nab->nk", q_pos, p_lo) + np.einsum("kab,nab->nk", q_neg, p_hi)
     hi = np.einsum("kab,nab->nk", q_pos, p_hi) + np.einsum("kab,nab->nk", q_neg, p_lo)
@@ -504,9 +515,7 @@ def bound_boxes(layers: list[bnd.Layer], props: Properties, lo: np.ndarray, hi: 
         # the McCormick gaps: c1 x and c2 Q halve with heading / curvature, the rest with the
         # plan's width, shared among the dimensions by its sensitivity to them
         width = hi - lo
-        x_sens = np.abs(out.coef[:, 0:6:2]).sum(axis=1) + np.abs(out.coef[:, 6:12:2]).sum(axis=1)
-        infl = x_sens * width
-        infl = infl / np.maximum(infl.sum(axis=1, keepdims=True), 1e-300)
+        infl = _width_shares(out, width, slice(0, 6, 2))
         score += (0.5 * gaps[..., 0] + 0.5 * gaps[..., 1] + gaps[..., 2])[..., None] \
             * infl[:, None]
         score[..., HEAD] += 0.5 * gaps[..., 0]
@@ -532,17 +541,10 @@ def _with_lane_head_rows(props: Properties, lo: np.ndarray, hi: np.ndarray, out_
     lower[:, at], widths = bound[:, lane], widths[:, lane]
     coef[:, at] = 0.0
     width = hi - lo
-
-    def share(outputs: slice) -> np.ndarray:  # each dimension's share of these outputs' width
-        sens = np.abs(plan.coef[:, outputs]).sum(axis=1) + np.abs(plan.coef[:, 6:12][:, outputs]
-                                                                   ).sum(axis=1)
-        infl = sens * width
-        return infl / np.maximum(infl.sum(axis=1, keepdims=True), 1e-300)
-
     # the residual shrinks with the curvature's and the x control points' widths, the
     # offsets' term with the lateral outputs', the corner term with the width's and offset's
-    score[:, at] = (0.5 * widths[..., 0, None] * share(slice(0, 6, 2))[:, None]
-                    + widths[..., 1, None] * share(slice(1, 6, 2))[:, None])
+    score[:, at] = (0.5 * widths[..., 0, None] * _width_shares(plan, width, slice(0, 6, 2))[:, None]
+                    + widths[..., 1, None] * _width_shares(plan, width, slice(1, 6, 2))[:, None])
     score[:, at, CURV] += 0.5 * widths[..., 0]
     score[:, at, OFF] += widths[..., 2]
     score[:, at, W] += 0.5 * widths[..., 2]
