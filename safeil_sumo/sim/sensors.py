@@ -371,19 +371,17 @@ class LaneCamera:
         pts = np.stack((lane.left_boundary.xy_at(s_left + offsets),
                         lane.right_boundary.xy_at(s_right + offsets)))
         x, y = _to_ego(pts, ego_xy, ego_yaw)
-        if not (_may_turn_too_much(lane.left_boundary, config)
+        # else no chord turns too much: the whole view range, without the check
+        if (_may_turn_too_much(lane.left_boundary, config)
                 or _may_turn_too_much(lane.right_boundary, config)):
-            left, right = polyfit3_rows(x, y)  # the whole view range: no chord turns too much
-            add_lane_noise(left, right, config, rng)
-            return left, right, lane.index
-        view = view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
-                                      config.min_view_range_m)
-        if (view < config.view_range_m).any():  # a tight bend: each line as far as it holds
-            (xl, yl), (xr, yr) = (
-                _points_within(line, s0, float(v), config.view_samples, ego_xy, ego_yaw)
-                for line, s0, v in ((lane.left_boundary, s_left, view[0]),
-                                    (lane.right_boundary, s_right, view[1])))
-            x, y = np.stack((xl, xr)), np.stack((yl, yr))
+            view = view_range_within_turn(x, y, offsets, config.max_view_turn_rad,
+                                          config.min_view_range_m)
+            if (view < config.view_range_m).any():  # a tight bend: each line as far as it holds
+                (xl, yl), (xr, yr) = (
+                    _points_within(line, s0, float(v), config.view_samples, ego_xy, ego_yaw)
+                    for line, s0, v in ((lane.left_boundary, s_left, view[0]),
+                                        (lane.right_boundary, s_right, view[1])))
+                x, y = np.stack((xl, xr)), np.stack((yl, yr))
         left, right = polyfit3_rows(x, y)
         add_lane_noise(left, right, config, rng)
         return left, right, lane.index
