@@ -149,11 +149,32 @@ def lateral_margin_bernstein(
 # plan, plus an offset from the centre at each control point bounded by the lane's free half
 # width. The centre's linear part is a cubic already (exact); its curvature part ``c2 x(tau)^2``
 # (degree 6) is fitted, so on a bend the plan follows the centre instead of cutting it along the
-# control points' chords, and the convex hull keeps it in the lane up to that fit's residual.
+# control points' chords. What that fit leaves (a plan that brakes hard on a bend: up to ~0.3 m
+# at the envelope's tightest curvature) is taken off the offsets' room, so that every degree-6
+# Bernstein coefficient of both lane margins, and by the convex hull the whole plan, stays inside
+# the lane whatever the network outputs (``lane_fit_allowance``).
 
 LANE_FIT_TAU = np.linspace(0.0, 1.0, 21)  # where the centre is fitted (the lateral refit's grid)
 LANE_FREE = basis(LANE_FIT_TAU)[:, 1:]  # (21, 3): the origin's coefficient is 0
 LANE_FIT = np.linalg.pinv(LANE_FREE)  # (3, 21)
+# (7, 3, 3): R_k(x) = x^T LANE_FIT_RESIDUAL_k x, the degree-6 Bernstein coefficients of
+# x(tau)^2 less those of its fitted cubic s(tau), for the free x control points (R_0 = 0)
+LANE_FIT_RESIDUAL = PRODUCT_WEIGHTS[:, 1:, 1:] - np.einsum(
+    "ki,im,ma,mb->kab", ELEVATE_3_TO_6[:, 1:], LANE_FIT, LANE_FREE, LANE_FREE)
+# 1 / (1 - E_k0), k >= 1: the share of margin coefficient k that the offsets' room reaches
+LANE_FIT_WEIGHT = 1.0 / (1.0 - ELEVATE_3_TO_6[1:, 0])
+
+
+def lane_fit_allowance(x: np.ndarray) -> np.ndarray:
+    """``max_k |R_k(x)| / (1 - E_k0)`` ``(...)`` [m^2] of x control points ``(..., 3)`` [m]:
+    times the larger |c2| of the two lines, the room the centre fit's residual needs.
+
+    Margin coefficient k of a lane head's plan is ``E_k0 (start margin) + sum_i E_ki (w_i/2 -
+    h_i t_i) + c2 R_k - (1 - E_k0) T/2`` (``w_i/2``: the half width at ``x_i`` along the fitted
+    centre, ``|t_i| < 1``): with ``h_i = w_i/2 - keep - |c2| A`` it is at least ``E_k0 (start
+    margin) + (1 - E_k0) (keep - T/2)``, whatever the offsets."""
+    r = np.einsum("kab,...a,...b->...k", LANE_FIT_RESIDUAL[1:], x, x)
+    return np.max(np.abs(r) * LANE_FIT_WEIGHT, axis=-1)
 
 
 def lane_following_y(lines: np.ndarray, x: np.ndarray, z: np.ndarray,
@@ -161,7 +182,8 @@ def lane_following_y(lines: np.ndarray, x: np.ndarray, z: np.ndarray,
     """y control points ``(..., 3)`` [m] of plans with x control points ``x (..., 3)`` [m] in the
     lane of ``lines (..., 6)`` (``c0l, c1l, c2l, c0r, c1r, c2r``), offset from its centre by
     ``h_i tanh(z_i)`` (``z (..., 3)``: the network's lateral outputs): ``h_i`` is the lane's
-    half width at ``x_i`` less ``keep_m`` [m] (half the track plus a clearance), floored at 0.
+    half width at ``x_i`` less ``keep_m`` [m] (half the track plus a clearance) and less the
+    centre fit's allowance (:func:`lane_fit_allowance`), floored at 0.
 
     ``y_i = cm0 + cm1 x_i + cm2 s_i + h_i tanh(z_i)``, ``cm`` the centre line (the mean of both
     lines), ``s`` the least-squares cubic of ``x(tau)^2`` at :data:`LANE_FIT_TAU`.
@@ -171,7 +193,9 @@ def lane_following_y(lines: np.ndarray, x: np.ndarray, z: np.ndarray,
     half = 0.5 * (lines[..., 0:3] - lines[..., 3:6])
     xs = x @ LANE_FREE.T  # (..., 21)
     s = (xs * xs) @ LANE_FIT.T
-    h = np.maximum(half[..., 0, None] + half[..., 1, None] * x + half[..., 2, None] * x * x
-                   - keep_m, 0.0)
+    bend = np.maximum(np.abs(lines[..., 2]), np.abs(lines[..., 5]))
+    room = (half[..., 0, None] + half[..., 1, None] * x + half[..., 2, None] * s - keep_m
+            - (bend * lane_fit_allowance(x))[..., None])
+    h = np.maximum(room, 0.0)
     return (centre[..., 0, None] + centre[..., 1, None] * x + centre[..., 2, None] * s
             + h * np.tanh(z))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.interpolate import BSpline
@@ -254,21 +254,57 @@ def test_lane_following_y_torch_equals_numpy() -> None:
 @settings(max_examples=300, deadline=None)
 @given(width=st.floats(3.3, 3.8), offset=st.floats(-0.6, 0.6), heading=st.floats(-0.03, 0.03),
        kappa=st.floats(-1.0 / 250.0, 1.0 / 250.0), speed=st.floats(0.0, 40.0),
-       accel=st.floats(-6.0, 3.0),
+       accel=st.floats(-9.0, 3.0), shake=arrays(np.float64, 3, elements=st.floats(-10.0, 10.0)),
        z=arrays(np.float64, 3, elements=st.floats(-50.0, 50.0)))
 def test_lane_following_plan_stays_in_the_lane_whatever_the_network_says(
-        width, offset, heading, kappa, speed, accel, z) -> None:
-    # every output z of the network, on the certification envelope's lanes and a plan that
-    # accelerates or brakes (to a stop) over 5 s: the whole spline keeps half the track
-    # inside both lines (up to the centre fit's residual, 1 cm)
+        width, offset, heading, kappa, speed, accel, shake, z) -> None:
+    # every output z of the network, on the certification envelope's lanes and x control points
+    # of a plan that accelerates or brakes (to a stop) over 5 s, shaken by up to 10 m: wherever
+    # the lane has room for the centre fit's residual, every Bernstein coefficient of both
+    # margins keeps half the track and the clearance's share inside the lines (and so the
+    # whole spline), exactly
     t = np.array([1.0, 2.0, 3.0]) * 5.0 / 3.0
     stop = speed / -accel if accel < 0 else np.inf
     tt = np.minimum(t, stop)
-    x = speed * tt + 0.5 * accel * tt * tt
+    x = speed * tt + 0.5 * accel * tt * tt + shake
+    assume(width / 2 - KEEP - abs(kappa) / 2 * bspline.lane_fit_allowance(x) >= 0.0)
     lines = _lines(width, offset, heading, kappa)
-    y = bspline.lane_following_y(lines, x, z, KEEP)
-    plan = bspline.evaluate(np.stack([x, y], axis=-1), np.linspace(0.0, 1.0, 401))
-    px, py = plan[:, 0], plan[:, 1]
-    left = lines[0] + lines[1] * px + lines[2] * px**2 - 0.88 - py
-    right = py - (lines[3] + lines[4] * px + lines[5] * px**2) - 0.88
-    assert min(left.min(), right.min()) >= -0.01
+    plan = np.stack([x, bspline.lane_following_y(lines, x, z, KEEP)], axis=-1)
+    left = bspline.lateral_margin_bernstein(plan, lines[0:3], -0.88)
+    right = -bspline.lateral_margin_bernstein(plan, lines[3:6], 0.88)
+    # margin coefficient k >= E_k0 (the start's margin) + (1 - E_k0) (keep - T/2)
+    share = bspline.ELEVATE_3_TO_6[:, 0]
+    assert np.all(left >= share * (lines[0] - 0.88) + (1.0 - share) * (KEEP - 0.88) - 1e-9)
+    assert np.all(right >= share * (-lines[3] - 0.88) + (1.0 - share) * (KEEP - 0.88) - 1e-9)
+    points = bspline.evaluate(plan, np.linspace(0.0, 1.0, 401))
+    px, py = points[:, 0], points[:, 1]
+    assert np.all(lines[0] + lines[1] * px + lines[2] * px**2 - 0.88 - py >= -1e-9)
+    assert np.all(py - (lines[3] + lines[4] * px + lines[5] * px**2) - 0.88 >= -1e-9)
+
+
+def test_lane_fit_allowance_by_hand() -> None:
+    # constant speed: x(tau)^2 is a quadratic, fitted exactly, nothing to allow for
+    assert bspline.lane_fit_allowance(np.array([25.0, 50.0, 75.0])) == pytest.approx(0.0, abs=1e-9)
+    # homogeneous of degree 2 in x, and the largest weighted |R_k|
+    x = np.array([35.0, 55.0, 60.0])
+    r = np.einsum("kab,a,b->k", bspline.LANE_FIT_RESIDUAL, x, x)
+    assert r[0] == pytest.approx(0.0, abs=1e-9)
+    assert bspline.lane_fit_allowance(x) == pytest.approx(
+        np.max(np.abs(r[1:]) * bspline.LANE_FIT_WEIGHT))
+    assert bspline.lane_fit_allowance(2.0 * x) == pytest.approx(4.0 * bspline.lane_fit_allowance(x))
+    # 1 / (1 - E_k0): the cubic's first control point enters coefficient k with E_k0 = 1/2, 1/5,
+    # 1/20, 0, 0, 0
+    np.testing.assert_allclose(bspline.LANE_FIT_WEIGHT, [2.0, 1.25, 20.0 / 19.0, 1.0, 1.0, 1.0])
+
+
+def test_a_plan_braking_on_a_bend_keeps_the_fits_residual_off_the_offsets_room() -> None:
+    # braking at 6 m/s^2 from 30 m/s on the envelope's tightest bend (250 m): the fitted centre
+    # misses the true one (its Bernstein coefficients by up to 0.32 m), so the offsets' room
+    # shrinks by exactly that allowance (0.82 m on a straight lane)
+    t = np.array([1.0, 2.0, 3.0]) * 5.0 / 3.0
+    x = 30.0 * t - 3.0 * t * t
+    allowance = bspline.lane_fit_allowance(x) / 500.0
+    assert allowance == pytest.approx(0.317, abs=0.001)
+    y_max = bspline.lane_following_y(_lines(3.5, 0.0, 0.0, 1.0 / 250.0), x, np.full(3, 60.0), KEEP)
+    y_centre = bspline.lane_following_y(_lines(3.5, 0.0, 0.0, 1.0 / 250.0), x, np.zeros(3), KEEP)
+    np.testing.assert_allclose(y_max - y_centre, 0.82 - allowance, atol=1e-9)

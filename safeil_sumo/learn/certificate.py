@@ -41,11 +41,15 @@ BOUNDS_METHOD = {
     "leader_margin": "linear in the output: CROWN on it directly",
     "lane_margin": "Bernstein coefficients: products c1 x and c2 x_i x_j enclosed by McCormick "
                    "planes over the outputs' CROWN intervals (interval arithmetic kept linear), "
-                   "then CROWN",
+                   "then CROWN; a lane-following head's rows in closed form (its offsets' room "
+                   "less the centre fit's allowance: >= the start's and the clearance's shares "
+                   "wherever the room is positive, checked from the x control points' bounds)",
     "float": f"explicit margin: a margin is proven where its lower bound is >= {FLOAT_MARGIN_M} m;"
              " relaxation lines and intermediate intervals loosened by 1e-12 relative",
     "branching": "largest envelope share first; split the dimension with the largest estimated "
                  "gain (|coef| width + relaxation gaps shared by sensitivity)",
+    "volume": "certified share: the larger of the proven boxes' smallest volume and one less "
+              "the open boxes' largest (the leaves partition the envelope)",
 }
 
 

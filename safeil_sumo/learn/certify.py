@@ -380,6 +380,13 @@ def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_pa
     n = tree.n
     mass = w_part[tree.part[open_ids]] * tree.share_hi[open_ids]
     has = np.isfinite(tree.cex_val[open_ids])
+    # two sound lower bounds, the larger wins: the proven boxes' smallest volume, and what the
+    # open boxes' largest volume leaves (the leaves partition the envelope; a box cut by the
+    # recoverable condition has only bounds of its volume, shares are of the part's upper one)
+    open_mass = np.bincount(tree.part[open_ids], weights=mass, minlength=len(PARTS))
+    ratio = np.array([np.divide(*envelope_volume(env, p)[::-1]) for p in PARTS])
+    rest = w_part - ratio * open_mass
+    proven_mass = np.maximum(proven_mass, np.where(rest > 1e-12, rest, 0.0))  # sums round
     certified = float(proven_mass.sum())
     cex_share = float(mass[has].sum())
     cexs = []

@@ -36,8 +36,8 @@ import numpy as np
 
 from safeil_sumo.bspline import (
     ELEVATE_3_TO_6,
-    LANE_FIT,
-    LANE_FREE,
+    LANE_FIT_RESIDUAL,
+    LANE_FIT_WEIGHT,
     PRODUCT_WEIGHTS,
     lateral_margin_bernstein,
 )
@@ -367,13 +367,6 @@ def _quadratic_lower(sigma, pw, x_lo, x_hi, x_m, x_w):
     return coef, cst, gap
 
 
-# (7, 3, 3): the quadratic forms R_k(x) = xx6_k - (E S)_k of the free x control points: the
-# degree-6 Bernstein coefficients of x(tau)^2 less those of its least-squares cubic S (the lane
-# head's fit of the centre's curvature part, elevated): what the fit leaves of the bend
-_FIT_RESIDUAL = PRODUCT_WEIGHTS[:, 1:, 1:] - np.einsum(
-    "ki,im,ma,mb->kab", ELEVATE_3_TO_6[:, 1:], LANE_FIT, LANE_FREE, LANE_FREE)
-
-
 def _quadratic_form_interval(q: np.ndarray, x_lo: np.ndarray, x_hi: np.ndarray
                              ) -> tuple[np.ndarray, np.ndarray]:
     """Bounds ``(N, K)`` x2 of ``x^T q_k x`` for ``q (K, 3, 3)`` over boxes ``[x_lo, x_hi]
@@ -395,10 +388,11 @@ def _residual_from_linear_x(plan: bnd.LinearBound, lo: np.ndarray, hi: np.ndarra
     """Bounds ``(N, 7)`` x2 of ``R_k(x)`` from the plan's linear bounds in the envelope
     coordinates (``plan``: CROWN of ``[eye(6); -eye(6)]``, so ``A z + a <= x <= B z + b``).
 
-    Over a box ``z = m + delta``: ``x = c + C delta + e``, ``C = (A + B) / 2`` and ``|e| <=
-    eps``, so ``R(x) = R(c) + 2 (Q c)^T (C delta + e) + u^T Q u``, ``|u| <= |C| rho + eps``.
-    Unlike the x intervals this keeps the control points' correlation (a faster plan moves all
-    three, and ``R``, homogeneous of degree 2, barely changes along ``x`` itself)."""
+    Over a box ``z = m + delta``, ``|delta| <= rho``: ``x = c + C delta + e``, ``C = (A + B) /
+    2`` and ``|e| <= eps``, so ``R(x) = R(c) + 2 (Q c)^T (C delta + e) + delta^T C^T Q C delta
+    + 2 delta^T C^T Q e + e^T Q e``, each term bounded over the box. Unlike the x intervals
+    this keeps the control points' correlation (a faster plan moves all three, and ``R``,
+    homogeneous of degree 2, vanishes along a plan that only gets faster)."""
     m, rho = 0.5 * (lo + hi), 0.5 * (hi - lo)
     a_lo, c_lo = plan.coef[:, 0:6:2], plan.const[:, 0:6:2]  # x >= A z + a
     b_hi, c_hi = -plan.coef[:, 6:12:2], -plan.const[:, 6:12:2]  # x <= B z + b
@@ -409,61 +403,68 @@ def _residual_from_linear_x(plan: bnd.LinearBound, lo: np.ndarray, hi: np.ndarra
     half_d = 0.5 * (b_hi - a_lo)  # (N, 3, n_z)
     eps = 0.5 * (at_m_hi - at_m_lo) + np.einsum("nid,nd->ni", np.abs(half_d), rho)
     eps = np.maximum(eps, 0.0)
-    qc = np.einsum("kab,nb->nka", _FIT_RESIDUAL, c)  # (N, 7, 3)
+    q = LANE_FIT_RESIDUAL
+    qc = np.einsum("kab,nb->nka", q, c)  # (N, 7, 3)
     centre = np.einsum("nka,na->nk", qc, c)
     slope = 2.0 * np.einsum("nka,nad->nkd", qc, big_c)  # (N, 7, n_z)
     spread = np.einsum("nkd,nd->nk", np.abs(slope), rho) + 2.0 * np.einsum(
         "nka,na->nk", np.abs(qc), eps)
-    u = np.einsum("nad,nd->na", np.abs(big_c), rho) + eps
-    spread += np.einsum("kab,na,nb->nk", np.abs(_FIT_RESIDUAL), u, u)
-    return centre - spread, centre + spread
+    # (C delta + e)^T Q (C delta + e): the delta part as a form in the box's own coordinates
+    # (M = C^T Q C keeps the cancellation along a plan that only gets faster, where R = 0)
+    qbig = np.einsum("kab,nbd->nkad", q, big_c)  # (N, 7, 3, n_z)
+    form = np.einsum("nae,nkad->nked", big_c, qbig)  # (N, 7, n_z, n_z)
+    diag = np.einsum("nkdd->nkd", form)
+    r2 = rho * rho
+    offdiag = np.einsum("nkde,nd,ne->nk", np.abs(form), rho, rho) - np.einsum(
+        "nkd,nd->nk", np.abs(diag), r2)
+    quad_hi = np.einsum("nkd,nd->nk", np.maximum(diag, 0.0), r2) + offdiag
+    quad_lo = np.einsum("nkd,nd->nk", np.minimum(diag, 0.0), r2) - offdiag
+    mixed = 2.0 * np.einsum("nkad,nd,na->nk", np.abs(qbig), rho, eps) + np.einsum(
+        "kab,na,nb->nk", np.abs(q), eps, eps)
+    return centre - spread + quad_lo - mixed, centre + spread + quad_hi + mixed
 
 
 def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
-                         x_lo: np.ndarray, x_hi: np.ndarray, t_lo: np.ndarray | float = -1.0,
-                         t_hi: np.ndarray | float = 1.0,
+                         x_lo: np.ndarray, x_hi: np.ndarray,
                          residual: tuple[np.ndarray, np.ndarray] | None = None,
                          terms: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Sound lower bounds ``(N, 12)`` of the lane rows (``left_b1..6, right_b1..6``) of a
     lane-following head (:func:`safeil_sumo.bspline.lane_following_y`, ``props.lane_keep_m``)
     over envelope boxes ``[lo, hi] (N, n_z)`` whose x control points lie in ``[x_lo, x_hi]
-    (N, 3)`` and offsets' ``t_i = tanh(z_i)`` in ``[t_lo, t_hi]`` (default: whatever the
-    network says, ``[-1, 1]``). ``residual``: bounds ``(N, 7)`` x2 of ``R_k(x)`` known
-    otherwise (e.g. :func:`_residual_from_linear_x`), intersected with the box's own.
-    ``terms``: also return how wide each row's terms are over the box ``(N, 12, 3)``: the
-    residual's, the offsets' and the lane width and offset's (what splitting could remove).
+    (N, 3)``, whatever the network's offsets. ``residual``: bounds ``(N, 7)`` x2 of ``R_k(x)``
+    known otherwise (e.g. :func:`_residual_from_linear_x`), intersected with the box's own.
+    ``terms``: also return how wide each row's terms are over the box ``(N, 12, 2)``: the
+    fit residual's and the start's (what splitting could remove).
 
-    The envelope's lines are concentric (``c1``, ``c2`` shared, half distance ``w/2``), so with
-    ``y_i = cm0 + cm1 x_i + cm2 S_i + h t_i``, ``h = w/2 - keep >= 0``, the left margin's
-    Bernstein coefficient ``k`` is exactly ``w/2 (1 - T_k) + keep T_k - T/2 - E_k0 offset + c2
-    R_k(x)`` with ``T_k = sum_i E_ki t_i``, the right one ``w/2 (1 + T_k) - keep T_k - T/2 +
-    E_k0 offset - c2 R_k(x)``: the network enters through x, in the curvature fit's residual
-    ``R_k``, and through the offsets' ``T_k`` (each term bounded over the box)."""
+    The envelope's lines are concentric (``c1``, ``c2`` shared, half distance ``w/2``), so the
+    left row ``k`` is ``E_k0 (w/2 - off - T/2) + sum_i E_ki (w/2 - h t_i) - (1 - E_k0) T/2 +
+    c2 R_k(x)`` (the right one with ``+off`` and ``-c2 R_k``), ``|t_i| < 1``. Where the offsets'
+    room ``h = w/2 - keep - |c2| A(x)`` is positive, the allowance ``A`` covers the residual
+    (:func:`safeil_sumo.bspline.lane_fit_allowance`) and the row is at least ``E_k0 (w/2 - |off|
+    - T/2) + (1 - E_k0) (keep - T/2)``, whatever x; where it may be clipped at 0 (a residual
+    larger than the lane's room somewhere in the box), ``h = 0`` leaves ``(1 - E_k0) (w/2 -
+    T/2) - |c2| |R_k|``, and the smaller of the two holds."""
     keep, half = float(props.lane_keep_m), 0.5 * props.track_m
-    e = ELEVATE_3_TO_6  # (7, 4), >= 0
-    t_lo = np.broadcast_to(np.asarray(t_lo, float), x_lo.shape)
-    t_hi = np.broadcast_to(np.asarray(t_hi, float), x_lo.shape)
-    big_t_lo, big_t_hi = t_lo @ e[:, 1:].T, t_hi @ e[:, 1:].T  # (N, 7)
-    r_lo, r_hi = _quadratic_form_interval(_FIT_RESIDUAL, x_lo, x_hi)
+    share = ELEVATE_3_TO_6[1:, 0]  # E_k0, k = 1..6
+    r_lo, r_hi = _quadratic_form_interval(LANE_FIT_RESIDUAL[1:], x_lo, x_hi)
     if residual is not None:
-        r_lo, r_hi = np.maximum(r_lo, residual[0]), np.minimum(r_hi, residual[1])
-    c2r_lo, c2r_hi = _interval_product(0.5 * lo[:, CURV, None], 0.5 * hi[:, CURV, None],
-                                       r_lo, r_hi)
-    w_lo = lo[:, W, None]
-    left = (0.5 * w_lo * (1.0 - big_t_hi) + keep * big_t_hi - half - e[:, 0] * hi[:, OFF, None]
-            + c2r_lo)
-    right = (0.5 * w_lo * (1.0 + big_t_lo) - keep * big_t_lo - half + e[:, 0] * lo[:, OFF, None]
-             - c2r_hi)
-    out = np.concatenate([left[:, 1:], right[:, 1:]], axis=1)
-    wide = 0.5 * lo[:, W] >= keep  # else h is clipped at 0 and the formula does not apply
-    out = np.where(wide[:, None], out, -np.inf)
+        r_lo, r_hi = np.maximum(r_lo, residual[0][:, 1:]), np.minimum(r_hi, residual[1][:, 1:])
+    r_abs = np.maximum(np.abs(r_lo), np.abs(r_hi))  # (N, 6)
+    bend = 0.5 * np.maximum(np.abs(lo[:, CURV]), np.abs(hi[:, CURV]))  # |c2|
+    room_lo = 0.5 * lo[:, W] - keep - bend * np.max(r_abs * LANE_FIT_WEIGHT, axis=1)
+    covered = (1.0 - share) * (keep - half)  # (6,)
+    clipped = (1.0 - share) * (0.5 * lo[:, W, None] - half) - bend[:, None] * r_abs
+    body = np.where(room_lo[:, None] >= 0.0, covered, np.minimum(covered, clipped))
+    start_left = 0.5 * lo[:, W] - hi[:, OFF] - half
+    start_right = 0.5 * lo[:, W] + lo[:, OFF] - half
+    out = np.concatenate([share * start_left[:, None] + body,
+                          share * start_right[:, None] + body], axis=1)
     if not terms:
         return out
-    widths = np.stack([
-        np.concatenate([(c2r_hi - c2r_lo)[:, 1:]] * 2, axis=1),
-        np.concatenate([((0.5 * w_lo - keep) * (big_t_hi - big_t_lo))[:, 1:]] * 2, axis=1),
-        np.tile(e[1:, 0], 2)[None, :] * (hi[:, OFF] - lo[:, OFF])[:, None]
-        + 0.5 * (hi[:, W] - lo[:, W])[:, None]], axis=-1)
+    fit = np.where(room_lo[:, None] >= 0.0, 0.0, bend[:, None] * r_abs)
+    corner = share * (hi[:, OFF] - lo[:, OFF] + 0.5 * (hi[:, W] - lo[:, W]))[:, None]
+    widths = np.stack([np.concatenate([fit] * 2, axis=1),
+                       np.concatenate([corner] * 2, axis=1)], axis=-1)
     return out, widths
 
 
@@ -534,20 +535,23 @@ def _with_lane_head_rows(props: Properties, lo: np.ndarray, hi: np.ndarray, out_
     kept = np.arange(15)[rows]
     at = np.flatnonzero(kept >= 3)  # where the lane rows sit among those returned
     lane = kept[at] - 3  # and which of the 12 they are
-    # the network's outputs: x control points and the offsets' z (t = tanh z, monotone)
-    bound, widths = lane_head_lane_lower(
-        props, lo, hi, out_lo[:, 0::2], out_hi[:, 0::2], np.tanh(out_lo[:, 1::2]),
-        np.tanh(out_hi[:, 1::2]), _residual_from_linear_x(plan, lo, hi), terms=True)
+    bound, widths = lane_head_lane_lower(props, lo, hi, out_lo[:, 0::2], out_hi[:, 0::2],
+                                         _residual_from_linear_x(plan, lo, hi), terms=True)
     lower[:, at], widths = bound[:, lane], widths[:, lane]
     coef[:, at] = 0.0
-    width = hi - lo
-    # the residual shrinks with the curvature's and the x control points' widths, the
-    # offsets' term with the lateral outputs', the corner term with the width's and offset's
-    score[:, at] = (0.5 * widths[..., 0, None] * _width_shares(plan, width, slice(0, 6, 2))[:, None]
-                    + widths[..., 1, None] * _width_shares(plan, width, slice(1, 6, 2))[:, None])
-    score[:, at, CURV] += 0.5 * widths[..., 0]
-    score[:, at, OFF] += widths[..., 2]
-    score[:, at, W] += 0.5 * widths[..., 2]
+    # the residual (where it may exceed the room) shrinks with the x control points' widths,
+    # and with the curvature's only by as much as halving it lowers the children's largest
+    # |c2| (nothing for a box around a straight lane); the start term with the width's and
+    # offset's
+    shares = _width_shares(plan, hi - lo, slice(0, 6, 2))
+    score[:, at] = widths[..., 0, None] * shares[:, None]
+    k_lo, k_hi = np.abs(lo[:, CURV]), np.abs(hi[:, CURV])
+    k_mid = np.abs(0.5 * (lo[:, CURV] + hi[:, CURV]))
+    bend = np.maximum(np.maximum(k_lo, k_hi), 1e-300)
+    children = 0.5 * (np.maximum(k_lo, k_mid) + np.maximum(k_mid, k_hi))
+    score[:, at, CURV] += widths[..., 0] * ((bend - children) / bend)[:, None]
+    score[:, at, OFF] += widths[..., 1]
+    score[:, at, W] += 0.5 * widths[..., 1]
     return BoxBounds(lower, coef, score)
 
 

@@ -9,7 +9,14 @@ from __future__ import annotations
 
 import torch
 
-from safeil_sumo.bspline import ELEVATE_3_TO_6, LANE_FIT, LANE_FREE, PRODUCT_WEIGHTS
+from safeil_sumo.bspline import (
+    ELEVATE_3_TO_6,
+    LANE_FIT,
+    LANE_FIT_RESIDUAL,
+    LANE_FIT_WEIGHT,
+    LANE_FREE,
+    PRODUCT_WEIGHTS,
+)
 
 
 def basis(tau: torch.Tensor, derivative: int = 0) -> torch.Tensor:
@@ -65,11 +72,17 @@ def lane_following_y(lines: torch.Tensor, x: torch.Tensor, z: torch.Tensor,
     [m] following the lane of ``lines (..., 6)``, offset from its centre by ``h_i tanh(z_i)``."""
     free = torch.as_tensor(LANE_FREE, dtype=x.dtype)
     fit = torch.as_tensor(LANE_FIT, dtype=x.dtype)
+    residual = torch.as_tensor(LANE_FIT_RESIDUAL[1:], dtype=x.dtype)
+    weight = torch.as_tensor(LANE_FIT_WEIGHT, dtype=x.dtype)
     centre = 0.5 * (lines[..., 0:3] + lines[..., 3:6])
     half = 0.5 * (lines[..., 0:3] - lines[..., 3:6])
     xs = x @ free.T
     s = (xs * xs) @ fit.T
-    h = torch.clamp(half[..., 0, None] + half[..., 1, None] * x + half[..., 2, None] * x * x
-                    - keep_m, min=0.0)
+    allowance = torch.amax(torch.einsum("kab,...a,...b->...k", residual, x, x).abs() * weight,
+                           dim=-1)
+    bend = torch.maximum(lines[..., 2].abs(), lines[..., 5].abs())
+    room = (half[..., 0, None] + half[..., 1, None] * x + half[..., 2, None] * s - keep_m
+            - (bend * allowance)[..., None])
+    h = torch.clamp(room, min=0.0)
     return (centre[..., 0, None] + centre[..., 1, None] * x + centre[..., 2, None] * s
             + h * torch.tanh(z))
