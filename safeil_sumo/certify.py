@@ -12,7 +12,8 @@ of the lateral margins >= 0). Prints per margin the certified share of the envel
 the share holding confirmed counterexamples, the time taken and where the unproven volume lies,
 and writes a certificate JSON next to the checkpoint (shipped models: into ``--out``, default
 ``runs/certify_<name>/``). ``--check`` reports whether the checkpoint has a valid certificate
-(exit 0 if so, 1 if not). See docs/certification.md.
+(exit 0 if so, 1 if not): the one in ``--out`` if given, else the one beside the checkpoint
+(``safeil`` ships its own), else ``runs/certify_<name>/``. See docs/certification.md.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import finite_float, nonnegative_int
-from safeil_sumo.learn.certificate import load_certificate, write_certificate
+from safeil_sumo.learn.certificate import certificate_path, load_certificate, write_certificate
 from safeil_sumo.learn.certify import (
     Budget,
     CertEnvelope,
@@ -60,7 +61,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "runs/certify_<name>/ for a shipped model)")
     p.add_argument("--check", nargs="?", const="", default=None, metavar="CERTIFICATE",
                    help="only report whether the checkpoint has a valid certificate (default "
-                        "path: next to it, or in runs/certify_<name>/ for a shipped model)")
+                        "path: in --out if given, else next to the checkpoint, else in "
+                        "runs/certify_<name>/ for a shipped model)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p.parse_args(argv)
 
@@ -105,8 +107,13 @@ def main(argv: list[str] | None = None) -> int:
         out = args.out if args.out is not None else (
             Path("runs") / f"certify_{args.policy}" if shipped else None)
         if args.check is not None:
-            cert = Path(args.check) if args.check else (
-                out / f"{path.stem}.certificate.json" if out is not None else None)
+            # a given file; else in --out; else next to the checkpoint (where a shipped model's
+            # own certificate is shipped), for a shipped model without one in runs/
+            cert = None
+            if args.check:
+                cert = Path(args.check)
+            elif out is not None and (args.out is not None or not certificate_path(path).is_file()):
+                cert = certificate_path(path, out)
             status = load_certificate(path, cert)
             shares = ", ".join(f"{k} {v:.4%}" for k, v in status.certified.items())
             print(f"{status.path}: {'valid' if status.valid else 'INVALID'} ({status.reason})"

@@ -493,6 +493,21 @@ def test_cli_certifies_writes_and_checks(tmp_path, capsys) -> None:
         assert err.startswith("error:") and message in err and err.count("\n") == 1
 
 
+def test_the_shipped_safeil_carries_a_valid_complete_certificate(capsys) -> None:
+    """Its certificate (both margins, the whole envelope and style range 0.6-3.5 s, written by
+    training/train_shipped_models.py) matches the shipped weights: retraining without
+    recertifying fails here."""
+    from safeil_sumo import certify as cli
+
+    path = pol.shipped_checkpoint("safeil")
+    status = load_certificate(path)
+    assert status.valid, status.reason
+    assert status.complete and status.certified == {"leader": 1.0, "lane": 1.0}
+    assert status.certificate["style"] == {"time_gap_s": [0.6, 3.5]}
+    assert cli.main(["--policy", "safeil", "--check"]) == 0
+    assert "valid (ok)" in capsys.readouterr().out
+
+
 def test_sampled_violations_weigh_the_parts_and_match_reference_margins() -> None:
     """The Monte Carlo estimate: each part's share is the share of its sampled states whose
     reference margins fail (recomputed here), the total weighs them 90/10 as the envelope; an

@@ -108,6 +108,11 @@ CLOSED_LOOP = FinetuneConfig(window=60.0, iters=400, style=True, equilibrium_wei
 # collision, worst lateral RMSE 1.46 -> 0.59 m; docs/human_likeness.md, "A lateral plan that
 # follows the lane by construction")
 LATERAL = LateralRefitConfig(seed=SEED, lateral_mode="lane")
+# the shipped safeil's certificate (docs/certification.md): both margins over the whole envelope
+# and every style setting a user may choose; a box budget, so the same on any machine (the
+# shipped model proves in ~46,000 boxes)
+CERTIFY_TIME_GAP_S = (0.6, 3.5)
+CERTIFY_BOXES = 400_000
 OTHERS = {
     "safeil_paper": replace(MIXED, method="safeil", barrier_lateral="control_points"),
     "bc": replace(MIXED, method="bc", output_mode="residual"),
@@ -136,6 +141,20 @@ def _ship(prefix: Path, name: str) -> None:
     meta["name"] = name
     (MODELS / f"{name}.json").write_text(json.dumps(meta, indent=1) + "\n")
     print(f"shipped {MODELS / name}.safetensors")
+
+
+def _certify(checkpoint: Path) -> None:
+    """Certify a shipped checkpoint and write its certificate next to it."""
+    from safeil_sumo import planner_registry
+    from safeil_sumo.learn.certificate import write_certificate
+    from safeil_sumo.learn.certify import Budget, certify
+    from safeil_sumo.learn.certify_margins import CertEnvelope
+
+    result = certify(planner_registry.load(str(checkpoint)),
+                     CertEnvelope(time_gap_s=CERTIFY_TIME_GAP_S),
+                     budget=Budget(seconds=3600.0, boxes=CERTIFY_BOXES), progress=False)
+    shares = ", ".join(f"{m} {r.certified:.4%}" for m, r in result.margins.items())
+    print(f"certified {checkpoint.name}: {shares}; {write_certificate(result, checkpoint)}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -173,6 +192,7 @@ def main(argv: list[str] | None = None) -> int:
     refit_lateral(LATERAL, WORK / "safeil_cl.safetensors", MODELS / "safeil_openloop.safetensors",
                   [SYNTHETIC, *REAL], WORK / "safeil")
     _ship(WORK / "safeil", "safeil")
+    _certify(MODELS / "safeil.safetensors")
     records = table.drop(columns=["rank_key"]).to_dict(orient="records")
     for r in records:
         r["policy"] = Path(r["policy"]).stem
