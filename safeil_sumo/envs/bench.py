@@ -33,14 +33,15 @@ def _children_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
 
 
-def measure(part: str, n: int, seconds: float) -> dict:
-    """Transitions/s of one part over ``seconds`` of stepping (after a warm-up reset)."""
+def measure(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
+    """Transitions/s of one part over ``seconds`` of stepping (after a warm-up reset), at the
+    physics step ``step_s`` [s] (0.01: 10 physics steps per 10 Hz decision; 0.1: one)."""
     import safeil_sumo.envs  # noqa: F401 - registers the ids
     from safeil_sumo.analytic import AnalyticPlanner
 
     planner = AnalyticPlanner()
     if part == "single":
-        env = gym.make(ENV_ID)
+        env = gym.make(ENV_ID, step_s=step_s)
         obs, _ = env.reset(seed=0)
         count, t0, c0 = 0, time.perf_counter(), time.process_time()
         while time.perf_counter() - t0 < seconds:
@@ -51,10 +52,10 @@ def measure(part: str, n: int, seconds: float) -> dict:
                 obs, _ = env.reset()
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         env.close()
-        return {"part": part, "n": 1, "transitions_per_s": count / wall,
+        return {"part": part, "n": 1, "step_s": step_s, "transitions_per_s": count / wall,
                 "transitions_per_cpu_s": count / cpu, "peak_rss_mb": _rss_mb()}
     mode = "vector_entry_point" if part == "vector" else "async"
-    venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode)
+    venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode, step_s=step_s)
     obs, _ = venv.reset(seed=0)
     count, t0, c0 = 0, time.perf_counter(), time.process_time()
     while time.perf_counter() - t0 < seconds:
@@ -63,7 +64,8 @@ def measure(part: str, n: int, seconds: float) -> dict:
         count += n
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     venv.close()
-    out = {"part": part, "n": n, "transitions_per_s": count / wall, "peak_rss_mb": _rss_mb()}
+    out = {"part": part, "n": n, "step_s": step_s, "transitions_per_s": count / wall,
+           "peak_rss_mb": _rss_mb()}
     if part == "async":  # the workers' CPU time is not this process's
         out["worker_peak_rss_mb"] = _children_rss_mb()
     else:
@@ -71,10 +73,11 @@ def measure(part: str, n: int, seconds: float) -> dict:
     return out
 
 
-def run_part(part: str, n: int, seconds: float) -> dict:
+def run_part(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
     """One part in a fresh process (its own libsumo, its own peak RSS)."""
     out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.bench", "--part", part,
-                          "--n", str(n), "--seconds", str(seconds), "--json"],
+                          "--n", str(n), "--seconds", str(seconds), "--step-s", str(step_s),
+                          "--json"],
                          capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -86,14 +89,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--async-n", type=int, default=4,
                     help="sub-envs (processes) of the AsyncVectorEnv baseline")
     ap.add_argument("--seconds", type=float, default=20.0, help="stepping time per part [s]")
+    ap.add_argument("--step-s", type=float, default=0.01,
+                    help="physics step [s] (the envs' step_s; decisions stay at 10 Hz)")
     ap.add_argument("--json", action="store_true", help="print one JSON line")
     args = ap.parse_args(argv)
     if args.part != "all":
-        row = measure(args.part, args.n, args.seconds)
+        row = measure(args.part, args.n, args.seconds, args.step_s)
         print(json.dumps(row) if args.json else row)
         return 0
-    rows = [run_part("single", 1, args.seconds), run_part("vector", args.n, args.seconds),
-            run_part("async", args.async_n, args.seconds)]
+    rows = [run_part("single", 1, args.seconds, args.step_s),
+            run_part("vector", args.n, args.seconds, args.step_s),
+            run_part("async", args.async_n, args.seconds, args.step_s)]
     single = rows[0]["transitions_per_s"]
     result = {"rows": rows,
               "vector_over_single": rows[1]["transitions_per_s"] / single,
