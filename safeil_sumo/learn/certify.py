@@ -230,12 +230,12 @@ def _roots(env: CertEnvelope, tree: _Tree, weights: dict, heap: list) -> None:
 
 
 def _branch_and_bound(policy, env, props, layers, margin, seconds, max_boxes, budget,
-                      progress) -> MarginResult:
-    """One margin's branch and bound; see the module docstring."""
+                      volumes, progress) -> MarginResult:
+    """One margin's branch and bound (``volumes``: each part's volume bounds); see the module
+    docstring."""
     from tqdm import tqdm
 
-    weights = {name: (w, envelope_volume(env, name)[1])
-               for name, w in env.part_weights().items()}
+    weights = {name: (w, volumes[name][1]) for name, w in env.part_weights().items()}
     w_part = np.array([weights[p][0] for p in PARTS])
     tree, heap = _Tree(len(env.dims)), []
     _roots(env, tree, weights, heap)
@@ -286,7 +286,7 @@ def _branch_and_bound(policy, env, props, layers, margin, seconds, max_boxes, bu
     bar.close()
     open_ids = np.array(finished + [i for _, i in heap], dtype=int)
     return _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_part,
-                          (bounded, time.perf_counter() - start, stopped_by))
+                          volumes, (bounded, time.perf_counter() - start, stopped_by))
 
 
 def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
@@ -311,6 +311,7 @@ def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
                            f"properties' lane_keep_m is {props.lane_keep_m}: the lane margin "
                            "would be bounded for the other head")
     layers = planner_layers(policy, style_range)
+    volumes = {p: envelope_volume(env, p) for p in PARTS}
     start = time.perf_counter()
     share = 1.0 / len(margins)
     results = {}
@@ -319,8 +320,7 @@ def certify(policy: MLPPolicy, env: CertEnvelope | None = None,
             results[m] = _branch_and_bound(
                 policy, env, props, layers, m, budget.seconds * share,
                 None if budget.boxes is None else max(1, int(budget.boxes * share)), budget,
-                progress)
-    volumes = {p: envelope_volume(env, p) for p in PARTS}
+                volumes, progress)
     return CertifyResult(policy.name, env, props, style, results, time.perf_counter() - start,
                          budget, volumes)
 
@@ -374,8 +374,8 @@ def _diverse(env: CertEnvelope, tree: _Tree, ids: np.ndarray, k: int = 20,
     return np.array(picked, dtype=int)
 
 
-def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_part, run
-                   ) -> MarginResult:
+def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_part, volumes,
+                   run) -> MarginResult:
     bounded, seconds, stopped_by = run
     n = tree.n
     mass = w_part[tree.part[open_ids]] * tree.share_hi[open_ids]
@@ -384,7 +384,7 @@ def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_pa
     # open boxes' largest volume leaves (the leaves partition the envelope; a box cut by the
     # recoverable condition has only bounds of its volume, shares are of the part's upper one)
     open_mass = np.bincount(tree.part[open_ids], weights=mass, minlength=len(PARTS))
-    ratio = np.array([np.divide(*envelope_volume(env, p)[::-1]) for p in PARTS])
+    ratio = np.array([volumes[p][1] / volumes[p][0] for p in PARTS])
     rest = w_part - ratio * open_mass
     proven_mass = np.maximum(proven_mass, np.where(rest > 1e-12, rest, 0.0))  # sums round
     certified = float(proven_mass.sum())

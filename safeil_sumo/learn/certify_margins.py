@@ -26,8 +26,9 @@ arithmetic on the Bernstein coefficient expressions, kept linear so CROWN can bo
 The linear objective is bounded by CROWN back-substitution and by intervals; the larger lower
 bound wins. A lane-following head's lane rows (:func:`lane_head_lane_lower`) need only the x
 control points' bounds: its offsets' room less the centre fit's allowance keeps every row above
-the start's and the clearance's shares wherever that room is positive. A margin counts as proven on a box when its lower bound is at least
-:data:`FLOAT_MARGIN_M`, an explicit float margin (no outward rounding).
+the start's and the clearance's shares wherever that room is positive. A margin counts as
+proven on a box when its lower bound is at least :data:`FLOAT_MARGIN_M`, an explicit float
+margin (no outward rounding).
 """
 
 from __future__ import annotations
