@@ -132,7 +132,8 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
     plots and messages (default: the source). Up to ``batch`` windows of a worker task run side
     by side in one SUMO simulation (1: one simulation per run; the same records).
     ``adapt_first_s`` [s] (``whole`` windows): the planners are adapted to each driver on the
-    maneuver's first seconds, which are then not scored (``window_replays.adapt_planners``)."""
+    maneuver's first seconds, which are then not scored (``window_replays.adapt_planners``);
+    not with ``config.time_gap_s``, the planners' time-gap setting for every window."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
     from safeil_sumo.experiments import window_replays as ra
@@ -141,6 +142,10 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
         rows = source
     else:
         rows, _ = process_drive(load_source(source), PipelineConfig(rate_hz=10.0))
+    config = config or ReplayConfig()
+    if config.time_gap_s is not None and adapt_first_s:
+        raise ValueError("a time-gap setting (config.time_gap_s) and adapt_first_s exclude "
+                         "each other: adapting sets each driver's time gap")
     name = name or (str(source) if isinstance(source, str) else "maneuvers")
     only = None if maneuvers == "all" else list(maneuvers)
     wins = ra.windows(rows, windows, duration_s, stride_s, only, adapt_first_s)
@@ -149,7 +154,6 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
             f"no maneuver of {name} is long enough for "
             + (f"{adapt_first_s:g} s of adaptation and {ra.MIN_SCORED_S:g} s scored"
                if adapt_first_s else f"a {duration_s or ra.rp.PAPER_DURATION_S:g} s window"))
-    config = config or ReplayConfig()
     records = ra.replay_all(rows, wins, list(policies_), Path(out), config, workers,
                             progress=progress, batch=batch)
     return ra.write(Path(out), records, manifest or {"source": name, "policies": list(policies_),

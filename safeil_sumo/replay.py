@@ -103,6 +103,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
     p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
     add_brake_guard_option(p)
+    p.add_argument("--time-gap", type=finite_float, default=None, metavar="S",
+                   help="the planners' preferred time gap [s], like an ACC's distance setting: "
+                        "the style input of style-conditioned checkpoints and the IDM's T; "
+                        "other planners keep theirs (default: each planner's own; not with "
+                        "--adapt-first-s, which sets it per driver)")
     p.add_argument("--lateral", choices=LATERAL_MODES, default="free",
                    help="planned egos' lateral motion: free (default: the plan tracked by pure "
                         "pursuit on the plant) or lane, an INSTRUMENT MODE for longitudinal-only "
@@ -133,6 +138,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             args.many and args.windows == "whole")):
         p.error("--adapt-first-s needs --windows whole with --maneuver all or a list, and "
                 "S >= 0 s")
+    if args.time_gap is not None and args.adapt_first_s:
+        p.error("--time-gap and --adapt-first-s exclude each other (adapting sets each "
+                "driver's time gap)")
     if args.held_out_of is not None and args.maneuver != "all":
         p.error("--held-out-of needs --maneuver all")
     if args.animate and args.many:
@@ -141,14 +149,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def replay_config(args: argparse.Namespace) -> rp.ReplayConfig:
-    """The replay's settings from the command line: seed, re-planning rate, brake guard and
-    lateral mode on the default loop."""
-    config = rp.ReplayConfig(seed=args.seed)
+    """The replay's settings from the command line: seed, time-gap setting, re-planning rate,
+    brake guard and lateral mode on the default loop."""
+    config = rp.ReplayConfig(seed=args.seed, time_gap_s=args.time_gap)
     return replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
                                         brake_guard=brake_guard(args), lateral=args.lateral))
 
 
-def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
+def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
+              config: rp.ReplayConfig) -> int:
     """``--maneuver all`` / a list: every window, in workers, resumable; table + aggregate."""
     if args.maneuver == "all":
         only = None
@@ -163,7 +172,6 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
     for name in args.policies:  # fail fast on a bad policy, before any worker starts
         pol.load_for_replay(name)
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
-    config = replay_config(args)
     table, agg = api.replay(
         maneuvers, args.policies, out, only or "all", args.windows, args.workers,
         args.duration, args.stride, config, progress=True,
@@ -173,7 +181,7 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame) -> int:
                   "duration_s": rp.PAPER_DURATION_S if args.duration is None
                   and args.windows != "whole" else args.duration or None,
                   "maneuvers": only or "all", "adapt_first_s": args.adapt_first_s,
-                  "lateral": args.lateral,
+                  "lateral": args.lateral, "time_gap_s": args.time_gap,
                   "batch": args.batch},
         batch=args.batch, adapt_first_s=args.adapt_first_s)
     failed = table.drop_duplicates(["maneuver_id", "start_s"])
@@ -205,8 +213,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if len(maneuvers) == 0 or "maneuver_id" not in maneuvers:
             raise rp.ReplayError(f"{args.source}: no car-following maneuver to replay")
+        config = replay_config(args)  # its settings checked before any SUMO starts
         if args.many:
-            return main_many(args, maneuvers)
+            return main_many(args, maneuvers, config)
         duration = rp.PAPER_DURATION_S if args.duration is None else args.duration or None
         mid, start, rows = rp.select_maneuver(maneuvers, args.maneuver, args.start, duration)
         policies = {}
@@ -218,13 +227,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = args.out or Path("runs") / f"replay_{rp.rr.safe_name(mid)}"
-    config = replay_config(args)
+    policies = ra.with_setting(policies, config.time_gap_s)
     try:
         with outputs.AtomicDir(out) as tmp:
             result = rp.replay_maneuver(rows, policies, tmp, config, maneuver_id=mid)
             rp.write_replay(result, tmp, {"source": args.source, "maneuver_start_s": start,
                                           "policies": args.policies, "rate_hz": args.rate,
-                                          "lateral": args.lateral})
+                                          "lateral": args.lateral,
+                                          "time_gap_s": args.time_gap})
     except (rp.ReplayError, ProfileError, NetworkError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

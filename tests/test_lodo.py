@@ -65,3 +65,24 @@ def test_summary_by_hand(lodo) -> None:
     # f2: safeil 3.0 <= idm 5.0; f3 has no IDM run: compared where both exist
     assert "openacc: `safeil` (fold) at or below the fold IDM's mean gap RMSE for 1 of 1 " in text
     assert np.isfinite(summary["gap_rmse_mean_m"]).all()
+
+
+def test_adaptation_bound_summary_by_hand() -> None:
+    """training/adaptation_bound.py: the oracle keeps each maneuver's best setting (chosen on
+    its own scored seconds); one setting for all is the mean per setting; the adapted rows'
+    mean and median are their own."""
+    sys.path.insert(0, str(REPO / "training"))
+    spec = importlib.util.spec_from_file_location("bound", REPO / "training" /
+                                                  "adaptation_bound.py")
+    bound = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bound)
+    settings = pd.DataFrame({
+        "maneuver_id": ["a", "a", "b", "b"], "time_gap_s": [1.0, 2.0, 1.0, 2.0],
+        "gap_rmse_m": [4.0, 10.0, 9.0, 3.0]})
+    adapted = pd.DataFrame({"maneuver_id": ["a", "b"], "gap_rmse_m": [5.0, 8.0],
+                            "time_gap_s": [1.2, 1.4]})
+    text = bound.summary(settings, adapted)
+    assert "in hindsight): mean 3.50, median 3.50" in text  # min(4, 10), min(9, 3)
+    assert "first seconds): mean 6.50, median 6.50" in text
+    assert "1 s 6.50, 2 s 6.50" in text
+    assert "a: 1 / 1.20" in text and "b: 2 / 1.40" in text

@@ -227,6 +227,63 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     assert [r["adapted"]["idm"] for r in batched] == [rec["adapted"]["idm"]] * 2
 
 
+def test_with_setting_sets_only_the_planners_that_have_one(tmp_path):
+    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.experiments import window_replays as ra
+
+    save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
+                    horizon=5.0)
+    planners = {"m": pol.load(str(tmp_path / "m.safetensors")), "idm": pol.load("idm"),
+                "analytic": pol.load("analytic")}
+    out = ra.with_setting(planners, 2.2)
+    assert out["m"].style == {"time_gap_s": 2.2}
+    assert out["idm"].params.time_gap_s == 2.2
+    assert out["analytic"] is planners["analytic"]
+    assert planners["m"].style == {"time_gap_s": 1.5}  # copies: the loaded planners untouched
+    assert planners["idm"].params.time_gap_s != 2.2
+    assert ra.with_setting(planners, None) is planners
+
+
+def test_a_replay_at_a_time_gap_setting_in_sumo(tmp_path):
+    """Real libsumo: the same whole maneuver replayed with the IDM set to 1.0 s and to 2.5 s
+    (``replay --time-gap``): it follows farther back at 2.5 s; the analytic planner, which has
+    no setting, drives the same run in both."""
+    pytest.importorskip("libsumo")
+    from safeil_sumo.experiments import maneuver_replay as rp
+    from safeil_sumo.experiments import window_replays as ra
+
+    maneuvers = _arc_rows(30.0, gap=45.0)
+    wins = ra.windows(maneuvers, "whole")
+    runs = {}
+    for tg in (1.0, 2.5):
+        (rec,) = ra.replay_all(maneuvers, wins, ["idm", "analytic"], tmp_path / str(tg),
+                               rp.ReplayConfig(time_gap_s=tg), progress=False)
+        runs[tg] = {m["policy"]: m for m in rec["metrics"]}
+    # time-gap error (planner - human) grows with the setting
+    assert runs[2.5]["idm"]["bias_headway"] > runs[1.0]["idm"]["bias_headway"] + 0.5
+    assert runs[2.5]["analytic"]["rmse_gap"] == runs[1.0]["analytic"]["rmse_gap"]
+    with pytest.raises(ValueError, match="time gap"):
+        rp.ReplayConfig(time_gap_s=0.0)
+
+
+def test_replay_time_gap_is_refused_with_adaptation_or_out_of_range(capsys, tmp_path):
+    from safeil_sumo import api, replay
+    from safeil_sumo.experiments import maneuver_replay as rp
+
+    with pytest.raises(SystemExit):
+        replay.parse_args(["--maneuver", "all", "--windows", "whole", "--adapt-first-s", "60",
+                           "--time-gap", "1.5"])
+    assert "--adapt-first-s" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="exclude"):
+        api.replay(_arc_rows(40.0), ["idm"], tmp_path, windows="whole",
+                   config=rp.ReplayConfig(time_gap_s=1.5), adapt_first_s=10.0)
+    drive = tmp_path / "drive.csv"
+    _arc_rows(40.0).to_csv(drive, index=False)
+    assert replay.main(["--source", str(drive), "--maneuver", "arc#0", "--time-gap", "0",
+                        "--out", str(tmp_path / "r")]) == 2
+    assert "time gap must be in (0, 10] s" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------- the setting in run and sweep
 
 

@@ -81,6 +81,15 @@ class ReplayConfig:
     # when the recorded heading is believed (rr.plausible_heading): a GNSS heading glitch, or a
     # heading at standstill, would turn the replayed body (and the planners' start) across lines
     heading: rr.HeadingCheck = field(default_factory=rr.HeadingCheck)
+    # the planners' preferred time gap [s], like an ACC's distance setting: the style input of a
+    # style-conditioned checkpoint, the IDM's T (planner_registry.with_time_gap); planners
+    # without one keep theirs. None: each planner's default. An adapted window
+    # (window_replays.adapt_planners) sets its own.
+    time_gap_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.time_gap_s is not None and not (0 < self.time_gap_s <= 10):
+            raise ValueError(f"time gap must be in (0, 10] s, got {self.time_gap_s}")
 
 
 @dataclass(frozen=True)

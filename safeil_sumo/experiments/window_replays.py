@@ -179,6 +179,23 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> d
     return out
 
 
+def with_setting(policies: dict, time_gap_s: float | None) -> dict:
+    """``policies`` with the planners that have a time-gap setting (style-conditioned
+    checkpoints, the IDM) set to ``time_gap_s`` [s] (:func:`safeil_sumo.planner_registry.
+    with_time_gap`); the others as they are. None: ``policies`` itself. Copies: ``policies`` is
+    unchanged."""
+    import copy
+
+    from safeil_sumo import idm
+    from safeil_sumo import planner_registry as pol
+
+    if time_gap_s is None:
+        return policies
+    return {label: pol.with_time_gap(copy.deepcopy(p), time_gap_s)
+            if isinstance(p, idm.IDMPlanner) or "time_gap_s" in getattr(p, "style_names", ())
+            else p for label, p in policies.items()}
+
+
 def adaptation(planners: dict) -> dict:
     """What each adapted planner was set to (JSON-able, for the window's record): the style of
     a style-conditioned checkpoint, the IDM's parameters; ``{}`` for the others."""
@@ -340,8 +357,9 @@ def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayCon
 
     _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
 
+    policies = {name: pol.load_for_replay(name) for name in policy_names}
     _STATE.update(maneuvers=maneuvers, config=config, tasks=tasks, tag=tag,
-                  policies={name: pol.load_for_replay(name) for name in policy_names})
+                  policies=with_setting(policies, config.time_gap_s))
 
 
 def _task_path(tasks: Path, task_id: str, tag: str) -> Path:

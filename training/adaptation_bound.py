@@ -1,0 +1,123 @@
+"""How far can adapting one setting go? The best time-gap setting per left-out driver, in hindsight.
+
+    python training/adaptation_bound.py [--grid 0.8 1.0 ... 2.3] [--adapt-first-s 60]
+
+Issue 20 asks the planner adapted to a driver (``replay --adapt-first-s``: its time-gap setting
+estimated on a maneuver's first seconds, which are then not scored) to come within half the
+population IDM's whole-maneuver gap error. This bounds what any adaptation of the one setting can
+reach: every OpenACC maneuver left out by a fold of ``training/leave_one_driver_out.py`` (its
+fold models in ``data/lodo/fold*/``, trained without that driver) is replayed in SUMO from
+``--adapt-first-s`` to its end with the fold's ``safeil`` at each setting of ``--grid``
+(``ReplayConfig.time_gap_s``, ``replay --time-gap``), and the setting with the smallest gap
+RMSE on that scored part itself is kept: an oracle, chosen on the very seconds it is scored on.
+Beside it, the same span replayed adapted as ``replay --adapt-first-s`` does (the setting
+estimated from the first seconds).
+
+Writes ``<out>/settings.csv`` (maneuver, setting, gap RMSE), ``<out>/adapted.csv`` and prints
+the summary; ``<out>`` defaults to ``data/lodo/adaptation_bound`` (not committed). Resumable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "training"))
+import leave_one_driver_out as lodo  # the folds' drivers, one source of truth
+
+from safeil_sumo.data.pipeline import PipelineConfig, process_drive
+from safeil_sumo.data.sources import load_source
+from safeil_sumo.experiments import window_replays as ra
+from safeil_sumo.experiments.maneuver_replay import ReplayConfig
+
+GRID_S = (0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0, 2.3)  # [s] settings tried
+
+
+def _gap_rmse(records: list[dict]) -> dict[str, float]:
+    """Per maneuver: the one policy's gap RMSE of each window record."""
+    out = {}
+    for rec in records:
+        (metrics,) = rec["metrics"]
+        out[rec["maneuver_id"]] = float(metrics["rmse_gap"])
+    return out
+
+
+def fold_runs(k: int, rows: pd.DataFrame, grid: tuple[float, ...], adapt_s: float,
+              out: Path, workers: int) -> tuple[list[dict], list[dict]]:
+    """Fold ``k``'s left-out OpenACC maneuvers: gap RMSE per (maneuver, setting), and adapted."""
+    fold = lodo.WORK / f"fold{k}"
+    policy = fold / "safeil.safetensors"
+    if not policy.is_file():
+        raise SystemExit(f"{policy} is missing: run training/leave_one_driver_out.py first")
+    drivers = set(json.loads((fold / "drivers.json").read_text()))
+    held = lodo.held_out_maneuvers(drivers)["openacc"]
+    adapted = ra.windows(rows, "whole", None, 20.0, held, adapt_s)
+    # the same span, from adapt_s to the end, at a fixed setting
+    plain = [ra.Window(w.maneuver_id, w.start_s, w.duration_s) for w in adapted]
+    settings = []
+    for tg in grid:
+        recs = ra.replay_all(rows, plain, [str(policy)], out / f"fold{k}" / f"tg{tg:g}",
+                             ReplayConfig(time_gap_s=tg), workers, progress=False)
+        settings += [{"fold": k, "maneuver_id": m, "time_gap_s": tg, "gap_rmse_m": v}
+                     for m, v in _gap_rmse(recs).items()]
+    recs = ra.replay_all(rows, adapted, [str(policy)], out / f"fold{k}" / "adapted",
+                         ReplayConfig(), workers, progress=False)
+    adapt = [{"fold": k, "maneuver_id": r["maneuver_id"], "gap_rmse_m": v,
+              "time_gap_s": r["adapted"][str(policy)].get("time_gap_s", np.nan)}
+             for r, v in zip(recs, _gap_rmse(recs).values(), strict=True)]
+    return settings, adapt
+
+
+def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
+    table = settings.pivot_table(index="maneuver_id", columns="time_gap_s", values="gap_rmse_m")
+    best = table.idxmin(axis=1)
+    oracle = table.min(axis=1)
+    by_setting = table.mean()
+    lines = [
+        f"{len(table)} maneuvers; gap RMSE [m] after the adaptation seconds, to each maneuver's end",
+        (f"  oracle (best setting per maneuver, in hindsight): mean {oracle.mean():.2f}, "
+         f"median {oracle.median():.2f}"),
+        (f"  adapted (setting estimated on the first seconds): mean "
+         f"{adapted['gap_rmse_m'].mean():.2f}, median {adapted['gap_rmse_m'].median():.2f}"),
+        "  one setting for every maneuver: " + ", ".join(
+            f"{tg:g} s {v:.2f}" for tg, v in by_setting.items()),
+        "  per maneuver: best setting / estimated setting [s]:"]
+    est = adapted.set_index("maneuver_id")["time_gap_s"]
+    lines += [f"    {m}: {best[m]:g} / {est.get(m, np.nan):.2f}" for m in table.index]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--grid", type=float, nargs="+", default=list(GRID_S), metavar="S",
+                   help="time-gap settings to try [s]")
+    p.add_argument("--adapt-first-s", type=float, default=lodo.ADAPT_S, metavar="S",
+                   help="seconds left out of the score (adapted on) (default %(default)s)")
+    p.add_argument("--folds", type=int, default=4)
+    p.add_argument("--workers", type=int, default=1)
+    p.add_argument("--out", type=Path, default=lodo.WORK / "adaptation_bound")
+    args = p.parse_args(argv)
+    rows, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
+    settings, adapted = [], []
+    for k in range(args.folds):
+        s, a = fold_runs(k, rows, tuple(args.grid), args.adapt_first_s, args.out, args.workers)
+        settings += s
+        adapted += a
+        print(f"fold {k}: {len(a)} maneuvers", flush=True)
+    settings_df, adapted_df = pd.DataFrame(settings), pd.DataFrame(adapted)
+    args.out.mkdir(parents=True, exist_ok=True)
+    settings_df.to_csv(args.out / "settings.csv", index=False)
+    adapted_df.to_csv(args.out / "adapted.csv", index=False)
+    print(summary(settings_df, adapted_df))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
