@@ -119,6 +119,15 @@ def load_for_replay(name_or_path: str) -> Policy:
     return load(name_or_path)
 
 
+def has_time_gap(policy: Policy) -> bool:
+    """Whether ``policy`` has a time-gap setting (:func:`with_time_gap`): a style-conditioned
+    checkpoint or the IDM."""
+    from safeil_sumo import idm
+
+    styled = "time_gap_s" in getattr(policy, "style_names", ())
+    return styled or isinstance(policy, idm.IDMPlanner)
+
+
 def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:
     """``policy`` set to keep a preferred time gap ``time_gap_s`` [s] (an ACC's distance
     setting): a style-conditioned checkpoint's style input (:mod:`safeil_sumo.learn.style`,

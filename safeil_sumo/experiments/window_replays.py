@@ -186,13 +186,11 @@ def with_setting(policies: dict, time_gap_s: float | None) -> dict:
     unchanged."""
     import copy
 
-    from safeil_sumo import idm
     from safeil_sumo import planner_registry as pol
 
     if time_gap_s is None:
         return policies
-    return {label: pol.with_time_gap(copy.deepcopy(p), time_gap_s)
-            if isinstance(p, idm.IDMPlanner) or "time_gap_s" in getattr(p, "style_names", ())
+    return {label: pol.with_time_gap(copy.deepcopy(p), time_gap_s) if pol.has_time_gap(p)
             else p for label, p in policies.items()}
 
 
