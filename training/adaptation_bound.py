@@ -39,13 +39,12 @@ from safeil_sumo.experiments.maneuver_replay import ReplayConfig
 GRID_S = (0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0, 2.3)  # [s] settings tried
 
 
-def _gap_rmse(records: list[dict]) -> dict[str, float]:
-    """Per maneuver: the one policy's gap RMSE of each window record."""
-    out = {}
-    for rec in records:
-        (metrics,) = rec["metrics"]
-        out[rec["maneuver_id"]] = float(metrics["rmse_gap"])
-    return out
+def _gap_rmse(record: dict) -> float:
+    """The one policy's gap RMSE [m] of a window record (NaN for a window that failed)."""
+    if record.get("status") != "ok" or len(record.get("metrics") or []) != 1:
+        print(f"{record['maneuver_id']}: {record.get('error') or 'failed'}", file=sys.stderr)
+        return float("nan")
+    return float(record["metrics"][0]["rmse_gap"])
 
 
 def fold_runs(k: int, rows: pd.DataFrame, grid: tuple[float, ...], adapt_s: float,
@@ -64,13 +63,14 @@ def fold_runs(k: int, rows: pd.DataFrame, grid: tuple[float, ...], adapt_s: floa
     for tg in grid:
         recs = ra.replay_all(rows, plain, [str(policy)], out / f"fold{k}" / f"tg{tg:g}",
                              ReplayConfig(time_gap_s=tg), workers, progress=False)
-        settings += [{"fold": k, "maneuver_id": m, "time_gap_s": tg, "gap_rmse_m": v}
-                     for m, v in _gap_rmse(recs).items()]
+        settings += [{"fold": k, "maneuver_id": r["maneuver_id"], "time_gap_s": tg,
+                      "gap_rmse_m": _gap_rmse(r)} for r in recs]
     recs = ra.replay_all(rows, adapted, [str(policy)], out / f"fold{k}" / "adapted",
                          ReplayConfig(), workers, progress=False)
-    adapt = [{"fold": k, "maneuver_id": r["maneuver_id"], "gap_rmse_m": v,
-              "time_gap_s": r["adapted"][str(policy)].get("time_gap_s", np.nan)}
-             for r, v in zip(recs, _gap_rmse(recs).values(), strict=True)]
+    adapt = [{"fold": k, "maneuver_id": r["maneuver_id"], "gap_rmse_m": _gap_rmse(r),
+              "time_gap_s": (r.get("adapted") or {}).get(str(policy), {}).get("time_gap_s",
+                                                                              np.nan)}
+             for r in recs]
     return settings, adapt
 
 
