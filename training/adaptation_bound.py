@@ -65,6 +65,7 @@ def fold_runs(k: int, rows: pd.DataFrame, grid: tuple[float, ...], adapt_s: floa
                              ReplayConfig(time_gap_s=tg), workers, progress=False)
         settings += [{"fold": k, "maneuver_id": r["maneuver_id"], "time_gap_s": tg,
                       "gap_rmse_m": _gap_rmse(r)} for r in recs]
+        print(f"fold {k}: {tg:g} s done ({len(recs)} maneuvers)", flush=True)
     recs = ra.replay_all(rows, adapted, [str(policy)], out / f"fold{k}" / "adapted",
                          ReplayConfig(), workers, progress=False)
     adapt = [{"fold": k, "maneuver_id": r["maneuver_id"], "gap_rmse_m": _gap_rmse(r),
