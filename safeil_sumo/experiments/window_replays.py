@@ -172,7 +172,7 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> d
         if isinstance(policy, idm.IDMPlanner):
             fit = idm.fit_idm(idm.maneuvers_from_rows(first_rows), seed=seed, starts=2)
             out[label] = replace(policy, params=fit.params)
-        elif "time_gap_s" in getattr(policy, "style_names", ()) and np.isfinite(time_gap):
+        elif pol.has_time_gap(policy) and np.isfinite(time_gap):  # a styled checkpoint
             out[label] = pol.with_time_gap(copy.deepcopy(policy), time_gap)
         else:
             out[label] = policy
