@@ -86,3 +86,38 @@ def test_adaptation_bound_summary_by_hand() -> None:
     assert "first seconds): mean 6.50, median 6.50" in text
     assert "1 s 6.50, 2 s 6.50" in text
     assert "a: 1 / 1.20" in text and "b: 2 / 1.40" in text
+
+
+def test_a_cached_replay_is_reused_only_with_the_same_planner_files(lodo, tmp_path,
+                                                                    monkeypatch) -> None:
+    """A fold's replay folder is reused when its stamp names the very planner files (SHA-256)
+    the fold has now; a retrained planner (any of the three files changed) replays again. The
+    replay command itself is stood in for: the point is the cache, not SUMO."""
+    fold = tmp_path / "fold0"
+    fold.mkdir()
+    (fold / "drivers.json").write_text('["openacc/f2"]')
+    for name in ("safeil.safetensors", "safeil.json", "idm.json"):
+        (fold / name).write_text(name)
+    m = "JRC-VC_280219_part2_f2#0"
+    monkeypatch.setattr(lodo, "held_out_maneuvers", lambda drivers: {"openacc": [m], "ngsim": []})
+    calls = []
+
+    def fake_run(cmd, log):  # writes the table replay would: one run of the maneuver
+        out = Path(cmd[cmd.index("--out") + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame({"maneuver_id": [m], "policy": ["idm"], "rmse_gap": [1.0]}).to_csv(
+            out / "windows.csv", index=False)
+        calls.append(out.name)
+
+    monkeypatch.setattr(lodo, "_run", fake_run)
+    first = lodo.replay_fold(0, fold, workers=1)
+    assert sorted(calls) == ["replay_openacc", "replay_openacc_adapted"]
+    assert set(first["source"]) == {"openacc", "openacc (adapted)"}
+    lodo.replay_fold(0, fold, workers=1)
+    assert len(calls) == 2  # the same files: both replays reused
+    (fold / "idm.json").write_text("a refitted IDM")
+    lodo.replay_fold(0, fold, workers=1)
+    assert len(calls) == 4  # one file changed: both replayed again
+    (fold / "replay_openacc" / "made_from.json").unlink()
+    lodo.replay_fold(0, fold, workers=1)
+    assert calls[4:] == ["replay_openacc"]  # a replay without a stamp: made again

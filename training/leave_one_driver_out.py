@@ -32,6 +32,7 @@ a time, each in a worker process of its own, resumed where their files exist.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import multiprocessing as mp
 import subprocess
@@ -146,6 +147,13 @@ def run_fold(k: int, drivers: set[str], t0: float) -> pd.DataFrame:
     return replay_fold(k, fold, workers=1)
 
 
+def planner_digests(fold: Path) -> dict[str, str]:
+    """SHA-256 of the fold's replayed planner files: a cached replay is reused only when it
+    was made with these very files (a retrained fold replays again)."""
+    return {name: hashlib.sha256((fold / name).read_bytes()).hexdigest()
+            for name in ("safeil.safetensors", "safeil.json", "idm.json")}
+
+
 def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
     """Replay fold ``k``'s left-out maneuvers whole with its planners; their windows table."""
     held = held_out_maneuvers(set(json.loads((fold / "drivers.json").read_text())))
@@ -153,14 +161,18 @@ def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
     runs = [(s, "", ["constant_speed"]) for s in SOURCES if held[s]]
     # adapted to the driver on each maneuver's first ADAPT_S (NGSIM's 30-74 s leave too little)
     runs += [("openacc", "adapted", [])] if held["openacc"] else []
+    made_from = planner_digests(fold)
     for s, mode, extra_policies in runs:
         out = fold / f"replay_{s}{'_' + mode if mode else ''}"
-        if not (out / "windows.csv").is_file():
+        stamp = out / "made_from.json"  # the planners a cached replay was made with
+        if not ((out / "windows.csv").is_file() and stamp.is_file()
+                and json.loads(stamp.read_text()) == made_from):
             adapt = ["--adapt-first-s", str(ADAPT_S)] if mode == "adapted" else []
             _run([sys.executable, "-m", "safeil_sumo.replay", "--source", s, "--maneuver",
                   ",".join(held[s]), "--windows", "whole", "--workers", str(workers), *adapt,
                   "--policies", str(fold / "safeil.safetensors"), str(fold / "idm.json"),
                   *extra_policies, "--out", str(out)], fold / "log.txt")
+            stamp.write_text(json.dumps(made_from, indent=1) + "\n")
         t = pd.read_csv(out / "windows.csv")
         tables.append(t.assign(fold=k, source=s + (f" ({mode})" if mode else ""),
                                driver=[driver_of(s, m) for m in t["maneuver_id"]]))
