@@ -88,6 +88,45 @@ def test_adaptation_bound_summary_by_hand() -> None:
     assert "a: 1 / 1.20" in text and "b: 2 / 1.40" in text
 
 
+def test_adaptation_curve_by_hand() -> None:
+    """training/adaptation_bound.py's curve: the setting the replay's adaptation would give after
+    S seconds (the driver's median time gap there, clipped; the default without a following
+    sample), each maneuver's error read off its grid by linear interpolation, then mean and
+    median over the maneuvers."""
+    sys.path.insert(0, str(REPO / "training"))
+    spec = importlib.util.spec_from_file_location("bound", REPO / "training" /
+                                                  "adaptation_bound.py")
+    bound = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bound)
+    t = np.round(np.arange(301) * 0.1, 10)  # 30 s at 10 Hz
+    early = t <= 5.0
+    # a: 1.2 s for its first 5 s (51 samples), then 2.0 s (250); b: below 5 m/s (not
+    # following) for 5 s, then 1.5 s
+    v_b = np.where(early, 3.0, 20.0)
+    a = 20.0 * np.where(early, 1.2, 2.0)
+    rows = pd.DataFrame({
+        "maneuver_id": ["a"] * 301 + ["b"] * 301 + ["c"] * 301,
+        "time": np.concatenate([t, t + 100.0, t]),
+        "v_x": np.concatenate([np.full(301, 20.0), v_b, np.full(301, 20.0)]),
+        "lead_x": np.concatenate([a, v_b * 1.5, a])})
+    settings = pd.DataFrame({
+        "maneuver_id": ["a", "a", "b", "b", "c", "c"],
+        "time_gap_s": [1.0, 2.0, 1.0, 2.0, 1.0, 2.0],
+        "gap_rmse_m": [4.0, 10.0, 9.0, 3.0, 1.0, 1.0]})
+    curve = bound.adaptation_curve(rows, settings, {"a": 1.6, "b": 1.6, "c": 1.6},
+                                   observed=(5.0, 30.0))
+    # 5 s: a 1.2 s -> 4 + 0.2 * 6 = 5.2; b none -> the default 1.6 -> 9 - 0.6 * 6 = 5.4; c 1
+    # 30 s: a median 2.0 s -> 10; b 1.5 s -> 6; c 1
+    assert curve["observed_s"].tolist() == [5.0, 30.0]
+    assert curve["gap_rmse_mean_m"].tolist() == pytest.approx([11.6 / 3, 17.0 / 3])
+    assert curve["gap_rmse_median_m"].tolist() == pytest.approx([5.2, 6.0])
+    # a setting below the trained range is clipped to it; the grid's ends hold beyond it
+    slow = rows[rows["maneuver_id"] == "a"].assign(lead_x=10.0).reset_index(drop=True)
+    assert bound.setting_from_first(slow, 5.0, 1.6) == 0.8  # 0.5 s -> 0.8 s
+    errors = pd.Series([4.0, 10.0], index=[1.0, 2.0])
+    assert bound.read_off(errors, 0.8) == 4.0 and bound.read_off(errors, 3.0) == 10.0
+
+
 def test_a_cached_replay_is_reused_only_with_the_same_planner_files(lodo, tmp_path,
                                                                     monkeypatch) -> None:
     """A fold's replay folder is reused when its stamp names the very planner files (SHA-256)

@@ -13,8 +13,10 @@ RMSE on that scored part itself is kept: an oracle, chosen on the very seconds i
 Beside it, the same span replayed adapted as ``replay --adapt-first-s`` does (the setting
 estimated from the first seconds).
 
-Writes ``<out>/settings.csv`` (maneuver, setting, gap RMSE), ``<out>/adapted.csv`` and prints
-the summary; ``<out>`` defaults to ``data/lodo/adaptation_bound`` (not committed). Resumable.
+Writes ``<out>/settings.csv`` (maneuver, setting, gap RMSE), ``<out>/adapted.csv``,
+``<out>/adaptation_curve.csv`` (how many seconds of a driver the estimate needs: the setting
+estimated from the first 2 ... 60 s, scored on the same span, read off each maneuver's grid) and
+prints the summary (``--from-csv``: of an earlier run's tables, without SUMO); ``<out>`` defaults to ``data/lodo/adaptation_bound`` (not committed). Resumable.
 """
 
 from __future__ import annotations
@@ -33,10 +35,14 @@ import leave_one_driver_out as lodo  # the folds' drivers, one source of truth
 
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import load_source
+from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.experiments.maneuver_replay import ReplayConfig
+from safeil_sumo.learn.style import clip_time_gap, estimate_time_gap
 
 GRID_S = (0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0, 2.3)  # [s] settings tried
+# [s] of a driver seen before the setting is estimated (adaptation_curve)
+OBSERVED_S = (2.0, 5.0, 10.0, 20.0, 30.0, 45.0, 60.0)
 
 
 def _gap_rmse(record: dict) -> float:
@@ -94,6 +100,50 @@ def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
+def setting_from_first(rows: pd.DataFrame, seconds: float, default_s: float) -> float:
+    """The setting [s] ``replay --adapt-first-s seconds`` gives the planner on one maneuver's
+    ``rows``: the driver's time gap estimated on its first ``seconds``, clipped to the trained
+    range; ``default_s`` where those seconds hold no following sample (the planner keeps its
+    default, as in the replay)."""
+    first = rp.window(rows, 0.0, seconds)
+    estimate = estimate_time_gap(first["lead_x"].to_numpy(float), first["v_x"].to_numpy(float))
+    return clip_time_gap(estimate) if np.isfinite(estimate) else default_s
+
+
+def read_off(errors: pd.Series, setting_s: float) -> float:
+    """A maneuver's gap RMSE [m] at ``setting_s``, interpolated linearly between its replays at
+    the grid's settings (``errors`` indexed by setting [s]; outside the grid, its end value)."""
+    return float(np.interp(setting_s, errors.index.to_numpy(float), errors.to_numpy(float)))
+
+
+def adaptation_curve(rows: pd.DataFrame, settings: pd.DataFrame, defaults: dict[str, float],
+                     observed: tuple[float, ...] = OBSERVED_S) -> pd.DataFrame:
+    """How much a driver must be seen: for each number of seconds in ``observed``, the gap RMSE
+    [m] over the same scored span (after the adaptation seconds of ``settings``) with the setting
+    estimated from that many first seconds, read off each maneuver's grid of replays
+    (:func:`read_off`); mean and median over the maneuvers. ``defaults``: each maneuver's
+    planner's default setting [s]."""
+    table = settings.pivot_table(index="maneuver_id", columns="time_gap_s", values="gap_rmse_m")
+    out = []
+    for seconds in observed:
+        errors = np.array([read_off(table.loc[m], setting_from_first(
+            rows[rows["maneuver_id"] == m].reset_index(drop=True), seconds, defaults[m]))
+            for m in table.index])
+        out.append({"observed_s": seconds, "gap_rmse_mean_m": float(np.mean(errors)),
+                    "gap_rmse_median_m": float(np.median(errors))})
+    return pd.DataFrame(out)
+
+
+def fold_defaults(settings: pd.DataFrame) -> dict[str, float]:
+    """Each maneuver's fold ``safeil`` default setting [s] (its checkpoint's style)."""
+    from safeil_sumo import planner_registry
+
+    default = {k: planner_registry.load(str(lodo.WORK / f"fold{k}" / "safeil.safetensors"))
+               .style["time_gap_s"] for k in settings["fold"].unique()}
+    return {m: default[k] for m, k in zip(settings["maneuver_id"], settings["fold"],
+                                          strict=True)}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -104,19 +154,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--folds", type=int, default=4)
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--out", type=Path, default=lodo.WORK / "adaptation_bound")
+    p.add_argument("--from-csv", action="store_true",
+                   help="summarise <out>/settings.csv and adapted.csv of an earlier run (no SUMO)")
     args = p.parse_args(argv)
     rows, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
-    settings, adapted = [], []
-    for k in range(args.folds):
-        s, a = fold_runs(k, rows, tuple(args.grid), args.adapt_first_s, args.out, args.workers)
-        settings += s
-        adapted += a
-        print(f"fold {k}: {len(a)} maneuvers", flush=True)
-    settings_df, adapted_df = pd.DataFrame(settings), pd.DataFrame(adapted)
-    args.out.mkdir(parents=True, exist_ok=True)
-    settings_df.to_csv(args.out / "settings.csv", index=False)
-    adapted_df.to_csv(args.out / "adapted.csv", index=False)
+    if args.from_csv:
+        settings_df = pd.read_csv(args.out / "settings.csv")
+        adapted_df = pd.read_csv(args.out / "adapted.csv")
+    else:
+        settings, adapted = [], []
+        for k in range(args.folds):
+            s, a = fold_runs(k, rows, tuple(args.grid), args.adapt_first_s, args.out,
+                             args.workers)
+            settings += s
+            adapted += a
+            print(f"fold {k}: {len(a)} maneuvers", flush=True)
+        settings_df, adapted_df = pd.DataFrame(settings), pd.DataFrame(adapted)
+        args.out.mkdir(parents=True, exist_ok=True)
+        settings_df.to_csv(args.out / "settings.csv", index=False)
+        adapted_df.to_csv(args.out / "adapted.csv", index=False)
     print(summary(settings_df, adapted_df))
+    curve = adaptation_curve(rows, settings_df, fold_defaults(settings_df))
+    curve.to_csv(args.out / "adaptation_curve.csv", index=False)
+    print("setting estimated from a driver's first seconds (read off the grid): gap RMSE [m]")
+    print("\n".join(f"  {r.observed_s:g} s: mean {r.gap_rmse_mean_m:.2f}, median "
+                    f"{r.gap_rmse_median_m:.2f}" for r in curve.itertuples()))
     return 0
 
 
