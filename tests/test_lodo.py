@@ -125,6 +125,9 @@ def test_adaptation_curve_by_hand() -> None:
     assert bound.setting_from_first(slow, 5.0, 1.6) == 0.8  # 0.5 s -> 0.8 s
     errors = pd.Series([4.0, 10.0], index=[1.0, 2.0])
     assert bound.read_off(errors, 0.8) == 4.0 and bound.read_off(errors, 3.0) == 10.0
+    # whose safeil a row's label names: fold k's, or the shipped one (ZalaZone)
+    assert bound.planner_of(2) == REPO / "data" / "lodo" / "fold2" / "safeil.safetensors"
+    assert bound.planner_of("shipped") == REPO / "safeil_sumo" / "models" / "safeil.safetensors"
 
 
 def test_a_cached_replay_is_reused_only_with_the_same_planner_files(lodo, tmp_path,

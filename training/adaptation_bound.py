@@ -1,6 +1,7 @@
 """How far can adapting one setting go? The best time-gap setting per left-out driver, in hindsight.
 
     python training/adaptation_bound.py [--grid 0.8 1.0 ... 2.3] [--adapt-first-s 60]
+    python training/adaptation_bound.py --source zalazone [--grid ...]
 
 Issue 20 asks the planner adapted to a driver (``replay --adapt-first-s``: its time-gap setting
 estimated on a maneuver's first seconds, which are then not scored) to come within half the
@@ -12,6 +13,9 @@ fold models in ``data/lodo/fold*/``, trained without that driver) is replayed in
 RMSE on that scored part itself is kept: an oracle, chosen on the very seconds it is scored on.
 Beside it, the same span replayed adapted as ``replay --adapt-first-s`` does (the setting
 estimated from the first seconds).
+``--source zalazone``: the same for every ZalaZone maneuver long enough, with the shipped
+``safeil`` (no fold: no planner has seen those drivers), in lane mode (longitudinal only, as
+``results --only unseen``).
 
 Writes ``<out>/settings.csv`` (maneuver, setting, gap RMSE), ``<out>/adapted.csv``,
 ``<out>/adaptation_curve.csv`` (how many seconds of a driver the estimate needs: the setting
@@ -24,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,32 +58,57 @@ def _gap_rmse(record: dict) -> float:
     return float(record["metrics"][0]["rmse_gap"])
 
 
-def fold_runs(k: int, rows: pd.DataFrame, grid: tuple[float, ...], adapt_s: float,
-              out: Path, workers: int) -> tuple[list[dict], list[dict]]:
-    """Fold ``k``'s left-out OpenACC maneuvers: gap RMSE per (maneuver, setting), and adapted."""
-    fold = lodo.WORK / f"fold{k}"
-    policy = fold / "safeil.safetensors"
-    if not policy.is_file():
-        raise SystemExit(f"{policy} is missing: run training/leave_one_driver_out.py first")
-    drivers = set(json.loads((fold / "drivers.json").read_text()))
-    held = lodo.held_out_maneuvers(drivers)["openacc"]
-    adapted = ra.windows(rows, "whole", None, 20.0, held, adapt_s)
+def grid_runs(rows: pd.DataFrame, maneuvers: list[str], label: int | str, grid: tuple[float, ...],
+              adapt_s: float, out: Path, workers: int, config: ReplayConfig
+              ) -> tuple[list[dict], list[dict]]:
+    """``maneuvers`` (at least ``adapt_s`` + 20 s long) replayed from ``adapt_s`` to their end
+    with the ``safeil`` of ``label`` (:func:`planner_of`) at each setting of ``grid``, and
+    adapted (the setting estimated on their first ``adapt_s``): gap RMSE per (maneuver,
+    setting), and per maneuver adapted; ``label`` in their ``fold`` column."""
+    policy, tag = planner_of(label), _folder(label)
+    adapted = ra.windows(rows, "whole", None, 20.0, maneuvers, adapt_s)
     # the same span, from adapt_s to the end, at a fixed setting
     plain = [ra.Window(w.maneuver_id, w.start_s, w.duration_s) for w in adapted]
     settings = []
     for tg in grid:
-        recs = ra.replay_all(rows, plain, [str(policy)], out / f"fold{k}" / f"tg{tg:g}",
-                             ReplayConfig(time_gap_s=tg), workers, progress=False)
-        settings += [{"fold": k, "maneuver_id": r["maneuver_id"], "time_gap_s": tg,
+        recs = ra.replay_all(rows, plain, [str(policy)], out / tag / f"tg{tg:g}",
+                             replace(config, time_gap_s=tg), workers, progress=False)
+        settings += [{"fold": label, "maneuver_id": r["maneuver_id"], "time_gap_s": tg,
                       "gap_rmse_m": _gap_rmse(r)} for r in recs]
-        print(f"fold {k}: {tg:g} s done ({len(recs)} maneuvers)", flush=True)
-    recs = ra.replay_all(rows, adapted, [str(policy)], out / f"fold{k}" / "adapted",
-                         ReplayConfig(), workers, progress=False)
-    adapt = [{"fold": k, "maneuver_id": r["maneuver_id"], "gap_rmse_m": _gap_rmse(r),
+        print(f"{tag}: {tg:g} s done ({len(recs)} maneuvers)", flush=True)
+    recs = ra.replay_all(rows, adapted, [str(policy)], out / tag / "adapted", config, workers,
+                         progress=False)
+    adapt = [{"fold": label, "maneuver_id": r["maneuver_id"], "gap_rmse_m": _gap_rmse(r),
               "time_gap_s": (r.get("adapted") or {}).get(str(policy), {}).get("time_gap_s",
                                                                               np.nan)}
              for r in recs]
     return settings, adapt
+
+
+def fold_runs(k: int, rows: pd.DataFrame, grid: tuple[float, ...], adapt_s: float,
+              out: Path, workers: int) -> tuple[list[dict], list[dict]]:
+    """Fold ``k``'s left-out OpenACC maneuvers with the fold's ``safeil``: :func:`grid_runs`."""
+    policy = planner_of(k)
+    if not policy.is_file():
+        raise SystemExit(f"{policy} is missing: run training/leave_one_driver_out.py first")
+    drivers = set(json.loads((policy.parent / "drivers.json").read_text()))
+    held = lodo.held_out_maneuvers(drivers)["openacc"]
+    return grid_runs(rows, held, k, grid, adapt_s, out, workers, ReplayConfig())
+
+
+SHIPPED = "shipped"  # the label of runs with the shipped safeil (ZalaZone: unseen by it)
+
+
+def planner_of(label: int | str) -> Path:
+    """The ``safeil`` checkpoint of rows labelled ``label``: fold k's (an int), or the shipped
+    one (:data:`SHIPPED`)."""
+    if str(label) == SHIPPED:
+        return REPO / "safeil_sumo" / "models" / "safeil.safetensors"
+    return lodo.WORK / f"fold{int(label)}" / "safeil.safetensors"
+
+
+def _folder(label: int | str) -> str:
+    return SHIPPED if str(label) == SHIPPED else f"fold{int(label)}"
 
 
 def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
@@ -135,11 +165,11 @@ def adaptation_curve(rows: pd.DataFrame, settings: pd.DataFrame, defaults: dict[
 
 
 def fold_defaults(settings: pd.DataFrame) -> dict[str, float]:
-    """Each maneuver's fold ``safeil`` default setting [s] (its checkpoint's style)."""
+    """Each maneuver's ``safeil`` default setting [s] (its checkpoint's style)."""
     from safeil_sumo import planner_registry
 
-    default = {k: planner_registry.load(str(lodo.WORK / f"fold{k}" / "safeil.safetensors"))
-               .style["time_gap_s"] for k in settings["fold"].unique()}
+    default = {k: planner_registry.load(str(planner_of(k))).style["time_gap_s"]
+               for k in settings["fold"].unique()}
     return {m: default[k] for m, k in zip(settings["maneuver_id"], settings["fold"],
                                           strict=True)}
 
@@ -151,16 +181,30 @@ def main(argv: list[str] | None = None) -> int:
                    help="time-gap settings to try [s]")
     p.add_argument("--adapt-first-s", type=float, default=lodo.ADAPT_S, metavar="S",
                    help="seconds left out of the score (adapted on) (default %(default)s)")
+    p.add_argument("--source", choices=("openacc", "zalazone"), default="openacc",
+                   help="openacc: the drivers the folds left out, each with its fold's safeil; "
+                   "zalazone: every maneuver, unseen by the shipped safeil, in lane mode "
+                   "(longitudinal only, as results --only unseen)")
     p.add_argument("--folds", type=int, default=4)
     p.add_argument("--workers", type=int, default=1)
-    p.add_argument("--out", type=Path, default=lodo.WORK / "adaptation_bound")
+    p.add_argument("--out", type=Path, default=None,
+                   help="default data/lodo/adaptation_bound[_zalazone]")
     p.add_argument("--from-csv", action="store_true",
                    help="summarise <out>/settings.csv and adapted.csv of an earlier run (no SUMO)")
     args = p.parse_args(argv)
-    rows, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
+    args.out = args.out or lodo.WORK / ("adaptation_bound" + (
+        "" if args.source == "openacc" else f"_{args.source}"))
+    rows, _ = process_drive(load_source(args.source), PipelineConfig(rate_hz=10.0))
     if args.from_csv:
         settings_df = pd.read_csv(args.out / "settings.csv")
         adapted_df = pd.read_csv(args.out / "adapted.csv")
+    elif args.source == "zalazone":
+        lane = ReplayConfig()
+        lane = replace(lane, loop=replace(lane.loop, lateral="lane"))
+        settings, adapted = grid_runs(rows, sorted(rows["maneuver_id"].unique()), SHIPPED,
+                                      tuple(args.grid), args.adapt_first_s, args.out,
+                                      args.workers, lane)
+        settings_df, adapted_df = pd.DataFrame(settings), pd.DataFrame(adapted)
     else:
         settings, adapted = [], []
         for k in range(args.folds):
@@ -170,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             adapted += a
             print(f"fold {k}: {len(a)} maneuvers", flush=True)
         settings_df, adapted_df = pd.DataFrame(settings), pd.DataFrame(adapted)
+    if not args.from_csv:
         args.out.mkdir(parents=True, exist_ok=True)
         settings_df.to_csv(args.out / "settings.csv", index=False)
         adapted_df.to_csv(args.out / "adapted.csv", index=False)
