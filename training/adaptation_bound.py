@@ -20,7 +20,8 @@ estimated from the first seconds).
 Writes ``<out>/settings.csv`` (maneuver, setting, gap RMSE), ``<out>/adapted.csv``,
 ``<out>/adaptation_curve.csv`` (how many seconds of a driver the estimate needs: the setting
 estimated from the first 2 ... 60 s, scored on the same span, read off each maneuver's grid) and
-prints the summary (``--from-csv``: of an earlier run's tables, without SUMO); ``<out>`` defaults to ``data/lodo/adaptation_bound`` (not committed). Resumable.
+prints the summary (``--from-csv``: of an earlier run's tables, without SUMO); ``<out>``
+defaults to ``data/lodo/adaptation_bound`` (``..._zalazone``; not committed). Resumable.
 """
 
 from __future__ import annotations
