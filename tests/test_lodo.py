@@ -132,9 +132,9 @@ def test_adaptation_curve_by_hand() -> None:
 
 def test_a_cached_replay_is_reused_only_with_the_same_planner_files(lodo, tmp_path,
                                                                     monkeypatch) -> None:
-    """A fold's replay folder is reused when its stamp names the very planner files (SHA-256)
-    the fold has now; a retrained planner (any of the three files changed) replays again. The
-    replay command itself is stood in for: the point is the cache, not SUMO."""
+    """A fold's replay folder is reused when its stamp names the very planners (their
+    fingerprints) the fold has now; a retrained planner replays again. The replay command itself
+    is stood in for: the point is the cache, not SUMO."""
     fold = tmp_path / "fold0"
     fold.mkdir()
     (fold / "drivers.json").write_text('["openacc/f2"]')

@@ -44,7 +44,7 @@ from safeil_sumo.data.sources import load_source
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.experiments.maneuver_replay import ReplayConfig
-from safeil_sumo.learn.style import clip_time_gap, estimate_time_gap
+from safeil_sumo.learn.style import clip_time_gap
 
 GRID_S = (0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0, 2.3)  # [s] settings tried
 # [s] of a driver seen before the setting is estimated (adaptation_curve)
@@ -105,10 +105,11 @@ def planner_of(label: int | str) -> Path:
     one (:data:`SHIPPED`)."""
     if str(label) == SHIPPED:
         return REPO / "safeil_sumo" / "models" / "safeil.safetensors"
-    return lodo.WORK / f"fold{int(label)}" / "safeil.safetensors"
+    return lodo.WORK / _folder(label) / "safeil.safetensors"
 
 
 def _folder(label: int | str) -> str:
+    """The folder of ``label``'s replays (and of fold k's models)."""
     return SHIPPED if str(label) == SHIPPED else f"fold{int(label)}"
 
 
@@ -136,8 +137,7 @@ def setting_from_first(rows: pd.DataFrame, seconds: float, default_s: float) -> 
     ``rows``: the driver's time gap estimated on its first ``seconds``, clipped to the trained
     range; ``default_s`` where those seconds hold no following sample (the planner keeps its
     default, as in the replay)."""
-    first = rp.window(rows, 0.0, seconds)
-    estimate = estimate_time_gap(first["lead_x"].to_numpy(float), first["v_x"].to_numpy(float))
+    estimate = ra.driver_time_gap(rp.window(rows, 0.0, seconds))
     return clip_time_gap(estimate) if np.isfinite(estimate) else default_s
 
 

@@ -32,7 +32,6 @@ a time, each in a worker process of its own, resumed where their files exist.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import multiprocessing as mp
 import subprocess
@@ -54,6 +53,7 @@ from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.finetune import finetune
 from safeil_sumo.learn.lateral_refit import refit_lateral
 from safeil_sumo.learn.trainer import train_checkpoint
+from safeil_sumo.planner_registry import fingerprint
 
 SOURCES = ("openacc", "ngsim")
 WORK = REPO / "data" / "lodo"
@@ -147,11 +147,11 @@ def run_fold(k: int, drivers: set[str], t0: float) -> pd.DataFrame:
     return replay_fold(k, fold, workers=1)
 
 
-def planner_digests(fold: Path) -> dict[str, str]:
-    """SHA-256 of the fold's replayed planner files: a cached replay is reused only when it
-    was made with these very files (a retrained fold replays again)."""
-    return {name: hashlib.sha256((fold / name).read_bytes()).hexdigest()
-            for name in ("safeil.safetensors", "safeil.json", "idm.json")}
+def planner_fingerprints(fold: Path) -> dict[str, str]:
+    """The fold's replayed planners' fingerprints (:func:`planner_registry.fingerprint`, what
+    the replay's own task files are keyed by): a cached replay is reused only when it was made
+    with these very planners (a retrained fold replays again)."""
+    return {name: fingerprint(str(fold / name)) for name in ("safeil.safetensors", "idm.json")}
 
 
 def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
@@ -161,7 +161,7 @@ def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
     runs = [(s, "", ["constant_speed"]) for s in SOURCES if held[s]]
     # adapted to the driver on each maneuver's first ADAPT_S (NGSIM's 30-74 s leave too little)
     runs += [("openacc", "adapted", [])] if held["openacc"] else []
-    made_from = planner_digests(fold)
+    made_from = planner_fingerprints(fold)
     for s, mode, extra_policies in runs:
         out = fold / f"replay_{s}{'_' + mode if mode else ''}"
         stamp = out / "made_from.json"  # the planners a cached replay was made with

@@ -152,6 +152,16 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
 MIN_SCORED_S = 20.0  # [s] an adapted maneuver needs this much left to score
 
 
+def driver_time_gap(first_rows: pd.DataFrame) -> float:
+    """The driver's preferred time gap [s] estimated on a maneuver's first rows
+    (:func:`safeil_sumo.learn.style.estimate_time_gap` of its gap and speed; NaN without a
+    following sample): what :func:`adapt_planners` sets a styled checkpoint to."""
+    from safeil_sumo.learn.style import estimate_time_gap
+
+    return estimate_time_gap(first_rows["lead_x"].to_numpy(float),
+                             first_rows["v_x"].to_numpy(float))
+
+
 def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> dict:
     """The planners adapted to the driver of ``first_rows`` (a maneuver's first seconds, which
     the score then leaves out): a style-conditioned checkpoint is set to the driver's preferred
@@ -163,10 +173,8 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> d
 
     from safeil_sumo import idm
     from safeil_sumo import planner_registry as pol
-    from safeil_sumo.learn.style import estimate_time_gap
 
-    time_gap = estimate_time_gap(first_rows["lead_x"].to_numpy(float),
-                                 first_rows["v_x"].to_numpy(float))
+    time_gap = driver_time_gap(first_rows)
     out = {}
     for label, policy in policies.items():
         if isinstance(policy, idm.IDMPlanner):
