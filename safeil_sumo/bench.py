@@ -18,7 +18,8 @@ Measures on ``curved500`` (ego + leader, 0.01 s step, monitors on, planner at 10
 - a curved500 sweep with 1 and 2 workers (wall time, parallel efficiency, worker peak memory),
   one scenario per simulation and batched (``sweep --batch``);
 - the Gymnasium envs (``python -m safeil_sumo.envs.bench`` in a subprocess): transitions/s of
-  the single env, the native vector env at N = 64 and an AsyncVectorEnv baseline, peak memory.
+  the single env, the native vector env at N = 64, Gymnasium's SyncVectorEnv of 64 traci envs
+  and an AsyncVectorEnv of 4, peak memory.
 Prints a table and writes it as JSON (``--out``). ``--quick`` shortens every measurement (CI).
 It asserts nothing about time: numbers are reported, never tested. A part whose input is
 missing (the NGSIM file) is skipped with a note.
@@ -368,18 +369,21 @@ def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: di
 
 def gym_rows(quick: bool, rows: dict) -> None:
     """The Gymnasium envs (``python -m safeil_sumo.envs.bench`` in a subprocess, each part in
-    a fresh process): transitions/s of the single env, the native vector env at N = 64 (8
-    quick) and an AsyncVectorEnv of 4 single envs (a process each), and peak memory."""
+    a fresh process): transitions/s of the single env, the native vector env and a
+    SyncVectorEnv of traci envs (a SUMO process each) at N = 64 (8 quick), an AsyncVectorEnv of
+    4 single envs (a process each), and peak memory."""
     n = 8 if quick else 64
     out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.bench", "--n", str(n),
                           "--seconds", "3" if quick else "20", "--json"],
                          capture_output=True, text=True, check=True)
     result = json.loads(out.stdout.strip().splitlines()[-1])
-    single, vector, async_ = result["rows"]
+    single, vector, sync, async_ = result["rows"]
     rows["gym_single_transitions_per_s"] = single["transitions_per_s"]
     rows[f"gym_vector_n{n}_transitions_per_s"] = vector["transitions_per_s"]
+    rows[f"gym_sync_traci_n{n}_transitions_per_s"] = sync["transitions_per_s"]
     rows[f"gym_async_n{async_['n']}_transitions_per_s"] = async_["transitions_per_s"]
     rows["gym_vector_over_single"] = result["vector_over_single"]
+    rows["gym_vector_over_sync"] = result["vector_over_sync"]
     rows["gym_vector_over_async"] = result["vector_over_async"]
     rows[f"gym_vector_n{n}_peak_rss_mb"] = vector["peak_rss_mb"]
 

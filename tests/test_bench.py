@@ -19,5 +19,6 @@ def test_bench_quick_runs_and_writes_every_figure(tmp_path):
                 "sweep6_batched_2w_wall_s", "sweep_batched_parallel_efficiency_2w",
                 "multi_edge_over_single_edge", "n74_1km_drive_wall_s",
                 "gym_single_transitions_per_s", "gym_vector_n8_transitions_per_s",
-                "gym_vector_over_single", "gym_vector_over_async", "gym_vector_n8_peak_rss_mb"):
+                "gym_vector_over_single", "gym_vector_over_async", "gym_vector_over_sync",
+                "gym_sync_traci_n8_transitions_per_s", "gym_vector_n8_peak_rss_mb"):
         assert key in results and math.isfinite(results[key]) and results[key] > 0

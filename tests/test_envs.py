@@ -229,6 +229,35 @@ def test_vector_env_gives_the_single_envs_trajectories():
         env.close()
 
 
+def test_traci_envs_run_side_by_side_in_one_process():
+    """Gymnasium's SyncVectorEnv of traci envs (a SUMO process each, one Python process): the
+    sub-envs do not close each other (libsumo's would) and step as the native vector env does
+    (traci's positions are rounded in transit: gap to 1e-6 m as in test_closed_loop); closing it
+    ends every SUMO."""
+    policy = planner_registry.load("analytic")
+    before = {p.pid for p in _descendants()}
+    sync = gym.make_vec(CURVED, num_envs=2, vectorization_mode="sync", backend="traci",
+                        max_time_s=1.0)
+    native = gym.make_vec(CURVED, num_envs=2, vectorization_mode="vector_entry_point",
+                          max_time_s=1.0)
+    try:
+        got, info = sync.reset(seed=7)
+        want, want_info = native.reset(seed=7)
+        sumo = [p for p in _descendants() if p.pid not in before and "sumo" in p.name()]
+        # one SUMO per sub-env (the eclipse-sumo wheel's launcher and the binary it starts)
+        assert len([p for p in sumo if p.ppid() == os.getpid()]) == 2
+        for _ in range(8):
+            got, _, te, tr, info = sync.step(_plan(policy, info["features"]))
+            want, _, wte, wtr, want_info = native.step(_plan(policy, want_info["features"]))
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+            np.testing.assert_array_equal(te | tr, wte | wtr)
+        assert not (te | tr).any()
+    finally:
+        sync.close()
+        native.close()
+    _wait_gone(sumo)
+
+
 def test_control_level_brakes():
     env = gym.make(CURVED, action_level="control", max_time_s=3.0)
     try:

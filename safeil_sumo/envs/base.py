@@ -28,11 +28,15 @@ def loop_config(step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: 
                       backend=backend, brake_guard=brake_guard_when(brake_guard))
 
 
-def claim_sumo(env) -> None:
-    """Make ``env`` the process's SUMO user. libsumo runs ONE simulation per process (a second
-    start silently replaces the first) and traci's default connection is one too: an env of
-    this process whose simulation still runs has it closed (:meth:`lose_sumo`; its next step
-    raises with the reason) before ``env`` starts its own."""
+def claim_sumo(env, loop: LoopConfig) -> None:
+    """Make ``env`` (whose loop runs with ``loop``) the process's SUMO user. libsumo runs ONE
+    simulation per process (a second start silently replaces the first) and sumo-gui uses
+    traci's default connection, one too: an env of this process whose simulation still runs
+    has it closed (:meth:`lose_sumo`; its next step raises with the reason) before ``env``
+    starts its own. A headless traci env has its own connection and SUMO process, shared with
+    no one: nothing to claim."""
+    if loop.backend == "traci" and not loop.gui:
+        return
     other = _OWNER[0]() if _OWNER[0] is not None else None
     if other is not None and other is not env and other.holds_sumo():
         other.lose_sumo()

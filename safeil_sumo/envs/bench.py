@@ -2,12 +2,15 @@
 
 On ``safeil_sumo/Curved500-v0`` (10 Hz decisions, 0.01 s physics, the analytic planner's plans
 as actions, resets included), each part in a fresh process: the single env; the native vector
-env at ``--n`` (one SUMO); Gymnasium's AsyncVectorEnv of single envs (a process and a libsumo
-per sub-env: a SyncVectorEnv cannot run, libsumo and traci's default connection are one
-simulation per process) at ``--async-n``. Memory: each process's peak RSS. Beside the wall-clock
-rate, the single and native vector parts report transitions per CPU second of their process
-(``time.process_time``: on a shared machine, less sensitive to other jobs than wall time).
-Reports numbers, asserts nothing; ``safeil_sumo.bench`` runs it in a subprocess (``--json``).
+env at ``--n`` (one SUMO); Gymnasium's SyncVectorEnv of ``--n`` single envs, each with its own
+SUMO process behind traci (libsumo runs one simulation per process, so this is how N envs share
+one Python process: sumo-rl's situation); and Gymnasium's AsyncVectorEnv of single envs (a
+process and a libsumo per sub-env) at ``--async-n``. Memory: each process's peak RSS (the
+SyncVectorEnv's SUMO processes and the AsyncVectorEnv's workers: the largest child's). Beside
+the wall-clock rate, the single and native vector parts report transitions per CPU second of
+their process (``time.process_time``: on a shared machine, less sensitive to other jobs than
+wall time). Reports numbers, asserts nothing; ``safeil_sumo.bench`` runs it in a subprocess
+(``--json``).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import gymnasium as gym
 import numpy as np
 
 ENV_ID = "safeil_sumo/Curved500-v0"
+MIN_STEPS = 5  # [-] vector steps measured at least, however long they take
 
 
 def _rss_mb() -> float:
@@ -54,11 +58,13 @@ def measure(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
         env.close()
         return {"part": part, "n": 1, "step_s": step_s, "transitions_per_s": count / wall,
                 "transitions_per_cpu_s": count / cpu, "peak_rss_mb": _rss_mb()}
-    mode = "vector_entry_point" if part == "vector" else "async"
-    venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode, step_s=step_s)
+    mode = {"vector": "vector_entry_point", "sync": "sync", "async": "async"}[part]
+    backend = {"backend": "traci"} if part == "sync" else {}
+    venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode, step_s=step_s, **backend)
     obs, _ = venv.reset(seed=0)
     count, t0, c0 = 0, time.perf_counter(), time.process_time()
-    while time.perf_counter() - t0 < seconds:
+    # at least MIN_STEPS vector steps: a SyncVectorEnv of 64 traci envs takes seconds per step
+    while time.perf_counter() - t0 < seconds or count < MIN_STEPS * n:
         a = np.asarray(planner.plan(np.asarray(obs, float)), float).reshape(n, 6)
         obs, _, _, _, _ = venv.step(a)
         count += n
@@ -66,8 +72,8 @@ def measure(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
     venv.close()
     out = {"part": part, "n": n, "step_s": step_s, "transitions_per_s": count / wall,
            "peak_rss_mb": _rss_mb()}
-    if part == "async":  # the workers' CPU time is not this process's
-        out["worker_peak_rss_mb"] = _children_rss_mb()
+    if part in ("sync", "async"):  # the SUMO processes' / workers' CPU time is not ours
+        out["child_peak_rss_mb"] = _children_rss_mb()
     else:
         out["transitions_per_cpu_s"] = count / cpu
     return out
@@ -84,8 +90,10 @@ def run_part(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", choices=("all", "single", "vector", "async"), default="all")
-    ap.add_argument("--n", type=int, default=64, help="sub-envs of the native vector env")
+    ap.add_argument("--part", choices=("all", "single", "vector", "sync", "async"),
+                    default="all")
+    ap.add_argument("--n", type=int, default=64,
+                    help="sub-envs of the native vector env and of the SyncVectorEnv (traci)")
     ap.add_argument("--async-n", type=int, default=4,
                     help="sub-envs (processes) of the AsyncVectorEnv baseline")
     ap.add_argument("--seconds", type=float, default=20.0, help="stepping time per part [s]")
@@ -99,22 +107,25 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = [run_part("single", 1, args.seconds, args.step_s),
             run_part("vector", args.n, args.seconds, args.step_s),
+            run_part("sync", args.n, args.seconds, args.step_s),
             run_part("async", args.async_n, args.seconds, args.step_s)]
-    single = rows[0]["transitions_per_s"]
+    rate = {r["part"]: r["transitions_per_s"] for r in rows}
     result = {"rows": rows,
-              "vector_over_single": rows[1]["transitions_per_s"] / single,
-              "vector_over_async": rows[1]["transitions_per_s"] / rows[2]["transitions_per_s"]}
+              "vector_over_single": rate["vector"] / rate["single"],
+              "vector_over_sync": rate["vector"] / rate["sync"],
+              "vector_over_async": rate["vector"] / rate["async"]}
     if args.json:
         print(json.dumps(result))
     else:
         for r in rows:
-            extra = (f", workers' peak {r['worker_peak_rss_mb']:.0f} MB"
-                     if "worker_peak_rss_mb" in r else "")
+            extra = (f", largest child's peak {r['child_peak_rss_mb']:.0f} MB"
+                     if "child_peak_rss_mb" in r else "")
             cpu = (f" ({r['transitions_per_cpu_s']:.0f} per CPU second)"
                    if "transitions_per_cpu_s" in r else "")
             print(f"{r['part']:>7} N={r['n']:<3} {r['transitions_per_s']:9.0f} transitions/s"
                   f"{cpu}  peak RSS {r['peak_rss_mb']:.0f} MB{extra}")
-        print(f"vector / single: {result['vector_over_single']:.1f}x; vector / async: "
+        print(f"vector / single: {result['vector_over_single']:.1f}x; vector / sync (traci): "
+              f"{result['vector_over_sync']:.1f}x; vector / async: "
               f"{result['vector_over_async']:.1f}x")
     return 0
 

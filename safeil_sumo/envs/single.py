@@ -76,7 +76,7 @@ class SafeILEnv(gym.Env):
         index = base.check_options(options, self.task.max_index)
         self.index = index if index is not None else self.task.draw_index(self.np_random)
         scenario = self.task.scenario(self.index)
-        base.claim_sumo(self)
+        base.claim_sumo(self, self.loop_config)
         if self._loop is None:
             self._loop = ClosedLoop(self.loop_config, self.vehicle)
         self._done = True

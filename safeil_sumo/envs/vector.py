@@ -100,7 +100,7 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         return self._reset_all()
 
     def _reset_all(self):
-        base.claim_sumo(self)
+        base.claim_sumo(self, self.loop.loop)
         self._open = False
         scenarios = [self.task.scenario(int(i)) for i in self.indices]
         self._obs = self.loop.reset(scenarios, horizon_s=self.horizon_s)

@@ -1,11 +1,12 @@
 """The one seam to the simulator: the only module that imports libsumo or traci (lazily).
 
-``libsumo`` and ``traci`` modules already satisfy :class:`SumoApi`; tests pass a fake. The runner
-only ever talks to SUMO through the methods listed here.
+The ``libsumo`` module and a ``traci`` connection already satisfy :class:`SumoApi`; tests pass
+a fake. The runner only ever talks to SUMO through the methods listed here.
 """
 
 from __future__ import annotations
 
+import itertools
 import os
 import shutil
 import signal
@@ -115,11 +116,18 @@ GUI_VIEW = "View #0"  # sumo-gui's first (and only) view
 GUI_START_TIMEOUT_S = GUI_CONNECT_RETRIES + 5.0
 
 
-def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> SumoApi:
-    """Start SUMO with command-line ``args`` (without the binary) and return the API module.
+_TRACI_LABELS = itertools.count()  # each headless traci start gets its own connection label
 
-    ``backend``: ``"libsumo"`` (in-process, fast; one simulation per process) or ``"traci"``
-    (socket; needed for ``sumo-gui``). Raises :class:`SumoError` with SUMO's message on failure.
+
+def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> SumoApi:
+    """Start SUMO with command-line ``args`` (without the binary) and return its API.
+
+    ``backend``: ``"libsumo"`` (in-process, fast; ONE simulation per process: the module is
+    returned) or ``"traci"`` (a SUMO process behind a socket; needed for ``sumo-gui``). A
+    headless traci start returns its own labelled connection, so several traci simulations can
+    run side by side in one process (what Gymnasium's SyncVectorEnv needs); sumo-gui uses
+    traci's default connection (one per process). Raises :class:`SumoError` with SUMO's message
+    on failure.
     """
     if gui and backend != "traci":
         raise SumoError("sumo-gui needs the traci backend (--backend traci)")
@@ -133,11 +141,15 @@ def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> S
     if gui:
         _start_gui(api, binary, args)
         return api  # type: ignore[return-value]
+    label = f"safeil_sumo_{next(_TRACI_LABELS)}" if backend == "traci" else None
     try:
-        api.start([binary, *args])
+        if label is None:
+            api.start([binary, *args])
+        else:  # doSwitch=False: traci's module-level default connection stays untouched
+            api.start([binary, *args], label=label, doSwitch=False)
     except Exception as exc:  # libsumo raises TraCIException / FatalTraCIError
         raise SumoError(f"SUMO failed to start: {exc}") from exc
-    return api  # type: ignore[return-value]
+    return api if label is None else api.getConnection(label)  # type: ignore[return-value]
 
 
 def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
