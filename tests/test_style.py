@@ -12,6 +12,8 @@ from safeil_sumo.learn.model import PlannerMLP, with_style_input
 from safeil_sumo.learn.style import (
     SETTING_RANGE_S,
     TIME_GAP_RANGE_S,
+    TimeGapPrior,
+    adapted_time_gap,
     clip_time_gap,
     estimate_time_gap,
     maneuver_time_gaps,
@@ -28,6 +30,27 @@ def test_time_gap_is_the_median_over_following_samples():
     # NaN is no sample)
     assert estimate_time_gap(gap, v) == pytest.approx(1.5)
     assert np.isnan(estimate_time_gap(np.array([3.0]), np.array([2.0])))
+
+
+def test_adapted_time_gap_weighs_the_seen_seconds_against_the_population():
+    """By hand: equal spreads (0.5) and 10 s of following = 1 + 10/10 = 2 observations, so the
+    driver's own median gets 2/0.25 / (2/0.25 + 1/0.25) = 2/3 of the weight in log time gap."""
+    prior = TimeGapPrior(median_s=1.0, between_log_sd=0.5, within_log_sd=0.5, correlation_s=10.0)
+    assert prior.weight(0.0) == 0.0
+    assert prior.weight(10.0) == pytest.approx(2.0 / 3.0)
+    assert prior.weight(1e6) == pytest.approx(1.0, abs=1e-4)
+    assert prior.weight(5.0) < prior.weight(10.0) < prior.weight(60.0)
+    v = np.full(100, 20.0)  # 100 samples 0.1 s apart: 10 s at 2 s
+    assert adapted_time_gap(np.full(100, 40.0), v, 0.1, prior) == pytest.approx(2.0 ** (2 / 3))
+    # samples below the minimum speed or too far back are not following: not seen, not counted
+    slow = np.concatenate([np.full(100, 40.0), np.full(300, 3.0)])
+    slow_v = np.concatenate([v, np.full(300, 2.0)])
+    assert adapted_time_gap(slow, slow_v, 0.1, prior) == pytest.approx(2.0 ** (2 / 3))
+    far = np.concatenate([np.full(100, 40.0), np.full(300, 200.0)])
+    assert adapted_time_gap(far, np.full(400, 20.0), 0.1, prior) == pytest.approx(2.0 ** (2 / 3))
+    # nothing seen: the population's median
+    assert adapted_time_gap(np.array([3.0]), np.array([2.0]), 0.1, prior) == 1.0
+    assert adapted_time_gap(np.array([]), np.array([]), 0.1, prior) == 1.0
 
 
 def test_time_gap_per_maneuver_with_fallback():
@@ -185,7 +208,11 @@ def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
     planners = {"m": styled, "idm": shipped_idm, "analytic": pol.load("analytic")}
     rows = _arc_rows(20.0, gap=40.0)
     out = ra.adapt_planners(planners, rows)
-    assert out["m"].style == {"time_gap_s": pytest.approx(40.0 / V)}
+    # 20 s seen at 40 / V s, the default 1.5 s the prior (style.TimeGapPrior's spreads)
+    w = TimeGapPrior(1.5).weight(20.0)
+    assert 0.8 < w < 1.0
+    assert out["m"].style == {"time_gap_s": pytest.approx(1.5 ** (1 - w) * (40.0 / V) ** w,
+                                                          rel=1e-3)}
     assert styled.style == {"time_gap_s": 1.5}  # the shared planner is untouched
     assert out["analytic"] is planners["analytic"]
     # the refitted IDM follows this driver better than the population fit

@@ -133,12 +133,10 @@ def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
 
 
 def setting_from_first(rows: pd.DataFrame, seconds: float, default_s: float) -> float:
-    """The setting [s] ``replay --adapt-first-s seconds`` gives the planner on one maneuver's
-    ``rows``: the driver's time gap estimated on its first ``seconds``, clipped to the trained
-    range; ``default_s`` where those seconds hold no following sample (the planner keeps its
-    default, as in the replay)."""
-    estimate = ra.driver_time_gap(rp.window(rows, 0.0, seconds))
-    return clip_time_gap(estimate) if np.isfinite(estimate) else default_s
+    """The setting [s] ``replay --adapt-first-s seconds`` gives a planner of default setting
+    ``default_s`` on one maneuver's ``rows``: the driver's time gap estimated on its first
+    ``seconds`` (:func:`window_replays.driver_time_gap`), clipped to the trained range."""
+    return clip_time_gap(ra.driver_time_gap(rp.window(rows, 0.0, seconds), default_s))
 
 
 def read_off(errors: pd.Series, setting_s: float) -> float:

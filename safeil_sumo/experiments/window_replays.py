@@ -152,35 +152,39 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
 MIN_SCORED_S = 20.0  # [s] an adapted maneuver needs this much left to score
 
 
-def driver_time_gap(first_rows: pd.DataFrame) -> float:
-    """The driver's preferred time gap [s] estimated on a maneuver's first rows
-    (:func:`safeil_sumo.learn.style.estimate_time_gap` of its gap and speed; NaN without a
-    following sample): what :func:`adapt_planners` sets a styled checkpoint to."""
-    from safeil_sumo.learn.style import estimate_time_gap
+def driver_time_gap(first_rows: pd.DataFrame, default_s: float) -> float:
+    """The driver's preferred time gap [s] estimated on a maneuver's first rows, a planner's
+    default setting ``default_s`` [s] (the population's median) as the prior
+    (:func:`safeil_sumo.learn.style.adapted_time_gap`; ``default_s`` itself without a following
+    sample): what :func:`adapt_planners` sets a styled checkpoint to."""
+    from safeil_sumo.learn.style import TimeGapPrior, adapted_time_gap
 
-    return estimate_time_gap(first_rows["lead_x"].to_numpy(float),
-                             first_rows["v_x"].to_numpy(float))
+    t = first_rows["time"].to_numpy(float)
+    dt_s = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    return adapted_time_gap(first_rows["lead_x"].to_numpy(float),
+                            first_rows["v_x"].to_numpy(float), dt_s, TimeGapPrior(default_s))
 
 
 def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> dict:
     """The planners adapted to the driver of ``first_rows`` (a maneuver's first seconds, which
     the score then leaves out): a style-conditioned checkpoint is set to the driver's preferred
-    time gap (:func:`safeil_sumo.learn.style.estimate_time_gap`); the IDM's five parameters are
-    fitted on those seconds (:func:`safeil_sumo.idm.fit_idm`, the same calibration as the
-    shipped fit). Other planners are returned as they are. Copies: ``policies`` is unchanged."""
+    time gap (:func:`driver_time_gap`, its default setting the prior); the IDM's five
+    parameters are fitted on those seconds (:func:`safeil_sumo.idm.fit_idm`, the same
+    calibration as the shipped fit). Other planners are returned as they are. Copies:
+    ``policies`` is unchanged."""
     import copy
     from dataclasses import replace
 
     from safeil_sumo import idm
     from safeil_sumo import planner_registry as pol
 
-    time_gap = driver_time_gap(first_rows)
     out = {}
     for label, policy in policies.items():
         if isinstance(policy, idm.IDMPlanner):
             fit = idm.fit_idm(idm.maneuvers_from_rows(first_rows), seed=seed, starts=2)
             out[label] = replace(policy, params=fit.params)
-        elif pol.has_time_gap(policy) and np.isfinite(time_gap):  # a styled checkpoint
+        elif pol.has_time_gap(policy):  # a styled checkpoint
+            time_gap = driver_time_gap(first_rows, policy.style["time_gap_s"])
             out[label] = pol.with_time_gap(copy.deepcopy(policy), time_gap)
         else:
             out[label] = policy
