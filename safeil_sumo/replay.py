@@ -92,7 +92,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--adapt-first-s", type=finite_float, default=0.0, metavar="S",
                    help="with --windows whole: adapt the planners to each driver on the "
                         "maneuver's first S seconds, then score the rest (a style-conditioned "
-                        "checkpoint gets the driver's time gap, the IDM is refitted on them; "
+                        "checkpoint gets the driver's time gap, shrunk towards its default "
+                        "setting the less following those seconds hold; the IDM is refitted "
+                        "on them; "
                         "maneuvers without 20 s left are skipped). Default 0: no adaptation")
     p.add_argument("--policies", nargs="+", default=["analytic"],
                    help="safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
