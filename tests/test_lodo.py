@@ -163,3 +163,37 @@ def test_a_cached_replay_is_reused_only_with_the_same_planner_files(lodo, tmp_pa
     (fold / "replay_openacc" / "made_from.json").unlink()
     lodo.replay_fold(0, fold, workers=1)
     assert calls[4:] == ["replay_openacc"]  # a replay without a stamp: made again
+
+
+def _training_script(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "training" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_time_gap_prior_correlation_time_by_hand() -> None:
+    """training/time_gap_prior.py: a sign that flips every sample is correlated for one sample
+    (2 dt); a step (+1 for 50 samples, -1 for 50) has autocorrelation (100 - 3k) / 100 until its
+    first negative lag, 34: 2 dt sum_k<34 (100 - 3k) / 100 = 2 dt 17.17."""
+    prior = _training_script("time_gap_prior")
+    assert prior.correlation_time_s(np.array([1.0, -1.0] * 50), 0.1) == pytest.approx(0.2)
+    step = np.array([1.0] * 50 + [-1.0] * 50)
+    assert prior.correlation_time_s(step, 0.1) == pytest.approx(2 * 0.1 * 17.17)
+
+
+def test_time_gap_prior_errors_by_hand() -> None:
+    """A driver who keeps 1.0 s for the first 30 s and 2.0 s after (100 s at 20 m/s): the
+    default 1.5 s errs 0.5 s at every look; the plain median of the first seconds 1.0 s up to
+    45 s (more than half of them at 1.0 s) and 0.5 s at 60 s (half and half: 1.5 s); the shrunk
+    estimate in between and closer to the default after a shorter look."""
+    prior = _training_script("time_gap_prior")
+    t = np.arange(0.0, 100.0, 0.1)
+    rows = pd.DataFrame({"maneuver_id": "m", "time": t, "v_x": 20.0,
+                         "lead_x": np.where(t < 30.0, 20.0, 40.0)})
+    table = prior.prediction_errors(rows, default_s=1.5)
+    assert list(table.columns) == list(prior.SEEN_S)
+    np.testing.assert_allclose(table.loc["default"], 0.5)
+    np.testing.assert_allclose(table.loc["plain median"], [1.0] * 6 + [0.5], atol=1e-12)
+    shrunk = table.loc["shrunk"].to_numpy()
+    assert np.all((shrunk[:5] > 0.5) & (shrunk[:5] < 1.0)) and np.all(np.diff(shrunk[:5]) > 0)
