@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scripts import load_training_script
 
 from safeil_sumo import bspline
 from safeil_sumo.data.tuples import Tuples
@@ -561,13 +562,10 @@ def test_train_cli_has_every_config_field_under_its_own_name() -> None:
     its default is the config's, and the options build the config they name (old flag names
     kept as aliases)."""
     import dataclasses
-    import importlib.util
 
     from safeil_sumo.learn.trainer import TrainConfig
 
-    spec = importlib.util.spec_from_file_location("train_cli", REPO / "training" / "train.py")
-    cli = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cli)
+    cli = load_training_script("train")
     base = ["--data", "x.parquet", "--out", "o"]
     assert cli.config_of(cli.parse_args(base)) == TrainConfig()
     args = cli.parse_args([*base, "--weight-decay", "0.01", "--max-epochs", "7", "--hidden", "32,16",
@@ -586,14 +584,6 @@ def test_train_cli_has_every_config_field_under_its_own_name() -> None:
 
 
 
-def _load_script(name: str):
-    """A training script (``training/<name>.py``, not a package module) as a module."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(name, REPO / "training" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_train_cli_round_trips_a_config_with_every_field_changed() -> None:
@@ -601,7 +591,7 @@ def test_train_cli_round_trips_a_config_with_every_field_changed() -> None:
     command line setting every field to a non-default value parses into that config."""
     import dataclasses
 
-    cli = _load_script("train")
+    cli = load_training_script("train")
     changed = TrainConfig(
         method="bc", hidden=(32, 16), activation="relu", lr=5e-4, weight_decay=0.01,
         batch_size=64, max_epochs=7, patience=3, seed=5, barrier_k=10.0, track=1.9, gap_min=2.0,
@@ -633,7 +623,7 @@ def test_train_cli_round_trips_a_config_with_every_field_changed() -> None:
 def test_train_cli_refuses_bad_flags_with_a_usage_error(bad, capsys) -> None:
     """An unknown flag, a value of the wrong type, a choice not offered or a missing value is
     argparse's usage error (exit 2, one line naming the option), before any data is read."""
-    cli = _load_script("train")
+    cli = load_training_script("train")
     with pytest.raises(SystemExit) as exc:
         cli.parse_args(["--data", "x.parquet", "--out", "o", *bad])
     assert exc.value.code == 2

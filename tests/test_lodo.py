@@ -2,25 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from scripts import load_training_script
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def lodo():
-    sys.path.insert(0, str(REPO / "training"))
-    spec = importlib.util.spec_from_file_location("lodo", REPO / "training" /
-                                                  "leave_one_driver_out.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_training_script("leave_one_driver_out")
 
 
 def test_summary_by_hand(lodo) -> None:
@@ -71,11 +65,7 @@ def test_adaptation_bound_summary_by_hand() -> None:
     """training/adaptation_bound.py: the oracle keeps each maneuver's best setting (chosen on
     its own scored seconds); one setting for all is the mean per setting; the adapted rows'
     mean and median are their own."""
-    sys.path.insert(0, str(REPO / "training"))
-    spec = importlib.util.spec_from_file_location("bound", REPO / "training" /
-                                                  "adaptation_bound.py")
-    bound = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bound)
+    bound = load_training_script("adaptation_bound")
     settings = pd.DataFrame({
         "maneuver_id": ["a", "a", "b", "b"], "time_gap_s": [1.0, 2.0, 1.0, 2.0],
         "gap_rmse_m": [4.0, 10.0, 9.0, 3.0]})
@@ -90,14 +80,10 @@ def test_adaptation_bound_summary_by_hand() -> None:
 
 def test_adaptation_curve_by_hand() -> None:
     """training/adaptation_bound.py's curve: the setting the replay's adaptation would give after
-    S seconds (the driver's median time gap there, clipped; the default without a following
-    sample), each maneuver's error read off its grid by linear interpolation, then mean and
-    median over the maneuvers."""
-    sys.path.insert(0, str(REPO / "training"))
-    spec = importlib.util.spec_from_file_location("bound", REPO / "training" /
-                                                  "adaptation_bound.py")
-    bound = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bound)
+    S seconds (the driver's median time gap there shrunk towards the default, clipped; the
+    default without a following sample), each maneuver's error read off its grid by linear
+    interpolation, then mean and median over the maneuvers."""
+    bound = load_training_script("adaptation_bound")
     t = np.round(np.arange(301) * 0.1, 10)  # 30 s at 10 Hz
     early = t <= 5.0
     # a: 1.2 s for its first 5 s (51 samples), then 2.0 s (250); b: below 5 m/s (not
@@ -115,14 +101,27 @@ def test_adaptation_curve_by_hand() -> None:
         "gap_rmse_m": [4.0, 10.0, 9.0, 3.0, 1.0, 1.0]})
     curve = bound.adaptation_curve(rows, settings, {"a": 1.6, "b": 1.6, "c": 1.6},
                                    observed=(5.0, 30.0))
-    # 5 s: a 1.2 s -> 4 + 0.2 * 6 = 5.2; b none -> the default 1.6 -> 9 - 0.6 * 6 = 5.4; c 1
-    # 30 s: a median 2.0 s -> 10; b 1.5 s -> 6; c 1
+    # the settings: each driver's median shrunk towards the default 1.6 s by the weight of the
+    # seconds of following seen (style.adapted_time_gap, tested by hand in test_style)
+    from safeil_sumo.learn.style import TimeGapPrior
+
+    def shrunk(own_s: float, seen_s: float) -> float:
+        w = TimeGapPrior(1.6).weight(seen_s)
+        return 1.6 ** (1 - w) * own_s ** w
+
+    a5, a30, b30 = shrunk(1.2, 5.1), shrunk(2.0, 30.1), shrunk(1.5, 25.0)
+    assert 1.2 < a5 < 1.6 and 1.6 < a30 < 2.0 and 1.5 < b30 < 1.6
+    # 5 s: a -> 4 + 6 (a5 - 1); b none -> the default 1.6 -> 9 - 0.6 * 6 = 5.4; c 1
+    # 30 s: a -> 4 + 6 (a30 - 1); b -> 9 - 6 (b30 - 1); c 1
+    at5 = [4 + 6 * (a5 - 1), 5.4, 1.0]
+    at30 = [4 + 6 * (a30 - 1), 9 - 6 * (b30 - 1), 1.0]
     assert curve["observed_s"].tolist() == [5.0, 30.0]
-    assert curve["gap_rmse_mean_m"].tolist() == pytest.approx([11.6 / 3, 17.0 / 3])
-    assert curve["gap_rmse_median_m"].tolist() == pytest.approx([5.2, 6.0])
+    assert curve["gap_rmse_mean_m"].tolist() == pytest.approx([np.mean(at5), np.mean(at30)])
+    assert curve["gap_rmse_median_m"].tolist() == pytest.approx([np.median(at5),
+                                                                 np.median(at30)])
     # a setting below the trained range is clipped to it; the grid's ends hold beyond it
     slow = rows[rows["maneuver_id"] == "a"].assign(lead_x=10.0).reset_index(drop=True)
-    assert bound.setting_from_first(slow, 5.0, 1.6) == 0.8  # 0.5 s -> 0.8 s
+    assert bound.setting_from_first(slow, 60.0, 1.6) == 0.8  # 0.5 s -> 0.54 s -> 0.8 s
     errors = pd.Series([4.0, 10.0], index=[1.0, 2.0])
     assert bound.read_off(errors, 0.8) == 4.0 and bound.read_off(errors, 3.0) == 10.0
     # whose safeil a row's label names: fold k's, or the shipped one (ZalaZone)
@@ -165,18 +164,11 @@ def test_a_cached_replay_is_reused_only_with_the_same_planner_files(lodo, tmp_pa
     assert calls[4:] == ["replay_openacc"]  # a replay without a stamp: made again
 
 
-def _training_script(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "training" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_time_gap_prior_correlation_time_by_hand() -> None:
     """training/time_gap_prior.py: a sign that flips every sample is correlated for one sample
     (2 dt); a step (+1 for 50 samples, -1 for 50) has autocorrelation (100 - 3k) / 100 until its
     first negative lag, 34: 2 dt sum_k<34 (100 - 3k) / 100 = 2 dt 17.17."""
-    prior = _training_script("time_gap_prior")
+    prior = load_training_script("time_gap_prior")
     assert prior.correlation_time_s(np.array([1.0, -1.0] * 50), 0.1) == pytest.approx(0.2)
     step = np.array([1.0] * 50 + [-1.0] * 50)
     assert prior.correlation_time_s(step, 0.1) == pytest.approx(2 * 0.1 * 17.17)
@@ -187,7 +179,7 @@ def test_time_gap_prior_errors_by_hand() -> None:
     default 1.5 s errs 0.5 s at every look; the plain median of the first seconds 1.0 s up to
     45 s (more than half of them at 1.0 s) and 0.5 s at 60 s (half and half: 1.5 s); the shrunk
     estimate in between and closer to the default after a shorter look."""
-    prior = _training_script("time_gap_prior")
+    prior = load_training_script("time_gap_prior")
     t = np.arange(0.0, 100.0, 0.1)
     rows = pd.DataFrame({"maneuver_id": "m", "time": t, "v_x": 20.0,
                          "lead_x": np.where(t < 30.0, 20.0, 40.0)})

@@ -12,7 +12,6 @@ in-process: :func:`safeil_sumo.learn.trainer.train_checkpoint` and
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import subprocess
 import sys
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from safetensors.numpy import load_file
+from scripts import load_training_script
 
 from safeil_sumo.cli_args import dataclass_from_args
 from safeil_sumo.learn.checkpoint import save_checkpoint
@@ -32,17 +32,11 @@ from safeil_sumo.learn.trainer import TrainConfig, train_checkpoint
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _load_script(name: str):
-    """A training script (``training/<name>.py``, not a package module) as a module."""
-    spec = importlib.util.spec_from_file_location(name, REPO / "training" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
-shipped = _load_script("train_shipped_models")
-train_cli = _load_script("train")
-finetune_cli = _load_script("closed_loop_finetune")
+shipped = load_training_script("train_shipped_models")
+train_cli = load_training_script("train")
+finetune_cli = load_training_script("closed_loop_finetune")
 
 # the recipes as command lines, before they became configs (verbatim)
 OLD_MIXED = ["--longitudinal-only-sources", "openacc"]
