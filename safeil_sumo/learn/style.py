@@ -80,10 +80,10 @@ def adapted_time_gap(gap_m: np.ndarray, speed_mps: np.ndarray, dt_s: float,
 
     Why not the samples' median alone: the first seconds of a drive are few and often not
     steady (a queue pulling away keeps gaps that say more about standstill distance than time
-    gap). Measured (``docs/human_likeness.md``): predicting the time gap a driver keeps after
-    the first minute from their first 2-10 s, the plain median erred more than no adaptation
-    on ZalaZone; shrunk, it errs less than the plain median at every look on OpenACC and
-    ZalaZone and about as much after a minute."""
+    gap). Measured (``docs/human_likeness.md``, ``training/time_gap_prior.py``): predicting
+    the time gap a driver keeps after the first minute from their first 2-10 s, the plain
+    median erred more than no adaptation on ZalaZone; shrunk, it errs less than the plain
+    median at every look up to 45 s on OpenACC and ZalaZone, and as much after a minute."""
     gap, v = np.asarray(gap_m, float), np.asarray(speed_mps, float)
     ok = np.isfinite(gap) & np.isfinite(v) & (v > MIN_SPEED_MPS)
     seen = int(np.count_nonzero(ok & (gap < MAX_TIME_GAP_S * v)))
