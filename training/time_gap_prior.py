@@ -37,15 +37,6 @@ def _rows(source: str) -> pd.DataFrame:
     return process_drive(load_source(source), PipelineConfig(rate_hz=10.0))[0]
 
 
-def _log_time_gaps(g: pd.DataFrame) -> np.ndarray:
-    """log(gap / speed) of a maneuver's following samples (as estimate_time_gap keeps them)."""
-    from safeil_sumo.learn.style import MAX_TIME_GAP_S, MIN_SPEED_MPS
-
-    gap, v = g["lead_x"].to_numpy(float), g["v_x"].to_numpy(float)
-    ok = np.isfinite(gap) & np.isfinite(v) & (v > MIN_SPEED_MPS) & (gap < MAX_TIME_GAP_S * v)
-    return np.log(gap[ok] / v[ok])
-
-
 def correlation_time_s(x: np.ndarray, dt_s: float) -> float:
     """Integral correlation time [s] of ``x`` (samples ``dt_s`` apart): the sum of its
     autocorrelation up to the first negative lag, times ``2 dt_s`` (both sides)."""
@@ -57,14 +48,14 @@ def correlation_time_s(x: np.ndarray, dt_s: float) -> float:
 
 def spreads(rows: pd.DataFrame, min_samples: int = 100) -> dict[str, float]:
     """The prior's spreads over the maneuvers of ``rows`` (10 Hz): see the module doc."""
-    from safeil_sumo.learn.style import estimate_time_gap
+    from safeil_sumo.learn.style import following_time_gaps
 
     between, within, corr = [], [], []
     for _, g in rows.groupby("maneuver_id", sort=False):
-        tg = estimate_time_gap(g["lead_x"].to_numpy(float), g["v_x"].to_numpy(float))
-        if np.isfinite(tg):
-            between.append(np.log(tg))
-        x = _log_time_gaps(g)
+        tg = following_time_gaps(g["lead_x"].to_numpy(float), g["v_x"].to_numpy(float))
+        if len(tg):
+            between.append(float(np.log(np.median(tg))))  # log of estimate_time_gap
+        x = np.log(tg)
         if len(x) >= min_samples:
             within.append(float(np.std(x)))
             corr.append(correlation_time_s(x, 0.1))
