@@ -235,9 +235,8 @@ def test_population_specs_carry_their_setting():
 def _real_tuples(tmp_path: Path) -> tuple[Path, ...]:
     """The real tuple sets the shipped models trained on: ``data/`` where built, else built here
     from the shared data (a fresh clone has no ``data/``; a few seconds)."""
-    import sys
-
     from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
+    from scripts import load_training_script
 
     from safeil_sumo import results
 
@@ -245,11 +244,7 @@ def _real_tuples(tmp_path: Path) -> tuple[Path, ...]:
         return results.TRAINING_TUPLES
     require_file(NGSIM_PAIRS)
     require_file(OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")
-    sys.path.insert(0, str(REPO / "training"))
-    try:
-        import build_real_datasets
-    finally:
-        sys.path.remove(str(REPO / "training"))
+    build_real_datasets = load_training_script("build_real_datasets")
     assert build_real_datasets.main(["--data-dir", str(NGSIM_PAIRS.parents[1]),
                                      "--out", str(tmp_path)]) == 0
     return tuple(tmp_path / p.name for p in results.TRAINING_TUPLES)
