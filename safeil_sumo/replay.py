@@ -132,14 +132,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--rate and --plan-rate must be in (0, 100] Hz")
     if args.stride <= 0 or args.workers < 1 or args.batch < 1:
         p.error("--stride must be > 0 s, --workers >= 1 and --batch >= 1")
-    args.many = args.maneuver == "all" or "," in args.maneuver
+    # an adapted replay scores whole maneuvers after their first S s: the table path, also for one
+    args.many = args.maneuver == "all" or "," in args.maneuver or args.adapt_first_s > 0
     if args.many and args.windows != "whole" and args.duration == 0:
         p.error(f"--duration 0 (to the maneuver's end) needs one maneuver or --windows whole; "
                 f"{args.windows} windows need a length > 0 s")
     if args.adapt_first_s < 0 or (args.adapt_first_s and not (
             args.many and args.windows == "whole")):
-        p.error("--adapt-first-s needs --windows whole with --maneuver all or a list, and "
-                "S >= 0 s")
+        p.error("--adapt-first-s needs --windows whole (each whole maneuver is scored after "
+                "its first S s), and S >= 0 s")
     if args.time_gap is not None and args.adapt_first_s:
         p.error("--time-gap and --adapt-first-s exclude each other (adapting sets each "
                 "driver's time gap)")

@@ -194,6 +194,24 @@ def test_adapted_windows_leave_out_the_adaptation_seconds():
         ra.windows(maneuvers, "sliding", adapt_s=10.0)
 
 
+def test_replay_adapts_to_one_named_maneuver(tmp_path):
+    """``--adapt-first-s`` with one maneuver id (not only ``all`` or a list): scored after S."""
+    import pandas as pd
+
+    from safeil_sumo import replay
+
+    assert replay.parse_args(["--maneuver", "arc#0", "--windows", "whole",
+                              "--adapt-first-s", "10"]).many
+    drive = tmp_path / "drive.csv"
+    _arc_rows(40.0).to_csv(drive, index=False)
+    out = tmp_path / "r"
+    assert replay.main(["--source", str(drive), "--maneuver", "arc#0", "--windows", "whole",
+                        "--adapt-first-s", "10", "--policies", "idm", "--out", str(out)]) == 0
+    table = pd.read_csv(out / "windows.csv")
+    assert table["maneuver_id"].tolist() == ["arc#0"]
+    assert table["start_s"].tolist() == [10.0]
+
+
 def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
     from test_replay import V
 
