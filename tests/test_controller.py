@@ -292,6 +292,33 @@ def test_integrator_does_not_wind_up_under_power_saturation():
     assert abs(speeds[-1] - 35.0) < 0.05
 
 
+def test_a_stop_request_releases_the_forward_integral():
+    # 0.12 m/s with 1.3 m of integrated error (the car lagged the plan while it started) behind
+    # a plan asking for 0.05 m/s (< stop_speed_mps): the integral may only brake, so it is 0
+    # and the command is the P term alone, kp * (0.05 - 0.12); a plan at 0.5 m/s keeps it
+    s = state_from_front_bumper(0.0, 0.0, 0.0, 0.12, VP)
+    stop = make_target(straight_plan(0.05), HORIZON, (0.0, 0.0, 0.0))
+    _, accel, cs = track(stop, 0.0, s, VP, ControllerState(1.3, None), CP, DT)
+    assert cs.integral == 0.0
+    assert accel == pytest.approx(CP.kp * (0.05 - 0.12), abs=1e-9)
+    slow = make_target(straight_plan(0.5), HORIZON, (0.0, 0.0, 0.0))
+    _, accel, cs = track(slow, 0.0, s, VP, ControllerState(1.3, None), CP, DT)
+    assert cs.integral == pytest.approx(1.3 + (0.5 - 0.12) * DT)
+    assert accel == pytest.approx(CP.kp * (0.5 - 0.12) + CP.ki * cs.integral, abs=1e-9)
+
+
+def test_a_stop_request_stops_the_car_within_centimetres():
+    # the same start, closed loop: the car rolls ~ v / kp = 8 cm and stops (with the integral
+    # holding it, it crept on at ~0.1 m/s into a standing leader 0.4 m ahead)
+    stop = make_target(straight_plan(0.0), HORIZON, (0.0, 0.0, 0.0))
+    s, cs = state_from_front_bumper(0.0, 0.0, 0.0, 0.12, VP), ControllerState(1.3, None)
+    x0 = front_bumper(s, VP)[0]
+    for k in range(1000):
+        s, cs = closed_loop_step(stop, k * DT, s, cs)
+    assert s.vx < 1e-3
+    assert front_bumper(s, VP)[0] - x0 < 0.15
+
+
 def test_batched_plans_and_lookahead_equal_the_scalar_ones():
     """make_targets and lookahead_points (the batch's tracker) are bit-identical to make_target
     and lookahead_point on seeded random plans, degenerate ones included, two horizons mixed."""

@@ -68,6 +68,8 @@ class ControllerParams:
     integral_limit_m: float = 5.0  # [m]
     integral_band_mps: float = 1.0  # [m/s]
     accel_feedforward_gain: float = 1.0  # [-] times the plan's tangential acceleration
+    # a plan slower than this asks to stop: the integral may then only brake
+    stop_speed_mps: float = 0.1  # [m/s]
     accel_min_mps2: float = -8.0  # [m/s^2] strongest braking command
     accel_max_mps2: float = 3.0  # [m/s^2] strongest acceleration command
 
@@ -559,6 +561,9 @@ def track_values(
     windup = (((accel > xp.minimum(hi, hi_plant)) & (error > 0.0))
               | ((accel < lo) & (error < 0.0)))
     integral = where(windup, integral0, integral)  # anti-windup: stop integrating into it
+    # a plan that (nearly) stops: what was integrated while the car lagged the plan must not
+    # hold it rolling forwards (it crept into a standing leader at 0.1 m/s for seconds)
+    integral = where(v_ref < params.stop_speed_mps, xp.minimum(integral, 0.0), integral)
     accel = base + params.ki * integral
     accel = xp.clip(accel, lo, hi)
     return steer, accel, integral, error
