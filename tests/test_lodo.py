@@ -189,3 +189,21 @@ def test_time_gap_prior_errors_by_hand() -> None:
     np.testing.assert_allclose(table.loc["plain median"], [1.0] * 6 + [0.5], atol=1e-12)
     shrunk = table.loc["shrunk"].to_numpy()
     assert np.all((shrunk[:5] > 0.5) & (shrunk[:5] < 1.0)) and np.all(np.diff(shrunk[:5]) > 0)
+
+
+def test_setting_calibrated_like_the_idm_weighs_maneuvers_by_their_samples() -> None:
+    """``setting_in_models.pooled_best``: the setting with the least pooled (sample-weighted)
+    gap RMSE. A long maneuver best at 1.0 s and a short one best at 2.0 s: pooled, the long one
+    wins (sqrt((900 * 4 + 100 * 36) / 1000) = 2.68 m at 1.0 s against 5.73 m at 2.0 s), where an
+    unweighted mean of the RMSEs would tie (4 m each)."""
+    import pandas as pd
+
+    mod = load_training_script("setting_in_models")
+    grid = mod.SETTINGS_S
+    table = pd.DataFrame({s: [9.0, 9.0] for s in grid}, index=["long#0", "short#0"])
+    table[1.0] = [2.0, 6.0]
+    table[2.0] = [6.0, 2.0]
+    table["steps"] = [900, 100]
+    assert mod.pooled_best(table) == 1.0
+    table["steps"] = [100, 900]
+    assert mod.pooled_best(table) == 2.0
