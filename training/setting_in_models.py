@@ -38,7 +38,7 @@ from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import load_source
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import load_model
-from safeil_sumo.learn.closed_loop import Episodes, episodes_from_tuples, rollout
+from safeil_sumo.learn.closed_loop import episodes_from_tuples, rollout
 
 SETTINGS_S = tuple(np.round(np.arange(0.8, 2.41, 0.1), 1))  # [s] the style input's settings
 IDM_T_S = tuple(np.round(np.arange(0.4, 2.41, 0.1), 1))  # [s] the IDM's time gaps
@@ -54,15 +54,14 @@ def safeil_rmse(checkpoint: Path, tuples: Tuples) -> pd.DataFrame:
     for mid in np.unique(tuples.maneuver_id):
         t = tuples.t[tuples.maneuver_id == mid]
         window = np.floor((t.max() - t.min()) * 10.0) / 10.0 - 0.1  # [s] the whole maneuver
-        ep = episodes_from_tuples(tuples, window, stride_s=1e9, maneuvers={mid}).take([0])
-        b = len(SETTINGS_S)
-        many = Episodes(ep.lanes.repeat(b, 1), ep.v_human.repeat(b, 1),
-                        ep.gap_human.repeat(b, 1), ep.v_lead.repeat(b, 1),
-                        ep.s_lead.repeat(b, 1), np.repeat(ep.maneuver_id, b), ep.dt_s, settings)
+        ep = episodes_from_tuples(tuples, window, stride_s=1e9, maneuvers={mid})
+        # the maneuver's one episode, once per setting
+        many = dataclasses.replace(ep.take(np.zeros(len(SETTINGS_S), dtype=int)), style=settings)
         with torch.no_grad():
             gap = rollout(model, many, horizon=float(meta["horizon_s"]))["gap"]
         rmse = (gap - many.gap_human).pow(2).mean(1).sqrt().numpy()
-        rows[str(mid)] = {"steps": ep.v_human.shape[1], **dict(zip(SETTINGS_S, rmse.tolist()))}
+        rows[str(mid)] = {"steps": many.v_human.shape[1],
+                          **dict(zip(SETTINGS_S, rmse.tolist(), strict=True))}
     return pd.DataFrame.from_dict(rows, orient="index")
 
 
