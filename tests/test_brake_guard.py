@@ -33,6 +33,42 @@ def test_required_decel_by_hand(gap, v_ego, v_lead, b_lead, expected):
     assert arrays[0] == pytest.approx(expected)
 
 
+@pytest.mark.parametrize("gap, v_ego, v_lead, b_lead, expected", [
+    # the leader stops after half of t* = 2 gap / dv but before t*: case (B), not (A). Here
+    # t* = 2 s, the leader stops at 1.6 s: 400 / (2 (10 + 8)) = 100 / 9 (case A: 11.25)
+    (10.0, 20.0, 10.0, 6.25, 100.0 / 9.0),
+    # t* = 5 s, the leader stops at 3 s: 400 / (2 (20 + 18)) = 100 / 19 (case A: 5.6)
+    (20.0, 20.0, 12.0, 4.0, 100.0 / 19.0),
+    # the leader stops exactly at t* = 2 s: both cases agree, 5 + 5 = 400 / (2 (10 + 10)) = 10
+    (10.0, 20.0, 10.0, 5.0, 10.0),
+])
+def test_required_decel_when_the_leader_stops_between_half_and_all_of_t_star(
+        gap, v_ego, v_lead, b_lead, expected):
+    """Cases found by mutation testing: a validity check of case (A) at t* / 2 instead of t*
+    braked up to 7 % harder than needed there, and no hand case lay in that band."""
+    assert required_decel(gap, v_ego, v_lead, b_lead, FLOATS) == pytest.approx(expected,
+                                                                                rel=1e-12)
+    arrays = required_decel(np.array([gap]), np.array([v_ego]), np.array([v_lead]),
+                            np.array([b_lead]), ARRAYS)
+    assert arrays[0] == pytest.approx(expected, rel=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(gap=st.floats(2.0, 120.0), v_ego=st.floats(5.0, 40.0), closing=st.floats(0.05, 0.95),
+       stop=st.floats(0.0, 1.0))
+def test_required_decel_is_case_b_wherever_the_leader_stops_before_the_match(
+        gap, v_ego, closing, stop):
+    """A closing ego behind a leader that stops at ``t_s`` in (0, t*): the demand is exactly the
+    stop-within-its-stopping-point case (B), in every part of that band."""
+    v_lead = closing * v_ego
+    t_star = 2.0 * gap / (v_ego - v_lead)
+    t_stop = (0.02 + 0.96 * stop) * t_star
+    b_lead = v_lead / t_stop
+    expected = v_ego ** 2 / (2.0 * (gap + v_lead ** 2 / (2.0 * b_lead)))
+    assert required_decel(gap, v_ego, v_lead, b_lead, FLOATS) == pytest.approx(expected,
+                                                                                rel=1e-9)
+
+
 def _position(v: float, b: float, t: np.ndarray) -> np.ndarray:
     """Distance [m] covered by ``t`` [s] from speed ``v`` braking at ``b`` to a stop."""
     if b <= 0.0:

@@ -16,6 +16,7 @@ import pytest
 from safeil_sumo import bspline
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.learn import bounds as bnd
+from safeil_sumo.learn import certify as cert
 from safeil_sumo.learn import certify_margins as cm
 from safeil_sumo.learn.certificate import load_certificate, write_certificate
 from safeil_sumo.learn.certify import Budget, CertifyError, certify
@@ -124,6 +125,48 @@ def test_one_hidden_unit_by_hand() -> None:
     _, _, a_u, b_u = bnd.relax(np.array([bnd.TANH]), np.array([-0.2]), np.array([2.0]))
     assert a_u[0] == pytest.approx(1 - np.tanh(0.9) ** 2, abs=1e-12)
     assert b_u[0] == pytest.approx(np.tanh(0.9) - 0.9 * a_u[0], abs=1e-9)
+
+
+def test_widening_is_strictly_outward_by_hand() -> None:
+    """Every interval is widened by 1e-12 (1 + |bound|) on each side: never inward, also at 0
+    and for tiny and huge bounds (cases found by mutation testing: an inward widening passed
+    every comparison made with a 1e-9 tolerance)."""
+    lo = np.array([0.0, -2.0, 3.0, -1e-300, 1e6, -1e6])
+    hi = np.array([0.0, 3.0, 3.0, 1e-300, 2e6, -1e6])
+    w_lo, w_hi = bnd._widen(lo, hi)
+    assert np.all(w_lo < lo) and np.all(w_hi > hi)
+    np.testing.assert_array_equal(w_lo, lo - 1e-12 * (1.0 + np.abs(lo)))
+    np.testing.assert_array_equal(w_hi, hi + 1e-12 * (1.0 + np.abs(hi)))
+    assert bnd._widen(np.array(0.0), np.array(0.0)) == (-1e-12, 1e-12)
+    assert bnd.INTERVAL_SLACK == 1e-12 and bnd.RELAX_SLACK == 1e-12
+
+
+@pytest.mark.parametrize("act", ["tanh", "relu"])
+@pytest.mark.parametrize("method", ["ibp", "crown"])
+def test_point_boxes_bound_the_network_strictly_with_no_tolerance(act: str, method: str) -> None:
+    """Over a box of one point, the bounds enclose the network's value strictly: the widening
+    against rounding must point outwards (no tolerance here: rounding inwards by 1e-12 of the
+    value is what this catches)."""
+    rng = np.random.default_rng(5)
+    layers = random_net(rng, act)
+    x = rng.normal(size=(200, 4)) * 3.0
+    y = bnd.forward(layers, x)
+    low, high = bnd.output_bounds(layers, x, x, method=method)
+    assert np.all(low < y) and np.all(y < high)
+    # and they are tight: the float margin the caller subtracts (1e-6 m) dwarfs the width
+    assert np.all(high - low < 1e-9 * (1.0 + np.abs(y)))
+    pre = bnd.propagate(layers, x, x, method=method).pre
+    for (pl, pu), h in zip(pre, _pre_activations(layers, x), strict=True):
+        assert np.all(pl < h) and np.all(h < pu)
+
+
+def _pre_activations(layers: list[bnd.Layer], x: np.ndarray) -> list[np.ndarray]:
+    out, h = [], x
+    for layer in layers:
+        p = h @ layer.weight.T + layer.bias
+        out.append(p)
+        h = bnd.forward([layer], h)
+    return out
 
 
 # ------------------------------------------------------------------ the planner as one network
@@ -354,6 +397,34 @@ def test_box_volumes_bracket_a_monte_carlo_estimate() -> None:
 
 
 # ------------------------------------------------------------------ branch and bound
+
+
+def test_certified_mass_accounting_by_hand() -> None:
+    """Two parts, weights 0.7 and 0.3; part 0's volume is known within [2, 2.5] (shares are of
+    the upper volume, so the open boxes may hold 2.5 / 2 = 1.25 times their share), part 1's
+    exactly (1)."""
+    w = np.array([0.7, 0.3])
+    vol = np.array([[2.0, 2.5], [1.0, 1.0]])
+    zero = np.zeros(2)
+    # nothing proven, every box open (the roots: share 1 each): nothing certified, exactly
+    np.testing.assert_array_equal(cert.certified_mass(zero, w * 1.0, w, vol), [0.0, 0.0])
+    # everything proven: the proven boxes' smallest volume says 0.8 of part 0 (2 / 2.5), the
+    # empty rest says all of it: the larger wins
+    np.testing.assert_array_equal(cert.certified_mass(np.array([0.56, 0.3]), zero, w, vol),
+                                  [0.7, 0.3])
+    # a mix. Part 0: proven share 0.5 (mass 0.35), open share 0.3 (mass 0.21): the rest is
+    # 0.7 - 1.25 * 0.21 = 0.4375 > 0.35. Part 1: proven 0.5 (0.15), open 0.4 (0.12): the rest,
+    # 0.3 - 0.12 = 0.18, beats 0.15
+    got = cert.certified_mass(np.array([0.35, 0.15]), np.array([0.21, 0.12]), w, vol)
+    np.testing.assert_allclose(got, [0.4375, 0.18], rtol=0, atol=1e-15)
+    # open boxes whose upper volume overlaps (share sum 0.9 > 0.8 of the weight left): the
+    # proven mass stands
+    got = cert.certified_mass(np.array([0.07, 0.0]), np.array([0.63, 0.3]), w, vol)
+    np.testing.assert_allclose(got, [0.07, 0.0], rtol=0, atol=1e-15)
+    # a rest that is only a sum's rounding (<= 1e-12) is not certified
+    tiny = cert.certified_mass(zero, np.array([0.0, 0.3 - 1e-13]), w, vol)
+    np.testing.assert_array_equal(tiny, [0.7, 0.0])
+
 
 
 @pytest.mark.parametrize(("margin", "boxes"), [("leader", 3000), ("lane", 1500)])

@@ -81,6 +81,53 @@ def test_avoidability_filter() -> None:
             t, gap, 30.0, prof.speed_at(t))
 
 
+def _braking_spec(gap_m: float) -> ScenarioSpec:
+    """A leader 10 m/s slower than the ego (30 m/s), braking at 9 m/s^2 to a stop after 1 s."""
+    return ScenarioSpec(net="straight", policy="safeil", leader_kind="braking",
+                        leader_speed_range_mps=(20.0, 20.0), initial_gap_m=gap_m,
+                        ego_speed_mps=30.0, brake_time_s=1.0, brake_decel_mps2=9.0,
+                        brake_to_mps=0.0, max_time_s=20.0)
+
+
+@pytest.mark.parametrize(("gap_m", "flag", "score", "failure", "avoidable"), [
+    (5.0, "collision", math.inf, False, False),  # no braking saves it: not a failure
+    (5.0, "", math.inf, False, False),  # unavoidable and unflagged: excluded all the same
+    (80.0, "collision", 0.0, True, True),  # braking at 6 m/s^2 from the start saves it
+    (80.0, "ttc", 0.4, True, True),
+    (80.0, "", 2.5, False, True),
+])
+def test_a_flagged_run_counts_as_a_failure_only_if_braking_could_avoid_it(
+        gap_m, flag, score, failure, avoidable) -> None:
+    """The record of a run against the scenario's own leader: a flagged run that no braking
+    could have avoided is excluded (score inf), never counted as a failure (a case found by
+    mutation testing: failure = flagged alone passed the whole suite)."""
+    spec = _braking_spec(gap_m)
+    min_ttc = {"collision": 0.0, "ttc": 0.4, "": 2.5}[flag]
+    record = {"status": "ok", "sim_time_s": 20.0, "flag": flag, "min_ttc_s": min_ttc}
+    out = fz.outcome_of(spec, record)
+    assert (out.score, out.failure, out.avoidable, out.flag) == (score, failure, avoidable, flag)
+    assert out.min_ttc_s == min_ttc
+    # a run that did not run is excluded and is no failure
+    err = fz.outcome_of(spec, {"status": "error", "error": "boom"})
+    assert (err.score, err.failure, err.avoidable, err.error) == (math.inf, False, False, "boom")
+
+
+def test_failure_counts_and_first_failure_skip_unavoidable_flags() -> None:
+    """Counts over a search: two flagged runs, one unavoidable: one failure, found at the 3rd
+    simulation, not the 1st."""
+    outcomes = [fz.Outcome(math.inf, False, 0.0, "collision", False),
+                fz.Outcome(3.0, False, 3.0, "", True),
+                fz.Outcome(0.5, True, 0.5, "ttc", True),
+                fz.Outcome(math.inf, False, error="boom", avoidable=False)]
+    result = fz.SearchResult(fz.SearchConfig(), np.zeros((4, fz.DIM)), outcomes)
+    assert result.first_failure == 3 and result.best == 2
+    np.testing.assert_array_equal(result.best_so_far, [math.inf, 3.0, 0.5, 0.5])
+    s = fz.summary(result, "bc")
+    assert (s["failures"], s["avoidable"]) == (1, 2)
+    assert fz.first_at_or_below(result, 0.0) is None  # the only TTC 0 was unavoidable
+    assert fz.first_at_or_below(result, 0.5) == 3
+
+
 # -------------------------------------------------------------------------- the search box
 
 

@@ -99,6 +99,24 @@ def test_second_order_overshoot_rise_and_settling_closed_form() -> None:
     assert m["settled"] is True
 
 
+def test_settling_time_on_a_coarse_grid_exactly() -> None:
+    """1 s samples, final 10 m, band 10 % ([9, 11] m, edges inside): the gap is out of the band
+    up to t = 3 s and in from t = 4 s, so it settles 4 s after a step at 0 (the first sample
+    after the last one outside), 3.5 s after a step at 0.5 s; no tolerance (a case found by
+    mutation testing: the last sample outside, one sample early, passed a one-sample tolerance)."""
+    t = np.arange(11.0)
+    y = np.array([20.0, 15.0, 12.0, 11.5, 10.5, 10.0, 9.0, 11.0, 10.0, 10.0, 10.0])
+    assert gp.settling_time(t, y, 0.0, 10.0) == 4.0
+    assert gp.settling_time(t, y, 0.5, 10.0) == 3.5
+    assert gp.settling_time(t, y, 4.0, 10.0) == 0.0  # never out after the step
+    assert gp.settling_time(t, y, 0.0, 10.0, band=0.05) == 8.0  # 9 and 11 are out at 5 %
+    gone = y.copy()
+    gone[5] = math.nan  # a lost sample counts as out
+    assert gp.settling_time(t, gone, 0.0, 10.0) == 6.0
+    assert math.isnan(gp.settling_time(t, y, 11.0, 10.0))  # no sample after the step
+    assert math.isnan(gp.settling_time(t, y, 0.0, math.inf))
+
+
 def test_not_settled_drift_and_time_gap_edges() -> None:
     t = np.arange(0.0, 90.0 + DT / 2, DT)
     v = np.full_like(t, 20.0)

@@ -374,6 +374,21 @@ def _diverse(env: CertEnvelope, tree: _Tree, ids: np.ndarray, k: int = 20,
     return np.array(picked, dtype=int)
 
 
+def certified_mass(proven: np.ndarray, open_: np.ndarray, weights: np.ndarray,
+                   volumes: np.ndarray) -> np.ndarray:
+    """Certified share of the envelope per part ``(P,)``: the larger of two sound lower bounds.
+
+    ``proven (P,)``: the proven boxes' mass (weight times their share of the part's volume,
+    shares from the boxes' smallest volume); ``open_ (P,)``: the open boxes' mass from their
+    largest volume; ``weights (P,)``: each part's weight; ``volumes (P, 2)``: each part's
+    ``(lower, upper)`` volume bound. Shares are of the part's UPPER volume, and the leaves
+    partition the part, so the open boxes hold at most ``open_ upper / lower`` of the weight:
+    what is left of the weight is proven. Rest below 1e-12 (sums that round) counts as 0.
+    """
+    rest = weights - volumes[:, 1] / volumes[:, 0] * open_
+    return np.maximum(proven, np.where(rest > 1e-12, rest, 0.0))
+
+
 def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_part, volumes,
                    run) -> MarginResult:
     bounded, seconds, stopped_by = run
@@ -384,9 +399,8 @@ def _margin_result(policy, env, props, tree, margin, open_ids, proven_mass, w_pa
     # open boxes' largest volume leaves (the leaves partition the envelope; a box cut by the
     # recoverable condition has only bounds of its volume, shares are of the part's upper one)
     open_mass = np.bincount(tree.part[open_ids], weights=mass, minlength=len(PARTS))
-    ratio = np.array([volumes[p][1] / volumes[p][0] for p in PARTS])
-    rest = w_part - ratio * open_mass
-    proven_mass = np.maximum(proven_mass, np.where(rest > 1e-12, rest, 0.0))  # sums round
+    proven_mass = certified_mass(proven_mass, open_mass, w_part,
+                                 np.array([volumes[p] for p in PARTS]))
     certified = float(proven_mass.sum())
     cex_share = float(mass[has].sum())
     cexs = []
