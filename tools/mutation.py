@@ -18,19 +18,34 @@ is reported stale and must be judged again (mutant numbers shift with the code).
 from __future__ import annotations
 
 import argparse
+import ast
 import csv
+import datetime
 import fnmatch
+import hashlib
+import importlib.metadata
+import io
 import json
 import subprocess
 import sys
+import tokenize
 from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 EQUIVALENT = ROOT / "tools" / "mutation_equivalent.tsv"
+# the last run's kill rate and code digest per safety-critical module (tests/test_mutation_record.py
+# fails once a module's code no longer matches: rerun its mutants, then `record`)
+RECORD = ROOT / "tools" / "mutation_record.json"
 # the safety-critical modules (issue 43), whole files: the certification bounds, branch and bound
 # and the certificate, the brake guard, falsification, the gap probe, the leader-response suite
-# and the safety filter (the monitors are in SCOPE already)
+# and the safety filter, the monitors
+SAFETY_MODULES = (
+    "safeil_sumo.learn.bounds", "safeil_sumo.learn.certify_margins", "safeil_sumo.learn.certify",
+    "safeil_sumo.learn.certificate", "safeil_sumo.sim.brake_guard", "safeil_sumo.sim.monitors",
+    "safeil_sumo.experiments.falsify", "safeil_sumo.experiments.gap_probe",
+    "safeil_sumo.experiments.suite", "safeil_sumo.safety_filter",
+)
 SAFETY_SCOPE = (
     "safeil_sumo.learn.bounds.*",
     "safeil_sumo.learn.certify_margins.*",
@@ -38,9 +53,15 @@ SAFETY_SCOPE = (
     "safeil_sumo.learn.certificate.*",
     "safeil_sumo.sim.brake_guard.*",
     "safeil_sumo.experiments.falsify.*",
-    "safeil_sumo.experiments.gap_probe.*",
+    # the gap probe but its figure (plot, the series it draws) and the reader of the real data
+    *(f"safeil_sumo.experiments.gap_probe.x_{name}__mutmut_*" for name in (
+        "initial_gap_m", "probe_spec", "kind_of", "step_time_s", "leader_distance_m",
+        "check_fits", "time_gap", "window_mean", "settling_time", "_first_crossing",
+        "rise_time", "overshoot", "drift", "response_metrics", "probe_extras", "run_step",
+        "probe_specs", "steady_following", "human_time_gap_bands", "table")),
     "safeil_sumo.experiments.suite.*",
     "safeil_sumo.safety_filter.*",
+    "safeil_sumo.sim.monitors.*",
 )
 # fnmatch patterns over mutmut's mutant names (module.x_function__mutmut_N,
 # module.xǁClassǁmethod__mutmut_N); the files themselves are listed in setup.cfg
@@ -106,16 +127,14 @@ def load_equivalent() -> dict[str, tuple[str, str]]:
     return out
 
 
-def report(patterns: tuple[str, ...]) -> int:
+def classify(patterns: tuple[str, ...]) -> tuple[dict[str, Counter], list[str], list[str]]:
+    """Per module, how many mutants in scope were killed, timed out, judged equivalent, survived,
+    had no test or were not run; the survivors to judge; the stale equivalents."""
     codes, hashes = load_results(patterns)
-    if not codes:
-        print("no mutants in scope: run `python tools/mutation.py run` first", file=sys.stderr)
-        return 2
     equivalent = load_equivalent()
     stale = sorted(m for m, (h, _) in equivalent.items()
                    if m in codes and hashes.get(function_of(m)) != h)
-    kinds = Counter()
-    per_file: dict[str, Counter] = {}
+    per_module: dict[str, Counter] = {}
     left = []
     for name, code in sorted(codes.items()):
         if code is None:
@@ -130,19 +149,34 @@ def report(patterns: tuple[str, ...]) -> int:
             kind = "equivalent" if name in equivalent and name not in stale else "survived"
         else:
             kind = f"other ({code})"
-        kinds[kind] += 1
-        per_file.setdefault(name.rsplit(".", 1)[0], Counter())[kind] += 1
+        per_module.setdefault(name.rsplit(".", 1)[0], Counter())[kind] += 1
         if kind in ("survived", "no tests"):
             left.append(name)
+    return per_module, left, stale
+
+
+def kill_rate(c: Counter) -> tuple[int, int]:
+    """(caught, non-equivalent mutants that ran): timeouts count as caught."""
+    caught = c["killed"] + c["timeout"]
+    return caught, sum(c.values()) - c["equivalent"] - c["not run"]
+
+
+def report(patterns: tuple[str, ...]) -> int:
+    per_module, left, stale = classify(patterns)
+    if not per_module:
+        print("no mutants in scope: run `python tools/mutation.py run` first", file=sys.stderr)
+        return 2
     cols = ("killed", "timeout", "equivalent", "survived", "no tests", "not run")
-    print(f"{'module':40s} " + " ".join(f"{c:>10s}" for c in cols))
-    for module, c in per_file.items():
-        print(f"{module:40s} " + " ".join(f"{c[k]:10d}" for k in cols))
-    total = sum(kinds.values())
-    caught = kinds["killed"] + kinds["timeout"]
-    candidates = total - kinds["equivalent"] - kinds["not run"]
-    print(f"\nmutants {total}: killed {kinds['killed']}, timeout {kinds['timeout']}, "
-          f"equivalent {kinds['equivalent']}, survived {kinds['survived']}, "
+    print(f"{'module':44s} " + " ".join(f"{c:>10s}" for c in cols) + "  kill rate")
+    kinds: Counter = Counter()
+    for module, c in per_module.items():
+        caught, candidates = kill_rate(c)
+        rate = f"{100 * caught / candidates:9.1f} %" if candidates else ""
+        print(f"{module:44s} " + " ".join(f"{c[k]:10d}" for k in cols) + rate)
+        kinds.update(c)
+    caught, candidates = kill_rate(kinds)
+    print(f"\nmutants {sum(kinds.values())}: killed {kinds['killed']}, timeout "
+          f"{kinds['timeout']}, equivalent {kinds['equivalent']}, survived {kinds['survived']}, "
           f"no tests {kinds['no tests']}, not run {kinds['not run']}")
     others = {k: v for k, v in kinds.items() if k.startswith("other")}
     if others:
@@ -153,7 +187,8 @@ def report(patterns: tuple[str, ...]) -> int:
     for name in stale:
         print(f"stale equivalent (its function changed; judge again): {name}")
     # judged mutants of this report's patterns that no longer exist (renumbered or removed)
-    gone = sorted(m for m in set(equivalent) - set(codes)
+    codes, _ = load_results(patterns)
+    gone = sorted(m for m in set(load_equivalent()) - set(codes)
                   if any(fnmatch.fnmatch(m, p) for p in patterns))
     for name in gone:
         print(f"equivalent entry names no mutant in scope: {name}")
@@ -163,9 +198,60 @@ def report(patterns: tuple[str, ...]) -> int:
     return 0
 
 
+def source_digest(path: Path) -> str:
+    """sha256 of a module's code: its tokens without comments, blank lines and docstrings, so
+    that a change of documentation needs no new mutation run and any change of code does."""
+    text = path.read_text()
+    docstrings = set()
+    for node in ast.walk(ast.parse(text)):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            docstrings.add((body[0].lineno, body[0].col_offset))
+    skip = {tokenize.COMMENT, tokenize.NL, tokenize.ENCODING}
+    digest = hashlib.sha256()
+    for tok in tokenize.generate_tokens(io.StringIO(text).readline):
+        if tok.type in skip or (tok.type == tokenize.STRING and tok.start in docstrings):
+            continue
+        digest.update(f"{tok.type}:{tok.string}\n".encode())
+    return digest.hexdigest()
+
+
+def module_path(module: str) -> Path:
+    """``safeil_sumo.sim.brake_guard`` -> the file's path from the project root."""
+    return Path(*module.split(".")).with_suffix(".py")
+
+
+def record() -> int:
+    """Write RECORD: per safety-critical module, its counts, kill rate and code digest, as
+    measured by the last run; refused while a module has mutants not run or judged stale."""
+    per_module, _, stale = classify(SAFETY_SCOPE)
+    missing = [m for m in SAFETY_MODULES if m not in per_module]
+    pending = [m for m, c in per_module.items() if c["not run"]]
+    if missing or pending or stale:
+        print(f"not recorded: run every safety module first (missing {missing}, with mutants "
+              f"not run {pending}, stale equivalents {stale})", file=sys.stderr)
+        return 2
+    modules = {}
+    for module in SAFETY_MODULES:
+        c = per_module[module]
+        caught, candidates = kill_rate(c)
+        modules[str(module_path(module))] = {
+            "source_digest": source_digest(ROOT / module_path(module)),
+            **{k: c[k] for k in ("killed", "timeout", "equivalent", "survived", "no tests")},
+            "kill_rate": round(caught / candidates, 4)}
+    data = {"mutmut": importlib.metadata.version("mutmut"),
+            "measured": datetime.date.today().isoformat(), "modules": modules}
+    RECORD.write_text(json.dumps(data, indent=1) + "\n")
+    print(f"wrote {RECORD.relative_to(ROOT)}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("command", choices=("run", "report"))
+    ap.add_argument("command", choices=("run", "report", "record"))
     ap.add_argument("patterns", nargs="*", help="fnmatch patterns of mutant names (default: "
                     "the whole scope)")
     ap.add_argument("--workers", type=int, default=1, help="mutants run at once (default 1: "
@@ -173,10 +259,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--safety", action="store_true", help="only the safety-critical modules")
     args = ap.parse_args(argv)
     patterns = tuple(args.patterns) or (SAFETY_SCOPE if args.safety else SCOPE)
+    if args.command == "record":
+        return record()
     if args.command == "run":
         cmd = [sys.executable, "-m", "mutmut", "run", "--max-children", str(args.workers),
                *patterns]
-        code = subprocess.call(cmd, cwd=ROOT)
+        # mutmut runs the tests in mutants/, one level deeper than the checkout: the tests that
+        # read ../shared/data find it through a link beside the checkout's files (git-ignored)
+        link = ROOT / "shared"
+        made = not link.exists() and (ROOT.parent / "shared").is_dir()
+        if made:
+            link.symlink_to(ROOT.parent / "shared")
+        try:
+            code = subprocess.call(cmd, cwd=ROOT)
+        finally:
+            if made:
+                link.unlink()
         if code:
             return code
     return report(patterns)
