@@ -545,6 +545,54 @@ def test_the_loader_rejects_a_modified_checkpoint(tmp_path) -> None:
     assert not load_certificate(path, tmp_path / "nope.json").valid
 
 
+def test_a_certificate_says_what_the_shipped_one_says_of_its_own_run(tmp_path) -> None:
+    """A short run (stopped by its box budget) of a copy of the shipped safeil, written into a
+    folder that does not exist yet: its static content (what the bounds are, what the
+    certificate covers, the envelope and properties) is the shipped certificate's, its run's
+    own (budget, shares, completeness, time) is this run's (cases found by mutation testing:
+    none of the certificate's text or run fields was pinned)."""
+    import dataclasses
+    import math
+    import time
+
+    from safeil_sumo.learn.certificate import read_certificate
+
+    path = _copy_checkpoint("safeil", tmp_path)
+    shipped = read_certificate(
+        checkpoint_paths(pol.shipped_checkpoint("safeil"))[0].with_name("safeil.certificate.json"))
+    env = cm.CertEnvelope(**{k: tuple(v) if isinstance(v, list) else v
+                             for k, v in shipped["envelope"].items()})
+    budget = Budget(boxes=100, batch=50)
+    result = certify(pol.load(path), env, budget=budget, progress=False)
+    before = time.time()
+    out = write_certificate(result, path, tmp_path / "a" / "b")
+    after = time.time()
+    assert out == tmp_path / "a" / "b" / "safeil.certificate.json"
+    text = out.read_text()
+    body = json.loads(text)
+    assert text == json.dumps(body, indent=1) + "\n"
+    for key in ("format", "format_version", "checkpoint", "policy", "style", "envelope",
+                "coordinates", "parts", "volume_measure", "properties", "bounds_method",
+                "float_margin_m", "covers"):
+        assert body[key] == shipped[key], key
+    assert set(body) == set(shipped)
+    for part, (low, high) in body["envelope_volume"].items():
+        assert (low, high) == pytest.approx(shipped["envelope_volume"][part], rel=1e-9)
+    assert body["budget"] == dataclasses.asdict(budget) and body["seconds"] == result.seconds
+    assert before <= body["created_unix_s"] <= after
+    assert body["complete"] is False and shipped["complete"] is True
+    for name, m in result.margins.items():
+        got = body["margins"][name]
+        assert set(got) == set(shipped["margins"][name]) and "boxes" not in got
+        assert m.stopped_by == "boxes" and got["complete"] is False
+        assert (got["certified"], got["stopped_by"], got["boxes_bounded"]) == (
+            m.certified, "boxes", m.boxes_bounded)
+    # a value JSON cannot hold (NaN) is refused before anything is written
+    with pytest.raises(ValueError):
+        write_certificate(dataclasses.replace(result, seconds=math.nan), path, tmp_path / "c")
+    assert not (tmp_path / "c").exists() or not any((tmp_path / "c").iterdir())
+
+
 def test_cli_certifies_writes_and_checks(tmp_path, capsys) -> None:
     from safeil_sumo import certify as cli
 

@@ -7,7 +7,7 @@ All functions are batched over ``N`` boxes: ``lo, hi (N, n_in)``.
 
 Two methods, both sound for every point of the box:
 
-- **Interval bound propagation** (:func:`ibp`): through ``W x + b`` as
+- **Interval bound propagation** (:func:`propagate` with ``method="ibp"``): through ``W x + b`` as
   ``[W+ lo + W- hi + b, W+ hi + W- lo + b]`` (``W+``, ``W-`` the positive and negative parts of
   ``W``), through monotone activations elementwise.
 - **CROWN-style linear relaxation** (:func:`crown`): each activation over its pre-activation
@@ -88,27 +88,6 @@ def affine_interval(weight: np.ndarray, bias: np.ndarray, lo: np.ndarray, hi: np
     """Exact interval of ``W x + b`` over the box ``[lo, hi] (N, n_in)`` -> ``(N, n_out)`` x2."""
     wp, wn = np.maximum(weight, 0.0), np.minimum(weight, 0.0)
     return lo @ wp.T + hi @ wn.T + bias, hi @ wp.T + lo @ wn.T + bias
-
-
-def ibp(layers: list[Layer], lo: np.ndarray, hi: np.ndarray
-        ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Interval bound propagation: the pre-activation interval ``(l, u)``, each ``(N, n_k)``, of
-    every layer; the last layer's post-activation interval is ``activate`` of its last entry."""
-    out = []
-    a, b = np.asarray(lo, float), np.asarray(hi, float)
-    for layer in layers:
-        pl, pu = affine_interval(layer.weight, layer.bias, a, b)
-        out.append((pl, pu))
-        a, b = _activate(pl, layer.activation), _activate(pu, layer.activation)
-    return out
-
-
-def ibp_output(layers: list[Layer], lo: np.ndarray, hi: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """The output interval ``(N, n_out)`` x2 by :func:`ibp`."""
-    pl, pu = ibp(layers, lo, hi)[-1]
-    codes = layers[-1].activation
-    return _activate(pl, codes), _activate(pu, codes)
 
 
 def _dtanh(p: np.ndarray) -> np.ndarray:
@@ -333,7 +312,8 @@ def propagate(layers: list[Layer], lo: np.ndarray, hi: np.ndarray, *, method: st
               ) -> NetworkBounds:
     """Pre-activation intervals and relaxations of every layer over the boxes ``(N, n_in)``.
 
-    ``method="ibp"``: intervals from :func:`ibp` only; ``"crown"``: each layer's interval from
+    ``method="ibp"``: intervals by interval propagation only (:func:`affine_interval`, then
+    the monotone activations); ``"crown"``: each layer's interval from
     back-substituting the relaxations below it (only for its non-identity units), intersected
     with IBP's.
     """
