@@ -117,6 +117,33 @@ def test_settling_time_on_a_coarse_grid_exactly() -> None:
     assert math.isnan(gp.settling_time(t, y, 0.0, math.inf))
 
 
+def test_probe_extras_of_a_hand_built_log() -> None:
+    """What a probe task keeps: the kind, the response metrics of its log from the step (60 s
+    for pull_away), ``settled`` only for a run that ran out its time, and the series at 2 Hz
+    (every 5th sample of a 0.1 s log, the 5th first), rounded to mm."""
+    from types import SimpleNamespace
+
+    spec = gp.probe_spec("idm", "pull_away", 15.0, settle_s=60.0, after_s=90.0)
+    t = np.round(np.arange(0.0, 150.0 + 0.05, 0.1), 10)
+    gap = first_order(t, 60.0, 15.0, 30.0, 5.0) + 0.0004
+    log = pd.DataFrame({"t": t, "gap": gap, "v": np.full_like(t, 15.0),
+                        "leader_v": np.where(t < 60.0, 15.0, 18.0)})
+    ran = gp.probe_extras(spec, SimpleNamespace(log=log, summary={"end_reason": "timeout"}))
+    want = gp.response_metrics(t, gap, log["v"].to_numpy(), 60.0)
+    assert ran["kind"] == "pull_away" and ran["step_time_s"] == 60.0 and want["settled"]
+    for key, value in want.items():
+        assert ran[key] == value or (math.isnan(value) and math.isnan(ran[key])), key
+    assert ran["series_t"][:3] == [0.4, 0.9, 1.4] and len(ran["series_t"]) == len(t) // 5
+    assert ran["series_gap"][0] == round(gap[4], 3) == 15.0
+    assert ran["series_leader_v"][-1] == 18.0 and ran["series_v"] == [15.0] * (len(t) // 5)
+    # the same log ended by a collision: the same metrics, but not settled
+    hit = gp.probe_extras(spec, SimpleNamespace(log=log, summary={"end_reason": "collision"}))
+    assert hit["settled"] is False and hit["settling_time_s"] == ran["settling_time_s"]
+    # a log of one row: only the kind
+    one = gp.probe_extras(spec, SimpleNamespace(log=log.iloc[:1], summary={}))
+    assert one == {"kind": "pull_away"}
+
+
 def test_not_settled_drift_and_time_gap_edges() -> None:
     t = np.arange(0.0, 90.0 + DT / 2, DT)
     v = np.full_like(t, 20.0)
