@@ -179,3 +179,13 @@ def test_a_training_command_line_without_torch_says_so_in_one_line(no_torch, scr
     proc = _python(no_torch, str(REPO / "training" / f"{script}.py"), "--help")
     assert proc.returncode == 1
     assert proc.stderr == TORCH_MISSING + "\n" and proc.stdout == ""
+
+
+def test_training_imports_turns_only_a_missing_torch_into_the_one_line_exit():
+    from safeil_sumo.learn.torch_required import training_imports
+
+    with pytest.raises(SystemExit) as exit_, training_imports():
+        raise ModuleNotFoundError("No module named 'torch.nn'", name="torch.nn")
+    assert exit_.value.code == TORCH_MISSING
+    with pytest.raises(ModuleNotFoundError, match="torchvision"), training_imports():
+        raise ModuleNotFoundError("No module named 'torchvision'", name="torchvision")
