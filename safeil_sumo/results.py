@@ -325,6 +325,11 @@ def openloop(out: Path, work: Path) -> pd.DataFrame:
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
     from safeil_sumo.learn.evaluate import open_loop_metrics
     from safeil_sumo.learn.inference import load_policy
+    from safeil_sumo.learn.torch_required import TORCH_MISSING, have_torch
+
+    if not have_torch():  # this section trains; the runtime install has no torch
+        print(f"[openloop] skipped: {TORCH_MISSING}")
+        return pd.DataFrame()
     from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     datasets = {"synthetic": SHIPPED_DATA, "ngsim": REPO / "data" / "ngsim_tuples.parquet",
@@ -364,6 +369,11 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
                scenarios: int) -> pd.DataFrame:
     from safeil_sumo.data.tuples import Tuples
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
+    from safeil_sumo.learn.torch_required import TORCH_MISSING, have_torch
+
+    if not have_torch():  # this section trains; the runtime install has no torch
+        print(f"[efficiency] skipped: {TORCH_MISSING}")
+        return pd.DataFrame()
     from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     if not SHIPPED_DATA.is_file():

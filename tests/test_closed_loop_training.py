@@ -352,8 +352,13 @@ def test_lane_weight_0_is_the_recipe_before_the_option_bit_for_bit(tmp_path):
                              capture_output=True, text=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError):
         pytest.skip("no git history: the script before the option is not available")
-    # the one module the old script names that was renamed since (learn/train.py -> trainer.py)
+    # what moved since: learn/train.py -> trainer.py; the torch terms of learn/style.py ->
+    # learn/closed_loop.py (style.py is numpy only, so a styled planner loads without torch)
     old = old.replace("safeil_sumo.learn.train import", "safeil_sumo.learn.trainer import")
+    old = old.replace("    equilibrium_residual,\n    equilibrium_states,\n", "").replace(
+        "from safeil_sumo.learn.style import (",
+        "from safeil_sumo.learn.closed_loop import equilibrium_residual, equilibrium_states\n"
+        "from safeil_sumo.learn.style import (")
     (tmp_path / "old_finetune.py").write_text(old)
     new_ft = _load_script(script, "finetune_new")
     old_ft = _load_script(tmp_path / "old_finetune.py", "finetune_old")

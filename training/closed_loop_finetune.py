@@ -15,8 +15,11 @@ import argparse
 from pathlib import Path
 
 from safeil_sumo.cli_args import add_dataclass_options, config_or_usage_error
-from safeil_sumo.learn.closed_loop import FinetuneConfig
-from safeil_sumo.learn.finetune import finetune
+from safeil_sumo.learn.torch_required import training_imports
+
+with training_imports():  # without torch: one line that says what to install, no traceback
+    from safeil_sumo.learn.closed_loop import FinetuneConfig
+    from safeil_sumo.learn.finetune import finetune
 
 
 def build_parser() -> argparse.ArgumentParser:

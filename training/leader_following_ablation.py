@@ -72,8 +72,11 @@ def _slug(name: str) -> str:
 
 def train_variant(name: str, sources: tuple[str, ...], overrides: dict, cache: Path) -> Path:
     from safeil_sumo.data.tuples import Tuples
-    from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-    from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
+    from safeil_sumo.learn.torch_required import training_imports
+
+    with training_imports():  # without torch: one line that says what to install, no traceback
+        from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
+        from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 
     prefix = cache / _slug(name)
     if prefix.with_suffix(".safetensors").is_file():

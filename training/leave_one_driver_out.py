@@ -42,7 +42,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "training"))
@@ -50,10 +49,15 @@ import train_shipped_models as shipped  # the shipped recipe, one source of trut
 
 from safeil_sumo.data.sources import driver_of
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.learn.finetune import finetune
-from safeil_sumo.learn.lateral_refit import refit_lateral
-from safeil_sumo.learn.trainer import train_checkpoint
+from safeil_sumo.learn.torch_required import training_imports
 from safeil_sumo.planner_registry import fingerprint
+
+with training_imports():  # without torch: one line that says what to install, no traceback
+    import torch
+
+    from safeil_sumo.learn.finetune import finetune
+    from safeil_sumo.learn.lateral_refit import refit_lateral
+    from safeil_sumo.learn.trainer import train_checkpoint
 
 SOURCES = ("openacc", "ngsim")
 WORK = REPO / "data" / "lodo"

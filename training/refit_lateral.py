@@ -16,7 +16,10 @@ import argparse
 from pathlib import Path
 
 from safeil_sumo.cli_args import add_dataclass_options, config_or_usage_error
-from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
+from safeil_sumo.learn.torch_required import training_imports
+
+with training_imports():  # without torch: one line that says what to install, no traceback
+    from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -27,7 +27,11 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
+
+from safeil_sumo.learn.torch_required import training_imports
+
+with training_imports():  # without torch: one line that says what to install, no traceback
+    import torch
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "training"))

@@ -19,9 +19,12 @@ import sys
 from pathlib import Path
 
 from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args, finite_float
-from safeil_sumo.learn.losses import LATERAL_MODES
-from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES
-from safeil_sumo.learn.trainer import METHODS, TrainConfig, train_checkpoint
+from safeil_sumo.learn.torch_required import training_imports
+
+with training_imports():  # without torch: one line that says what to install, no traceback
+    from safeil_sumo.learn.losses import LATERAL_MODES
+    from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES
+    from safeil_sumo.learn.trainer import METHODS, TrainConfig, train_checkpoint
 
 # the names these options had before they were generated from TrainConfig
 ALIASES = {"max_epochs": ("--epochs",), "num_threads": ("--threads",),

@@ -51,12 +51,15 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
-import torch
+from safeil_sumo.learn.torch_required import training_imports
 
-from safeil_sumo.learn.closed_loop import FinetuneConfig
-from safeil_sumo.learn.finetune import finetune
-from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
-from safeil_sumo.learn.trainer import TrainConfig, train_checkpoint
+with training_imports():  # without torch: one line that says what to install, no traceback
+    import torch
+
+    from safeil_sumo.learn.closed_loop import FinetuneConfig
+    from safeil_sumo.learn.finetune import finetune
+    from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
+    from safeil_sumo.learn.trainer import TrainConfig, train_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 DATA_DIR = REPO / "data"

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.features import FEATURE_NAMES
 from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms
+from safeil_sumo.learn.style import STANDSTILL_GAP_M
 
 V_X, V_LEAD, D_LEAD = (FEATURE_NAMES.index(n) for n in ("v_x", "v_lead", "d_lead"))
 
@@ -260,7 +261,6 @@ def settling_episodes(n: int, lanes: torch.Tensor, rng: np.random.Generator, win
     gaps ``(n,)`` [m] ``max(T v_lead, STANDSTILL_GAP_M)``. Half start far behind (up to
     ``far_m`` beyond the equilibrium), half close (a fraction of it). The human fields hold the
     equilibrium (gap) and the leader's speed (the start speed first): there is no human."""
-    from safeil_sumo.learn.style import STANDSTILL_GAP_M
 
     steps = round(window_s / dt_s)
     v_lead = rng.uniform(*cfg.speed_mps, n)
@@ -295,6 +295,25 @@ def settling_loss(out: dict[str, torch.Tensor], gap_eq_m: torch.Tensor, dt_s: fl
     settle = (out["gap"][:, k0:] - gap_eq_m[:, None]).pow(2).mean()
     floor = F.relu(cfg.floor_time_gap_s * out["v"] - out["gap"]).pow(2).mean()
     return settle, floor
+
+
+def equilibrium_states(states: torch.Tensor, time_gap_s: torch.Tensor) -> torch.Tensor:
+    """``states (N, >= 9)`` moved to the equilibrium of a driver with ``time_gap_s (N,)`` [s]:
+    the leader at the ego's speed, at the gap ``max(T v, STANDSTILL_GAP_M)``."""
+    out = states.clone()
+    v = out[:, 6]
+    out[:, 7] = v
+    out[:, 8] = torch.clamp(time_gap_s * v, min=STANDSTILL_GAP_M)
+    return out
+
+
+def equilibrium_residual(control_points: torch.Tensor, v_x: torch.Tensor,
+                         horizon: float) -> torch.Tensor:
+    """Mean squared departure [m^2] of the plans' x control points ``(N, 3, 2)`` from driving on
+    at the current speed ``v_x (N,)``: zero when a driver at equilibrium keeps its speed. This
+    gives the closed loop its fixed point at the preferred gap."""
+    times = torch.arange(1, 4, dtype=control_points.dtype) * (horizon / 3.0)
+    return (control_points[..., 0] - v_x[:, None] * times).pow(2).mean()
 
 
 def envelope_terms(features: torch.Tensor, control_points: torch.Tensor, horizon: float,

@@ -48,6 +48,8 @@ from safeil_sumo.learn.closed_loop import (
     closed_loop_loss,
     envelope_terms,
     episodes_from_tuples,
+    equilibrium_residual,
+    equilibrium_states,
     rollout,
     settling_episodes,
     settling_loss,
@@ -61,8 +63,6 @@ from safeil_sumo.learn.model import (
 )
 from safeil_sumo.learn.style import (
     TIME_GAP_RANGE_S,
-    equilibrium_residual,
-    equilibrium_states,
     maneuver_time_gaps,
     training_time_gaps,
 )

@@ -15,6 +15,9 @@ so a style-conditioned planner takes one more input after the paper's 9 features
 
 The barrier and the envelope keep the plan safe at every setting: envelope states are drawn
 with styles across :data:`TIME_GAP_RANGE_S`.
+
+numpy only, so a styled planner loads without torch; the torch terms that train the style
+(``equilibrium_states``, ``equilibrium_residual``) are in :mod:`safeil_sumo.learn.closed_loop`.
 """
 
 from __future__ import annotations
@@ -23,7 +26,6 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 STYLE_NAMES = ("time_gap_s",)
 TIME_GAP_RANGE_S = (0.6, 3.5)  # [s] styles drawn for the envelope states
@@ -129,22 +131,3 @@ def clip_time_gap(time_gap_s: float) -> float:
     """A setting inside :data:`SETTING_RANGE_S` (within the trained range)."""
     lo, hi = SETTING_RANGE_S
     return float(min(max(float(time_gap_s), lo), hi))
-
-
-def equilibrium_states(states: torch.Tensor, time_gap_s: torch.Tensor) -> torch.Tensor:
-    """``states (N, >= 9)`` moved to the equilibrium of a driver with ``time_gap_s (N,)`` [s]:
-    the leader at the ego's speed, at the gap ``max(T v, STANDSTILL_GAP_M)``."""
-    out = states.clone()
-    v = out[:, 6]
-    out[:, 7] = v
-    out[:, 8] = torch.clamp(time_gap_s * v, min=STANDSTILL_GAP_M)
-    return out
-
-
-def equilibrium_residual(control_points: torch.Tensor, v_x: torch.Tensor,
-                         horizon: float) -> torch.Tensor:
-    """Mean squared departure [m^2] of the plans' x control points ``(N, 3, 2)`` from driving on
-    at the current speed ``v_x (N,)``: zero when a driver at equilibrium keeps its speed. This
-    gives the closed loop its fixed point at the preferred gap."""
-    times = torch.arange(1, 4, dtype=control_points.dtype) * (horizon / 3.0)
-    return (control_points[..., 0] - v_x[:, None] * times).pow(2).mean()
