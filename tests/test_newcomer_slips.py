@@ -1,0 +1,51 @@
+"""Slips a newcomer meets (issue 39): ``api.sweep(policies=...)`` failing, env ids in the docs
+without their namespace, ``check_env`` starting sumo-gui on a headless machine, and a
+recorded-leader run that uses up its recording reported as a timeout, "0/1 completed"."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_a_run_that_uses_up_its_recording_is_completed(tmp_path, capsys) -> None:
+    """A real libsumo run behind a 25 s recorded leader, no time limit asked: it ends where the
+    recording ends (``recording_end``), without a flag: completed."""
+    pytest.importorskip("libsumo")
+    from safeil_sumo import run
+    from safeil_sumo.scenarios import recorded_leaders as rl
+
+    profile = tmp_path / "leader.csv"
+    t = np.arange(0.0, 25.0, 0.1)
+    pd.DataFrame({"time": t, "speed": np.full(t.size, 20.0)}).to_csv(profile, index=False)
+    rl.library.cache_clear()
+    out = tmp_path / "r"
+    assert run.main(["--net", "straight", "--policy", "analytic", "--leader", "recorded",
+                     "--leader-profile", str(profile), "--scenarios", "1", "--no-plots",
+                     "--out", str(out)]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    assert summary["end_reason"].tolist() == ["recording_end"]
+    assert summary["completed"].tolist() == [True] and summary["flag"].isna().all()
+    assert summary["path_completed"].iloc[0] < 1.0  # the road went on
+    assert "1/1 scenarios completed" in capsys.readouterr().out
+
+
+def test_a_shorter_time_limit_is_still_a_timeout(tmp_path) -> None:
+    """Asked for less than the recording: the time limit ends it, as before."""
+    pytest.importorskip("libsumo")
+    from safeil_sumo import api
+    from safeil_sumo.scenarios import recorded_leaders as rl
+
+    profile = tmp_path / "leader.csv"
+    t = np.arange(0.0, 25.0, 0.1)
+    pd.DataFrame({"time": t, "speed": np.full(t.size, 20.0)}).to_csv(profile, index=False)
+    rl.library.cache_clear()
+    result = api.run("straight", policy="analytic", scenarios=1, leader_kind="recorded",
+                     leader_profile=str(profile), max_time_s=2.0)
+    assert result.summary["end_reason"].tolist() == ["timeout"]
+    assert result.summary["completed"].tolist() == [False]
