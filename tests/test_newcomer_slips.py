@@ -6,11 +6,32 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pandas as pd
 import pytest
 
+import safeil_sumo.envs  # noqa: F401 - registers the ids
+
 REPO = Path(__file__).resolve().parents[1]
+
+
+def test_check_env_on_a_headless_machine(monkeypatch) -> None:
+    """Without a display, Gymnasium's full check (render modes included) passes without
+    starting sumo-gui, and render_mode="human" says why it cannot be."""
+    pytest.importorskip("libsumo")
+    from gymnasium.utils.env_checker import check_env
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    env = gym.make("safeil_sumo/Curved500-v0", max_time_s=1.0)
+    try:
+        assert env.unwrapped.metadata["render_modes"] == ["rgb_array"]
+        check_env(env.unwrapped)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="needs a display"):
+        gym.make("safeil_sumo/Curved500-v0", render_mode="human")
 
 
 def test_a_run_that_uses_up_its_recording_is_completed(tmp_path, capsys) -> None:
