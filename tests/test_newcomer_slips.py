@@ -4,6 +4,7 @@ recorded-leader run that uses up its recording reported as a timeout, "0/1 compl
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import gymnasium as gym
@@ -14,6 +15,16 @@ import pytest
 import safeil_sumo.envs  # noqa: F401 - registers the ids
 
 REPO = Path(__file__).resolve().parents[1]
+ENV_ID = re.compile(r"(?<![\w.-])(?:[\w]+/)?[A-Z]\w*-v\d+\b")
+
+
+@pytest.mark.parametrize("doc", ["README.md", "docs/gymnasium.md"])
+def test_every_env_id_in_the_docs_is_registered(doc: str) -> None:
+    """Each id the doc names works in ``gym.make`` as written (with its namespace)."""
+    named = set(ENV_ID.findall((REPO / doc).read_text()))
+    assert len(named) >= 5, f"{doc} names no env ids"
+    missing = sorted(named - set(gym.registry))
+    assert not missing, f"{doc} names ids gym.make does not know: {missing}"
 
 
 def test_check_env_on_a_headless_machine(monkeypatch) -> None:
