@@ -81,3 +81,17 @@ def test_a_shorter_time_limit_is_still_a_timeout(tmp_path) -> None:
                      leader_profile=str(profile), max_time_s=2.0)
     assert result.summary["end_reason"].tolist() == ["timeout"]
     assert result.summary["completed"].tolist() == [False]
+
+
+def test_api_sweep_takes_policy_like_the_cli(tmp_path) -> None:
+    pytest.importorskip("libsumo")
+    from safeil_sumo import api
+
+    one = api.sweep(policy="analytic", out=tmp_path / "one", scenarios=1, nets=("straight",),
+                    max_time_s=1.0)
+    assert list(one["policy"]) == ["analytic"] and (one["status"] == "ok").all()
+    both = api.sweep(policy=["analytic", "idm"], out=tmp_path / "both", scenarios=1,
+                     nets=("straight",), max_time_s=1.0)
+    assert sorted(both["policy"]) == ["analytic", "idm"] and (both["status"] == "ok").all()
+    with pytest.raises(TypeError, match="policy must be"):
+        api.sweep(policy=[], out=tmp_path / "none")
