@@ -223,8 +223,8 @@ def test_dask_cluster_gives_the_sequential_results(tmp_path):
 
 def test_cli_grid_breakdown_and_bad_arguments(tmp_path, capsys):
     out = tmp_path / "cli"
-    args = ["--net", "straight", "--policies", "analytic", "--scenarios", "2",
-            "--max-time", "2", "--safety-filter", "both", "--gap-range", "30", "80",
+    args = ["--net", "straight", "--policy", "analytic", "--scenarios", "2",
+            "--max-time-s", "2", "--safety-filter", "both", "--gap-range-m", "30", "80",
             "--no-progress", "--out", str(out)]
     assert sweep_main(args) == 0
     printed = capsys.readouterr().out
@@ -234,11 +234,11 @@ def test_cli_grid_breakdown_and_bad_arguments(tmp_path, capsys):
     assert np.all((summary["initial_gap_m"] >= 30) & (summary["initial_gap_m"] <= 80))
     assert {p.parent for p in out.rglob("*.json")} <= {out, out / "tasks"}
 
-    assert sweep_main(["--net", "nowhere", "--policies", "analytic", "--out", str(out)]) == 2
+    assert sweep_main(["--net", "nowhere", "--policy", "analytic", "--out", str(out)]) == 2
     assert "unknown track" in capsys.readouterr().err
-    assert sweep_main(["--policies", str(tmp_path / "x.safetensors"), "--out", str(out)]) == 2
+    assert sweep_main(["--policy", str(tmp_path / "x.safetensors"), "--out", str(out)]) == 2
     with pytest.raises(SystemExit) as exc:
-        sweep_main(["--gap", "40", "--gap-range", "30", "80"])
+        sweep_main(["--gap-m", "40", "--gap-range-m", "30", "80"])
     assert exc.value.code == 2
     with pytest.raises(SystemExit) as exc:
         sweep_main(["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"])
