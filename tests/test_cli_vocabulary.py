@@ -195,6 +195,17 @@ def test_help_still_prints_the_usage(capsys) -> None:
     assert capsys.readouterr().out.startswith("usage: python -m safeil_sumo.sweep")
 
 
+def test_a_missing_checkpoint_is_a_missing_file(tmp_path, capsys) -> None:
+    missing = tmp_path / "nope" / "model.safetensors"
+    assert run_main("run", ["--policy", str(missing), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert f"policy file {missing} does not exist" in err and "unknown policy" not in err
+    assert err.count("\n") == 1
+    # a name that is no file stays an unknown policy, with the names to use
+    assert run_main("run", ["--policy", "nosuch", "--out", str(tmp_path / "o")]) == 2
+    assert "unknown policy 'nosuch': use one of" in capsys.readouterr().err
+
+
 # ---------------------------------------------------------------------------- TOML files
 
 

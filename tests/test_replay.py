@@ -256,7 +256,7 @@ def test_cli_one_line_errors(tmp_path, capsys):
     assert cli.main(["--source", str(tmp_path / "missing.parquet")]) == 2
     assert cli.main(["--source", str(path), "--policy", str(tmp_path / "no.safetensors"),
                      "--out", str(tmp_path / "o")]) == 2
-    assert "unknown policy" in capsys.readouterr().err
+    assert "no.safetensors does not exist" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 

@@ -169,7 +169,7 @@ def test_failures_are_recorded_and_others_complete(tmp_path):
     ]
     out = run_sweep(specs, tmp_path / "out", workers=2, progress=False)
     assert list(out["status"]) == ["ok", "failed", "failed", "ok"]
-    assert out.loc[1, "error"].startswith("PolicyError: unknown policy")
+    assert out.loc[1, "error"].startswith("PolicyError: policy file")
     assert out.loc[2, "error"].startswith("NetworkError: unknown track 'no_such_track'")
 
 
@@ -271,7 +271,7 @@ def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):
     one = run_sweep(specs, tmp_path / "one", workers=1, progress=False)
     batched = run_sweep(specs, tmp_path / "batched", workers=2, progress=False, batch=3)
     assert list(batched["status"]) == ["ok", "ok", "failed"] + ["ok"] * 4
-    assert batched.loc[2, "error"].startswith("PolicyError: unknown policy")
+    assert batched.loc[2, "error"].startswith("PolicyError: policy file")
     ok = one["status"] == "ok"
     pd.testing.assert_frame_equal(comparable(one[ok]), comparable(batched[ok]), check_exact=False,
                                   rtol=1e-9, atol=1e-9)
