@@ -31,10 +31,10 @@ from safeil_sumo.cli_args import (
     scenario_fields,
 )
 from safeil_sumo.experiments import outputs, plots
-from safeil_sumo.scenarios.road import NetworkError
+from safeil_sumo.scenarios.road import NetworkError, Road
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
-from safeil_sumo.sim.runner import LoopConfig
+from safeil_sumo.sim.runner import LoopConfig, Scenario
 from safeil_sumo.sim.sumo_api import SumoError, has_display
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -95,6 +95,49 @@ def format_table(summaries: pd.DataFrame) -> str:
     return t.to_string(index=False, float_format=lambda v: f"{v:.2f}")
 
 
+def manifest_config(args: argparse.Namespace, road: Road, scenarios: list[Scenario],
+                    loop: LoopConfig, vehicle: VehicleParams) -> dict:
+    """The run's configuration for its manifest.json."""
+    return {
+        "net": str(road.net_path), "route": list(args.route), "lane": args.lane or None,
+        "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
+        "time_gap_s": args.time_gap_s,
+        "scenarios": args.scenarios,
+        "master_seed": args.seed,
+        "leader_speed_range_mps": list(args.leader_speed_range_mps),
+        "leader": args.leader, "leader_profile": args.leader_profile,
+        "leaders": [sc.leader.label if sc.leader is not None else "traffic"
+                    for sc in scenarios],
+        "traffic": args.traffic,
+        # as given (None: the default, or a recorded leader's start), and as each scenario began
+        "ego_speed_mps": args.ego_speed_mps,
+        "ego_speeds_mps": [sc.ego_speed_mps for sc in scenarios],
+        "initial_gap_m": args.gap_m,
+        "spec": scenario_fields(args),  # every scenario option, as ScenarioSpec fields
+        "loop": asdict(loop), "vehicle": asdict(vehicle),
+        "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
+    }
+
+
+def print_report(policy_name: str, summaries: pd.DataFrame, net: str) -> None:
+    """The table and the totals printed at the end of a run."""
+    print(format_table(summaries))
+    done = int(summaries["completed"].sum())
+    flagged = int((summaries["flag"] != "").sum())
+    print(f"\n{policy_name}: {done}/{len(summaries)} scenarios completed without a flag "
+          f"({flagged} flagged), mean path completed {100 * summaries['path_completed'].mean():.1f} %")
+    if net == "n74":  # long drives: rates per distance, leaders met
+        km = float(summaries["km_driven"].sum())
+        rates = ", ".join(
+            f"{kind} {100.0 * summaries[f'{col}_events'].sum() / km:.1f}" if km > 0 else
+            f"{kind} -" for kind, col in (("TTC", "ttc"), ("lane departure", "lane_departure"),
+                                         ("collision", "collision")))
+        print(f"{km:.2f} km driven; flags per 100 km: {rates}; min TTC "
+              f"{summaries['min_ttc_s'].min():.2f} s; leaders met "
+              f"{int(summaries['leaders_met'].sum())}, cut-ins "
+              f"{int(summaries['cut_ins_met'].sum())}")
+
+
 @interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
@@ -138,25 +181,7 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     summaries, steps = result.summary, result.log
 
-    config = {
-        "net": str(road.net_path), "route": list(args.route), "lane": args.lane or None,
-        "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
-        "time_gap_s": args.time_gap_s,
-        "scenarios": args.scenarios,
-        "master_seed": args.seed,
-        "leader_speed_range_mps": list(args.leader_speed_range_mps),
-        "leader": args.leader, "leader_profile": args.leader_profile,
-        "leaders": [sc.leader.label if sc.leader is not None else "traffic"
-                    for sc in scenarios],
-        "traffic": args.traffic,
-        # as given (None: the default, or a recorded leader's start), and as each scenario began
-        "ego_speed_mps": args.ego_speed_mps,
-        "ego_speeds_mps": [sc.ego_speed_mps for sc in scenarios],
-        "initial_gap_m": args.gap_m,
-        "spec": scenario_fields(args),  # every scenario option, as ScenarioSpec fields
-        "loop": asdict(loop), "vehicle": asdict(vehicle),
-        "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
-    }
+    config = manifest_config(args, road, scenarios, loop, vehicle)
     with outputs.AtomicDir(out) as tmp:
         outputs.write_tables(tmp, steps, summaries)
         outputs.write_json(tmp / "manifest.json",
@@ -168,21 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.net == "n74":  # long drives: where on the route each flag started
                 plots.plot_flag_map(road, steps, tmp / "flag_map.png")
 
-    print(format_table(summaries))
-    done = int(summaries["completed"].sum())
-    flagged = int((summaries["flag"] != "").sum())
-    print(f"\n{policy.name}: {done}/{len(summaries)} scenarios completed without a flag "
-          f"({flagged} flagged), mean path completed {100 * summaries['path_completed'].mean():.1f} %")
-    if args.net == "n74":  # long drives: rates per distance, leaders met
-        km = float(summaries["km_driven"].sum())
-        rates = ", ".join(
-            f"{kind} {100.0 * summaries[f'{col}_events'].sum() / km:.1f}" if km > 0 else
-            f"{kind} -" for kind, col in (("TTC", "ttc"), ("lane departure", "lane_departure"),
-                                         ("collision", "collision")))
-        print(f"{km:.2f} km driven; flags per 100 km: {rates}; min TTC "
-              f"{summaries['min_ttc_s'].min():.2f} s; leaders met "
-              f"{int(summaries['leaders_met'].sum())}, cut-ins "
-              f"{int(summaries['cut_ins_met'].sum())}")
+    print_report(policy.name, summaries, args.net)
     errors = summaries[summaries["end_reason"] == "error"]
     for _, row in errors.iterrows():
         print(f"scenario {row['scenario']} failed: {row['error']}", file=sys.stderr)
