@@ -107,27 +107,37 @@ def run(net: str = "curved500", policy: str | Policy = "safeil", scenarios: int 
     return run_scenarios(build_scenarios(net, scenarios, seed, **spec), planner, loop)
 
 
-def sweep(policies_: Sequence[str], out: str | Path, scenarios: int = 10, nets: Sequence[str] =
-          ("curved500",), seed: int = 0, workers: int = 1, batch: int = DEFAULT_BATCH,
-          **spec: object) -> pd.DataFrame:
+def policy_names(policy: str | Sequence[str]) -> list[str]:
+    """``policy=`` of :func:`sweep` and :func:`replay`, as the CLIs' ``--policy``: one name or
+    path, or several."""
+    names = [policy] if isinstance(policy, (str, Path)) else list(policy)
+    if not names or not all(isinstance(n, (str, Path)) for n in names):
+        raise TypeError(f"policy must be a name or path, or a sequence of them, got {policy!r}")
+    return [str(n) for n in names]
+
+
+def sweep(policy: str | Sequence[str], out: str | Path, scenarios: int = 10,
+          nets: Sequence[str] = ("curved500",), seed: int = 0, workers: int = 1,
+          batch: int = DEFAULT_BATCH, **spec: object) -> pd.DataFrame:
     """A resumable sweep (nets x policies x scenarios; ``spec``: ScenarioSpec fields) written to
-    ``out``; returns its summary (one row per task). Policies are names or paths (they travel to
-    worker processes); up to ``batch`` scenarios share one SUMO simulation (1: one each)."""
+    ``out``; returns its summary (one row per task). ``policy``: a name or path, or several
+    (they travel to worker processes); up to ``batch`` scenarios share one SUMO simulation
+    (1: one each)."""
     specs = [ScenarioSpec(net=n, index=i, master_seed=seed, policy=p, **spec)
-             for n in nets for p in policies_ for i in range(scenarios)]
+             for n in nets for p in policy_names(policy) for i in range(scenarios)]
     return run_sweep(specs, out, workers=workers, progress=False, batch=batch)
 
 
-def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path,
+def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | Path,
            maneuvers: str | Sequence[str] = "all", windows: str = "sliding",
            workers: int = 1, duration_s: float | None = None, stride_s: float = 20.0,
            config: ReplayConfig | None = None, progress: bool = False,
            name: str | None = None, manifest: dict | None = None, batch: int = REPLAY_BATCH,
            adapt_first_s: float = 0.0) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Replay every window of ``maneuvers`` (``"all"`` or ids) of ``source`` (``openacc``,
-    ``ngsim``, a drive file, or an already processed maneuvers frame) with each policy (names or
-    paths, ``recorded`` for the human's own path): ``(per-window table, per-policy
-    aggregate)``; ``duration_s`` [s]: the length of ``paper`` / ``sliding`` windows (None: 11 s),
+    ``ngsim``, a drive file, or an already processed maneuvers frame) with each ``policy`` (a
+    name or path, or several; ``recorded`` for the human's own path): ``(per-window table,
+    per-policy aggregate)``; ``duration_s`` [s]: the length of ``paper`` / ``sliding`` windows (None: 11 s),
     or a cap on each ``whole`` maneuver from its start (None: the whole maneuver); both also written to ``out`` with the plots; resumable. ``name`` titles the
     plots and messages (default: the source). Up to ``batch`` windows of a worker task run side
     by side in one SUMO simulation (1: one simulation per run; the same records).
@@ -154,8 +164,9 @@ def replay(source: str | pd.DataFrame, policies_: Sequence[str], out: str | Path
             f"no maneuver of {name} is long enough for "
             + (f"{adapt_first_s:g} s of adaptation and {ra.MIN_SCORED_S:g} s scored"
                if adapt_first_s else f"a {duration_s or ra.rp.PAPER_DURATION_S:g} s window"))
-    records = ra.replay_all(rows, wins, list(policies_), Path(out), config, workers,
+    names = policy_names(policy)
+    records = ra.replay_all(rows, wins, names, Path(out), config, workers,
                             progress=progress, batch=batch)
-    return ra.write(Path(out), records, manifest or {"source": name, "policies": list(policies_),
+    return ra.write(Path(out), records, manifest or {"source": name, "policies": names,
                                                      "windows_mode": windows},
                     seed=config.seed, title=name)

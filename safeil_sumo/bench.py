@@ -38,6 +38,7 @@ from pathlib import Path
 
 from safeil_sumo import planner_registry
 from safeil_sumo.atomic import atomic_path
+from safeil_sumo.cli_args import CommandParser, add_policy_option, interruptible, one_policy
 from safeil_sumo.features import planner_features
 from safeil_sumo.scenarios.catalogue import resolve_net
 from safeil_sumo.scenarios.road import load_road
@@ -388,16 +389,23 @@ def gym_rows(quick: bool, rows: dict) -> None:
     rows[f"gym_vector_n{n}_peak_rss_mb"] = vector["peak_rss_mb"]
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m safeil_sumo.bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> CommandParser:
+    p = CommandParser("safeil_sumo.bench", description=__doc__,
+                      formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="short measurements (for CI)")
-    p.add_argument("--policy", default=None, help="planner in the loop (default: the shipped)")
+    add_policy_option(p, None, "planner in the loop", many=False)
     p.add_argument("--no-extras", action="store_true",
                    help="closed loop and planner only (no data, training, memory, sweep)")
     p.add_argument("--out", type=Path, default=Path("runs/bench.json"))
+    return p
+
+
+@interruptible
+def main(argv: list[str] | None = None) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
-    policy = args.policy or planner_registry.default_policy_name()
+    policy = (one_policy(p, args, "benchmark each planner in turn")
+              or planner_registry.default_policy_name())
     net = str(resolve_net("curved500"))
     sim_s = 5.0 if args.quick else 30.0
     calls = 2000 if args.quick else 20000

@@ -1,6 +1,6 @@
 """``python -m safeil_sumo.certify``: prove a planner network's margins over its envelope.
 
-    python -m safeil_sumo.certify --policy safeil [--time-gap LO HI] [--budget-s 600]
+    python -m safeil_sumo.certify --policy safeil [--time-gap-range-s LO HI] [--budget-s 600]
     python -m safeil_sumo.certify --policy path/to/model.safetensors --max-boxes 200000
     python -m safeil_sumo.certify --policy path/to/model.safetensors --check
 
@@ -23,7 +23,14 @@ import sys
 from pathlib import Path
 
 from safeil_sumo import planner_registry as pol
-from safeil_sumo.cli_args import finite_float, nonnegative_int
+from safeil_sumo.cli_args import (
+    CommandParser,
+    add_policy_option,
+    finite_float,
+    interruptible,
+    nonnegative_int,
+    one_policy,
+)
 from safeil_sumo.learn.certificate import certificate_path, load_certificate, write_certificate
 from safeil_sumo.learn.certify import (
     Budget,
@@ -36,15 +43,15 @@ from safeil_sumo.learn.certify_margins import MARGINS
 from safeil_sumo.learn.inference import MLPPolicy
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m safeil_sumo.certify",
-                                description=__doc__.split("\n")[0])
-    p.add_argument("--policy", default="safeil",
-                   help="a shipped network (safeil, safeil_openloop, safeil_paper, bc) or a "
-                        "checkpoint path (.safetensors)")
-    p.add_argument("--time-gap", type=finite_float, nargs=2, metavar=("LO", "HI"), default=None,
+def build_parser() -> CommandParser:
+    p = CommandParser("safeil_sumo.certify", description=__doc__.split("\n")[0])
+    add_policy_option(p, ["safeil"], "a shipped network (safeil, safeil_openloop, safeil_paper, "
+                      "bc) or a checkpoint path (.safetensors)", many=False)
+    p.add_argument("--time-gap-range-s", type=finite_float, nargs=2, metavar=("LO", "HI"),
+                   default=None,
                    help="certify a style-conditioned checkpoint over this range of its time-gap "
                         "setting [s] (an extra input dimension); default: at its default setting")
+    p.rename(time_gap="--time-gap-range-s")
     p.add_argument("--margins", nargs="+", choices=MARGINS, default=list(MARGINS),
                    help="the margins to certify (default both; the budget is shared equally)")
     p.add_argument("--budget-s", type=finite_float, default=600.0,
@@ -64,7 +71,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "path: in --out if given, else next to the checkpoint, else in "
                         "runs/certify_<name>/ for a shipped model)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return p.parse_args(argv)
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = build_parser()
+    args = p.parse_args(argv)
+    args.policy = one_policy(p, args, "certify each network in turn")
+    return args
 
 
 def resolve(policy: str) -> tuple[MLPPolicy, Path, bool]:
@@ -100,6 +114,7 @@ def print_result(r: CertifyResult) -> None:
             print(f"unproven {m.margin} volume by quarter of range: {where}")
 
 
+@interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
@@ -120,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
                   + (f"; certified {shares}" + (" (complete)" if status.complete else "")
                      if status.certified else ""))
             return 0 if status.valid else 1
-        env = CertEnvelope(time_gap_s=tuple(args.time_gap) if args.time_gap else None)
+        env = CertEnvelope(time_gap_s=tuple(args.time_gap_range_s) if args.time_gap_range_s
+                           else None)
         budget = Budget(seconds=args.budget_s, boxes=args.max_boxes, batch=max(args.batch, 1),
                         seed=args.seed, cex_min_share=args.cex_min_share)
         result = certify(policy, env, budget=budget, margins=tuple(args.margins),

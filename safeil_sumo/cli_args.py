@@ -1,14 +1,139 @@
-"""argparse types shared by the CLIs: a bad number is one clear usage error (exit 2), not a
-traceback or a run on NaN/inf."""
+"""What the command lines share: their parser (:class:`CommandParser`: usage names the command
+as invoked, an error is one line, a renamed option names its new name), Ctrl-C as one line
+(:func:`interruptible`), argparse types (a bad number is one clear usage error, exit 2, not a
+traceback or a run on NaN/inf) and the options several commands declare once.
+
+The vocabulary: ``--policy`` chooses planners (one or more where a command compares them), a
+quantity's unit is the suffix of its name (``--max-time-s``, ``--ego-speed-mps``,
+``--plan-rate-hz``), a range is ``--<name>-range-<unit> LO HI``, and a switch is
+``--x/--no-x``."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import math
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import NoReturn
 
 # checked by the scenario layer, re-exported for the CLIs
 from safeil_sumo.scenarios.spec import N74_LANES, lane_for_net  # noqa: F401
+
+INTERRUPTED = 130  # exit code of a command ended by Ctrl-C (128 + SIGINT), as shells report it
+
+
+def console_scripts(module: str) -> list[str]:
+    """The console commands (``[project.scripts]``) that run ``module``'s ``main``."""
+    from importlib.metadata import entry_points
+
+    return [ep.name for ep in entry_points(group="console_scripts")
+            if ep.value.split(":")[0] == module]
+
+
+def command_name(module: str) -> str:
+    """How the user invoked ``module``'s command line: its console command's name (``safeil-run``)
+    when run as one, else ``python -m <module>``."""
+    script = Path(sys.argv[0]).name.removesuffix(".exe") if sys.argv and sys.argv[0] else ""
+    # a module run with -m has its file as argv[0]; only a script name is looked up
+    if script and not script.endswith(".py") and script in console_scripts(module):
+        return script
+    return f"python -m {module}"
+
+
+class CommandParser(argparse.ArgumentParser):
+    """The parser of a ``safeil_sumo`` command line (``module``: e.g. ``safeil_sumo.run``).
+
+    Usage names the command as it was invoked (:func:`command_name`). An error is one line,
+    ``<prog>: error: <message>``, without the usage block (``-h`` still prints it). An option
+    renamed for the shared vocabulary (:meth:`rename`) fails with one line naming its new name,
+    also where argparse would take the old name as an abbreviation of the new one."""
+
+    def __init__(self, module: str, **kwargs) -> None:
+        super().__init__(prog=command_name(module), **kwargs)
+        self.renamed: dict[str, str] = {}
+        self.switches: set[str] = set()  # --x/--no-x switches that were --x on|off
+        self.error_prefix = ""  # e.g. a TOML file's name, for the errors of its options
+
+    def rename(self, **renamed: str) -> None:
+        """Old spellings that fail naming their new name (``rename(policies="--policy")``:
+        ``--policies`` -> ``--policy``; the keys with ``_`` for ``-``)."""
+        self.renamed.update({"--" + old.replace("_", "-"): new for old, new in renamed.items()})
+
+    def add_switch(self, flag: str, **kwargs) -> None:
+        """``flag`` / ``--no-<flag>`` (argparse.BooleanOptionalAction); ``flag on|off``, its old
+        form, fails naming them."""
+        self.add_argument(flag, action=argparse.BooleanOptionalAction, **kwargs)
+        self.switches.add(flag)
+
+    def old_spelling(self, argv: Sequence[str]) -> str | None:
+        """The message for the first old spelling in ``argv``, if any."""
+        argv = list(argv)
+        for i, token in enumerate(argv):
+            if token == "--":
+                break
+            flag, _, value = token.partition("=")
+            if flag in self.renamed:
+                return f"{flag} was renamed {self.renamed[flag]}"
+            if flag in self.switches:
+                value = value or (argv[i + 1] if i + 1 < len(argv) else "")
+                if value in ("on", "off"):
+                    new = flag if value == "on" else "--no-" + flag[2:]
+                    return f"{flag} on|off was replaced by {flag} / --no-{flag[2:]}: use {new}"
+        return None
+
+    def parse_known_args(self, args: Sequence[str] | None = None,
+                         namespace: argparse.Namespace | None = None):
+        argv = list(sys.argv[1:] if args is None else args)
+        message = self.old_spelling(argv)
+        if message:
+            self.error(message)
+        return super().parse_known_args(argv, namespace)
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {self.error_prefix}{message}\n")
+
+
+def interruptible(main: Callable[..., int]) -> Callable[..., int]:
+    """``main`` ending on Ctrl-C with one line, ``interrupted``, and exit code 130, instead of a
+    KeyboardInterrupt traceback (a command with more to say catches it itself first)."""
+
+    @functools.wraps(main)
+    def wrapper(argv: list[str] | None = None) -> int:
+        try:
+            return main(argv)
+        except KeyboardInterrupt:
+            if sys.stderr.isatty():  # end a progress bar's line first
+                print(file=sys.stderr)
+            print("interrupted", file=sys.stderr)
+            return INTERRUPTED
+
+    return wrapper
+
+
+def add_policy_option(parser: CommandParser, default: Sequence[str] | None, what: str,
+                      many: bool = True, shown: str = "the shipped model") -> None:
+    """``--policy NAME [NAME ...]``: the planners a command runs (``what``: the names it takes,
+    for the help; ``shown``: what a None ``default`` means). ``many=False``: the command runs
+    one (:func:`one_policy` checks it)."""
+    shown = shown if default is None else " ".join(default)
+    parser.add_argument(
+        "--policy", nargs="+", default=None if default is None else list(default),
+        metavar="POLICY",
+        help=f"{what} ({'one or more' if many else 'one'}; default {shown})")
+    parser.rename(policies="--policy")
+
+
+def one_policy(parser: CommandParser, args: argparse.Namespace, hint: str) -> str | None:
+    """The one ``--policy`` of a command that runs one planner (None: not given); several are a
+    usage error (``hint``: where to compare several)."""
+    if args.policy is None:
+        return None
+    if len(args.policy) > 1:
+        parser.error(f"--policy takes one planner here, got {len(args.policy)}; {hint}")
+    return args.policy[0]
 
 
 def finite_float(text: str) -> float:
@@ -33,7 +158,7 @@ def nonnegative_int(text: str) -> int:
     return value
 
 
-def add_leader_options(parser: argparse.ArgumentParser, kinds: tuple[str, ...],
+def add_leader_options(parser: CommandParser, kinds: tuple[str, ...],
                        change: str) -> None:
     """``--leader`` and ``--leader-profile``, shared by ``run`` and ``sweep``; ``change`` says
     how a braking/accelerating leader changes its speed in that command."""
@@ -48,39 +173,38 @@ def add_leader_options(parser: argparse.ArgumentParser, kinds: tuple[str, ...],
              "CSV/Parquet file with columns time [s] and speed [m/s], or a folder of them")
 
 
-def add_ego_speed_option(parser: argparse.ArgumentParser) -> None:
-    """``--ego-speed``, shared by ``run`` and ``sweep``: default None, resolved per scenario by
-    :class:`safeil_sumo.scenarios.spec.ScenarioSpec` (30 m/s, or a recorded leader's start)."""
+def add_ego_speed_option(parser: CommandParser) -> None:
+    """``--ego-speed-mps``, shared by ``run`` and ``sweep``: default None, resolved per scenario
+    by :class:`safeil_sumo.scenarios.spec.ScenarioSpec` (30 m/s, or a recorded leader's
+    start)."""
     parser.add_argument(
-        "--ego-speed", type=finite_float, default=None, metavar="MPS",
+        "--ego-speed-mps", type=finite_float, default=None, metavar="MPS",
         help="ego initial speed [m/s] (default 30; with --leader recorded: as the recorded "
              "follower started (ngsim, openacc), or the profile's speed where the scenario "
              "starts in it (a file); a speed given here wins)")
 
 
-def add_time_gap_option(parser: argparse.ArgumentParser) -> None:
-    """``--time-gap``, shared by ``run`` and ``sweep``: the planner's preferred time gap."""
+def add_time_gap_option(parser: CommandParser) -> None:
+    """``--time-gap-s``, shared by ``run`` and ``sweep``: the planner's preferred time gap."""
+    parser.rename(time_gap="--time-gap-s")
     parser.add_argument(
-        "--time-gap", type=finite_float, default=None, metavar="S",
+        "--time-gap-s", type=finite_float, default=None, metavar="S",
         help="the planner's preferred time gap [s], like an ACC's distance setting: the style "
              "input of a style-conditioned checkpoint (default: the humans' median stored in "
              "it), or the IDM's T; other planners refuse it")
 
 
-BRAKE_GUARD_OPTIONS = {"on": True, "off": False}
-
-
-def add_brake_guard_option(parser: argparse.ArgumentParser) -> None:
-    """``--brake-guard on|off``, shared by ``run``, ``sweep`` and ``replay``."""
-    parser.add_argument(
-        "--brake-guard", choices=tuple(BRAKE_GUARD_OPTIONS), default="on",
+def add_brake_guard_option(parser: CommandParser) -> None:
+    """``--brake-guard/--no-brake-guard``, shared by ``run``, ``sweep`` and ``replay``."""
+    parser.add_switch(
+        "--brake-guard", default=True,
         help="collision-avoidance braking under the planner: brakes harder than the plan when "
              "keeping 2 m behind a leader that keeps braking to a stop needs >= 3 m/s^2 "
-             "(default on; off: the planner and tracker alone, the paper's loop; "
+             "(default on; --no-brake-guard: the planner and tracker alone, the paper's loop; "
              "docs/brake_guard.md)")
 
 
-def add_route_option(parser: argparse.ArgumentParser) -> None:
+def add_route_option(parser: CommandParser) -> None:
     """``--route EDGE [EDGE ...]``, shared by ``run`` and ``sweep``."""
     parser.add_argument(
         "--route", nargs="+", default=[], metavar="EDGE",
@@ -89,7 +213,7 @@ def add_route_option(parser: argparse.ArgumentParser) -> None:
              "default: the net's one edge")
 
 
-def add_n74_options(parser: argparse.ArgumentParser) -> None:
+def add_n74_options(parser: CommandParser) -> None:
     """``--from-km/--to-km/--traffic`` for ``--net n74``, shared by ``run`` and ``sweep``."""
     from safeil_sumo.sim.traffic import DENSITIES
 
@@ -107,9 +231,17 @@ def add_n74_options(parser: argparse.ArgumentParser) -> None:
                              "(no scripted leader). Default none")
 
 
+def add_plan_rate_option(parser: CommandParser) -> None:
+    """``--plan-rate-hz``, shared by ``run``, ``sweep`` and ``replay``."""
+    from safeil_sumo.sim.loop_types import LoopConfig
+
+    default = LoopConfig.plan_rate_hz
+    parser.add_argument("--plan-rate-hz", type=finite_float, default=default, metavar="HZ",
+                        help=f"re-planning rate [Hz] (default {default:g})")
+    parser.rename(plan_rate="--plan-rate-hz")
 
 
-def add_lane_option(parser: argparse.ArgumentParser) -> None:
+def add_lane_option(parser: CommandParser) -> None:
     """``--lane``, shared by ``run`` and ``sweep``; check it with :func:`lane_for_net`."""
     parser.add_argument(
         "--lane", default=None, metavar="LANE",
@@ -118,7 +250,7 @@ def add_lane_option(parser: argparse.ArgumentParser) -> None:
              "(or of the net's one edge); default: the middle lane")
 
 
-def add_scenario_options(parser: argparse.ArgumentParser) -> None:
+def add_scenario_options(parser: CommandParser) -> None:
     """The scenario options of ``run`` and ``sweep``, declared once: how many scenarios, the
     leader, the ego's start, the sensors, the loop and the road's stretch. Each sets a
     :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` field (:func:`scenario_fields`), whose
@@ -131,33 +263,38 @@ def add_scenario_options(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--scenarios", type=int, default=10,
                    help="scenarios (per net and policy in a sweep) (default 10)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
-    add_leader_options(p, LEADER_KINDS, "to --brake-to at --brake-decel after --brake-time")
-    p.add_argument("--leader-speed", type=finite_float, nargs=2, default=PAPER_LEADER_SPEED_MPS,
-                   metavar=("LOW", "HIGH"),
+    add_leader_options(p, LEADER_KINDS,
+                       "to --brake-to-mps at --brake-decel-mps2 after --brake-time-s")
+    p.add_argument("--leader-speed-range-mps", type=finite_float, nargs=2,
+                   default=PAPER_LEADER_SPEED_MPS, metavar=("LOW", "HIGH"),
                    help="leader (initial) speed range [m/s], drawn per scenario (default 25 32, "
                         "the paper's)")
-    p.add_argument("--brake-time", type=finite_float, default=5.0,
+    p.add_argument("--brake-time-s", type=finite_float, default=5.0,
                    help="braking/accelerating leader: the change starts at [s] (default 5)")
-    p.add_argument("--brake-decel", type=finite_float, default=3.0,
+    p.add_argument("--brake-decel-mps2", type=finite_float, default=3.0,
                    help="braking/accelerating leader: rate of the change [m/s^2] (default 3)")
-    p.add_argument("--brake-to", type=finite_float, default=15.0,
+    p.add_argument("--brake-to-mps", type=finite_float, default=15.0,
                    help="braking/accelerating leader: final speed [m/s] (default 15)")
     add_ego_speed_option(p)
     add_time_gap_option(p)
     gap = p.add_mutually_exclusive_group()
-    gap.add_argument("--gap", type=finite_float, default=None,
+    gap.add_argument("--gap-m", type=finite_float, default=None,
                      help="initial bumper gap [m] (default 50)")
-    gap.add_argument("--gap-range", type=finite_float, nargs=2, default=None,
+    gap.add_argument("--gap-range-m", type=finite_float, nargs=2, default=None,
                      metavar=("LOW", "HIGH"), help="initial gap drawn per scenario [m]")
-    p.add_argument("--lane-noise", type=finite_float, default=0.0,
+    p.add_argument("--lane-noise-m", type=finite_float, default=0.0,
                    help="camera lane-offset (c0) noise std [m] (default 0)")
-    p.add_argument("--radar-noise", type=finite_float, default=0.0,
+    p.add_argument("--radar-noise-m", type=finite_float, default=0.0,
                    help="radar range noise std [m] (default 0)")
-    p.add_argument("--plan-rate", type=finite_float, default=10.0,
-                   help="re-planning rate [Hz] (default 10)")
-    p.add_argument("--max-time", type=finite_float, default=None,
+    add_plan_rate_option(p)
+    p.add_argument("--max-time-s", type=finite_float, default=None,
                    help="scenario duration [s] (default: 2x the path at the ego speed + 10 s)")
     p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
+    p.rename(leader_speed="--leader-speed-range-mps", brake_time="--brake-time-s",
+             brake_decel="--brake-decel-mps2", brake_to="--brake-to-mps",
+             ego_speed="--ego-speed-mps", gap="--gap-m", gap_range="--gap-range-m",
+             lane_noise="--lane-noise-m", radar_noise="--radar-noise-m",
+             max_time="--max-time-s")
     add_brake_guard_option(p)
     add_route_option(p)
     add_n74_options(p)
@@ -167,18 +304,20 @@ def add_scenario_options(parser: argparse.ArgumentParser) -> None:
 def scenario_fields(args: argparse.Namespace) -> dict:
     """The :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` fields of
     :func:`add_scenario_options`' options (all but the net, policy and scenario index)."""
-    gap = tuple(args.gap_range) if args.gap_range else (args.gap if args.gap is not None else 50.0)
+    gap = (tuple(args.gap_range_m) if args.gap_range_m
+           else (args.gap_m if args.gap_m is not None else 50.0))
     return {
         "master_seed": args.seed, "leader_kind": args.leader,
-        "leader_speed_range_mps": tuple(args.leader_speed), "brake_time_s": args.brake_time,
-        "brake_decel_mps2": args.brake_decel, "brake_to_mps": args.brake_to,
-        "ego_speed_mps": args.ego_speed, "initial_gap_m": gap,
-        "lane_noise_c0_m": args.lane_noise, "radar_noise_m": args.radar_noise,
-        "plan_rate_hz": args.plan_rate, "max_time_s": args.max_time,
-        "stop_on_flag": args.stop_on_flag, "leader_profile": args.leader_profile or "",
-        "route": tuple(args.route), "from_km": args.from_km, "to_km": args.to_km,
+        "leader_speed_range_mps": tuple(args.leader_speed_range_mps),
+        "brake_time_s": args.brake_time_s, "brake_decel_mps2": args.brake_decel_mps2,
+        "brake_to_mps": args.brake_to_mps, "ego_speed_mps": args.ego_speed_mps,
+        "initial_gap_m": gap, "lane_noise_c0_m": args.lane_noise_m,
+        "radar_noise_m": args.radar_noise_m, "plan_rate_hz": args.plan_rate_hz,
+        "max_time_s": args.max_time_s, "stop_on_flag": args.stop_on_flag,
+        "leader_profile": args.leader_profile or "", "route": tuple(args.route),
+        "from_km": args.from_km, "to_km": args.to_km,
         "traffic": "" if args.traffic == "none" else args.traffic, "lane": args.lane or "",
-        "time_gap_s": args.time_gap, "brake_guard": BRAKE_GUARD_OPTIONS[args.brake_guard],
+        "time_gap_s": args.time_gap_s, "brake_guard": args.brake_guard,
     }
 
 
@@ -207,9 +346,12 @@ def int_list(text: str) -> tuple[int, ...]:
 def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
                           helps: dict[str, str] | None = None,
                           aliases: dict[str, tuple[str, ...]] | None = None,
-                          choices: dict[str, tuple] | None = None) -> None:
+                          choices: dict[str, tuple] | None = None,
+                          names: dict[str, str] | None = None) -> None:
     """One option per field of the dataclass ``cls``, named after it (``max_epochs`` ->
-    ``--max-epochs``, plus any ``aliases``), defaulting to the field's default and typed by it:
+    ``--max-epochs``, or ``names[name]``, which renames the field's own spelling (on a
+    :class:`CommandParser`), plus any ``aliases``), defaulting to the field's default and typed
+    by it:
     a float is finite, a bool is ``--x/--no-x``, a tuple of ints is comma-separated, another
     tuple takes several values. Values are checked by ``cls.__post_init__`` when the instance is
     built (:func:`dataclass_from_args`), so each rule lives in one place. Each option's help is
@@ -217,7 +359,12 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
     defaults = cls()
     for f in dataclasses.fields(cls):
         default = getattr(defaults, f.name)
-        flags = ["--" + f.name.replace("_", "-"), *(aliases or {}).get(f.name, ())]
+        flag = "--" + f.name.replace("_", "-")
+        if f.name in (names or {}):
+            if isinstance(parser, CommandParser):
+                parser.rename(**{f.name: names[f.name]})
+            flag = names[f.name]
+        flags = [flag, *(aliases or {}).get(f.name, ())]
         text = (helps or {}).get(f.name, f.metadata.get("help", f.name))
         kw: dict = {"dest": f.name, "default": default, "help": f"{text} (default {default!r})"}
         if isinstance(default, bool):

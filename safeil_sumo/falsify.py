@@ -1,7 +1,7 @@
 """``python -m safeil_sumo.falsify``: search the closed-loop scenarios where a planner fails.
 
-    python -m safeil_sumo.falsify --policy bc --method cem --budget 2000 --batch 50 --seed 0
-    python -m safeil_sumo.falsify --policy safeil --method random --budget 2000 --out runs/f
+    python -m safeil_sumo.falsify --policy bc --method cem --budget-sims 2000 --batch 50 --seed 0
+    python -m safeil_sumo.falsify --policy safeil --method random --budget-sims 2000 --out runs/f
 
 Searches leader braking (onset, deceleration, duration), cut-ins (gap, speed), recorded NGSIM
 leader windows, the track's radius and sensor noise for the lowest min TTC among scenarios that
@@ -22,7 +22,14 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
-from safeil_sumo.cli_args import add_dataclass_options, dataclass_from_args
+from safeil_sumo.cli_args import (
+    CommandParser,
+    add_dataclass_options,
+    add_policy_option,
+    dataclass_from_args,
+    interruptible,
+    one_policy,
+)
 from safeil_sumo.experiments import falsify as fz
 from safeil_sumo.experiments import outputs
 from safeil_sumo.sweep import check_inputs
@@ -42,17 +49,23 @@ HELPS = {
 }
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m safeil_sumo.falsify",
-                                description=__doc__.split("\n")[0])
-    p.add_argument("--policy", default="safeil",
-                   help="a planner name (safeil, safeil_paper, bc, idm, analytic, ...) or a "
-                        "checkpoint path (default safeil)")
-    add_dataclass_options(p, fz.SearchConfig, helps=HELPS, choices={"method": fz.METHODS})
+def build_parser() -> CommandParser:
+    p = CommandParser("safeil_sumo.falsify", description=__doc__.split("\n")[0])
+    add_policy_option(p, ["safeil"], "a planner name (safeil, safeil_paper, bc, idm, analytic, "
+                      "...) or a checkpoint path", many=False)
+    # the budget is counted in simulations, not seconds (certify's --budget-s)
+    add_dataclass_options(p, fz.SearchConfig, helps=HELPS, choices={"method": fz.METHODS},
+                          names={"budget": "--budget-sims"})
     p.add_argument("--out", type=Path, default=None,
                    help="results folder (default runs/falsify_<policy>_<method>_s<seed>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = build_parser()
     args = p.parse_args(argv)
+    args.policy = one_policy(p, args, "search each planner in turn")
     try:
         args.config = dataclass_from_args(fz.SearchConfig, args)
     except ValueError as exc:
@@ -79,6 +92,7 @@ def report(s: dict, toml: Path | None) -> str:
     return "\n".join(lines)
 
 
+@interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:  # every net, the planner and the NGSIM library before SUMO starts

@@ -1,6 +1,6 @@
 """``python -m safeil_sumo.gap_probe``: step responses of the planners' gap regulation in SUMO.
 
-    python -m safeil_sumo.gap_probe --policies safeil idm analytic [--speeds 15 25 35]
+    python -m safeil_sumo.gap_probe --policy safeil idm analytic [--speeds-mps 15 25 35]
         [--workers 2] [--out runs/gap_probe]
 
 At each speed (default 15, 25, 35 m/s) and for each step kind (the leader pulling away by
@@ -23,20 +23,26 @@ import sys
 from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
-from safeil_sumo.cli_args import finite_float, nonnegative_int
+from safeil_sumo.cli_args import (
+    CommandParser,
+    add_policy_option,
+    finite_float,
+    interruptible,
+    nonnegative_int,
+)
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 from safeil_sumo.experiments import gap_probe as gp
 from safeil_sumo.experiments import outputs
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m safeil_sumo.gap_probe",
-                                description=__doc__.split("\n")[0].split(": ", 1)[1])
-    p.add_argument("--policies", nargs="+", default=["safeil", "idm", "analytic"],
-                   metavar="POLICY", help="safeil, safeil_paper, bc, analytic, idm, checkpoints "
-                   "or IDM model files (default: safeil idm analytic)")
-    p.add_argument("--speeds", nargs="+", type=finite_float, default=list(gp.SPEEDS_MPS),
+def build_parser() -> CommandParser:
+    p = CommandParser("safeil_sumo.gap_probe",
+                      description=__doc__.split("\n")[0].split(": ", 1)[1])
+    add_policy_option(p, ["safeil", "idm", "analytic"], "safeil, safeil_paper, bc, analytic, "
+                      "idm, checkpoints or IDM model files")
+    p.add_argument("--speeds-mps", nargs="+", type=finite_float, default=list(gp.SPEEDS_MPS),
                    metavar="V", help="probe speeds [m/s] (default 15 25 35)")
+    p.rename(speeds="--speeds-mps")
     p.add_argument("--kinds", nargs="+", choices=gp.KINDS, default=list(gp.KINDS),
                    help="step kinds (default: all four)")
     p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
@@ -49,11 +55,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="results folder (default runs/gap_probe); rerun to resume")
     p.add_argument("--retry-failed", action="store_true", help="rerun runs that failed before")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = build_parser()
     args = p.parse_args(argv)
     if args.workers < 1:
         p.error("--workers must be >= 1")
-    if any(not gp.LEADER_STEP_MPS < v <= 60.0 for v in args.speeds):
-        p.error(f"--speeds must be in ({gp.LEADER_STEP_MPS:g}, 60] m/s")
+    if any(not gp.LEADER_STEP_MPS < v <= 60.0 for v in args.speeds_mps):
+        p.error(f"--speeds-mps must be in ({gp.LEADER_STEP_MPS:g}, 60] m/s")
     if args.out.exists() and not args.out.is_dir():
         p.error(f"--out {args.out} exists and is not a folder")
     return args
@@ -77,6 +88,7 @@ def format_table(table) -> str:
     return text
 
 
+@interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     from safeil_sumo import planner_registry
@@ -84,9 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     from safeil_sumo.scenarios.spec import resolve_road
 
     try:
-        for name in dict.fromkeys(args.policies):  # fail fast, before any run
+        for name in dict.fromkeys(args.policy):  # fail fast, before any run
             planner_registry.load(name)
-        specs = gp.probe_specs(args.policies, args.speeds, args.kinds, args.seed)
+        specs = gp.probe_specs(args.policy, args.speeds_mps, args.kinds, args.seed)
         resolve_road(gp.NET, (), *gp.STRETCH_KM)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -94,10 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     humans = None
     if not args.no_humans:
         try:
-            humans = gp.human_time_gap_bands(gp.load_human_rows(args.data_dir), args.speeds)
+            humans = gp.human_time_gap_bands(gp.load_human_rows(args.data_dir), args.speeds_mps)
         except (ValueError, OSError) as exc:  # SchemaError is a ValueError
             print(f"warning: no humans' rows ({exc})", file=sys.stderr)
-    config = {"policies": args.policies, "speeds_mps": args.speeds, "kinds": args.kinds,
+    config = {"policies": args.policy, "speeds_mps": args.speeds_mps, "kinds": args.kinds,
               "net": gp.NET, "stretch_km": list(gp.STRETCH_KM),
               "leader_step_mps": gp.LEADER_STEP_MPS, "leader_rate_mps2": gp.LEADER_RATE_MPS2,
               "settle_s": gp.SETTLE_S, "after_step_s": gp.AFTER_STEP_S,

@@ -96,6 +96,10 @@ def load(name_or_path: str) -> Policy:
     if not path.is_file():
         if name_or_path in SHIPPED:
             raise PolicyError(f"the shipped {name_or_path!r} model is missing ({path})")
+        if _looks_like_path(name_or_path):  # meant as a file: say that it is not there
+            what = "is a folder, not a file" if path.is_dir() else "does not exist"
+            raise PolicyError(f"policy file {name_or_path} {what} (a checkpoint .safetensors "
+                              "or an IDM model .json)")
         raise PolicyError(
             f"unknown policy {name_or_path!r}: use one of {', '.join(NAMES)}, a checkpoint "
             "path (.safetensors) or an IDM model file (.json)"
@@ -106,6 +110,11 @@ def load(name_or_path: str) -> Policy:
         return load_policy(path)
     except Exception as exc:  # CheckpointError and friends: one clear line for the CLI
         raise PolicyError(f"cannot load policy from {path}: {exc}") from exc
+
+
+def _looks_like_path(name: str) -> bool:
+    """A policy argument meant as a file: it has a folder or a model file's suffix."""
+    return "/" in name or "\\" in name or name.endswith((".safetensors", ".json"))
 
 
 def load_for_replay(name_or_path: str) -> Policy:

@@ -1,6 +1,6 @@
 """``python -m safeil_sumo.probe``: does a planner's plan respond to its leader? (no SUMO)
 
-    python -m safeil_sumo.probe --policies safeil safeil_paper bc analytic [--out DIR]
+    python -m safeil_sumo.probe --policy safeil safeil_paper bc analytic [--out DIR]
 
 Plans once on every state of a grid (ego 15-35 m/s, leader 10 m/s slower to 5 m/s faster, bumper
 gap 8-120 m, straight centred lane) and prints per planner: the share of recoverable states whose
@@ -13,25 +13,30 @@ planner) and ``probe_states.parquet`` (every state and plan). See
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
 import pandas as pd
 
 from safeil_sumo import planner_registry as pol
+from safeil_sumo.cli_args import CommandParser, add_policy_option, interruptible
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.leader_probe import probe
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m safeil_sumo.probe", description=__doc__.split("\n")[0])
-    p.add_argument("--policies", nargs="+", default=["safeil", "safeil_paper", "bc", "analytic"],
-                   help="policy names or checkpoint paths")
+def build_parser() -> CommandParser:
+    p = CommandParser("safeil_sumo.probe", description=__doc__.split("\n")[0])
+    add_policy_option(p, ["safeil", "safeil_paper", "bc", "analytic"],
+                      "planner names or checkpoint paths")
     p.add_argument("--out", type=Path, default=None, help="folder for probe.csv (optional)")
-    args = p.parse_args(argv)
+    return p
+
+
+@interruptible
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     try:
-        loaded = {name: pol.load(name) for name in args.policies}
+        loaded = {name: pol.load(name) for name in args.policy}
     except pol.PolicyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -1,6 +1,6 @@
 """``python -m safeil_sumo.replay``: human-likeness replay of a recorded maneuver (paper IV-C/D).
 
-    python -m safeil_sumo.replay --source openacc --maneuver auto --policies analytic safeil bc
+    python -m safeil_sumo.replay --source openacc --maneuver auto --policy analytic safeil bc
 
 Imports the source (``openacc``/``zalazone``/``ngsim`` from the shared data folder, or a drive
 file in the schema of :mod:`safeil_sumo.data.schema`, e.g. a synthetic recording), runs the processing
@@ -26,9 +26,12 @@ import pandas as pd
 from safeil_sumo import api
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import (
-    BRAKE_GUARD_OPTIONS,
+    CommandParser,
     add_brake_guard_option,
+    add_plan_rate_option,
+    add_policy_option,
     finite_float,
+    interruptible,
     nonnegative_int,
 )
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
@@ -49,17 +52,16 @@ from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
 from safeil_sumo.scenarios.road import NetworkError
-from safeil_sumo.sim.brake_guard import BrakeGuard
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.loop_types import LATERAL_MODES
 from safeil_sumo.sim.sumo_api import SumoError
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m safeil_sumo.replay",
-                                description="Replay a recorded maneuver in SUMO and compare "
-                                            "the closed loop with the human.")
+def build_parser() -> CommandParser:
+    p = CommandParser("safeil_sumo.replay",
+                      description="Replay a recorded maneuver in SUMO and compare the closed "
+                                  "loop with the human.")
     p.add_argument("--source", default="openacc",
                    help="openacc (Vicolungo), zalazone (the ZalaZone handling course), ngsim, or a "
                         "drive file (Parquet/CSV in the drive schema)")
@@ -71,9 +73,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "of ids: every window of those maneuvers (see --windows)")
     p.add_argument("--windows", choices=ra.WINDOW_MODES, default="sliding",
                    help="with --maneuver all/list: the paper's 11 s from each maneuver start, "
-                        "11 s windows every --stride s (default), or whole maneuvers")
-    p.add_argument("--stride", type=finite_float, default=20.0,
-                   help="sliding windows: seconds between window starts (default 20)")
+                        "11 s windows every --stride-s s (default), or whole maneuvers")
+    p.add_argument("--stride-s", type=finite_float, default=20.0, metavar="S",
+                   help="sliding windows: time between window starts [s] (default 20)")
     p.add_argument("--workers", type=int, default=1,
                    help="with --maneuver all/list: worker processes (default 1)")
     p.add_argument("--batch", type=int, default=ra.DEFAULT_BATCH,
@@ -83,9 +85,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--held-out-of", type=Path, default=None, metavar="CHECKPOINT_JSON",
                    help="with --maneuver all: only the maneuvers this checkpoint held out of "
                         "training (its metrics.val_maneuvers)")
-    p.add_argument("--start", type=finite_float, default=0.0,
+    p.add_argument("--start-s", type=finite_float, default=0.0, metavar="S",
                    help="start [s] within the maneuver (ignored with auto)")
-    p.add_argument("--duration", type=finite_float, default=None,
+    p.add_argument("--duration-s", type=finite_float, default=None, metavar="S",
                    help="replay length [s] (default 11, the paper's; 0 = to the maneuver end); "
                         "with --maneuver all/list: the length of paper/sliding windows, or with "
                         "--windows whole a cap on each maneuver from its start (default: whole)")
@@ -96,16 +98,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "setting the less following those seconds hold; the IDM is refitted "
                         "on them; "
                         "maneuvers without 20 s left are skipped). Default 0: no adaptation")
-    p.add_argument("--policies", nargs="+", default=["analytic"],
-                   help="safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
-                        "path: the instrument's error floor), constant_speed (the initial speed "
-                        "held on the lane centre, no reaction to the leader: the naive "
-                        "baseline) and/or checkpoint paths (default analytic)")
-    p.add_argument("--rate", type=finite_float, default=10.0,
+    add_policy_option(p, ["analytic"],
+                      "safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
+                      "path: the instrument's error floor), constant_speed (the initial speed "
+                      "held on the lane centre, no reaction to the leader: the naive "
+                      "baseline) and/or checkpoint paths")
+    p.add_argument("--rate-hz", type=finite_float, default=10.0, metavar="HZ",
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
-    p.add_argument("--plan-rate", type=finite_float, default=10.0, help="re-planning rate [Hz]")
+    add_plan_rate_option(p)
     add_brake_guard_option(p)
-    p.add_argument("--time-gap", type=finite_float, default=None, metavar="S",
+    p.add_argument("--time-gap-s", type=finite_float, default=None, metavar="S",
                    help="the planners' preferred time gap [s], like an ACC's distance setting: "
                         "the style input of style-conditioned checkpoints and the IDM's T; "
                         "other planners keep theirs (default: each planner's own; not with "
@@ -125,24 +127,31 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "ffmpeg) of each policy; see python -m safeil_sumo.animate")
     p.add_argument("--out", type=Path, default=None, help="results folder "
                    "(default runs/replay_<maneuver>)")
+    p.rename(stride="--stride-s", start="--start-s", duration="--duration-s", rate="--rate-hz",
+             time_gap="--time-gap-s")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = build_parser()
     args = p.parse_args(argv)
-    if (args.duration is not None and args.duration < 0) or args.start < 0:
-        p.error("--duration and --start must be >= 0")
-    if not 0 < args.rate <= 100 or not 0 < args.plan_rate <= 100:
-        p.error("--rate and --plan-rate must be in (0, 100] Hz")
-    if args.stride <= 0 or args.workers < 1 or args.batch < 1:
-        p.error("--stride must be > 0 s, --workers >= 1 and --batch >= 1")
+    if (args.duration_s is not None and args.duration_s < 0) or args.start_s < 0:
+        p.error("--duration-s and --start-s must be >= 0")
+    if not 0 < args.rate_hz <= 100 or not 0 < args.plan_rate_hz <= 100:
+        p.error("--rate-hz and --plan-rate-hz must be in (0, 100] Hz")
+    if args.stride_s <= 0 or args.workers < 1 or args.batch < 1:
+        p.error("--stride-s must be > 0 s, --workers >= 1 and --batch >= 1")
     # an adapted replay scores whole maneuvers after their first S s: the table path, also for one
     args.many = args.maneuver == "all" or "," in args.maneuver or args.adapt_first_s > 0
-    if args.many and args.windows != "whole" and args.duration == 0:
-        p.error(f"--duration 0 (to the maneuver's end) needs one maneuver or --windows whole; "
+    if args.many and args.windows != "whole" and args.duration_s == 0:
+        p.error(f"--duration-s 0 (to the maneuver's end) needs one maneuver or --windows whole; "
                 f"{args.windows} windows need a length > 0 s")
     if args.adapt_first_s < 0 or (args.adapt_first_s and not (
             args.many and args.windows == "whole")):
         p.error("--adapt-first-s needs --windows whole (each whole maneuver is scored after "
                 "its first S s), and S >= 0 s")
-    if args.time_gap is not None and args.adapt_first_s:
-        p.error("--time-gap and --adapt-first-s exclude each other (adapting sets each "
+    if args.time_gap_s is not None and args.adapt_first_s:
+        p.error("--time-gap-s and --adapt-first-s exclude each other (adapting sets each "
                 "driver's time gap)")
     if args.held_out_of is not None and args.maneuver != "all":
         p.error("--held-out-of needs --maneuver all")
@@ -154,9 +163,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def replay_config(args: argparse.Namespace) -> rp.ReplayConfig:
     """The replay's settings from the command line: seed, time-gap setting, re-planning rate,
     brake guard and lateral mode on the default loop."""
-    config = rp.ReplayConfig(seed=args.seed, time_gap_s=args.time_gap)
-    return replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate,
-                                        brake_guard=brake_guard(args), lateral=args.lateral))
+    config = rp.ReplayConfig(seed=args.seed, time_gap_s=args.time_gap_s)
+    return replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate_hz,
+                                        brake_guard=brake_guard_when(args.brake_guard),
+                                        lateral=args.lateral))
 
 
 def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
@@ -172,19 +182,19 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
                                      f"in {args.source}")
     else:
         only = [m.strip() for m in args.maneuver.split(",") if m.strip()]
-    for name in args.policies:  # fail fast on a bad policy, before any worker starts
+    for name in args.policy:  # fail fast on a bad policy, before any worker starts
         pol.load_for_replay(name)
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
     table, agg = api.replay(
-        maneuvers, args.policies, out, only or "all", args.windows, args.workers,
-        args.duration, args.stride, config, progress=True,
-        name=str(args.source), manifest={"source": args.source, "policies": args.policies,
-                  "windows_mode": args.windows, "stride_s": args.stride,
+        maneuvers, args.policy, out, only or "all", args.windows, args.workers,
+        args.duration_s, args.stride_s, config, progress=True,
+        name=str(args.source), manifest={"source": args.source, "policies": args.policy,
+                  "windows_mode": args.windows, "stride_s": args.stride_s,
                   # as used: the window length, or the cap on whole maneuvers (None: none)
-                  "duration_s": rp.PAPER_DURATION_S if args.duration is None
-                  and args.windows != "whole" else args.duration or None,
+                  "duration_s": rp.PAPER_DURATION_S if args.duration_s is None
+                  and args.windows != "whole" else args.duration_s or None,
                   "maneuvers": only or "all", "adapt_first_s": args.adapt_first_s,
-                  "lateral": args.lateral, "time_gap_s": args.time_gap,
+                  "lateral": args.lateral, "time_gap_s": args.time_gap_s,
                   "batch": args.batch},
         batch=args.batch, adapt_first_s=args.adapt_first_s)
     failed = table.drop_duplicates(["maneuver_id", "start_s"])
@@ -201,16 +211,12 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
     return 1 if len(failed) else 0
 
 
-def brake_guard(args: argparse.Namespace) -> BrakeGuard | None:
-    """The loop's brake guard of ``--brake-guard``."""
-    return brake_guard_when(BRAKE_GUARD_OPTIONS[args.brake_guard])
-
-
+@interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         drive = load_source(args.source, args.data_dir)
-        maneuvers, _ = process_drive(drive, PipelineConfig(rate_hz=args.rate))
+        maneuvers, _ = process_drive(drive, PipelineConfig(rate_hz=args.rate_hz))
         if args.list:
             print(rp.maneuver_table(maneuvers).to_string(float_format=lambda v: f"{v:.2f}"))
             return 0
@@ -219,10 +225,10 @@ def main(argv: list[str] | None = None) -> int:
         config = replay_config(args)  # its settings checked before any SUMO starts
         if args.many:
             return main_many(args, maneuvers, config)
-        duration = rp.PAPER_DURATION_S if args.duration is None else args.duration or None
-        mid, start, rows = rp.select_maneuver(maneuvers, args.maneuver, args.start, duration)
+        duration = rp.PAPER_DURATION_S if args.duration_s is None else args.duration_s or None
+        mid, start, rows = rp.select_maneuver(maneuvers, args.maneuver, args.start_s, duration)
         policies = {}
-        for name in args.policies:
+        for name in args.policy:
             policy = pol.load_for_replay(name)
             label = name if name in ("analytic", *pol.REPLAY_ONLY, *pol.SHIPPED) else policy.name
             policies[label if label not in policies else name] = policy
@@ -235,9 +241,9 @@ def main(argv: list[str] | None = None) -> int:
         with outputs.AtomicDir(out) as tmp:
             result = rp.replay_maneuver(rows, policies, tmp, config, maneuver_id=mid)
             rp.write_replay(result, tmp, {"source": args.source, "maneuver_start_s": start,
-                                          "policies": args.policies, "rate_hz": args.rate,
+                                          "policies": args.policy, "rate_hz": args.rate_hz,
                                           "lateral": args.lateral,
-                                          "time_gap_s": args.time_gap})
+                                          "time_gap_s": args.time_gap_s})
     except (rp.ReplayError, ProfileError, NetworkError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -46,6 +46,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.cli_args import CommandParser, interruptible
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.stats import breakdown
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, comparable, run_sweep
@@ -516,7 +517,7 @@ def _whole_readme(whole: list[dict]) -> list[str]:
         "## Human-likeness over whole held-out maneuvers", "",
         "The maneuvers of the previous section (held out of the shipped SafeIL's training), each "
         "replayed from its start to its end (`python -m safeil_sumo.replay --source SOURCE "
-        "--maneuver all --windows whole --held-out-of safeil_sumo/models/safeil.json --policies "
+        "--maneuver all --windows whole --held-out-of safeil_sumo/models/safeil.json --policy "
         + " ".join(WHOLE_POLICIES) + "`). Per maneuver: the gap RMSE against the human; the "
         "spacing RMSPE, sqrt(mean(((gap − human gap) / human gap)²)), as the FollowNet benchmark "
         "(Sci Data 2023) reports it; the time-gap RMSE and the mean time-gap error (planner − "
@@ -541,7 +542,7 @@ def _unseen_readme(unseen: list[dict]) -> list[str]:
         "`../shared/data/openacc_zalazone` (24 human follower pairs in 8 car models on a "
         "handling course, 0–20 m/s; never used in training or in the IDM's calibration) "
         "replayed with `python -m safeil_sumo.replay --source zalazone --maneuver all --windows "
-        "whole --lateral lane --policies " + " ".join(WHOLE_POLICIES) + "`. `--lateral lane` "
+        "whole --lateral lane --policy " + " ".join(WHOLE_POLICIES) + "`. `--lateral lane` "
         "keeps the ego on the rebuilt lane centre at the station its own motion reached: the "
         "planners drive the gap and speed only, since the course's bends (R down to 45 m) are "
         "far tighter than any lane the networks were trained on (docs/human_likeness.md); "
@@ -822,7 +823,7 @@ def _instrument_readme(facts: dict) -> list[str]:
     lines: list[str] = []
     lines += ["## The replay's own error: the human's path replayed", "",
               ("The `recorded` pseudo-planner drives the ego along the human's own recorded "
-              "path (`python -m safeil_sumo.replay --policies recorded ...`): on a faithful "
+              "path (`python -m safeil_sumo.replay --policy recorded ...`): on a faithful "
               "digital twin it raises no flag and its gap equals the human's. Every maneuver "
               "of each source, whole. Its gap error is the floor under every planner's "
               "above. A flag the recording itself has (its TTC <= 1 s, its body over a "
@@ -1444,9 +1445,9 @@ def _section_runs(a: argparse.Namespace) -> dict[str, Callable[[], object]]:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m safeil_sumo.results", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> CommandParser:
+    p = CommandParser("safeil_sumo.results", description=__doc__,
+                      formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=REPO / "results")
     p.add_argument("--work", type=Path, default=REPO / "runs" / "results_work",
                    help="sweep task files and logs (resumable; not committed)")
@@ -1459,6 +1460,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--efficiency-scenarios", type=int, default=10)
     p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
+    return p
+
+
+@interruptible
+def main(argv: list[str] | None = None) -> int:
+    p = build_parser()
     args = p.parse_args(argv)
     if args.workers < 1 or args.large < 1 or args.grid < 1:
         p.error("--workers, --large and --grid must be >= 1")

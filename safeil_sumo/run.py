@@ -11,7 +11,6 @@ policy, prints a summary table and writes a results folder:
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
 from dataclasses import asdict
@@ -22,33 +21,35 @@ from tqdm import tqdm
 
 from safeil_sumo import animate, api, planner_registry
 from safeil_sumo.cli_args import (
-    BRAKE_GUARD_OPTIONS,
+    CommandParser,
+    add_policy_option,
     add_scenario_options,
     check_scenario_options,
+    interruptible,
     lane_for_net,
+    one_policy,
     scenario_fields,
 )
 from safeil_sumo.experiments import outputs, plots
-from safeil_sumo.scenarios.road import NetworkError
+from safeil_sumo.scenarios.road import NetworkError, Road
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
-from safeil_sumo.sim.runner import LoopConfig
-from safeil_sumo.sim.sumo_api import SumoError
+from safeil_sumo.sim.runner import LoopConfig, Scenario
+from safeil_sumo.sim.sumo_api import SumoError, has_display
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(
-        prog="python -m safeil_sumo.run",
+def build_parser() -> CommandParser:
+    p = CommandParser(
+        "safeil_sumo.run",
         description="Closed-loop safety test of a planner in SUMO (the paper's curved track).",
     )
     p.add_argument("--net", default="curved500",
                    help="curved500, straight, curved<R> (e.g. curved300), n74 (29.2 km highway "
                         "with on-ramps; see --from-km/--to-km) or a .net.xml path")
-    p.add_argument("--policy", default=None,
-                   help="safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
-                        "IDM model .json "
-                        f"(default: {planner_registry.default_policy_name()})")
+    add_policy_option(p, [planner_registry.default_policy_name()],
+                      "safeil, safeil_paper, bc, analytic, idm, a checkpoint .safetensors or an "
+                      "IDM model .json", many=False)
     add_scenario_options(p)
     p.add_argument("--backend", choices=("libsumo", "traci"), default="libsumo")
     p.add_argument("--gui", action="store_true", help="watch in sumo-gui (implies traci)")
@@ -61,17 +62,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="also write animation_<scenario>.mp4 (.gif without an ffmpeg) of these "
                         "scenarios, e.g. s0000 s0003 (no name: the first); see "
                         "python -m safeil_sumo.animate")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = build_parser()
     args = p.parse_args(argv)
+    args.policy = one_policy(p, args, "compare planners with python -m safeil_sumo.sweep "
+                                      "--policy A B ...")
     check_scenario_options(p, args, [args.net])
     args.lane = lane_for_net(args.net, args.lane)
     if args.gui_screenshot is not None and not args.gui:
         p.error("--gui-screenshot needs --gui")
     if args.gui:
-        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        if not has_display():
             p.error("--gui needs a display (DISPLAY is not set): run without --gui, or under a "
                     "virtual display, e.g. xvfb-run -a python -m safeil_sumo.run --gui ...")
         args.backend = "traci"
-    args.policy = args.policy or planner_registry.default_policy_name()
     return args
 
 
@@ -88,13 +95,57 @@ def format_table(summaries: pd.DataFrame) -> str:
     return t.to_string(index=False, float_format=lambda v: f"{v:.2f}")
 
 
+def manifest_config(args: argparse.Namespace, road: Road, scenarios: list[Scenario],
+                    loop: LoopConfig, vehicle: VehicleParams) -> dict:
+    """The run's configuration for its manifest.json."""
+    return {
+        "net": str(road.net_path), "route": list(args.route), "lane": args.lane or None,
+        "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
+        "time_gap_s": args.time_gap_s,
+        "scenarios": args.scenarios,
+        "master_seed": args.seed,
+        "leader_speed_range_mps": list(args.leader_speed_range_mps),
+        "leader": args.leader, "leader_profile": args.leader_profile,
+        "leaders": [sc.leader.label if sc.leader is not None else "traffic"
+                    for sc in scenarios],
+        "traffic": args.traffic,
+        # as given (None: the default, or a recorded leader's start), and as each scenario began
+        "ego_speed_mps": args.ego_speed_mps,
+        "ego_speeds_mps": [sc.ego_speed_mps for sc in scenarios],
+        "initial_gap_m": args.gap_m,
+        "spec": scenario_fields(args),  # every scenario option, as ScenarioSpec fields
+        "loop": asdict(loop), "vehicle": asdict(vehicle),
+        "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
+    }
+
+
+def print_report(policy_name: str, summaries: pd.DataFrame, net: str) -> None:
+    """The table and the totals printed at the end of a run."""
+    print(format_table(summaries))
+    done = int(summaries["completed"].sum())
+    flagged = int((summaries["flag"] != "").sum())
+    print(f"\n{policy_name}: {done}/{len(summaries)} scenarios completed without a flag "
+          f"({flagged} flagged), mean path completed {100 * summaries['path_completed'].mean():.1f} %")
+    if net == "n74":  # long drives: rates per distance, leaders met
+        km = float(summaries["km_driven"].sum())
+        rates = ", ".join(
+            f"{kind} {100.0 * summaries[f'{col}_events'].sum() / km:.1f}" if km > 0 else
+            f"{kind} -" for kind, col in (("TTC", "ttc"), ("lane departure", "lane_departure"),
+                                         ("collision", "collision")))
+        print(f"{km:.2f} km driven; flags per 100 km: {rates}; min TTC "
+              f"{summaries['min_ttc_s'].min():.2f} s; leaders met "
+              f"{int(summaries['leaders_met'].sum())}, cut-ins "
+              f"{int(summaries['cut_ins_met'].sum())}")
+
+
+@interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         road = api.road(args.net, args.route, args.from_km, args.to_km, args.lane)
         policy = planner_registry.load(args.policy)
-        if args.time_gap is not None:
-            policy = planner_registry.with_time_gap(policy, args.time_gap)
+        if args.time_gap_s is not None:
+            policy = planner_registry.with_time_gap(policy, args.time_gap_s)
     except (NetworkError, planner_registry.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -102,9 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     # the policy name comes from a checkpoint's sidecar: keep it one plain folder name
     default_name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{net_name}_{policy.name}_seed{args.seed}")
     out = args.out or Path("runs") / default_name
-    loop = LoopConfig(plan_rate_hz=args.plan_rate, stop_on_flag=args.stop_on_flag,
+    loop = LoopConfig(plan_rate_hz=args.plan_rate_hz, stop_on_flag=args.stop_on_flag,
                       backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot,
-                      brake_guard=brake_guard_when(BRAKE_GUARD_OPTIONS[args.brake_guard]))
+                      brake_guard=brake_guard_when(args.brake_guard))
     fields = scenario_fields(args)
     fields = {k: v for k, v in fields.items() if k not in ("master_seed", "plan_rate_hz",
                                                            "stop_on_flag", "brake_guard")}
@@ -130,23 +181,7 @@ def main(argv: list[str] | None = None) -> int:
         return 3
     summaries, steps = result.summary, result.log
 
-    config = {
-        "net": str(road.net_path), "route": list(args.route), "lane": args.lane or None,
-        "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
-        "time_gap_s": args.time_gap,
-        "scenarios": args.scenarios,
-        "master_seed": args.seed, "leader_speed_range_mps": list(args.leader_speed),
-        "leader": args.leader, "leader_profile": args.leader_profile,
-        "leaders": [sc.leader.label if sc.leader is not None else "traffic"
-                    for sc in scenarios],
-        "traffic": args.traffic,
-        # as given (None: the default, or a recorded leader's start), and as each scenario began
-        "ego_speed_mps": args.ego_speed, "ego_speeds_mps": [sc.ego_speed_mps for sc in scenarios],
-        "initial_gap_m": args.gap,
-        "spec": scenario_fields(args),  # every scenario option, as ScenarioSpec fields
-        "loop": asdict(loop), "vehicle": asdict(vehicle),
-        "sensors": asdict(scenarios[0].sensors), "monitors": asdict(scenarios[0].monitors),
-    }
+    config = manifest_config(args, road, scenarios, loop, vehicle)
     with outputs.AtomicDir(out) as tmp:
         outputs.write_tables(tmp, steps, summaries)
         outputs.write_json(tmp / "manifest.json",
@@ -158,21 +193,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.net == "n74":  # long drives: where on the route each flag started
                 plots.plot_flag_map(road, steps, tmp / "flag_map.png")
 
-    print(format_table(summaries))
-    done = int(summaries["completed"].sum())
-    flagged = int((summaries["flag"] != "").sum())
-    print(f"\n{policy.name}: {done}/{len(summaries)} scenarios completed without a flag "
-          f"({flagged} flagged), mean path completed {100 * summaries['path_completed'].mean():.1f} %")
-    if args.net == "n74":  # long drives: rates per distance, leaders met
-        km = float(summaries["km_driven"].sum())
-        rates = ", ".join(
-            f"{kind} {100.0 * summaries[f'{col}_events'].sum() / km:.1f}" if km > 0 else
-            f"{kind} -" for kind, col in (("TTC", "ttc"), ("lane departure", "lane_departure"),
-                                         ("collision", "collision")))
-        print(f"{km:.2f} km driven; flags per 100 km: {rates}; min TTC "
-              f"{summaries['min_ttc_s'].min():.2f} s; leaders met "
-              f"{int(summaries['leaders_met'].sum())}, cut-ins "
-              f"{int(summaries['cut_ins_met'].sum())}")
+    print_report(policy.name, summaries, args.net)
     errors = summaries[summaries["end_reason"] == "error"]
     for _, row in errors.iterrows():
         print(f"scenario {row['scenario']} failed: {row['error']}", file=sys.stderr)

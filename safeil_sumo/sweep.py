@@ -2,7 +2,7 @@
 
 Example (the paper's safety test for both learned policies, two local worker processes)::
 
-    python -m safeil_sumo.sweep --net curved500 curved300 --policies safeil bc \\
+    python -m safeil_sumo.sweep --net curved500 curved300 --policy safeil bc \\
         --scenarios 10 --seed 0 --safety-filter both --workers 2 --out runs/sweep
 
 Every finished task is saved at once in ``<out>/tasks/<task_id>.json``; rerunning the same
@@ -15,7 +15,7 @@ Exit codes: 0 all tasks ran, 1 some tasks failed, 2 bad arguments, 130 interrupt
 resolved arguments are written into the sweep's ``manifest.json``.
 
 ``--suite leader-response [--quick]`` runs the leader-response suite
-(:mod:`safeil_sumo.experiments.suite`) for ``--policies`` instead of the grid and writes
+(:mod:`safeil_sumo.experiments.suite`) for ``--policy`` instead of the grid and writes
 ``<out>/suite.csv`` (per policy x family: collisions, avoidable/unavoidable flags, min TTC, min
 time gap, max deceleration and jerk).
 """
@@ -30,8 +30,11 @@ from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
+    CommandParser,
+    add_policy_option,
     add_scenario_options,
     finite_float,
+    interruptible,
     scenario_fields,
 )
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
@@ -41,23 +44,36 @@ from safeil_sumo.scenarios.spec import ScenarioSpec
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
 
 
-def toml_argv(path: Path) -> list[str]:
-    """A sweep file (TOML, keys = the long options without ``--``, ``-`` or ``_``) as arguments:
-    ``workers = 2`` -> ``--workers 2``, ``policies = ["safeil", "bc"]`` -> ``--policies safeil
-    bc``, ``stop_on_flag = true`` -> ``--stop-on-flag`` (false: left out)."""
+def toml_argv(path: Path, parser: CommandParser) -> list[str]:
+    """A sweep file (TOML, keys = ``parser``'s long options without ``--``, ``-`` as ``_``) as
+    arguments: ``workers = 2`` -> ``--workers 2``, ``policy = ["safeil", "bc"]`` -> ``--policy
+    safeil bc``, ``stop_on_flag = true`` -> ``--stop-on-flag``, ``brake_guard = false`` ->
+    ``--no-brake-guard`` (a flag without a ``--no-`` form: left out). ``ValueError`` naming the
+    file and the key for a key that is no option (or an old spelling of one)."""
     import tomllib
 
     try:
         data = tomllib.loads(Path(path).read_text())
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"{path}: not a readable TOML sweep file ({exc})") from exc
+    options = parser._option_string_actions  # exact names: a key is never an abbreviation
     argv: list[str] = []
     for key, value in data.items():
         flag = "--" + key.replace("_", "-")
         if flag == "--config":
             raise ValueError(f"{path}: a sweep file cannot name another config")
+        if flag in parser.renamed:
+            new = parser.renamed[flag].removeprefix("--").replace("-", "_")
+            raise ValueError(f"{path}: key {key!r} was renamed {new!r}")
+        if flag not in options or flag in ("--help", "-h"):
+            raise ValueError(f"{path}: unknown key {key!r} (the keys are the long options of "
+                             f"{parser.prog} without '--', e.g. policy, net, scenarios)")
+        if flag in parser.switches and value in ("on", "off"):
+            raise ValueError(f"{path}: {key} = {value!r} is now {key} = "
+                             f"{'true' if value == 'on' else 'false'}")
         if isinstance(value, bool):
-            argv += [flag] if value else []
+            negated = "--no-" + flag[2:]
+            argv += [flag] if value else ([negated] if negated in options else [])
         elif isinstance(value, list):
             argv += [flag, *map(str, value)]
         elif isinstance(value, (int, float, str)):
@@ -68,36 +84,38 @@ def toml_argv(path: Path) -> list[str]:
     return argv
 
 
-def with_config(argv: list[str]) -> list[str]:
+def with_config(parser: CommandParser, argv: list[str]) -> list[str]:
     """``argv`` with a ``--config FILE``'s options in its place, before the others (flags on
-    the command line override the file's); exits with a one-line error for a bad file."""
+    the command line override the file's); a bad file, key or value is a one-line usage error
+    naming the file."""
     if "--config" not in argv:
         return argv
     i = argv.index("--config")
     if i + 1 >= len(argv):
-        print("error: --config needs a TOML file", file=sys.stderr)
-        raise SystemExit(2)
+        parser.error("--config needs a TOML file")
+    path = Path(argv[i + 1])
     try:
-        return toml_argv(Path(argv[i + 1])) + argv[:i] + argv[i + 2:]
+        from_file = toml_argv(path, parser)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
+        parser.error(str(exc))
+    parser.error_prefix = f"{path}: "  # the file's own values, parsed alone first
+    parser.parse_args(from_file)
+    parser.error_prefix = ""
+    return from_file + argv[:i] + argv[i + 2:]
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    argv = with_config(list(sys.argv[1:] if argv is None else argv))
-    p = argparse.ArgumentParser(
-        prog="python -m safeil_sumo.sweep",
+def build_parser() -> CommandParser:
+    p = CommandParser(
+        "safeil_sumo.sweep",
         description="Closed-loop scenario sweeps in SUMO (local processes or a Dask cluster).",
     )
     p.add_argument("--net", nargs="+", default=["curved500"], metavar="NET",
                    help="curved500, straight, curved<R> (e.g. curved300) or .net.xml paths")
-    p.add_argument("--policies", nargs="+", default=["safeil", "bc"], metavar="POLICY",
-                   help="safeil, safeil_paper, bc, analytic, idm, .safetensors checkpoints or IDM "
-                        "model .json files (default: safeil bc)")
+    add_policy_option(p, ["safeil", "bc"], "safeil, safeil_paper, bc, analytic, idm, "
+                      ".safetensors checkpoints or IDM model .json files")
     add_scenario_options(p)
     p.add_argument("--suite", choices=("leader-response",), default=None,
-                   help="run a named suite instead of the grid (see docs; uses --policies, "
+                   help="run a named suite instead of the grid (see docs; uses --policy, "
                         "--seed, --brake-guard, --workers, --out)")
     p.add_argument("--quick", action="store_true",
                    help="with --suite: one variant per family and net (CI)")
@@ -111,8 +129,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         f"1: one simulation per scenario (default {DEFAULT_BATCH})")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="Dask scheduler address (tcp://host:port) to run the tasks on")
-    p.add_argument("--task-timeout", type=finite_float, default=None,
+    p.add_argument("--task-timeout-s", type=finite_float, default=None, metavar="S",
                    help="local workers: kill a task after this many seconds [s]")
+    p.rename(task_timeout="--task-timeout-s")
     p.add_argument("--out", type=Path, default=Path("runs/sweep"),
                    help="results folder (default runs/sweep); rerun to resume")
     p.add_argument("--retry-failed", action="store_true", help="rerun tasks that failed before")
@@ -120,6 +139,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--config", metavar="STUDY.toml",
                    help="options from a TOML sweep file (keys = these long options, e.g. "
                         "sumo_scenarios/studies/*.toml); command-line flags override it")
+    return p
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = build_parser()
+    argv = with_config(p, list(sys.argv[1:] if argv is None else argv))
     args = p.parse_args(argv)
     args.resolved_argv = argv
 
@@ -133,8 +158,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("use either --workers (local processes) or --scheduler (a Dask cluster)")
     if args.scheduler is not None and "://" not in args.scheduler:
         p.error(f"--scheduler needs an address like tcp://host:8786, got {args.scheduler!r}")
-    if args.task_timeout is not None and args.task_timeout <= 0:
-        p.error("--task-timeout must be > 0 s")
+    if args.task_timeout_s is not None and args.task_timeout_s <= 0:
+        p.error("--task-timeout-s must be > 0")
     if args.quick and args.suite is None:
         p.error("--quick needs --suite")
     if (args.route or args.from_km is not None or args.to_km is not None
@@ -153,15 +178,15 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
         from safeil_sumo.experiments.suite import suite_specs
 
         return [replace(s, brake_guard=fields["brake_guard"])
-                for s in suite_specs(args.policies, args.seed, variants=1 if args.quick else 3)]
+                for s in suite_specs(args.policy, args.seed, variants=1 if args.quick else 3)]
     return [
         ScenarioSpec(net=net, index=index, policy=policy, safety_filter=filt, **fields)
         for net, policy, filt, index in itertools.product(
-            args.net, args.policies, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
+            args.net, args.policy, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
     ]
 
 
-def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = (),
+def check_inputs(nets: list[str], policies: list[str], profiles: list[str] = (),
                  route: tuple[str, ...] = (), from_km: float | None = None,
                  to_km: float | None = None, lane: str = "",
                  time_gap_s: float | None = None) -> None:
@@ -181,27 +206,28 @@ def check_inputs(nets: list[str], policies_: list[str], profiles: list[str] = ()
 
     for net in dict.fromkeys(nets):
         resolve_road(net, route, from_km, to_km, lane)
-    for name in dict.fromkeys(policies_):
+    for name in dict.fromkeys(policies):
         policy = planner_registry.load(name)
         if time_gap_s is not None:
             planner_registry.with_time_gap(policy, time_gap_s)
 
 
+@interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         specs = build_specs(args)
-        check_inputs(sorted({s.net for s in specs}), args.policies,
+        check_inputs(sorted({s.net for s in specs}), args.policy,
                      sorted({s.leader_profile for s in specs if s.leader_profile}),
                      tuple(args.route), args.from_km, args.to_km, args.lane or "",
-                     args.time_gap)
+                     args.time_gap_s)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
         summary = run_sweep(specs, args.out, workers=args.workers, scheduler=args.scheduler,
                             progress=not args.no_progress, retry_failed=args.retry_failed,
-                            task_timeout_s=args.task_timeout, batch=args.batch,
+                            task_timeout_s=args.task_timeout_s, batch=args.batch,
                             manifest_extra={"arguments": args.resolved_argv})
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished tasks are saved in {args.out / 'tasks'}; "

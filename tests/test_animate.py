@@ -138,7 +138,7 @@ def test_gif_has_one_frame_per_tenth_of_a_second(run_dir, tmp_path, monkeypatch)
 
 def test_cli_speed_fps_and_out(run_dir, tmp_path, capsys):
     out = tmp_path / "fast.gif"
-    assert an.main([str(run_dir), "--fps", "5", "--speed", "2", "--out", str(out)]) == 0
+    assert an.main([str(run_dir), "--fps", "5", "--speedup", "2", "--out", str(out)]) == 0
     assert f"animation: {out}" in capsys.readouterr().out
     with Image.open(out) as im:  # a frame every 0.4 s of the 3 s of s0000: 0.0 .. 2.8 s
         assert im.n_frames == 8 and im.info["duration"] == 200
@@ -156,7 +156,7 @@ def test_mp4_frames(run_dir, tmp_path):
     (["--policy", "safeil"], "a run folder (one policy): choose with --scenario"),
     (["--out", "x.avi"], ".mp4 or .gif"),
     (["--out", "x.mp4"], "an .mp4 needs ffmpeg"),
-    (["--start", "10"], "no logged time"),
+    (["--start-s", "10"], "no logged time"),
 ])
 def test_cli_bad_input_one_line(run_dir, tmp_path, capsys, monkeypatch, args, message):
     monkeypatch.setattr(an, "find_ffmpeg", lambda: None)
@@ -213,8 +213,8 @@ def test_replay_animate_each_policy(tmp_path, capsys, monkeypatch):
     drive = tmp_path / "arc.parquet"
     save_drive(arc_drive(), drive)
     out = tmp_path / "out"
-    assert replay.main(["--source", str(drive), "--maneuver", "longest", "--duration", "2",
-                        "--policies", "recorded", "--out", str(out), "--animate"]) == 0
+    assert replay.main(["--source", str(drive), "--maneuver", "longest", "--duration-s", "2",
+                        "--policy", "recorded", "--out", str(out), "--animate"]) == 0
     with Image.open(out / "animation_recorded.gif") as im:
         assert im.n_frames == 20  # the replay logs 0.01 .. 2.00 s: frames 0.01 .. 1.91 s
     ep = an.load_episode(out)

@@ -605,8 +605,8 @@ def test_cli_certifies_writes_and_checks(tmp_path, capsys) -> None:
     assert cli.main(["--policy", path, "--check"]) == 0
     assert "valid" in capsys.readouterr().out
     for argv, message in ((["--policy", "analytic"], "not a network checkpoint"),
-                          (["--policy", path, "--time-gap", "1", "2"], "no style input"),
-                          (["--policy", "nope.safetensors"], "unknown policy")):
+                          (["--policy", path, "--time-gap-range-s", "1", "2"], "no style input"),
+                          (["--policy", "nope.safetensors"], "does not exist")):
         assert cli.main([*argv, "--max-boxes", "10", "--no-progress"]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error:") and message in err and err.count("\n") == 1

@@ -13,16 +13,17 @@ from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sweep import build_specs
 from safeil_sumo.sweep import parse_args as sweep_args
 
-FLAGS = ["--scenarios", "3", "--seed", "7", "--leader", "braking", "--leader-speed", "20", "24",
-         "--brake-time", "2", "--brake-decel", "4.5", "--brake-to", "5", "--ego-speed", "26",
-         "--time-gap", "1.4", "--gap-range", "30", "40", "--lane-noise", "0.05",
-         "--radar-noise", "0.3", "--plan-rate", "5", "--max-time", "12", "--stop-on-flag",
-         "--brake-guard", "off"]
+FLAGS = ["--scenarios", "3", "--seed", "7", "--leader", "braking",
+         "--leader-speed-range-mps", "20", "24", "--brake-time-s", "2", "--brake-decel-mps2", "4.5",
+         "--brake-to-mps", "5", "--ego-speed-mps", "26",
+         "--time-gap-s", "1.4", "--gap-range-m", "30", "40", "--lane-noise-m", "0.05",
+         "--radar-noise-m", "0.3", "--plan-rate-hz", "5", "--max-time-s", "12", "--stop-on-flag",
+         "--no-brake-guard"]
 
 
 def test_run_and_sweep_read_the_same_scenario_options():
     run = scenario_fields(run_args(["--policy", "idm", *FLAGS]))
-    sweep = scenario_fields(sweep_args(["--policies", "idm", *FLAGS]))
+    sweep = scenario_fields(sweep_args(["--policy", "idm", *FLAGS]))
     assert run == sweep
     assert run["brake_decel_mps2"] == 4.5 and run["initial_gap_m"] == (30.0, 40.0)
     assert run["brake_guard"] is False and run["stop_on_flag"] is True
@@ -36,7 +37,7 @@ def test_every_spec_field_has_an_option():
 
 
 def test_sweep_specs_carry_every_option():
-    specs = build_specs(sweep_args(["--policies", "idm", "--net", "straight", *FLAGS]))
+    specs = build_specs(sweep_args(["--policy", "idm", "--net", "straight", *FLAGS]))
     assert len(specs) == 3 and [s.index for s in specs] == [0, 1, 2]
     expected = ScenarioSpec(net="straight", index=0, policy="idm",
                             **scenario_fields(sweep_args(FLAGS)))
@@ -45,7 +46,7 @@ def test_sweep_specs_carry_every_option():
 
 def test_run_reports_the_spec_rules_as_usage_errors(capsys):
     with pytest.raises(SystemExit) as exc:
-        run_args(["--plan-rate", "200"])
+        run_args(["--plan-rate-hz", "200"])
     assert exc.value.code == 2
     assert "plan rate must be in (0, 100] Hz" in capsys.readouterr().err
     with pytest.raises(SystemExit):

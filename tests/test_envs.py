@@ -535,7 +535,7 @@ def test_safeil_through_the_replay_env_reproduces_the_replay_cli(tmp_path, capsy
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
     from safeil_sumo.replay import main as replay_main
 
-    assert replay_main(["--source", "openacc", "--maneuver", "auto", "--policies", "safeil",
+    assert replay_main(["--source", "openacc", "--maneuver", "auto", "--policy", "safeil",
                         "--out", str(tmp_path / "cli")]) == 0
     want = pd.read_csv(tmp_path / "cli" / "metrics.csv").iloc[0]
     policy = planner_registry.load("safeil")

@@ -248,7 +248,7 @@ def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
     require_file(NGSIM_PAIRS)  # the search box holds recorded NGSIM leaders
     from safeil_sumo import falsify
 
-    args = ["--policy", "analytic", "--method", "cem", "--budget", "6", "--batch", "3",
+    args = ["--policy", "analytic", "--method", "cem", "--budget-sims", "6", "--batch", "3",
             "--seed", "2", "--max-time-s", "4", "--no-progress"]
     tables = []
     for name in ("a", "b"):
@@ -273,7 +273,7 @@ def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
 def test_cli_refuses_bad_options(capsys) -> None:
     from safeil_sumo import falsify
 
-    for bad in (["--method", "bayes"], ["--budget", "0"], ["--batch", "-1"]):
+    for bad in (["--method", "bayes"], ["--budget-sims", "0"], ["--batch", "-1"]):
         with pytest.raises(SystemExit) as exit_:
             falsify.parse_args(bad)
         assert exit_.value.code == 2

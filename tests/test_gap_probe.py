@@ -316,7 +316,7 @@ def test_idm_step_response_in_libsumo() -> None:
 
 def test_cli_writes_the_results(tmp_path, capsys) -> None:
     out = tmp_path / "probe"
-    code = main(["--policies", "analytic", "--speeds", "25", "--kinds", "close",
+    code = main(["--policy", "analytic", "--speeds-mps", "25", "--kinds", "close",
                  "--no-humans", "--no-progress", "--out", str(out)])
     assert code == 0
     for name in ("gap_probe.csv", "gap_probe.png", "series.parquet", "manifest.json"):
@@ -330,14 +330,14 @@ def test_cli_writes_the_results(tmp_path, capsys) -> None:
     assert manifest["config"]["speeds_mps"] == [25.0] and manifest["git_commit"]
     assert "results:" in capsys.readouterr().out
     # a rerun resumes: nothing runs again, the same table
-    assert main(["--policies", "analytic", "--speeds", "25", "--kinds", "close",
+    assert main(["--policy", "analytic", "--speeds-mps", "25", "--kinds", "close",
                  "--no-humans", "--no-progress", "--out", str(out)]) == 0
     pd.testing.assert_frame_equal(pd.read_csv(out / "gap_probe.csv"), table)
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--policies", "nosuchpolicy"], "unknown policy"),
-    (["--speeds", "55", "--kinds", "pull_away"], "beyond the probe's"),
+    (["--policy", "nosuchpolicy"], "unknown policy"),
+    (["--speeds-mps", "55", "--kinds", "pull_away"], "beyond the probe's"),
 ])
 def test_cli_bad_input_one_line(tmp_path, capsys, args, message) -> None:
     code = main([*args, "--no-humans", "--out", str(tmp_path / "x")])

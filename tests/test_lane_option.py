@@ -84,11 +84,11 @@ def test_a_lane_that_appears_later_says_where_to_start(tmp_path, capsys):
     err = _err_lines(capsys)
     assert len(err) == 1 and err[0].startswith("error:")
     assert "edge 'main0' has 2 lane(s)" in err[0] and "--route merge1" in err[0]
-    assert sweep_main([*argv, "--policies", "analytic", "--scenarios", "1",
+    assert sweep_main([*argv, "--policy", "analytic", "--scenarios", "1",
                        "--out", str(tmp_path / "s")]) == 2
     err = _err_lines(capsys)
     assert len(err) == 1 and "--route merge1" in err[0]
-    code = sweep_main(["--net", "n74", "--lane", "up", "--policies", "analytic",
+    code = sweep_main(["--net", "n74", "--lane", "up", "--policy", "analytic",
                        "--out", str(tmp_path / "s2")])
     err = _err_lines(capsys)
     assert code == 2 and len(err) == 1 and "right or left" in err[0]
@@ -113,7 +113,7 @@ def test_run_and_sweep_drive_the_left_lane_of_n74(tmp_path, capsys):
     summary = pd.read_csv(out / "summary.csv")
     assert summary["completed"].all()
     code = sweep_main(["--net", "n74", "--from-km", "0.2", "--to-km", "0.5", "--lane", "left",
-                       "--policies", "analytic", "--scenarios", "1", "--workers", "1",
+                       "--policy", "analytic", "--scenarios", "1", "--workers", "1",
                        "--no-progress", "--out", str(tmp_path / "sweep")])
     assert code == 0, capsys.readouterr().err
     table = pd.read_csv(tmp_path / "sweep" / "summary.csv")

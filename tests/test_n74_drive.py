@@ -107,7 +107,7 @@ def test_sweep_over_n74_stretches(tmp_path, capsys):
     from safeil_sumo.sweep import main as sweep_main
 
     out = tmp_path / "sweep"
-    code = sweep_main(["--net", "n74", "--from-km", "0", "--to-km", "1", "--policies",
+    code = sweep_main(["--net", "n74", "--from-km", "0", "--to-km", "1", "--policy",
                        "analytic", "--scenarios", "2", "--workers", "1", "--out", str(out),
                        "--no-progress"])
     assert code == 0, capsys.readouterr().err
@@ -115,7 +115,7 @@ def test_sweep_over_n74_stretches(tmp_path, capsys):
     assert len(summary) == 2 and summary["completed"].all()
     assert summary["km_driven"].between(0.95, 1.1).all()
     capsys.readouterr()
-    code = sweep_main(["--net", "curved500", "--traffic", "dense", "--policies", "analytic",
+    code = sweep_main(["--net", "curved500", "--traffic", "dense", "--policy", "analytic",
                        "--scenarios", "1", "--out", str(tmp_path / "bad")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "n74" in err[0]

@@ -264,7 +264,7 @@ def test_bad_net_gives_one_line_and_no_output(kind, which, tmp_path, capsys):
     if which == "run":
         code = run_main(["--net", str(net), "--policy", "analytic", "--out", str(out)])
     else:
-        code = sweep_main(["--net", str(net), "--policies", "analytic", "--out", str(out)])
+        code = sweep_main(["--net", str(net), "--policy", "analytic", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and BAD_NETS[kind] in err
     assert not out.exists()
@@ -272,7 +272,7 @@ def test_bad_net_gives_one_line_and_no_output(kind, which, tmp_path, capsys):
 
 def test_bad_net_subprocess_run_and_sweep(tmp_path):
     net = _bad_net("fewer_lanes", tmp_path)
-    for module, flag in (("safeil_sumo.run", "--policy"), ("safeil_sumo.sweep", "--policies")):
+    for module, flag in (("safeil_sumo.run", "--policy"), ("safeil_sumo.sweep", "--policy")):
         out = tmp_path / module
         code, _, err = cli(module, "--net", str(net), flag, "analytic", "--out", str(out))
         assert BAD_NETS["fewer_lanes"] in assert_one_line_error(code, err)
@@ -310,23 +310,25 @@ def test_leader_profile_unreadable_files(tmp_path):
 # -- CLI arguments out of range ------------------------------------------------------------------
 
 RUN_BAD = [
-    ["--scenarios", "-1"], ["--scenarios", "0"], ["--seed", "-1"], ["--ego-speed", "nan"],
-    ["--ego-speed", "inf"], ["--ego-speed", "-3"], ["--gap", "inf"], ["--gap", "0"],
-    ["--leader-speed", "0", "inf"], ["--leader-speed", "30", "20"], ["--plan-rate", "0"],
-    ["--plan-rate", "nan"], ["--plan-rate", "1000"], ["--scenarios", "two"],
+    ["--scenarios", "-1"], ["--scenarios", "0"], ["--seed", "-1"], ["--ego-speed-mps", "nan"],
+    ["--ego-speed-mps", "inf"], ["--ego-speed-mps", "-3"], ["--gap-m", "inf"], ["--gap-m", "0"],
+    ["--leader-speed-range-mps", "0", "inf"], ["--leader-speed-range-mps", "30", "20"],
+    ["--plan-rate-hz", "0"],
+    ["--plan-rate-hz", "nan"], ["--plan-rate-hz", "1000"], ["--scenarios", "two"],
 ]
 SWEEP_BAD = [
     ["--scenarios", "-1"], ["--workers", "-2"], ["--workers", "0"], ["--seed", "-1"],
-    ["--plan-rate", "0"], ["--ego-speed", "nan"], ["--lane-noise", "nan"],
-    ["--radar-noise", "inf"], ["--radar-noise", "-1"], ["--brake-time", "nan"],
-    ["--leader", "braking", "--brake-decel", "inf"], ["--max-time", "nan"],
-    ["--max-time", "inf"], ["--max-time", "-1"], ["--gap", "inf"], ["--gap-range", "10", "inf"],
-    ["--gap-range", "50", "10"], ["--leader-speed", "0", "inf"], ["--task-timeout", "nan"],
-    ["--task-timeout", "0"], ["--ego-speed", "1e9"], ["--scheduler", "localhost"],
+    ["--plan-rate-hz", "0"], ["--ego-speed-mps", "nan"], ["--lane-noise-m", "nan"],
+    ["--radar-noise-m", "inf"], ["--radar-noise-m", "-1"], ["--brake-time-s", "nan"],
+    ["--leader", "braking", "--brake-decel-mps2", "inf"], ["--max-time-s", "nan"],
+    ["--max-time-s", "inf"], ["--max-time-s", "-1"], ["--gap-m", "inf"],
+    ["--gap-range-m", "10", "inf"], ["--gap-range-m", "50", "10"],
+    ["--leader-speed-range-mps", "0", "inf"], ["--task-timeout-s", "nan"],
+    ["--task-timeout-s", "0"], ["--ego-speed-mps", "1e9"], ["--scheduler", "localhost"],
 ]
 REPLAY_BAD = [
-    ["--rate", "0"], ["--plan-rate", "0"], ["--plan-rate", "nan"], ["--duration", "-1"],
-    ["--duration", "inf"], ["--start", "nan"], ["--seed", "-1"], ["--rate", "500"],
+    ["--rate-hz", "0"], ["--plan-rate-hz", "0"], ["--plan-rate-hz", "nan"], ["--duration-s", "-1"],
+    ["--duration-s", "inf"], ["--start-s", "nan"], ["--seed", "-1"], ["--rate-hz", "500"],
 ]
 TRAIN_BAD = [
     ["--epochs", "-1"], ["--patience", "0"], ["--batch-size", "-3"], ["--lr", "nan"],
@@ -351,7 +353,7 @@ def test_sweep_cli_rejects_out_of_range(args, tmp_path, capsys):
     from safeil_sumo.sweep import main
 
     out = tmp_path / "out"
-    assert call_main(main, [*args, "--net", "straight", "--policies", "analytic",
+    assert call_main(main, [*args, "--net", "straight", "--policy", "analytic",
                             "--no-progress", "--out", str(out)]) == 2
     assert "Traceback" not in capsys.readouterr().err and not out.exists()
 
@@ -388,10 +390,11 @@ def test_train_cli_rejects_bad_data(kind, tmp_path):
 
 
 @pytest.mark.parametrize("module, args", [
-    ("safeil_sumo.run", ["--leader-speed", "0", "inf", "--policy", "analytic"]),  # was a traceback
-    ("safeil_sumo.sweep", ["--seed", "-1", "--policies", "analytic"]),  # was a traceback
+    # was a traceback
+    ("safeil_sumo.run", ["--leader-speed-range-mps", "0", "inf", "--policy", "analytic"]),
+    ("safeil_sumo.sweep", ["--seed", "-1", "--policy", "analytic"]),  # was a traceback
     ("safeil_sumo.sweep", ["--workers", "-1"]),
-    ("safeil_sumo.replay", ["--plan-rate", "0"]),
+    ("safeil_sumo.replay", ["--plan-rate-hz", "0"]),
 ])
 def test_cli_argument_errors_subprocess(module, args, tmp_path):
     out = tmp_path / "out"
@@ -573,8 +576,8 @@ def _task_files(out: Path) -> dict[str, str]:
 def test_sigint_keeps_finished_results_and_rerun_completes_the_rest(workers, batch, tmp_path):
     """Batched (3 per simulation), a batch's records are saved when it ends."""
     out = tmp_path / "sweep"
-    args = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policies",
-            "analytic", "--scenarios", "12", "--max-time", "4", "--workers", workers,
+    args = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policy",
+            "analytic", "--scenarios", "12", "--max-time-s", "4", "--workers", workers,
             "--batch", batch, "--no-progress", "--out", str(out)]
     # the sweep gets Ctrl-C's default handling even when the tests run in a background job
     # (a non-interactive shell starts those with SIGINT ignored, and children inherit that)
@@ -793,7 +796,7 @@ def connect(self, address):
 socket.socket.connect = connect
 socket.create_connection = lambda address, *a, **k: attempts.append(address)
 from safeil_sumo.sweep import main
-rc = main(["--net", "straight", "--policies", "analytic", "--scenarios", "1", "--max-time", "1",
+rc = main(["--net", "straight", "--policy", "analytic", "--scenarios", "1", "--max-time-s", "1",
            "--no-progress", "--out", {str(tmp_path / "out")!r}])
 print("RESULT", rc, [a for a in attempts if not isinstance(a, str)],
       any(m == "dask" or m.startswith(("dask.", "distributed")) for m in sys.modules))

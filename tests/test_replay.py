@@ -233,8 +233,8 @@ def test_cli_on_a_drive_file(tmp_path, capsys):
     path = tmp_path / "arc.parquet"
     save_drive(arc_drive(), path)
     out = tmp_path / "out"
-    code = cli.main(["--source", str(path), "--maneuver", "longest", "--duration", "10",
-                     "--policies", "analytic", "--out", str(out)])
+    code = cli.main(["--source", str(path), "--maneuver", "longest", "--duration-s", "10",
+                     "--policy", "analytic", "--out", str(out)])
     text = capsys.readouterr().out
     assert code == 0
     assert "analytic" in text and "d_lead rmse/max" in text
@@ -254,9 +254,9 @@ def test_cli_one_line_errors(tmp_path, capsys):
     assert err.count("\n") == 1 and "unknown maneuver 'nope'; available:" in err
     assert "arc#0" in err
     assert cli.main(["--source", str(tmp_path / "missing.parquet")]) == 2
-    assert cli.main(["--source", str(path), "--policies", str(tmp_path / "no.safetensors"),
+    assert cli.main(["--source", str(path), "--policy", str(tmp_path / "no.safetensors"),
                      "--out", str(tmp_path / "o")]) == 2
-    assert "unknown policy" in capsys.readouterr().err
+    assert "no.safetensors does not exist" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
@@ -361,7 +361,7 @@ def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
     src = tmp_path / "drive.parquet"
     save_drive(drive, src)
     out = tmp_path / "all"
-    args = ["--source", str(src), "--maneuver", "all", "--stride", "10", "--policies",
+    args = ["--source", str(src), "--maneuver", "all", "--stride-s", "10", "--policy",
             "analytic", "idm", "--out", str(out)]
     assert cli.main(args) == 0
     table = pd.read_csv(out / "windows.csv")
@@ -411,13 +411,13 @@ def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
                       ignore_index=True).drop(columns="maneuver_id")
     src = tmp_path / "drive.parquet"
     save_drive(drive, src)
-    base = ["--source", str(src), "--maneuver", "all", "--windows", "whole", "--policies",
+    base = ["--source", str(src), "--maneuver", "all", "--windows", "whole", "--policy",
             "analytic"]
-    # uncapped: each maneuver whole; --duration 5: each from its start for 5 s
+    # uncapped: each maneuver whole; --duration-s 5: each from its start for 5 s
     assert cli.main([*base, "--out", str(tmp_path / "whole")]) == 0
     whole = pd.read_csv(tmp_path / "whole" / "windows.csv").sort_values("duration_s")
     assert whole["duration_s"].tolist() == pytest.approx([12.0, 24.0], abs=0.15)
-    assert cli.main([*base, "--duration", "5", "--out", str(tmp_path / "capped")]) == 0
+    assert cli.main([*base, "--duration-s", "5", "--out", str(tmp_path / "capped")]) == 0
     capped = pd.read_csv(tmp_path / "capped" / "windows.csv")
     assert capped["duration_s"].tolist() == pytest.approx([5.0, 5.0], abs=1e-6)
     assert (capped["start_s"] == 0.0).all()
@@ -432,11 +432,11 @@ def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
     assert 4.9 <= res.rollouts["analytic"].log["t"].max() <= 5.0 + 1e-9
     # a cap longer than a maneuver is that maneuver whole (the same window, the same task)
     assert [w.duration_s for w in ra.windows(rows, "whole", 30.0)] == [None, None]
-    # --duration 0 (to the end) with windows of a length is refused (it silently was 11 s)
+    # --duration-s 0 (to the end) with windows of a length is refused (it silently was 11 s)
     capsys.readouterr()
     with pytest.raises(SystemExit) as exc:
-        cli.main([*base[:4], "--windows", "sliding", "--duration", "0"])
-    assert exc.value.code == 2 and "--duration 0" in capsys.readouterr().err
+        cli.main([*base[:4], "--windows", "sliding", "--duration-s", "0"])
+    assert exc.value.code == 2 and "--duration-s 0" in capsys.readouterr().err
 
 
 def test_literature_summary_by_hand() -> None:

@@ -39,7 +39,7 @@ def test_run_writes_the_results_folder(tmp_path, capsys):
         (["--net", "missing/road.net.xml"], "not found"),
         (["--net", "curved2"], "radius"),
         (["--policy", "nosuchpolicy"], "unknown policy"),
-        (["--leader-speed", "-1", "5"], "error"),
+        (["--leader-speed-range-mps", "-1", "5"], "error"),
     ],
 )
 def test_bad_input_gives_one_clear_line(tmp_path, capsys, args, message):

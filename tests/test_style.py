@@ -206,7 +206,7 @@ def test_replay_adapts_to_one_named_maneuver(tmp_path):
     _arc_rows(40.0).to_csv(drive, index=False)
     out = tmp_path / "r"
     assert replay.main(["--source", str(drive), "--maneuver", "arc#0", "--windows", "whole",
-                        "--adapt-first-s", "10", "--policies", "idm", "--out", str(out)]) == 0
+                        "--adapt-first-s", "10", "--policy", "idm", "--out", str(out)]) == 0
     table = pd.read_csv(out / "windows.csv")
     assert table["maneuver_id"].tolist() == ["arc#0"]
     assert table["start_s"].tolist() == [10.0]
@@ -291,7 +291,7 @@ def test_with_setting_sets_only_the_planners_that_have_one(tmp_path):
 
 def test_a_replay_at_a_time_gap_setting_in_sumo(tmp_path):
     """Real libsumo: the same whole maneuver replayed with the IDM set to 1.0 s and to 2.5 s
-    (``replay --time-gap``): it follows farther back at 2.5 s; the analytic planner, which has
+    (``replay --time-gap-s``): it follows farther back at 2.5 s; the analytic planner, which has
     no setting, drives the same run in both."""
     pytest.importorskip("libsumo")
     from safeil_sumo.experiments import maneuver_replay as rp
@@ -317,14 +317,14 @@ def test_replay_time_gap_is_refused_with_adaptation_or_out_of_range(capsys, tmp_
 
     with pytest.raises(SystemExit):
         replay.parse_args(["--maneuver", "all", "--windows", "whole", "--adapt-first-s", "60",
-                           "--time-gap", "1.5"])
+                           "--time-gap-s", "1.5"])
     assert "--adapt-first-s" in capsys.readouterr().err
     with pytest.raises(ValueError, match="exclude"):
         api.replay(_arc_rows(40.0), ["idm"], tmp_path, windows="whole",
                    config=rp.ReplayConfig(time_gap_s=1.5), adapt_first_s=10.0)
     drive = tmp_path / "drive.csv"
     _arc_rows(40.0).to_csv(drive, index=False)
-    assert replay.main(["--source", str(drive), "--maneuver", "arc#0", "--time-gap", "0",
+    assert replay.main(["--source", str(drive), "--maneuver", "arc#0", "--time-gap-s", "0",
                         "--out", str(tmp_path / "r")]) == 2
     assert "time gap must be in (0, 10] s" in capsys.readouterr().err
 
@@ -357,13 +357,14 @@ def test_run_time_gap_sets_the_planners_distance(tmp_path, capsys):
     gaps = {}
     for tg in (1.0, 2.5):
         out = tmp_path / f"tg{tg}"
-        assert run.main(["--net", "straight", "--policy", "idm", "--time-gap", str(tg),
-                         "--scenarios", "1", "--leader-speed", "20", "20", "--ego-speed", "20",
-                         "--gap", "40", "--no-plots", "--out", str(out)]) == 0
+        assert run.main(["--net", "straight", "--policy", "idm", "--time-gap-s", str(tg),
+                         "--scenarios", "1", "--leader-speed-range-mps", "20", "20",
+                         "--ego-speed-mps", "20",
+                         "--gap-m", "40", "--no-plots", "--out", str(out)]) == 0
         log = pd.read_parquet(out / "steps.parquet")
         gaps[tg] = float(log["gap"].iloc[-1])
     # IDM equilibrium at 20 m/s: (s0 + v T) / sqrt(1 - (v/v0)^4) grows by 1.5 s x 20 m/s
     assert gaps[2.5] - gaps[1.0] > 20.0
-    assert run.main(["--net", "straight", "--policy", "analytic", "--time-gap", "2",
+    assert run.main(["--net", "straight", "--policy", "analytic", "--time-gap-s", "2",
                      "--scenarios", "1", "--no-plots", "--out", str(tmp_path / "a")]) == 2
     assert "no time-gap setting" in capsys.readouterr().err

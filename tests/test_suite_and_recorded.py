@@ -221,8 +221,8 @@ def test_bad_profile_files_exit_2(tmp_path, capsys, bad, message) -> None:
 def test_profile_too_short_for_the_scenario(tmp_path, capsys) -> None:
     path = _profile(tmp_path / "short.csv", np.arange(0, 30, 0.1), np.full(300, 20.0))
     rl.library.cache_clear()
-    code = sweep_cli.main(["--net", "straight", "--policies", "analytic", "--leader", "recorded",
-                           "--leader-profile", path, "--max-time", "60", "--scenarios", "1",
+    code = sweep_cli.main(["--net", "straight", "--policy", "analytic", "--leader", "recorded",
+                           "--leader-profile", path, "--max-time-s", "60", "--scenarios", "1",
                            "--out", str(tmp_path / "sw"), "--no-progress"])
     assert code == 1  # the task fails with the reason recorded (the library itself is valid)
     summary = pd.read_csv(tmp_path / "sw" / "summary.csv")
@@ -275,7 +275,7 @@ def test_run_starts_the_ego_at_the_profile_speed_unless_given(tmp_path, slow_pro
     rl.library.cache_clear()
     args = ["--net", "straight", "--policy", "analytic", "--leader", "recorded",
             "--leader-profile", slow_profile, "--scenarios", "1", "--no-plots"]
-    for extra, expected in (([], 6.5), (["--ego-speed", "8"], 8.0)):
+    for extra, expected in (([], 6.5), (["--ego-speed-mps", "8"], 8.0)):
         out = tmp_path / f"run{len(extra)}"
         assert run_cli.main([*args, *extra, "--out", str(out)]) == 0
         steps = pd.read_parquet(out / "steps.parquet")
@@ -304,8 +304,8 @@ def test_sweep_and_api_resolve_the_ego_speed_alike(tmp_path, slow_profile) -> No
     # the sweep: the task's record holds the resolved speed, its spec what was asked (None: the
     # recording's start)
     out = tmp_path / "sw"
-    assert sweep_cli.main(["--net", "straight", "--policies", "analytic", "--leader", "recorded",
-                           "--leader-profile", slow_profile, "--scenarios", "1", "--max-time",
+    assert sweep_cli.main(["--net", "straight", "--policy", "analytic", "--leader", "recorded",
+                           "--leader-profile", slow_profile, "--scenarios", "1", "--max-time-s",
                            "5", "--out", str(out), "--no-progress"]) == 0
     summary = pd.read_csv(out / "summary.csv")
     assert summary["ego_speed0_mps"].iloc[0] == pytest.approx(6.5)
@@ -353,7 +353,7 @@ def test_a_speed_dropout_is_refused_by_run_and_sweep(tmp_path, capsys) -> None:
     assert "dropout.csv" in err and "falls 25.8 m/s in 0.1 s at t = 112.3 s" in err, err
     assert not out.exists()
     rl.library.cache_clear()
-    assert sweep_cli.main(["--net", "straight", "--policies", "analytic", "--leader",
+    assert sweep_cli.main(["--net", "straight", "--policy", "analytic", "--leader",
                            "recorded", "--leader-profile", str(tmp_path), "--scenarios", "1",
                            "--out", str(tmp_path / "sw"), "--no-progress"]) == 2
     err = capsys.readouterr().err

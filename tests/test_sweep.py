@@ -169,7 +169,7 @@ def test_failures_are_recorded_and_others_complete(tmp_path):
     ]
     out = run_sweep(specs, tmp_path / "out", workers=2, progress=False)
     assert list(out["status"]) == ["ok", "failed", "failed", "ok"]
-    assert out.loc[1, "error"].startswith("PolicyError: unknown policy")
+    assert out.loc[1, "error"].startswith("PolicyError: policy file")
     assert out.loc[2, "error"].startswith("NetworkError: unknown track 'no_such_track'")
 
 
@@ -223,8 +223,8 @@ def test_dask_cluster_gives_the_sequential_results(tmp_path):
 
 def test_cli_grid_breakdown_and_bad_arguments(tmp_path, capsys):
     out = tmp_path / "cli"
-    args = ["--net", "straight", "--policies", "analytic", "--scenarios", "2",
-            "--max-time", "2", "--safety-filter", "both", "--gap-range", "30", "80",
+    args = ["--net", "straight", "--policy", "analytic", "--scenarios", "2",
+            "--max-time-s", "2", "--safety-filter", "both", "--gap-range-m", "30", "80",
             "--no-progress", "--out", str(out)]
     assert sweep_main(args) == 0
     printed = capsys.readouterr().out
@@ -234,11 +234,11 @@ def test_cli_grid_breakdown_and_bad_arguments(tmp_path, capsys):
     assert np.all((summary["initial_gap_m"] >= 30) & (summary["initial_gap_m"] <= 80))
     assert {p.parent for p in out.rglob("*.json")} <= {out, out / "tasks"}
 
-    assert sweep_main(["--net", "nowhere", "--policies", "analytic", "--out", str(out)]) == 2
+    assert sweep_main(["--net", "nowhere", "--policy", "analytic", "--out", str(out)]) == 2
     assert "unknown track" in capsys.readouterr().err
-    assert sweep_main(["--policies", str(tmp_path / "x.safetensors"), "--out", str(out)]) == 2
+    assert sweep_main(["--policy", str(tmp_path / "x.safetensors"), "--out", str(out)]) == 2
     with pytest.raises(SystemExit) as exc:
-        sweep_main(["--gap", "40", "--gap-range", "30", "80"])
+        sweep_main(["--gap-m", "40", "--gap-range-m", "30", "80"])
     assert exc.value.code == 2
     with pytest.raises(SystemExit) as exc:
         sweep_main(["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"])
@@ -271,7 +271,7 @@ def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):
     one = run_sweep(specs, tmp_path / "one", workers=1, progress=False)
     batched = run_sweep(specs, tmp_path / "batched", workers=2, progress=False, batch=3)
     assert list(batched["status"]) == ["ok", "ok", "failed"] + ["ok"] * 4
-    assert batched.loc[2, "error"].startswith("PolicyError: unknown policy")
+    assert batched.loc[2, "error"].startswith("PolicyError: policy file")
     ok = one["status"] == "ok"
     pd.testing.assert_frame_equal(comparable(one[ok]), comparable(batched[ok]), check_exact=False,
                                   rtol=1e-9, atol=1e-9)

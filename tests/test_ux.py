@@ -34,7 +34,7 @@ def test_gui_without_a_display_fails_fast_with_one_line(monkeypatch, capsys, tmp
 
 
 def test_workers_die_with_a_killed_sweep(tmp_path) -> None:
-    cmd = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policies",
+    cmd = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policy",
            "analytic", "--scenarios", "40", "--workers", "2", "--no-progress", "--out",
            str(tmp_path / "sw")]
     parent = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -66,10 +66,10 @@ def test_a_toml_sweep_equals_the_same_sweep_from_flags(tmp_path, capsys) -> None
     from safeil_sumo import sweep as cli
 
     study = tmp_path / "study.toml"
-    study.write_text('net = ["straight", "curved500"]\npolicies = ["analytic"]\nscenarios = 3\n'
-                     'seed = 4\nleader = "braking"\ngap_range = [20, 60]\nstop_on_flag = true\n')
-    flags = ["--net", "straight", "curved500", "--policies", "analytic", "--scenarios", "3",
-             "--seed", "4", "--leader", "braking", "--gap-range", "20", "60", "--stop-on-flag"]
+    study.write_text('net = ["straight", "curved500"]\npolicy = ["analytic"]\nscenarios = 3\n'
+                     'seed = 4\nleader = "braking"\ngap_range_m = [20, 60]\nstop_on_flag = true\n')
+    flags = ["--net", "straight", "curved500", "--policy", "analytic", "--scenarios", "3",
+             "--seed", "4", "--leader", "braking", "--gap-range-m", "20", "60", "--stop-on-flag"]
     a = cli.build_specs(cli.parse_args(["--config", str(study)]))
     b = cli.build_specs(cli.parse_args(flags))
     assert a == b and len(a) == 6
@@ -88,12 +88,13 @@ def test_a_toml_sweep_equals_the_same_sweep_from_flags(tmp_path, capsys) -> None
     with pytest.raises(SystemExit) as exc:
         cli.parse_args(["--config", str(bad)])
     assert exc.value.code == 2
-    assert capsys.readouterr().err.startswith("error:")
+    err = capsys.readouterr().err
+    assert err.startswith(f"python -m safeil_sumo.sweep: error: {bad}: ") and err.count("\n") == 1
     unknown = tmp_path / "unknown.toml"
     unknown.write_text("nope = 1\n")
     with pytest.raises(SystemExit) as exc:
         cli.parse_args(["--config", str(unknown)])
-    assert exc.value.code == 2 and "--nope" in capsys.readouterr().err
+    assert exc.value.code == 2 and f"{unknown}: unknown key 'nope'" in capsys.readouterr().err
 
 
 def test_the_readme_python_example_runs(capsys) -> None:

@@ -9,7 +9,7 @@ population IDM's whole-maneuver gap error. This bounds what any adaptation of th
 reach: every OpenACC maneuver left out by a fold of ``training/leave_one_driver_out.py`` (its
 fold models in ``data/lodo/fold*/``, trained without that driver) is replayed in SUMO from
 ``--adapt-first-s`` to its end with the fold's ``safeil`` at each setting of ``--grid``
-(``ReplayConfig.time_gap_s``, ``replay --time-gap``), and the setting with the smallest gap
+(``ReplayConfig.time_gap_s``, ``replay --time-gap-s``), and the setting with the smallest gap
 RMSE on that scored part itself is kept: an oracle, chosen on the very seconds it is scored on.
 Beside it, the same span replayed adapted as ``replay --adapt-first-s`` does (the setting
 estimated from the first seconds).

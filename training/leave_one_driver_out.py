@@ -174,7 +174,7 @@ def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
             adapt = ["--adapt-first-s", str(ADAPT_S)] if mode == "adapted" else []
             _run([sys.executable, "-m", "safeil_sumo.replay", "--source", s, "--maneuver",
                   ",".join(held[s]), "--windows", "whole", "--workers", str(workers), *adapt,
-                  "--policies", str(fold / "safeil.safetensors"), str(fold / "idm.json"),
+                  "--policy", str(fold / "safeil.safetensors"), str(fold / "idm.json"),
                   *extra_policies, "--out", str(out)], fold / "log.txt")
             stamp.write_text(json.dumps(made_from, indent=1) + "\n")
         t = pd.read_csv(out / "windows.csv")

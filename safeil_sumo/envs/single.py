@@ -13,6 +13,7 @@ from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
 from safeil_sumo.sim.loop_types import Rollout
 from safeil_sumo.sim.stepper import LIMIT_REASONS, TERMINAL_REASONS, ClosedLoop
+from safeil_sumo.sim.sumo_api import has_display
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
@@ -27,7 +28,8 @@ class SafeILEnv(gym.Env):
     ``stop_on_flag``, ``backend``, ``brake_guard``: the loop's settings. ``render_mode``: None,
     ``"rgb_array"`` (:meth:`render` draws the animation's frame) or ``"human"`` (sumo-gui shows
     the episode as it runs, following the ego; it needs a display and runs SUMO through traci,
-    whatever ``backend`` says; :meth:`render` does nothing).
+    whatever ``backend`` says; :meth:`render` does nothing). Without a display ``"human"`` is
+    refused and not listed in the instance's ``metadata["render_modes"]``.
     """
 
     metadata: ClassVar[dict] = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
@@ -37,6 +39,12 @@ class SafeILEnv(gym.Env):
                  out_of_space: str = "clip", render_mode: str | None = None,
                  step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
                  backend: str = "libsumo", brake_guard: bool = True, **task_options) -> None:
+        if not has_display():  # Gymnasium's check_env makes an env of every mode listed
+            self.metadata = {**self.metadata, "render_modes": ["rgb_array"]}
+            if render_mode == "human":
+                raise ValueError("render_mode='human' shows the episode in sumo-gui, which needs "
+                                 "a display (DISPLAY is not set): use render_mode='rgb_array', "
+                                 "or run under a virtual display (xvfb-run -a)")
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be None or one of "
                              f"{self.metadata['render_modes']}, got {render_mode!r}")

@@ -1,6 +1,6 @@
 """Falsification: an adaptive search for the closed-loop scenarios where a planner fails.
 
-    python -m safeil_sumo.falsify --policy bc --method cem --budget 2000 --batch 50 --seed 0
+    python -m safeil_sumo.falsify --policy bc --method cem --budget-sims 2000 --batch 50 --seed 0
 
 What is searched: a point ``u`` of the unit box ``[0, 1]^D``, decoded (:func:`decode`) into a
 :class:`ScenarioSpec` of the leader-response suite's kinds (:mod:`.suite`): a scripted leader
@@ -309,22 +309,24 @@ def sweep_toml(spec: ScenarioSpec, comment: str = "") -> str:
     """A sweep file (``python -m safeil_sumo.sweep --config FILE``) that reruns exactly
     ``spec`` (a spec of :func:`decode`: index 0, no ranges drawn but the recorded window)."""
     lo, hi = spec.leader_speed_range_mps
-    keys: dict = {"net": [spec.net], "policies": [spec.policy], "scenarios": 1,
+    keys: dict = {"net": [spec.net], "policy": [spec.policy], "scenarios": 1,
                   "seed": spec.master_seed, "leader": spec.leader_kind,
-                  "leader_speed": [lo, hi], "gap": spec.initial_gap_m,
-                  "lane_noise": spec.lane_noise_c0_m, "radar_noise": spec.radar_noise_m,
-                  "max_time": spec.max_time_s}
+                  "leader_speed_range_mps": [lo, hi], "gap_m": spec.initial_gap_m,
+                  "lane_noise_m": spec.lane_noise_c0_m, "radar_noise_m": spec.radar_noise_m,
+                  "max_time_s": spec.max_time_s}
     if spec.leader_kind == "recorded":
         keys["leader_profile"] = spec.leader_profile
     else:
-        keys |= {"brake_time": spec.brake_time_s, "brake_decel": spec.brake_decel_mps2,
-                 "brake_to": spec.brake_to_mps, "ego_speed": spec.ego_speed_mps}
+        keys |= {"brake_time_s": spec.brake_time_s, "brake_decel_mps2": spec.brake_decel_mps2,
+                 "brake_to_mps": spec.brake_to_mps, "ego_speed_mps": spec.ego_speed_mps}
     if not spec.brake_guard:
-        keys["brake_guard"] = "off"
+        keys["brake_guard"] = False
 
     def fmt(v) -> str:
         if isinstance(v, list):
             return "[" + ", ".join(fmt(x) for x in v) + "]"
+        if isinstance(v, bool):
+            return "true" if v else "false"
         return f'"{v}"' if isinstance(v, str) else repr(v)
 
     head = "".join(f"# {line}\n" for line in comment.splitlines())

@@ -1,6 +1,6 @@
 """Gap-regulation probe: step responses of a planner's gap regulation, closed loop in SUMO.
 
-    python -m safeil_sumo.gap_probe --policies safeil idm analytic [--speeds 15 25 35]
+    python -m safeil_sumo.gap_probe --policy safeil idm analytic [--speeds-mps 15 25 35]
 
 Four step kinds at each speed v (the ego starts at v behind a leader at v, on n74's direction A
 from km :data:`STRETCH_KM`, right lane, no traffic; the sweep engine's scripted leaders):

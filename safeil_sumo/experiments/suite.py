@@ -1,6 +1,6 @@
 """The leader-response suite: does a planner respond to its leader like a careful driver?
 
-    python -m safeil_sumo.sweep --suite leader-response [--quick] --policies safeil idm analytic
+    python -m safeil_sumo.sweep --suite leader-response [--quick] --policy safeil idm analytic
 
 Families (each on ``straight`` and ``curved500``; ``variants`` seeded scenarios per family and
 net, from the sweep's master seed):

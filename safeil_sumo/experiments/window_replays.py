@@ -32,6 +32,7 @@ import json
 import math
 import multiprocessing as mp
 import re
+import signal
 import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -366,6 +367,7 @@ def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayCon
     from safeil_sumo.experiments.sweep_executor import _die_with_parent
 
     _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
 
     policies = {name: pol.load_for_replay(name) for name in policy_names}
     _STATE.update(maneuvers=maneuvers, config=config, tasks=tasks, tag=tag,

@@ -103,7 +103,7 @@ class CertifyResult:
     policy: str
     envelope: CertEnvelope
     properties: Properties
-    style: dict  # the style setting certified (a range with --time-gap), {} without style
+    style: dict  # the style setting certified (a range with --time-gap-range-s), {} without style
     margins: dict  # margin name -> MarginResult
     seconds: float  # [s]
     budget: Budget
@@ -114,7 +114,8 @@ class CertifyResult:
 def _style_setting(policy: MLPPolicy, env: CertEnvelope) -> tuple[bool, dict]:
     if env.time_gap_s is not None:
         if "time_gap_s" not in policy.style_names:
-            raise CertifyError(f"{policy.name} has no style input: --time-gap applies only to "
+            raise CertifyError(f"{policy.name} has no style input: --time-gap-range-s applies "
+                               "only to "
                                "style-conditioned checkpoints")
         return True, {"time_gap_s": [float(v) for v in env.time_gap_s]}
     return False, {k: float(v) for k, v in policy.style.items()}

@@ -6,7 +6,7 @@ so a style-conditioned planner takes one more input after the paper's 9 features
 ``time_gap_s``, the driver's preferred time gap [s].
 
 - in training it is estimated per maneuver from the data (:func:`estimate_time_gap`);
-- in use it is a setting (``run``/``sweep --time-gap``, default the humans' median stored in the
+- in use it is a setting (``run``/``sweep --time-gap-s``, default the humans' median stored in the
   checkpoint; clipped at ISO 15622's 0.8 s floor);
 - in replay it is estimated from the first seconds of the recording only
   (``replay --adapt-first-s``), which are then left out of the score: :func:`adapted_time_gap`

@@ -11,8 +11,8 @@ follower's state at its start (the ego starts where the human did: same speed, s
   starts at the leader's speed where the scenario starts in the profile, its first speed when
   the profile is drawn from its start, and the spec's initial gap), or a folder of such files.
 
-A speed the spec gives explicitly (``ScenarioSpec.ego_speed_mps``, ``--ego-speed``) wins over the
-recording's.
+A speed the spec gives explicitly (``ScenarioSpec.ego_speed_mps``, ``--ego-speed-mps``) wins over
+the recording's.
 
 Scenario ``index`` of a sweep draws its recording and a start time within it from its own seed
 (:func:`draw`), so it is the same alone or in any sweep. A scenario lasts what is left of the

@@ -280,7 +280,7 @@ def build_scenario(spec: ScenarioSpec, road):
     speed = float(rng.uniform(*spec.leader_speed_range_mps))  # first draw: as safety_scenario
     glo, ghi = spec.gap_range_m
     gap = float(rng.uniform(glo, ghi)) if ghi > glo else glo
-    ego_speed, max_time = spec.ego_speed_mps, spec.max_time_s
+    ego_speed, max_time, limit_reason = spec.ego_speed_mps, spec.max_time_s, "timeout"
     if spec.leader_kind == "recorded":  # the recording's leader and its follower's start
         from safeil_sumo.scenarios import recorded_leaders as rl
 
@@ -288,6 +288,9 @@ def build_scenario(spec: ScenarioSpec, road):
         leader = drawn.profile
         ego_speed = drawn.ego_speed_mps if ego_speed is None else ego_speed  # given: it wins
         gap = drawn.initial_gap_m if drawn.initial_gap_m is not None else gap
+        # the recording ends the run unless a shorter duration was asked for
+        limit_reason = ("recording_end" if drawn.duration_s < (max_time or math.inf)
+                        else "timeout")
         max_time = min(max_time or math.inf, drawn.duration_s)
     else:
         leader = leader_profile(spec, speed)
@@ -299,7 +302,7 @@ def build_scenario(spec: ScenarioSpec, road):
     return Scenario(
         name=f"s{spec.index:04d}", road=road, leader=leader,
         ego_speed_mps=ego_speed, initial_gap_m=gap, seed=seed,
-        max_time_s=max_time,
+        max_time_s=max_time, time_limit_reason=limit_reason,
         sensors=SensorConfig(lane_noise_c0_m=spec.lane_noise_c0_m,
                              radar_noise_m=spec.radar_noise_m),
         traffic=traffic,

@@ -23,6 +23,7 @@ from safeil_sumo.sim.leaders import SpeedProfile
 GUI_SCREENSHOT_AT_S = 1.0  # simulation time of LoopConfig.gui_screenshot [s]
 EGO_PLACEMENTS = ("xy", "lane")  # LoopConfig.ego_placement
 LATERAL_MODES = ("free", "lane")  # LoopConfig.lateral
+TIME_LIMIT_REASONS = ("timeout", "recording_end")  # Scenario.time_limit_reason
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,9 @@ class Scenario:
     ego_lateral_offset_m: float = 0.0  # initial front-bumper offset from the lane centre, left + [m]
     ego_heading_offset_rad: float = 0.0  # initial yaw minus lane heading [rad]
     max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
+    # the end reason at max_time_s: "timeout", or "recording_end" where the time limit is the end
+    # of a recorded leader's profile (a run that used up its recording ended normally)
+    time_limit_reason: str = "timeout"
     sensors: sen.SensorConfig = field(default_factory=sen.SensorConfig)
     monitors: mon.MonitorConfig = field(default_factory=mon.MonitorConfig)
     # SUMO's own vehicles as leaders (the radar target is SUMO's leader of the ego); no
@@ -53,6 +57,9 @@ class Scenario:
     def __post_init__(self) -> None:
         if self.traffic is not None and self.leader is not None:
             raise ValueError("a scenario with traffic has no scripted leader (leader=None)")
+        if self.time_limit_reason not in TIME_LIMIT_REASONS:
+            raise ValueError(f"time_limit_reason must be one of {TIME_LIMIT_REASONS}, got "
+                             f"{self.time_limit_reason!r}")
         if not self.ego_speed_mps >= 0:
             raise ValueError(f"ego initial speed must be >= 0 m/s, got {self.ego_speed_mps}")
         if not self.initial_gap_m > 0:

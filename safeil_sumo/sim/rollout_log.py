@@ -15,6 +15,8 @@ import pandas as pd
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim.loop_types import Rollout, Scenario
 
+COMPLETED_REASONS = ("completed", "recording_end")  # end reasons of a completed run
+
 
 def finish(scenario: Scenario, frame: pd.DataFrame, end_reason: str, error: str, wall_s: float,
            policy_name: str, leaders_met: int = 0, cut_ins: int = 0) -> Rollout:
@@ -51,7 +53,8 @@ def summarize(
         "initial_gap_m": scenario.initial_gap_m,
         "end_reason": end_reason,
         "error": error,
-        "completed": bool(end_reason == "completed" and flag.reason == ""),
+        # a recorded leader's run that used up its recording without a flag is a completed test
+        "completed": bool(end_reason in COMPLETED_REASONS and flag.reason == ""),
         "path_completed": flag.path_fraction if flag.reason else (
             float(log["path_fraction"].iloc[-1]) if n else 0.0),
         "flag": flag.reason,

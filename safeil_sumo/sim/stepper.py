@@ -98,7 +98,7 @@ SPACING_M = 1000.0
 EXTERNAL = "external"  # the policy name in the summary of a scenario planned from outside
 # end reasons of Events.terminated (the episode's own end) and Events.truncated (a limit)
 TERMINAL_REASONS = ("collision", "off_road", "flag")
-LIMIT_REASONS = ("completed", "timeout")
+LIMIT_REASONS = ("completed", "timeout", "recording_end")
 _COL = {name: i for i, name in enumerate(_Log.COLUMNS)}
 _LOGGED_FEATURES = [0, 1, 2, 3, 4, 5, 7, 8]  # c0l..c2r, v_lead, d_lead: the features logged
 # the log's columns in an Observation: floats, then flags
@@ -183,7 +183,8 @@ class Events:
 
     ended: np.ndarray  # (N,) bool: ended during this step
     end_reason: np.ndarray  # (N,) str: why each ended scenario ended ("" while running):
-    # completed (end of path), collision, off_road, flag (stop_on_flag), timeout (time limit)
+    # completed (end of path), collision, off_road, flag (stop_on_flag), timeout (time limit),
+    # recording_end (the time limit where a recorded leader's profile ends)
     lane_departure: np.ndarray  # (N,) bool: flagged at any sub-step of this step
     ttc_flag: np.ndarray  # (N,) bool: flagged at any sub-step of this step
     collision: np.ndarray  # (N,) bool: at any sub-step of this step
@@ -1131,6 +1132,8 @@ class ClosedLoop:
         for j in rows:
             r = live.runs[j]
             r.end_reason = str(reasons[j])
+            if r.end_reason == "timeout":  # or the end of its recorded leader
+                r.end_reason = r.scenario.time_limit_reason
             if ev is not None:
                 ev.ended[r.i], ev.end_reason[r.i] = True, r.end_reason
             self._running[r.i] = False

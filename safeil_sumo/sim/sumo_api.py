@@ -106,6 +106,11 @@ def sumo_binary(gui: bool = False) -> str:
     raise SumoError(f"cannot find the {name!r} executable: pip install eclipse-sumo==1.28.0")
 
 
+def has_display() -> bool:
+    """Whether a window can open (X11 or Wayland): sumo-gui needs one."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 GUI_CONNECT_RETRIES = 5  # [-] traci connection attempts (1 s apart) to a starting sumo-gui
 # --start: without it sumo-gui waits for its play button and the first traci step blocks forever;
 # --quit-on-end: without it the window stays open and traci's close() waits for the user
