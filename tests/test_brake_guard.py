@@ -12,7 +12,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safeil_sumo.scenarios.spec import ScenarioSpec
-from safeil_sumo.sim.brake_guard import BrakeGuard, guard_decel, leader_accel, required_decel
+from safeil_sumo.sim.brake_guard import (
+    BrakeGuard,
+    guard_decel,
+    leader_accel,
+    no_history,
+    required_decel,
+)
 from safeil_sumo.sim.xp import ARRAYS, FLOATS
 
 GUARD = BrakeGuard()
@@ -128,6 +134,42 @@ def test_guard_demand_acts_only_above_activation():
     assert guard_decel(15.0, 30.0, 20.0, 0.0, GUARD, FLOATS) == pytest.approx(100.0 / (2 * 10.0))
     with pytest.raises(ValueError, match="reaction_s"):
         BrakeGuard(reaction_s=-1.0)
+
+
+def test_guard_edges_by_hand():
+    """Cases found by mutation testing. A demand of exactly the activation level acts; a gap
+    below the standstill gap and the reaction distance leaves 5 cm of room (a stopped car 1 m
+    ahead at 10 m/s: 100 / (2 * 0.05) = 1000 m/s^2, the car brakes as hard as it can)."""
+    quick = BrakeGuard(reaction_s=0.0)
+    # a stopped car 8 m ahead at 6 m/s: room 6 m, 36 / 12 = 3 m/s^2 exactly
+    assert guard_decel(8.0, 6.0, 0.0, 0.0, quick, FLOATS) == 3.0
+    assert guard_decel(8.0001, 6.0, 0.0, 0.0, quick, FLOATS) == 0.0  # just below: the planner's
+    assert guard_decel(1.0, 10.0, 0.0, 0.0, GUARD, FLOATS) == pytest.approx(1000.0, rel=1e-12)
+
+
+def test_leader_accel_low_pass_and_new_target_edges():
+    """The estimate moves a quarter of the way from its last value to the raw difference
+    (alpha = 0.1 / 0.4); the range is predicted from the last one closing at 5 m/s (30 - 0.5 =
+    29.5 m): 8 m off that is the same target, more is a new one (cases found by mutation
+    testing: the earlier hand cases started from 0 and closed at 0)."""
+    # raw (19.8 - 20) / 0.1 = -2, from -1: -1 + 0.25 (-2 + 1) = -1.25
+    assert leader_accel(-1.0, 20.0, 30.0, 25.0, 19.8, 29.5, 0.1, GUARD, FLOATS) == \
+        pytest.approx(-1.25, rel=1e-12)
+    assert leader_accel(-1.0, 20.0, 30.0, 25.0, 19.8, 21.5, 0.1, GUARD, FLOATS) == \
+        pytest.approx(-1.25, rel=1e-12)  # |21.5 - 29.5| = 8: still the same car
+    assert leader_accel(-1.0, 20.0, 30.0, 25.0, 19.8, 21.4, 0.1, GUARD, FLOATS) == 0.0
+    assert leader_accel(-1.0, 20.0, 30.0, 25.0, 19.8, 37.5, 0.1, GUARD, FLOATS) == \
+        pytest.approx(-1.25, rel=1e-12)
+    assert leader_accel(-1.0, 20.0, 30.0, 25.0, 19.8, 37.6, 0.1, GUARD, FLOATS) == 0.0
+
+
+def test_no_history_is_zero_and_nans_per_scenario():
+    a, v, g, e = no_history(1, FLOATS)
+    assert a == 0.0 and all(math.isnan(x) for x in (v, g, e))
+    a, v, g, e = no_history(3, ARRAYS)
+    np.testing.assert_array_equal(a, np.zeros(3))
+    for x in (v, g, e):
+        assert x.shape == (3,) and np.isnan(x).all()
 
 
 def test_spec_json_keeps_old_task_ids():

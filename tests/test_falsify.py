@@ -128,6 +128,29 @@ def test_failure_counts_and_first_failure_skip_unavoidable_flags() -> None:
     assert fz.first_at_or_below(result, 0.5) == 3
 
 
+def test_the_closed_loop_objective_runs_the_decoded_points_in_order(monkeypatch) -> None:
+    """The glue between the search and the sweep engine: each point decoded with the policy,
+    time limit and guard setting, all run as one batch, each record scored against its own
+    spec. The engine is replaced by a recorder here: the libsumo run is the CLI test's."""
+    from safeil_sumo.experiments import sweep_executor
+
+    batches = []
+
+    def run_tasks(specs):
+        batches.append(list(specs))
+        return [{"status": "ok", "sim_time_s": s.max_time_s, "flag": "ttc" if k else "",
+                 "min_ttc_s": 0.5 if k else 3.0} for k, s in enumerate(specs)]
+
+    monkeypatch.setattr(sweep_executor, "run_tasks", run_tasks)
+    u = np.random.default_rng(2).random((3, fz.DIM))
+    outcomes = fz.closed_loop_objective("bc", max_time_s=12.0, brake_guard=False)(u)
+    assert batches == [[fz.decode(x, "bc", 12.0, False) for x in u]]
+    assert outcomes == [fz.outcome_of(s, r) for s, r in zip(batches[0], run_tasks(batches[0]),
+                                                              strict=True)]
+    fz.closed_loop_objective("idm")(u[:1])
+    assert batches[-1] == [fz.decode(u[0], "idm", 30.0, True)]
+
+
 # -------------------------------------------------------------------------- the search box
 
 

@@ -124,7 +124,7 @@ def test_probe_extras_of_a_hand_built_log() -> None:
     from types import SimpleNamespace
 
     spec = gp.probe_spec("idm", "pull_away", 15.0, settle_s=60.0, after_s=90.0)
-    t = np.round(np.arange(0.0, 150.0 + 0.05, 0.1), 10)
+    t = np.round(np.arange(0.1, 150.0 + 0.05, 0.1), 10)
     gap = first_order(t, 60.0, 15.0, 30.0, 5.0) + 0.0004
     log = pd.DataFrame({"t": t, "gap": gap, "v": np.full_like(t, 15.0),
                         "leader_v": np.where(t < 60.0, 15.0, 18.0)})
@@ -133,15 +133,44 @@ def test_probe_extras_of_a_hand_built_log() -> None:
     assert ran["kind"] == "pull_away" and ran["step_time_s"] == 60.0 and want["settled"]
     for key, value in want.items():
         assert ran[key] == value or (math.isnan(value) and math.isnan(ran[key])), key
-    assert ran["series_t"][:3] == [0.4, 0.9, 1.4] and len(ran["series_t"]) == len(t) // 5
+    assert ran["series_t"][:3] == [0.5, 1.0, 1.5] and len(ran["series_t"]) == len(t) // 5
     assert ran["series_gap"][0] == round(gap[4], 3) == 15.0
     assert ran["series_leader_v"][-1] == 18.0 and ran["series_v"] == [15.0] * (len(t) // 5)
     # the same log ended by a collision: the same metrics, but not settled
     hit = gp.probe_extras(spec, SimpleNamespace(log=log, summary={"end_reason": "collision"}))
     assert hit["settled"] is False and hit["settling_time_s"] == ran["settling_time_s"]
-    # a log of one row: only the kind
+    # a log of one row: only the kind; of two rows: metrics and series
     one = gp.probe_extras(spec, SimpleNamespace(log=log.iloc[:1], summary={}))
     assert one == {"kind": "pull_away"}
+    two = gp.probe_extras(spec, SimpleNamespace(log=log.iloc[-2:], summary={}))
+    assert two["series_t"] == [] and two["min_gap_m"] == pytest.approx(30.0, abs=1e-3)
+    # a log of 1 s steps: every row is kept (the stride is never below 1)
+    coarse = log.iloc[9::10]
+    kept = gp.probe_extras(spec, SimpleNamespace(log=coarse, summary={}))
+    assert kept["series_t"] == [round(x, 3) for x in coarse["t"]]
+
+
+def test_run_step_runs_its_probe_spec_once_checked(monkeypatch) -> None:
+    """The glue of one step response: the probe's spec, checked to fit the stretch, run as a
+    probe task (the engine replaced by a recorder; the libsumo run is the IDM test's)."""
+    ran = []
+    monkeypatch.setattr(gp, "probe_task", lambda spec: ran.append(spec) or {"status": "ok"})
+    assert gp.run_step("idm", "slow_down", 20.0, seed=4, settle_s=30.0, after_s=50.0) == {
+        "status": "ok"}
+    assert ran == [gp.probe_spec("idm", "slow_down", 20.0, 4, 30.0, 50.0)]
+    gp.run_step("bc", "far", 15.0)
+    assert ran[-1] == gp.probe_spec("bc", "far", 15.0, 0, gp.SETTLE_S, gp.AFTER_STEP_S)
+    with pytest.raises(ValueError):  # 2 hours at 35 m/s do not fit the stretch
+        gp.run_step("idm", "pull_away", 35.0, after_s=7200.0)
+    assert len(ran) == 2
+
+
+def test_probe_specs_are_every_policy_speed_and_kind() -> None:
+    got = gp.probe_specs(["idm", "safeil"], speeds=(15.0, 25.0), kinds=("far", "close"), seed=3)
+    want = [gp.probe_spec(p, k, v, 3) for p in ("idm", "safeil") for v in (15.0, 25.0)
+            for k in ("far", "close")]
+    assert got == want and got[0].master_seed == 3
+    assert gp.probe_specs(["idm"], speeds=(15.0,), kinds=("far",))[0].master_seed == 0
 
 
 def test_not_settled_drift_and_time_gap_edges() -> None:

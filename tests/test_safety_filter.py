@@ -123,6 +123,26 @@ def test_wrapper_counts_interventions() -> None:
     assert filt.intervention_rate == pytest.approx(0.6)
 
 
+def test_wrapper_filters_in_its_own_mode() -> None:
+    """On a curve the two modes filter a drifting plan differently; the wrapper's plan is its
+    mode's (a case found by mutation testing: the mode was not passed on)."""
+    f = planner_features([1.75, 0.0, 1 / 1000], [-1.75, 0.0, 1 / 1000], 30.0, 30.0, 100.0)
+    x = 30.0 * bspline.control_point_times(5.0)
+    plan = np.stack([x, np.array([0.5, 1.5, 3.0])], axis=-1)
+
+    class Drifting:
+        name, horizon = "drifting", 5.0
+
+        def plan(self, features: np.ndarray) -> np.ndarray:
+            return plan
+
+    by_mode = {m: project_plan(f, plan, 5.0, mode=m)[0] for m in ("control_points", "bernstein")}
+    assert not np.allclose(by_mode["control_points"], by_mode["bernstein"])
+    for mode, want in by_mode.items():
+        np.testing.assert_array_equal(SafetyFiltered(Drifting(), mode=mode).plan(f), want)
+    np.testing.assert_array_equal(SafetyFiltered(Drifting()).plan(list(f)), by_mode["bernstein"])
+
+
 # ---------------------------------------------------------------- mode="bernstein" (the default)
 
 def _bernstein_ok(features, plan, safe_set, tol=TOL) -> bool:

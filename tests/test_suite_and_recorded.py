@@ -244,6 +244,49 @@ def test_recorded_ngsim_library_from_the_shared_data() -> None:
 # ------------------------------------------------------------------------------------ suite
 
 
+def test_the_suite_families_by_hand() -> None:
+    """Each family's scenario as the module doc describes it, on each net and variant; the index
+    encodes family, net and variant (cases found by mutation testing: only the libsumo run of
+    the quick suite built these specs)."""
+    def want(family: str, net: str, variant: int, **fields) -> ScenarioSpec:
+        index = {"approach": 10_000, "braking": 20_000, "cut_in": 30_000, "stop_and_go": 40_000,
+                 "accelerating": 50_000}[family] + {"straight": 0, "curved500": 1000}[net]
+        return ScenarioSpec(net=net, index=index + variant, master_seed=7, policy="idm",
+                            max_time_s=40.0, **fields)
+
+    for net in ("straight", "curved500"):
+        for v in range(4):
+            got = {f: suite.family_specs(f, net, v, "idm", 7) for f in suite.FAMILIES}
+            assert got["approach"] == want("approach", net, v, initial_gap_m=145.0,
+                                           leader_speed_range_mps=(15.0, 25.0))
+            assert got["braking"] == want("braking", net, v, leader_kind="braking",
+                                          brake_time_s=5.0, brake_to_mps=0.0,
+                                          brake_decel_mps2=(2.0, 4.0, 6.0, 2.0)[v])
+            assert got["cut_in"] == want("cut_in", net, v, initial_gap_m=(10.0, 25.0),
+                                         leader_speed_range_mps=(22.0, 27.0))
+            assert got["stop_and_go"] == want("stop_and_go", net, v, leader_kind="recorded",
+                                              leader_profile="ngsim")
+            assert got["accelerating"] == want(
+                "accelerating", net, v, leader_kind="accelerating",
+                leader_speed_range_mps=(18.0, 22.0), brake_time_s=3.0, brake_decel_mps2=1.5,
+                brake_to_mps=32.0, ego_speed_mps=20.0, initial_gap_m=30.0)
+            for family, spec in got.items():
+                assert suite.family_of(spec.index) == family
+    assert suite.family_specs("approach", "straight", 0, "idm", 7, max_time_s=12.0
+                              ).max_time_s == 12.0
+    with pytest.raises(ValueError, match="unknown family 'merge'"):
+        suite.family_specs("merge", "straight", 0, "idm", 0)
+
+
+def test_suite_specs_are_every_policy_family_net_and_variant() -> None:
+    got = suite.suite_specs(["idm", "bc"], seed=5, variants=2)
+    assert len(got) == 2 * 5 * 2 * 2
+    assert got == [suite.family_specs(f, n, v, p, 5) for p in ("idm", "bc")
+                   for f in suite.FAMILIES for n in suite.NETS for v in range(2)]
+    assert suite.suite_specs(["idm"], families=("braking",), nets=("straight",)) == [
+        suite.family_specs("braking", "straight", v, "idm", 0) for v in range(3)]
+
+
 def test_quick_suite_runs_every_family_in_libsumo(tmp_path) -> None:
     specs = suite.suite_specs(["analytic"], seed=0, variants=1)
     assert len(specs) == len(suite.FAMILIES) * len(suite.NETS)

@@ -42,6 +42,8 @@ FAMILY_BASE = {name: 10_000 * (k + 1) for k, name in enumerate(FAMILIES)}
 def family_specs(family: str, net: str, variant: int, policy: str, seed: int,
                  max_time_s: float = 40.0) -> ScenarioSpec:
     """One scenario of ``family`` on ``net``; the index encodes the family and net."""
+    if family not in FAMILY_BASE:
+        raise ValueError(f"unknown family {family!r}; families: {', '.join(FAMILIES)}")
     index = FAMILY_BASE[family] + 1000 * NETS.index(net) + variant
     common = {"net": net, "index": index, "master_seed": seed, "policy": policy,
               "max_time_s": max_time_s}
@@ -56,11 +58,9 @@ def family_specs(family: str, net: str, variant: int, policy: str, seed: int,
                             **common)
     if family == "stop_and_go":
         return ScenarioSpec(leader_kind="recorded", leader_profile="ngsim", **common)
-    if family == "accelerating":
-        return ScenarioSpec(leader_kind="accelerating", leader_speed_range_mps=(18.0, 22.0),
-                            brake_time_s=3.0, brake_decel_mps2=1.5, brake_to_mps=32.0,
-                            ego_speed_mps=20.0, initial_gap_m=30.0, **common)
-    raise ValueError(f"unknown family {family!r}; families: {', '.join(FAMILIES)}")
+    return ScenarioSpec(leader_kind="accelerating", leader_speed_range_mps=(18.0, 22.0),
+                        brake_time_s=3.0, brake_decel_mps2=1.5, brake_to_mps=32.0,
+                        ego_speed_mps=20.0, initial_gap_m=30.0, **common)
 
 
 def suite_specs(policies: list[str], seed: int = 0, variants: int = 3,
