@@ -95,6 +95,7 @@ def _braking_spec(gap_m: float) -> ScenarioSpec:
     (80.0, "collision", 0.0, True, True),  # braking at 6 m/s^2 from the start saves it
     (80.0, "ttc", 0.4, True, True),
     (80.0, "", 2.5, False, True),
+    (80.0, "lane_departure", 1.0, True, True),  # a flag scores at most 1 s, whatever its TTC
 ])
 def test_a_flagged_run_counts_as_a_failure_only_if_braking_could_avoid_it(
         gap_m, flag, score, failure, avoidable) -> None:
@@ -102,7 +103,7 @@ def test_a_flagged_run_counts_as_a_failure_only_if_braking_could_avoid_it(
     could have avoided is excluded (score inf), never counted as a failure (a case found by
     mutation testing: failure = flagged alone passed the whole suite)."""
     spec = _braking_spec(gap_m)
-    min_ttc = {"collision": 0.0, "ttc": 0.4, "": 2.5}[flag]
+    min_ttc = {"collision": 0.0, "ttc": 0.4, "": 2.5, "lane_departure": 4.0}[flag]
     record = {"status": "ok", "sim_time_s": 20.0, "flag": flag, "min_ttc_s": min_ttc}
     out = fz.outcome_of(spec, record)
     assert (out.score, out.failure, out.avoidable, out.flag) == (score, failure, avoidable, flag)
@@ -110,6 +111,7 @@ def test_a_flagged_run_counts_as_a_failure_only_if_braking_could_avoid_it(
     # a run that did not run is excluded and is no failure
     err = fz.outcome_of(spec, {"status": "error", "error": "boom"})
     assert (err.score, err.failure, err.avoidable, err.error) == (math.inf, False, False, "boom")
+    assert fz.outcome_of(spec, {"status": "timeout"}).error == ""
 
 
 def test_failure_counts_and_first_failure_skip_unavoidable_flags() -> None:

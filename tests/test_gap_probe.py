@@ -277,6 +277,61 @@ def test_step_specs() -> None:
         gp.check_fits(gp.probe_spec("idm", "pull_away", 55.0))
 
 
+def test_step_spec_edges_by_hand() -> None:
+    """Cases found by mutation testing: the speed range and its message, the stretch and task
+    index, a slow_down to exactly 0 m/s (allowed), the step time of a braking leader, the
+    leader's distance exactly (the 0.1 s grid holds the ramp's kinks) and the fit's edge."""
+    from dataclasses import replace
+
+    from safeil_sumo.sim.vehicle import VehicleParams
+
+    car = VehicleParams.length_m
+    for bad in (0.0, 100.0, -1.0):
+        with pytest.raises(ValueError, match=rf"probe speed must be in \(0, 100\) m/s, got {bad}"):
+            gp.probe_spec("idm", "far", bad)
+    low = gp.probe_spec("idm", "far", 0.5)
+    assert (low.from_km, low.to_km, low.net) == (1.0, 8.0, "n74")
+    assert gp.probe_spec("idm", "close", 15.25).index == 40_000 + 1525
+    assert gp.probe_spec("idm", "slow_down", 3.0).brake_to_mps == 0.0
+    with pytest.raises(ValueError, match="slow_down at 2.9 m/s would need a negative leader "
+                                         "speed: use speeds above 3 m/s"):
+        gp.probe_spec("idm", "slow_down", 2.9)
+    with pytest.raises(ValueError, match="kinds: pull_away, slow_down, far, close"):
+        gp.initial_gap_m("sideways", 25)
+    assert gp.step_time_s(gp.probe_spec("idm", "slow_down", 15.0)) == 60.0
+    pull = gp.probe_spec("idm", "pull_away", 25.0)
+    # 37.5 m + a car + 60 s at 25 + the 3 s ramp at 26.5 on average + 87 s at 28
+    assert gp.leader_distance_m(pull) == pytest.approx(37.5 + car + 4015.5, abs=1e-6)
+    far = gp.probe_spec("idm", "far", 25.0)
+    assert gp.leader_distance_m(replace(far, max_time_s=None)) == 100.0 + car
+    wide = replace(far, leader_speed_range_mps=(20.0, 30.0), max_time_s=10.0)
+    assert gp.leader_distance_m(wide) == pytest.approx(100.0 + car + 200.0, abs=1e-9)
+    # the fit's edge: a need of exactly the 7 km stretch fits; a millimetre more does not
+    need = gp.leader_distance_m(pull)
+    gp.check_fits(pull, margin_m=7000.0 - need)
+    with pytest.raises(ValueError) as err:
+        gp.check_fits(pull, margin_m=7000.001 - need)
+    assert str(err.value) == (
+        f"pull_away at 25 m/s: the leader would drive 7.0 km (with {7000.001 - need:g} m "
+        "margin), beyond the probe's 7 km n74 stretch: use lower speeds")
+
+
+def test_first_crossing_and_window_mean_by_hand() -> None:
+    t = np.array([5.0, 6.0, 8.0, 9.0])
+    # at the first sample already: its time, not the next one's
+    assert gp._first_crossing(t, np.array([0.5, 0.6, 0.9, 1.0]), 0.5) == 5.0
+    # the first crossing, interpolated between 6 s and 8 s: 6 + (0.5 - 0.2) / 0.6 * 2 = 7
+    assert gp._first_crossing(t, np.array([0.0, 0.2, 0.8, 1.0]), 0.5) == pytest.approx(7.0,
+                                                                                      abs=1e-12)
+    # reaching the level exactly on a plateau: the plateau's first sample
+    assert gp._first_crossing(t, np.array([0.0, 0.5, 0.5, 1.0]), 0.5) == 6.0
+    assert math.isnan(gp._first_crossing(t, np.array([0.0, 0.1, 0.2, 0.3]), 0.5))
+    # the mean over the last 2 s takes the sample exactly 2 s before the end
+    tt = np.arange(5.0)
+    assert gp.window_mean(tt, np.array([0.0, 0.0, 10.0, 20.0, 30.0]), 2.0) == 20.0
+    assert gp.window_mean(tt, np.array([0.0, 0.0, 10.0, math.nan, 30.0]), 2.0) == 20.0
+
+
 def _record(**over):
     base = {"policy": "p", "index": gp.KIND_BASE["far"] + 2500, "leader_speed_low_mps": 25.0,
             "eq_time_gap_s": 1.0, "min_time_gap_s": 0.9, "settling_time_s": 20.0,
