@@ -117,6 +117,62 @@ def test_settling_time_on_a_coarse_grid_exactly() -> None:
     assert math.isnan(gp.settling_time(t, y, 0.0, math.inf))
 
 
+def test_rise_and_overshoot_edges_on_a_coarse_grid() -> None:
+    """1 s samples, the step at 3 s (cases found by mutation testing: the sample at the step
+    belongs to the response, the one before it does not; a change of exactly min_change counts;
+    no sample after the step or an infinite final value is no response)."""
+    t = np.arange(11.0)
+    ramp = np.array([0, 0, 5, 0, 2, 4, 6, 8, 10, 10, 10], float)
+    # 10 % between 3 s (0) and 4 s (2): 3.5 s; 90 % between 7 s (8) and 8 s (10): 7.5 s
+    assert gp.rise_time(t, ramp, 3.0, 10.0) == pytest.approx(4.0, abs=1e-12)
+    unit = ramp / 10.0  # a change of exactly 1 m
+    assert gp.rise_time(t, unit, 3.0, 1.0) == pytest.approx(4.0, abs=1e-12)
+    assert math.isnan(gp.rise_time(t, unit, 3.0, 0.99))
+    assert math.isnan(gp.rise_time(t, ramp, 11.0, 10.0))
+    up = np.array([0, 0, 9.5, 0, 9.5, 12, 11, 10, 10, 10, 10], float)
+    assert gp.overshoot(t, up, 3.0, 10.0) == 2.0
+    assert gp.overshoot(t, np.array([0, 0, 9.5, 0, 1.5, 1, 1, 1, 1, 1, 1], float), 3.0,
+                        1.0) == 0.5
+    assert math.isnan(gp.overshoot(t, up, 11.0, 10.0))
+    assert math.isnan(gp.overshoot(t, up, 3.0, math.inf))
+    # settling from a step at 3 s: the sample at 3 s is out (11.5), so 1 s; from 3.5 s: 0
+    y = np.array([20.0, 15.0, 12.0, 11.5, 10.5, 10.0, 9.0, 11.0, 10.0, 10.0, 10.0])
+    assert gp.settling_time(t, y, 3.0, 10.0) == 1.0
+    assert gp.settling_time(t, y, 3.5, 10.0) == 0.0
+
+
+def test_response_metrics_edges_on_a_coarse_grid() -> None:
+    """1 s samples, the step at 5 s: the gap is 40 m until 19 s (100 m at 4 s, before the
+    step), then 20 m, opening by 0.1 m/s from 40 s; the ego at 20 m/s."""
+    import warnings
+
+    t = np.arange(61.0)
+    gap = np.where(t < 20, 40.0, 20.0) + np.where(t >= 40, 0.1 * (t - 40), 0.0)
+    gap[4] = 100.0
+    v = np.full_like(t, 20.0)
+    m = gp.response_metrics(t, gap, v, 5.0, window_s=5.0, band=0.3, hold_s=40.0)
+    # the last 5 s: 21.5 .. 22 m, mean 21.75; in the 30 % band from 20 s: 15 s after the step,
+    # held for 60 - 5 - 15 = 40 s exactly
+    assert m["final_gap_m"] == pytest.approx(21.75, abs=1e-12)
+    assert m["drift_m"] == pytest.approx(0.5, abs=1e-12)
+    assert m["settling_time_s"] == 15.0 and m["settled"] is True
+    assert m["final_speed_mps"] == 20.0 and m["max_gap_m"] == 40.0 and m["min_gap_m"] == 20.0
+    assert not gp.response_metrics(t, gap, v, 5.0, window_s=5.0, band=0.3, hold_s=40.5)[
+        "settled"]
+    assert not gp.response_metrics(t, gap, v, 5.0, window_s=5.0, band=0.3, hold_s=45.0)[
+        "settled"]
+    # the default band (10 %) and window (15 s): settled only once the ramp's tail is inside
+    assert gp.response_metrics(t, gap, v, 5.0)["drift_m"] == pytest.approx(1.5, abs=1e-12)
+    # a gap of exactly the radar's range is still seen
+    at_range = gp.response_metrics(t, np.full_like(t, gp.RADAR_RANGE_M), v, 5.0)
+    assert at_range["beyond_radar"] is False
+    # an ego too slow for a time gap all along: NaN, without a warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        slow = gp.response_metrics(t, gap, np.full_like(t, 0.5), 5.0)
+    assert math.isnan(slow["min_time_gap_s"]) and math.isnan(slow["eq_time_gap_s"])
+
+
 def test_probe_extras_of_a_hand_built_log() -> None:
     """What a probe task keeps: the kind, the response metrics of its log from the step (60 s
     for pull_away), ``settled`` only for a run that ran out its time, and the series at 2 Hz

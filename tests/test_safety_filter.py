@@ -141,6 +141,8 @@ def test_wrapper_filters_in_its_own_mode() -> None:
     for mode, want in by_mode.items():
         np.testing.assert_array_equal(SafetyFiltered(Drifting(), mode=mode).plan(f), want)
     np.testing.assert_array_equal(SafetyFiltered(Drifting()).plan(list(f)), by_mode["bernstein"])
+    with pytest.raises(ValueError, match="mode must be one of .*, got 'clip'"):
+        SafetyFiltered(Drifting(), mode="clip")
 
 
 # ---------------------------------------------------------------- mode="bernstein" (the default)
