@@ -153,6 +153,24 @@ def test_the_closed_loop_objective_runs_the_decoded_points_in_order(monkeypatch)
     assert batches[-1] == [fz.decode(u[0], "idm", 30.0, True)]
 
 
+def test_avoidability_is_judged_on_the_physics_grid_from_0_to_the_horizon() -> None:
+    """The leader's speed is read at 0, 0.01, ..., the horizon (both ends included, nothing
+    beyond): the braking reference starts with the run (cases found by mutation testing)."""
+    seen = []
+
+    def leader(t: np.ndarray) -> float:
+        seen.append(np.array(t))
+        return 20.0  # a scalar speed: a constant leader
+
+    assert fz.avoidable(leader, 60.0, 30.0, 2.0)
+    np.testing.assert_allclose(seen[0], np.arange(201) * 0.01, rtol=0, atol=1e-12)
+    assert len(seen[0]) == 201 and seen[0][0] == 0.0
+    fz.avoidable(leader, 60.0, 30.0, 0.001)  # a horizon below one step still takes one step
+    np.testing.assert_allclose(seen[1], [0.0, 0.01], rtol=0, atol=1e-15)
+    fz.avoidable(leader, 60.0, 30.0, 2.0, step_s=0.5)
+    np.testing.assert_array_equal(seen[2], [0.0, 0.5, 1.0, 1.5, 2.0])
+
+
 # -------------------------------------------------------------------------- the search box
 
 
