@@ -4,6 +4,9 @@
     python tools/mutation.py run               # ~50 min on one core; mutants/ holds the results
     python tools/mutation.py report            # counts, kill rate, the survivors left to judge
     python tools/mutation.py run "safeil_sumo.idm.*"   # re-run a part (fnmatch on mutant names)
+    python tools/mutation.py run --safety --workers 2  # the safety-critical modules
+    python tools/mutation.py judge NAME... --why "..."  # survivors judged equivalent
+    python tools/mutation.py record            # the safety modules' kill rates and code digests
 
 mutmut reads its settings (files to mutate, the fast unit tests to run) from ``setup.cfg``; this
 script adds the function scope (SCOPE below: whole files, and the named functions of the larger
@@ -249,18 +252,41 @@ def record() -> int:
     return 0
 
 
+def judge(names: list[str], reason: str) -> int:
+    """Add ``names`` (mutants that survived) to the equivalents file with their function's
+    current hash and ``reason``."""
+    codes, hashes = load_results(tuple(names))
+    known = load_equivalent()
+    rows = []
+    for name in names:
+        if codes.get(name) not in SURVIVED:
+            print(f"{name}: not a survivor of the last run", file=sys.stderr)
+            return 2
+        if name not in known:
+            rows.append(f"{name}\t{hashes[function_of(name)]}\t{reason}\n")
+    with EQUIVALENT.open("a") as f:
+        f.writelines(rows)
+    print(f"{len(rows)} judged equivalent")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("command", choices=("run", "report", "record"))
+    ap.add_argument("command", choices=("run", "report", "record", "judge"))
     ap.add_argument("patterns", nargs="*", help="fnmatch patterns of mutant names (default: "
                     "the whole scope)")
     ap.add_argument("--workers", type=int, default=1, help="mutants run at once (default 1: "
                     "the machine's cores are shared)")
     ap.add_argument("--safety", action="store_true", help="only the safety-critical modules")
+    ap.add_argument("--why", help="judge: why the named survivors are equivalent")
     args = ap.parse_args(argv)
     patterns = tuple(args.patterns) or (SAFETY_SCOPE if args.safety else SCOPE)
     if args.command == "record":
         return record()
+    if args.command == "judge":
+        if not args.patterns or not args.why:
+            ap.error("judge takes mutant names and --why")
+        return judge(args.patterns, args.why)
     if args.command == "run":
         cmd = [sys.executable, "-m", "mutmut", "run", "--max-children", str(args.workers),
                *patterns]
