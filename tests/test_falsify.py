@@ -326,6 +326,7 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
     """run_or_load reads a finished search back for the same policy weights, and searches
     again when the policy's file changed (a retrained model must not inherit the old model's
     failures). The planted objective stands in for SUMO: the point is the cache."""
+    import dataclasses
     import shutil
 
     from safeil_sumo import planner_registry
@@ -334,19 +335,32 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
     shutil.copy(planner_registry.policy_file("bc"), weights)
     shutil.copy(planner_registry.policy_file("bc").with_suffix(".json"),
                 weights.with_suffix(".json"))
-    calls, real_search = [], fz.search
+    calls, made, real_search = [], [], fz.search
 
-    def counted(config, objective, *args):
-        calls.append(1)
-        return real_search(config, planted)
+    def counted(config, objective, on_batch):
+        calls.append((config, objective))
+        return real_search(config, objective, on_batch)
+
+    def objective(*args):
+        made.append(args)
+        return planted
 
     monkeypatch.setattr(fz, "search", counted)
-    monkeypatch.setattr(fz, "closed_loop_objective", lambda *args: planted)
-    cfg = fz.SearchConfig(method="random", budget=20, batch=10, seed=0)
+    monkeypatch.setattr(fz, "closed_loop_objective", objective)
+    cfg = fz.SearchConfig(method="random", budget=20, batch=10, seed=0, max_time_s=12.0,
+                          brake_guard=False)
     folder = tmp_path / "study"
     first = fz.run_or_load(str(weights), cfg, folder)
+    # searched with the planner's objective at the config's time limit and guard setting
+    assert made == [(str(weights), 12.0, False)] and calls == [(cfg, planted)]
+    assert sorted(p.name for p in folder.iterdir()) == ["config.json", "evaluations.csv"]
+    assert json.loads((folder / "config.json").read_text()) == {
+        "policy": str(weights), "policy_fingerprint": planner_registry.fingerprint(str(weights)),
+        **dataclasses.asdict(cfg)}
     again = fz.run_or_load(str(weights), cfg, folder)
     assert len(calls) == 1 and np.array_equal(first.scores, again.scores)
+    assert again.config == cfg
+    pd.testing.assert_frame_equal(fz.table(again, "m"), fz.table(first, "m"))
     for suffix in (".safetensors", ".json"):  # retrained: other weights in the same file
         shutil.copy(planner_registry.policy_file("safeil_paper").with_suffix(suffix),
                     weights.with_suffix(suffix))

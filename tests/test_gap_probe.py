@@ -346,7 +346,7 @@ def test_step_spec_edges_by_hand() -> None:
         with pytest.raises(ValueError, match=rf"probe speed must be in \(0, 100\) m/s, got {bad}"):
             gp.probe_spec("idm", "far", bad)
     low = gp.probe_spec("idm", "far", 0.5)
-    assert (low.from_km, low.to_km, low.net) == (1.0, 8.0, "n74")
+    assert (low.from_km, low.to_km, low.net, low.master_seed) == (1.0, 8.0, "n74", 0)
     assert gp.probe_spec("idm", "close", 15.25).index == 40_000 + 1525
     assert gp.probe_spec("idm", "slow_down", 3.0).brake_to_mps == 0.0
     with pytest.raises(ValueError, match="slow_down at 2.9 m/s would need a negative leader "
@@ -370,9 +370,13 @@ def test_step_spec_edges_by_hand() -> None:
     assert str(err.value) == (
         f"pull_away at 25 m/s: the leader would drive 7.0 km (with {7000.001 - need:g} m "
         "margin), beyond the probe's 7 km n74 stretch: use lower speeds")
+    with pytest.raises(ValueError, match=r"would drive 7.1 km \(with 200 m margin\)"):
+        gp.check_fits(replace(pull, max_time_s=pull.max_time_s + 100.0))
 
 
 def test_first_crossing_and_window_mean_by_hand() -> None:
+    import warnings
+
     t = np.array([5.0, 6.0, 8.0, 9.0])
     # at the first sample already: its time, not the next one's
     assert gp._first_crossing(t, np.array([0.5, 0.6, 0.9, 1.0]), 0.5) == 5.0
@@ -386,6 +390,9 @@ def test_first_crossing_and_window_mean_by_hand() -> None:
     tt = np.arange(5.0)
     assert gp.window_mean(tt, np.array([0.0, 0.0, 10.0, 20.0, 30.0]), 2.0) == 20.0
     assert gp.window_mean(tt, np.array([0.0, 0.0, 10.0, math.nan, 30.0]), 2.0) == 20.0
+    with warnings.catch_warnings():  # nothing finite in the window: NaN, without a warning
+        warnings.simplefilter("error")
+        assert math.isnan(gp.window_mean(tt, np.array([0.0, 0.0] + [math.nan] * 3), 2.0))
 
 
 def _record(**over):
