@@ -4,6 +4,7 @@ and a real libsumo run at a tiny budget."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -272,11 +273,46 @@ def test_table_round_trips(tmp_path) -> None:
     res = fz.search(fz.SearchConfig(method="cem", budget=12, batch=4, seed=1), planted)
     df = fz.table(res, "bc")
     df.to_csv(tmp_path / "e.csv", index=False)
-    back = fz.from_table(pd.read_csv(tmp_path / "e.csv", keep_default_na=False,
-                                     na_values={"min_ttc_s": ["nan", "NaN", ""]}), res.config)
+    back = fz.read_table(tmp_path / "e.csv", res.config)
     assert np.allclose(back.u, res.u, rtol=0, atol=1e-15)
     assert [o.score for o in back.outcomes] == [o.score for o in res.outcomes]
     assert ScenarioSpec.from_json(json.loads(df["spec"].iloc[0])) == fz.decode(res.u[0], "bc")
+
+
+def _same(a: fz.Outcome, b: fz.Outcome) -> bool:
+    return all(x == y or (isinstance(x, float) and math.isnan(x) and math.isnan(y))
+               for x, y in zip(dataclasses.astuple(a), dataclasses.astuple(b), strict=True))
+
+
+def test_every_outcome_field_round_trips_and_the_table_says_what_ran(tmp_path) -> None:
+    """Failures, unavoidable runs, a missing TTC, flags and an error text with a comma come back
+    as they went (cases found by mutation testing: only scores were compared); each row says
+    which simulation it was, the scenario it decoded to (the config's time limit and guard) and
+    the lowest score so far."""
+    cfg = fz.SearchConfig(method="random", budget=4, batch=4, seed=0, max_time_s=12.0,
+                          brake_guard=False)
+    u = np.random.default_rng(3).random((4, fz.DIM))
+    outcomes = [fz.Outcome(0.5, True, 0.5, "ttc", True, ""),
+                fz.Outcome(math.inf, False, math.nan, "", False, "boom, with a comma"),
+                fz.Outcome(3.0, False, 3.0, "", True, ""),
+                fz.Outcome(1.0, True, 4.0, "lane_departure", True, "")]
+    res = fz.SearchResult(cfg, u, outcomes)
+    df = fz.table(res, "bc")
+    specs = [fz.decode(x, "bc", 12.0, False) for x in u]
+    assert list(df["sim"]) == [1, 2, 3, 4] and list(df.columns[:3]) == ["sim", "u0", "u1"]
+    assert list(df["net"]) == [s.net for s in specs]
+    assert list(df["leader_kind"]) == [s.leader_kind for s in specs]
+    assert list(df["spec"]) == [json.dumps(s.to_json(), sort_keys=True) for s in specs]
+    assert list(df["best_so_far"]) == [0.5, 0.5, 0.5, 0.5]
+    df.to_csv(tmp_path / "e.csv", index=False)
+    back = fz.read_table(tmp_path / "e.csv", cfg)
+    assert back.config is cfg and np.allclose(back.u, u, rtol=0, atol=1e-15)
+    assert len(back.outcomes) == 4
+    assert all(_same(a, b) for a, b in zip(back.outcomes, outcomes, strict=True))
+    empty = fz.from_table(fz.table(fz.SearchResult(cfg, np.zeros((0, fz.DIM)), []), "bc"), cfg)
+    assert empty.u.shape == (0, fz.DIM) and empty.outcomes == []
+    with pytest.raises(ValueError):  # points and outcomes of different lengths
+        fz.table(fz.SearchResult(cfg, u, outcomes[:3]), "bc")
 
 
 # ----------------------------------------------------------------------- real libsumo
@@ -326,7 +362,6 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
     """run_or_load reads a finished search back for the same policy weights, and searches
     again when the policy's file changed (a retrained model must not inherit the old model's
     failures). The planted objective stands in for SUMO: the point is the cache."""
-    import dataclasses
     import shutil
 
     from safeil_sumo import planner_registry

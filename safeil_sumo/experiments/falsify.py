@@ -353,6 +353,13 @@ def table(result: SearchResult, policy: str) -> pd.DataFrame:
     return df
 
 
+def read_table(path: Path, config: SearchConfig) -> SearchResult:
+    """The :class:`SearchResult` a :func:`table` written as CSV at ``path`` holds (empty flags
+    and errors stay empty strings, a missing TTC is NaN)."""
+    return from_table(pd.read_csv(path, keep_default_na=False,
+                                  na_values={"min_ttc_s": ["nan", "NaN", ""]}), config)
+
+
 def from_table(df: pd.DataFrame, config: SearchConfig) -> SearchResult:
     """The :class:`SearchResult` a :func:`table` holds."""
     u = df[[f"u{j}" for j in range(DIM)]].to_numpy(float) if len(df) else np.zeros((0, DIM))
@@ -415,8 +422,7 @@ def run_or_load(policy: str, config: SearchConfig, folder: Path, progress: bool 
            **asdict(config)}
     if done.is_file() and (folder / "config.json").is_file() and json.loads(
             (folder / "config.json").read_text()) == cfg:
-        return from_table(pd.read_csv(done, keep_default_na=False,
-                                      na_values={"min_ttc_s": ["nan", "NaN", ""]}), config)
+        return read_table(done, config)
     from tqdm import tqdm
 
     bar = tqdm(total=config.budget, desc=f"{policy} {config.method} s{config.seed}",
