@@ -18,6 +18,7 @@ from safeil_sumo.sim.brake_guard import (
     leader_accel,
     no_history,
     required_decel,
+    when,
 )
 from safeil_sumo.sim.xp import ARRAYS, FLOATS
 
@@ -47,6 +48,10 @@ def test_required_decel_by_hand(gap, v_ego, v_lead, b_lead, expected):
     (20.0, 20.0, 12.0, 4.0, 100.0 / 19.0),
     # the leader stops exactly at t* = 2 s: both cases agree, 5 + 5 = 400 / (2 (10 + 10)) = 10
     (10.0, 20.0, 10.0, 5.0, 10.0),
+    # the leader still moves at t* = 2 s, at 0.5 m/s: case (A), 4.75 + 5 (case B: 9.7436)
+    (10.0, 20.0, 10.0, 4.75, 9.75),
+    # closing at only 0.5 m/s behind a cruising leader: 0.25 / 20
+    (10.0, 20.5, 20.0, 0.0, 0.0125),
 ])
 def test_required_decel_when_the_leader_stops_between_half_and_all_of_t_star(
         gap, v_ego, v_lead, b_lead, expected):
@@ -161,6 +166,13 @@ def test_leader_accel_low_pass_and_new_target_edges():
     assert leader_accel(-1.0, 20.0, 30.0, 25.0, 19.8, 37.5, 0.1, GUARD, FLOATS) == \
         pytest.approx(-1.25, rel=1e-12)
     assert leader_accel(-1.0, 20.0, 30.0, 25.0, 19.8, 37.6, 0.1, GUARD, FLOATS) == 0.0
+
+
+def test_equal_speeds_and_no_braking_need_exactly_nothing():
+    assert required_decel(10.0, 20.0, 20.0, 0.0, FLOATS) == 0.0
+    assert required_decel(np.array([10.0]), np.array([20.0]), np.array([20.0]), np.array([0.0]),
+                          ARRAYS)[0] == 0.0
+    assert when(True) == BrakeGuard() and when(False) is None
 
 
 def test_no_history_is_zero_and_nans_per_scenario():

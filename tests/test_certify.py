@@ -127,6 +127,27 @@ def test_one_hidden_unit_by_hand() -> None:
     assert b_u[0] == pytest.approx(np.tanh(0.9) - 0.9 * a_u[0], abs=1e-9)
 
 
+def test_interval_and_crown_output_bounds_of_a_cancelling_network_by_hand() -> None:
+    """``y = relu(relu(x) - relu(x) + 1)`` on x in [-1, 2] (always 1). Interval propagation
+    sees two independent units in [0, 2]: the inner sum in [-1, 3], y in [0, 3]. CROWN bounds
+    each unit between x (below) and the chord 2/3 (x + 1) (above): the inner sum in [0, 2] and
+    y in [0, 2]. And ``z = relu(x) - relu(x)``: [-2, 2] by intervals, [-1, 1] by CROWN (its
+    lower bound x - 2/3 (x + 1) is -1 at x = -1). Each method is the one asked for (cases found
+    by mutation testing)."""
+    twin = bnd.Layer.dense([[1.0], [1.0]], [0.0, 0.0], "relu")
+    lo, hi = np.array([[-1.0]]), np.array([[2.0]])
+    y = [twin, bnd.Layer.dense([[1.0, -1.0]], [1.0], "relu"),
+         bnd.Layer.dense([[1.0]], [0.0], "identity")]
+    assert np.allclose(bnd.output_bounds(y, lo, hi, method="ibp"), ([[0.0]], [[3.0]]),
+                       atol=1e-9)
+    assert np.allclose(bnd.output_bounds(y, lo, hi), ([[0.0]], [[2.0]]), atol=1e-9)
+    z = [twin, bnd.Layer.dense([[1.0, -1.0]], [0.0], "identity")]
+    assert np.allclose(bnd.output_bounds(z, lo, hi, method="ibp"), ([[-2.0]], [[2.0]]),
+                       atol=1e-9)
+    assert np.allclose(bnd.output_bounds(z, lo, hi, method="crown"), ([[-1.0]], [[1.0]]),
+                       atol=1e-9)
+
+
 def test_widening_is_strictly_outward_by_hand() -> None:
     """Every interval is widened by 1e-12 (1 + |bound|) on each side: never inward, also at 0
     and for tiny and huge bounds (cases found by mutation testing: an inward widening passed
