@@ -523,26 +523,43 @@ def _copy_checkpoint(name: str, folder) -> str:
 
 
 def test_the_loader_rejects_a_modified_checkpoint(tmp_path) -> None:
+    """Every status in full: valid only when both hashes match; each reason word for word, the
+    certificate's path, shares and completeness as far as it could be read (cases found by
+    mutation testing: only ``valid`` and a word of the reason were checked)."""
+    import hashlib
+
     from safetensors.numpy import load as st_load
     from safetensors.numpy import save as st_save
+
+    from safeil_sumo.learn.certificate import CertificateStatus
 
     path = _copy_checkpoint("safeil", tmp_path)
     result = certify(pol.load(path), budget=Budget(boxes=100, batch=50), progress=False)
     cert = write_certificate(result, path)
     assert cert == tmp_path / "safeil.certificate.json"
-    status = load_certificate(path)
-    assert status.valid and status.reason == "ok" and set(status.certified) == {"leader", "lane"}
     body = json.loads(cert.read_text())
+    certified = {m: r["certified"] for m, r in body["margins"].items()}
+    assert set(certified) == {"leader", "lane"} and body["complete"] is False
+
+    def status(valid: bool, reason: str, at=cert) -> CertificateStatus:
+        return CertificateStatus(valid, reason, at, certified, False, body)
+
+    assert load_certificate(path) == status(True, "ok")
     assert body["checkpoint"]["weights_sha256"] == json.loads(
         (tmp_path / "safeil.json").read_text())["weights_sha256"]
+    # the certificate given by path (a copy elsewhere) is the one read
+    elsewhere = tmp_path / "elsewhere.json"
+    shutil.copy(cert, elsewhere)
+    assert load_certificate(path, elsewhere) == status(True, "ok", elsewhere)
     # another style default in the sidecar: the certified function changed
     sidecar = tmp_path / "safeil.json"
     original = sidecar.read_text()
     meta = json.loads(original)
     meta["style_default"] = {"time_gap_s": 2.5}
     sidecar.write_text(json.dumps(meta))
-    status = load_certificate(path)
-    assert not status.valid and "sha256 mismatch" in status.reason
+    assert load_certificate(path) == status(
+        False, "sha256 mismatch: the checkpoint's sidecar (style default, horizon, "
+        "architecture or margins) changed")
     sidecar.write_text(original)
     assert load_certificate(path).valid
     # retrained weights, consistent with their sidecar: the certificate no longer applies
@@ -551,19 +568,20 @@ def test_the_loader_rejects_a_modified_checkpoint(tmp_path) -> None:
     arrays["net.4.bias"] = arrays["net.4.bias"] + np.float32(0.01)
     blob = st_save(arrays, metadata={"format": "safeil-checkpoint", "format_version": "1"})
     weights.write_bytes(blob)
-    import hashlib
-
     meta = json.loads(original)
     meta["weights_sha256"] = hashlib.sha256(blob).hexdigest()
     sidecar.write_text(json.dumps(meta))
-    status = load_certificate(path)
-    assert not status.valid and "sha256 mismatch" in status.reason and "weights" in status.reason
-    # corrupted weights: unreadable checkpoint, no valid certificate
+    assert load_certificate(path) == status(
+        False, "sha256 mismatch: the checkpoint's weights are not the certified ones")
+    # corrupted weights: unreadable checkpoint, no valid certificate (what it said is kept)
     weights.write_bytes(blob[:-10] + b"0123456789")
-    status = load_certificate(path)
-    assert not status.valid and "unreadable" in status.reason
-    # no certificate at all
-    assert not load_certificate(path, tmp_path / "nope.json").valid
+    got = load_certificate(path)
+    assert got.reason.startswith("checkpoint unreadable: ")
+    assert got == status(False, got.reason)
+    # no certificate at all: nothing read
+    nope = tmp_path / "nope.json"
+    assert load_certificate(path, nope) == CertificateStatus(
+        False, f"{nope}: no certificate", nope, {}, False, None)
 
 
 def test_a_certificate_says_what_the_shipped_one_says_of_its_own_run(tmp_path) -> None:
