@@ -206,6 +206,13 @@ def test_probe_extras_of_a_hand_built_log() -> None:
     assert kept["series_t"] == [round(x, 3) for x in coarse["t"]]
 
 
+def test_kind_of_every_index_of_a_kind() -> None:
+    for kind, base in gp.KIND_BASE.items():
+        assert gp.kind_of(base) == kind and gp.kind_of(base + 9999) == kind
+    empty = gp.steady_following(pd.DataFrame(columns=["maneuver_id", "time", "v_x", "v_lead"]))
+    assert empty.shape == (0,) and empty.dtype == bool
+
+
 def test_run_step_runs_its_probe_spec_once_checked(monkeypatch) -> None:
     """The glue of one step response: the probe's spec, checked to fit the stretch, run as a
     probe task (the engine replaced by a recorder; the libsumo run is the IDM test's)."""
@@ -433,6 +440,39 @@ def test_table_targets() -> None:
     bare = gp.table(records)
     assert list(bare["target_min_time_gap"])[:2] == [True, False]
     assert bare["target_eq_in_human_iqr"].isna().all()
+
+
+def test_table_columns_and_edges_by_hand() -> None:
+    """Cases found by mutation testing: a collision seen by the response metrics alone, the
+    whole run's minimum time gap, JSON's null TTC of a run that ran (inf) against a run that
+    failed (NaN), a minimum exactly at the floor, a settling of exactly 45 s, an unknown
+    'settled', integer speeds, and the humans' rows appended with a fresh index."""
+    records = pd.DataFrame([
+        _record(leader_speed_low_mps=25, resp_collision=True, resp_min_time_gap_s=0.7,
+                min_ttc_s=None),
+        _record(leader_speed_low_mps=25, resp_collision=None, min_time_gap_s=0.85,
+                settling_time_s=45.0, min_ttc_s=2.0),
+        _record(leader_speed_low_mps=25, status="error", settled=None, min_ttc_s=None,
+                end_reason=""),
+    ])
+    humans = pd.DataFrame([{"policy": "humans", "kind": "steady_following", "speed_mps": 25.0,
+                            "samples": 10, "maneuvers": 2, "drivers": 2, "human_p05_s": 0.85,
+                            "human_p25_s": 0.9, "human_p50_s": 1.1, "human_p75_s": 1.3}])
+    t = gp.table(records, humans)
+    assert list(t.index) == [0, 1, 2, 3] and t["speed_mps"].dtype == float
+    assert list(t["collision"][:3]) == [True, False, False]
+    assert t["run_min_time_gap_s"][0] == 0.7 and t["run_min_time_gap_s"][1] == 0.9
+    assert t["min_ttc_s"][0] == math.inf and t["min_ttc_s"][1] == 2.0
+    assert math.isnan(t["min_ttc_s"][2])
+    assert list(t["target_min_time_gap"][:2]) == [True, True]  # 0.85 s: exactly the floor
+    assert list(t["target_settling"][:3]) == [True, True, False]
+    assert str(t["drivers"].dtype) == "Int64" and t["drivers"][3] == 2
+    # records without the response's collision and minimum columns, and without a metric
+    bare = pd.DataFrame([_record()]).drop(columns=["resp_collision", "resp_min_time_gap_s"])
+    b = gp.table(bare)
+    assert not b["collision"][0] and math.isnan(b["run_min_time_gap_s"][0])
+    assert math.isnan(b["overshoot_m"][0])
+    assert gp.table(pd.DataFrame([_record(end_reason="collision")]))["collision"][0]
 
 
 # ------------------------------------------------------------------------ real closed loops
