@@ -473,10 +473,16 @@ def test_sampled_points_in_proven_boxes_never_violate(safeil: MLPPolicy, margin:
 def test_the_shipped_lane_head_is_certified_on_the_whole_envelope(safeil: MLPPolicy) -> None:
     # its offsets' room less the centre fit's allowance: proven on every box once the x control
     # points' bounds are tight enough to rule out a residual larger than the room (~5,000 boxes)
-    m = certify(safeil, budget=Budget(boxes=20_000, batch=256), margins=("lane",),
-                progress=False).margins["lane"]
+    result = certify(safeil, budget=Budget(boxes=20_000, batch=256), margins=("lane",),
+                     progress=False)
+    m = result.margins["lane"]
     assert m.stopped_by == "proven" and m.open_boxes == 0
     assert m.certified == pytest.approx(1.0, abs=1e-12)
+    # its certificate says so: complete
+    from safeil_sumo.learn.certificate import build_certificate
+
+    body = build_certificate(result, pol.shipped_checkpoint("safeil"))
+    assert body["margins"]["lane"]["complete"] is True and body["complete"] is True
 
 
 def test_a_deliberately_unsafe_network_gets_confirmed_counterexamples() -> None:
