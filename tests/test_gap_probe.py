@@ -467,6 +467,7 @@ def test_table_columns_and_edges_by_hand() -> None:
     assert list(t["target_min_time_gap"][:2]) == [True, True]  # 0.85 s: exactly the floor
     assert list(t["target_settling"][:3]) == [True, True, False]
     assert str(t["drivers"].dtype) == "Int64" and t["drivers"][3] == 2
+    assert str(t["target_eq_in_human_iqr"].dtype) == "boolean"  # True / False / <NA>
     # records without the response's collision and minimum columns, and without a metric
     bare = pd.DataFrame([_record()]).drop(columns=["resp_collision", "resp_min_time_gap_s"])
     b = gp.table(bare)
