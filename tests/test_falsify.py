@@ -211,6 +211,64 @@ def test_the_worst_case_reruns_from_its_sweep_file(tmp_path, source: float) -> N
     assert sweep.build_specs(sweep.parse_args(["--config", str(path)])) == [spec]
 
 
+def _result(policy_seed: int, outcomes: list, **config) -> fz.SearchResult:
+    u = np.random.default_rng(policy_seed).random((len(outcomes), fz.DIM))
+    return fz.SearchResult(fz.SearchConfig(**config), u, outcomes)
+
+
+def test_the_study_by_hand(tmp_path, monkeypatch) -> None:
+    """The study's searches, folders, rows, medians and worst cases (cases found by mutation
+    testing: the results section's toy run read few of these fields)."""
+    run = fz.StudyRun("bc", 200, 20, (0, 1))
+    assert fz.study_configs(run) == [fz.SearchConfig(method=m, budget=200, batch=20, seed=s)
+                                     for s in (0, 1) for m in ("cem", "random")]
+    cfg = fz.SearchConfig(method="cem", seed=3)
+    assert fz.study_folder(tmp_path, "bc", cfg) == tmp_path / "bc_cem_s3"
+    assert fz.study_folder(tmp_path, "bc", dataclasses.replace(cfg, brake_guard=False)) == \
+        tmp_path / "bc_cem_s3_noguard"
+    fail = fz.Outcome(0.0, True, 0.0, "collision", True)
+    near = fz.Outcome(0.6, True, 0.6, "ttc", True)
+    fine = fz.Outcome(2.0, False, 2.0, "", True)
+    gone = fz.Outcome(math.inf, False, math.nan, "", False, "boom")
+    a = _result(1, [fine, near, fail], method="cem", seed=0, budget=3, batch=3)
+    b = _result(2, [fine, gone], method="random", seed=4, budget=2, batch=1)
+    rows = fz.study_rows([("safeil", a), ("bc", b)]).to_dict("records")
+    nan = math.nan
+    want = [
+        {"policy": "safeil", "method": "cem", "seed": 0, "budget": 3, "batch": 3,
+         "simulations": 3, "first_failure": 2, "first_ttc0": 3, "failures": 2, "avoidable": 3,
+         "errors": 0, "best_min_ttc_s": 0.0, "best_flag": "collision", "best_sim": 3},
+        {"policy": "bc", "method": "random", "seed": 4, "budget": 2, "batch": 1,
+         "simulations": 2, "first_failure": nan, "first_ttc0": nan, "failures": 0,
+         "avoidable": 1, "errors": 1, "best_min_ttc_s": 2.0, "best_flag": "", "best_sim": 1}]
+    for got, row in zip(rows, want, strict=True):  # a search without a failure: NaN
+        assert list(got) == list(row)
+        assert all(got[k] == v or (math.isnan(got[k]) and math.isnan(v)) for k, v in row.items()
+                   if not isinstance(v, str))
+        assert all(got[k] == v for k, v in row.items() if isinstance(v, str))
+    # medians per planner and method in the order met; a seed without a failure counts as inf
+    table = pd.DataFrame({"policy": ["safeil", "safeil", "bc", "safeil"],
+                          "method": ["cem", "cem", "cem", "random"],
+                          "first_failure": [4, None, 7, None]})
+    assert fz.median_to_first(table).to_dict("records") == [
+        {"policy": "safeil", "method": "cem", "seeds": 2, "found": 1, "median": math.inf},
+        {"policy": "bc", "method": "cem", "seeds": 1, "found": 1, "median": 7.0},
+        {"policy": "safeil", "method": "random", "seeds": 1, "found": 0, "median": math.inf}]
+    # the worst case, in a folder made for it, named as asked; nothing avoidable: nothing
+    monkeypatch.chdir(tmp_path)
+    toml = fz.write_worst(a, "safeil", tmp_path / "x" / "y", stem="w")
+    assert toml == tmp_path / "x" / "y" / "w.toml"
+    spec = fz.decode(a.u[2], "safeil", 30.0, True)
+    assert ScenarioSpec.from_json(json.loads((tmp_path / "x" / "y" / "w.json").read_text())
+                                  ) == spec
+    assert toml.read_text() == fz.sweep_toml(spec, (
+        "safeil: worst avoidable case of a cem search (seed 0, simulation 3 of 3): min TTC "
+        "0.000 s, collision\nrerun: python -m safeil_sumo.sweep --config x/y/w.toml "
+        "--out runs/w"))
+    assert fz.write_worst(_result(3, [gone], budget=1, batch=1), "bc", tmp_path / "z") is None
+    assert not (tmp_path / "z").exists()
+
+
 def test_search_config_is_checked() -> None:
     with pytest.raises(ValueError, match="method"):
         fz.SearchConfig(method="bayes")
