@@ -274,7 +274,8 @@ def test_the_suite_families_by_hand() -> None:
                 assert suite.family_of(spec.index) == family
     assert suite.family_specs("approach", "straight", 0, "idm", 7, max_time_s=12.0
                               ).max_time_s == 12.0
-    with pytest.raises(ValueError, match="unknown family 'merge'"):
+    with pytest.raises(ValueError, match="unknown family 'merge'; families: approach, braking, "
+                                         "cut_in, stop_and_go, accelerating"):
         suite.family_specs("merge", "straight", 0, "idm", 0)
 
 
