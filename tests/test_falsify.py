@@ -199,13 +199,15 @@ def test_decode_maps_the_box_onto_valid_specs() -> None:
 
 
 @pytest.mark.parametrize("source", [0.1, 0.9])  # a scripted and a recorded leader
-def test_the_worst_case_reruns_from_its_sweep_file(tmp_path, source: float) -> None:
+@pytest.mark.parametrize("guard", [True, False])
+def test_the_worst_case_reruns_from_its_sweep_file(tmp_path, source: float, guard: bool) -> None:
     """``sweep --config worst.toml`` builds exactly the spec the search ran."""
     from safeil_sumo import sweep
 
     u = np.random.default_rng(3).random(fz.DIM)
     u[0] = source
-    spec = fz.decode(u, "safeil", 25.0)
+    spec = fz.decode(u, "safeil", 25.0, guard)
+    assert ("brake_guard = false\n" in fz.sweep_toml(spec)) is not guard
     path = tmp_path / "worst.toml"
     path.write_text(fz.sweep_toml(spec, "a comment\non two lines"))
     assert sweep.build_specs(sweep.parse_args(["--config", str(path)])) == [spec]
@@ -278,6 +280,97 @@ def test_search_config_is_checked() -> None:
         fz.SearchConfig(elite_fraction=0.0)
 
 
+def test_search_config_edges_and_messages() -> None:
+    """Each range's ends (cases found by mutation testing)."""
+    fz.SearchConfig(budget=1, batch=1, elite_fraction=1.0, smoothing=1.0, min_std=0.5,
+                    max_time_s=0.5)
+    for bad, message in (({"batch": 0}, "budget"),
+                         ({"seed": -1}, "seed must be >= 0, got -1"),
+                         ({"elite_fraction": 1.5},
+                          r"elite fraction and smoothing must be in \(0, 1\]"),
+                         ({"smoothing": 0.0}, "smoothing"), ({"smoothing": 1.5}, "smoothing"),
+                         ({"min_std": 0.0}, r"min std must be in \(0, 0.5\], got 0.0"),
+                         ({"min_std": 0.6}, "min std"),
+                         ({"max_time_s": 0.0}, "max time must be > 0 s, got 0.0")):
+        with pytest.raises(ValueError, match=message):
+            fz.SearchConfig(**bad)
+
+
+def test_the_box_draws_and_the_cem_update_by_hand() -> None:
+    """The box's ends (a category's last choice at u = 1), clipping, the decoded values'
+    rounding, the draws from a distribution or uniformly, and an elite of 3 of 4 (cases found
+    by mutation testing)."""
+    assert fz.uniform_std() == 1.0 / math.sqrt(12.0)
+    assert fz.values(np.ones(fz.DIM))["track"] == len(fz.NETS) - 1
+    assert fz.values(np.full(fz.DIM, 1.5)) == fz.values(np.ones(fz.DIM))
+    assert fz.values(np.full(fz.DIM, -0.5)) == fz.values(np.zeros(fz.DIM))
+    rng = np.random.default_rng(8)
+    for u in rng.random((50, fz.DIM)):
+        u[0] = 0.1  # a scripted leader
+        v, spec = fz.values(u), fz.decode(u, "bc")
+        assert spec.radar_noise_m == round(v["radar_noise_m"], 3)
+        assert spec.lane_noise_c0_m == round(v["lane_noise_m"], 4)
+        lo, hi = spec.leader_speed_range_mps
+        assert lo == hi == round(v["leader_speed_mps"], 2)
+        if spec.leader_kind == "braking":
+            assert spec.brake_decel_mps2 == round(v["brake_decel_mps2"], 2)
+            assert spec.brake_to_mps == round(max(0.0, lo - spec.brake_decel_mps2
+                                                  * v["brake_duration_s"]), 2)
+    # draws: uniform without a distribution (also with a mean but no std); else clipped normal
+    mean, std = np.full(fz.DIM, 0.9), np.full(fz.DIM, 1.0)
+    np.testing.assert_array_equal(fz.draw(np.random.default_rng(1), 5, mean, None),
+                                  np.random.default_rng(1).random((5, fz.DIM)))
+    got = fz.draw(np.random.default_rng(1), 200, mean, std)
+    np.testing.assert_array_equal(got, np.clip(
+        mean + std * np.random.default_rng(1).standard_normal((200, fz.DIM)), 0.0, 1.0))
+    assert got.min() == 0.0 and got.max() == 1.0
+    # elite fraction 0.75 of 4 points: the 3 lowest scores; exactly 2 finite scores update
+    cfg = fz.SearchConfig(elite_fraction=0.75, smoothing=1.0, min_std=0.01)
+    u = np.zeros((4, fz.DIM))
+    u[:, 0] = [0.1, 0.9, 0.3, 0.5]
+    new_mean, _ = fz.cem_update(u, np.array([1.0, 5.0, 2.0, 3.0]), np.full(fz.DIM, 0.5),
+                                np.full(fz.DIM, 0.3), cfg)
+    assert new_mean[0] == pytest.approx(0.3, abs=1e-15)  # (0.1 + 0.3 + 0.5) / 3
+    two, _ = fz.cem_update(u, np.array([1.0, math.inf, 2.0, math.inf]), np.full(fz.DIM, 0.5),
+                           np.full(fz.DIM, 0.3), cfg)
+    assert two[0] == pytest.approx(0.2, abs=1e-15)
+
+
+def test_the_search_loop_by_hand() -> None:
+    """Two CEM batches: the first uniform, the second from the update of the uniform prior
+    (mean 0.5, std 1 / sqrt 12) with smoothing 0.5; the progress callback gets each batch's
+    size; a wrong number of outcomes is refused by name."""
+    cfg = fz.SearchConfig(method="cem", budget=10, batch=4, seed=5, smoothing=0.5)
+    sizes = []
+    res = fz.search(cfg, planted, sizes.append)
+    assert sizes == [4, 4, 2]
+    rng = np.random.default_rng(5)
+    u1 = fz.draw(rng, 4, None, None)
+    mean, std = fz.cem_update(u1, np.array([o.score for o in planted(u1)]),
+                              np.full(fz.DIM, 0.5), np.full(fz.DIM, fz.uniform_std()), cfg)
+    u2 = fz.draw(rng, 4, mean, std)
+    np.testing.assert_array_equal(res.u[:8], np.concatenate([u1, u2]))
+    with pytest.raises(ValueError, match="the objective gave 3 outcomes for 4 points"):
+        fz.search(cfg, lambda u: planted(u)[:3])
+
+
+def test_summary_by_hand() -> None:
+    cfg = fz.SearchConfig(method="random", budget=3, batch=3, seed=2, max_time_s=12.0,
+                          brake_guard=False)
+    res = _result(4, [fz.Outcome(2.0, False, 2.0, "", True, ""),
+                      fz.Outcome(0.5, True, 0.5, "ttc", True, ""),
+                      fz.Outcome(math.inf, False, math.nan, "", False, "boom")],
+                  **dataclasses.asdict(cfg))
+    s = fz.summary(res, "bc")
+    assert s == {"policy": "bc", "method": "random", "seed": 2, "simulations": 3,
+                 "first_failure": 2, "failures": 1, "avoidable": 2, "errors": 1,
+                 "best_score": 0.5, "best_min_ttc_s": 0.5, "best_flag": "ttc", "best_sim": 2,
+                 "best_spec": fz.decode(res.u[1], "bc", 12.0, False).to_json()}
+    empty = fz.summary(fz.SearchResult(cfg, np.zeros((0, fz.DIM)), []), "bc")
+    assert empty == {"policy": "bc", "method": "random", "seed": 2, "simulations": 0,
+                     "first_failure": None, "failures": 0, "avoidable": 0, "errors": 0}
+
+
 # ------------------------------------------------------- the search on a planted failure
 
 
@@ -335,6 +428,8 @@ def test_table_round_trips(tmp_path) -> None:
     assert np.allclose(back.u, res.u, rtol=0, atol=1e-15)
     assert [o.score for o in back.outcomes] == [o.score for o in res.outcomes]
     assert ScenarioSpec.from_json(json.loads(df["spec"].iloc[0])) == fz.decode(res.u[0], "bc")
+    assert list(df["spec"]) == [json.dumps(fz.decode(x, "bc").to_json(), sort_keys=True)
+                                for x in res.u]
 
 
 def _same(a: fz.Outcome, b: fz.Outcome) -> bool:
