@@ -250,6 +250,34 @@ def test_car_outside_the_band_returns_to_the_lane_centre() -> None:
     assert end[1] == pytest.approx(1.75 + 0.001 * end[0] ** 2, abs=1e-6)  # on the lane centre
 
 
+def test_car_outside_a_slanted_lane_returns_to_its_centre_line_batched_as_alone() -> None:
+    """A lane at a heading (c1 = 0.05) whose allowed band starts 1.98 m left of the car: the
+    filter returns the lane centre line at the plan's x, y = 2.85 + 0.05 x (cases found by
+    mutation testing: every hand case had c1 = 0). In one batch with a plan that needs no
+    change, each plan is filtered as it would be alone."""
+    x = 30.0 * bspline.control_point_times(5.0)
+    outside = planner_features([4.6, 0.05, 0.0], [1.1, 0.05, 0.0], 30.0, 30.0, 200.0)
+    plan = np.stack([x, np.zeros(3)], axis=-1)
+    got, acted = project_plan(outside, plan, 5.0)
+    assert acted
+    np.testing.assert_array_equal(got[:, 0], x)
+    np.testing.assert_allclose(got[:, 1], 2.85 + 0.05 * x, rtol=0, atol=1e-12)
+    inside = planner_features([1.75, 0.0, 0.0], [-1.75, 0.0, 0.0], 30.0, 30.0, 200.0)
+    drift = np.stack([x, np.array([0.5, 1.5, 3.0])], axis=-1)  # leaves a straight lane
+    calm = np.stack([x, np.zeros(3)], axis=-1)
+    feats = np.stack([outside, inside, inside])
+    plans = np.stack([plan, drift, calm])
+    batch, acted = project_plan(feats, plans, 5.0)
+    assert list(acted) == [True, True, False]
+    for k in range(3):
+        np.testing.assert_array_equal(batch[k], project_plan(feats[k], plans[k], 5.0)[0])
+    np.testing.assert_array_equal(batch[2], calm)
+    # the band starts only 0.5 m left of the car: outside is outside, the centre line it is
+    near = planner_features([3.12, 0.0, 0.0], [-0.38, 0.0, 0.0], 30.0, 30.0, 200.0)
+    got, _ = project_plan(near, calm, 5.0)
+    np.testing.assert_allclose(got[:, 1], 1.37, rtol=0, atol=1e-12)
+
+
 def test_bernstein_filter_on_straight_lanes_is_no_stricter_than_the_control_point_clip() -> None:
     rng = np.random.default_rng(0)
     f = planner_features([1.8, 0.0, 0.0], [-1.7, 0.0, 0.0], 30.0, 25.0, 30.0)
