@@ -107,7 +107,7 @@ def test_every_shipped_planner_loads_and_plans_without_torch(no_torch):
 def test_the_main_job_runs_in_sumo_without_torch(no_torch, tmp_path):
     """``python -m safeil_sumo.run --net curved500`` (the shipped safeil), 2 scenarios of 5 s."""
     out = _ok(_python(no_torch, "-m", "safeil_sumo.run", "--net", "curved500", "--scenarios",
-                      "2", "--max-time", "5", "--no-plots", "--out", str(tmp_path)))
+                      "2", "--max-time-s", "5", "--no-plots", "--out", str(tmp_path)))
     assert re.search(r"^safeil: \d/2 scenarios completed without a flag", out, re.MULTILINE)
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [(s["scenario"], s["policy"], s["error"]) for s in summary] == [
@@ -116,13 +116,13 @@ def test_the_main_job_runs_in_sumo_without_torch(no_torch, tmp_path):
 
 
 @pytest.mark.parametrize("argv", [
-    ("safeil_sumo.sweep", "--policies", "safeil", "bc", "--scenarios", "2", "--max-time", "3",
+    ("safeil_sumo.sweep", "--policy", "safeil", "bc", "--scenarios", "2", "--max-time-s", "3",
      "--workers", "2"),
-    ("safeil_sumo.falsify", "--policy", "safeil", "--budget", "2", "--batch", "2",
+    ("safeil_sumo.falsify", "--policy", "safeil", "--budget-sims", "2", "--batch", "2",
      "--max-time-s", "3", "--no-progress"),
     ("safeil_sumo.certify", "--policy", "safeil", "--budget-s", "2", "--no-progress"),
-    ("safeil_sumo.replay", "--source", "openacc", "--policies", "safeil", "safeil_paper",
-     "--duration", "5", "--workers", "1"),
+    ("safeil_sumo.replay", "--source", "openacc", "--policy", "safeil", "safeil_paper",
+     "--duration-s", "5", "--workers", "1"),
 ], ids=lambda argv: argv[0].removeprefix("safeil_sumo."))
 def test_the_evaluation_command_lines_run_without_torch(no_torch, tmp_path, argv):
     if argv[0] == "safeil_sumo.replay":
