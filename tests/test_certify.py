@@ -400,6 +400,66 @@ def test_the_margins_linear_enclosure_holds_at_every_plan_in_the_intervals() -> 
     assert np.mean(exact.min(axis=1) - bound.min(axis=1)) < 50.0
 
 
+# the margins' bounds and branching scores of 12 seeded boxes of the shipped safeil, per box the
+# sum over the margin's rows (measured 2026-11-28; float64, deterministic on one machine, equal
+# across machines to ~1e-12): any change of the bound's algebra, looser or tighter, moves them
+GOLDEN_MARGIN_BOUNDS = {
+    ("leader", "lower_sum"): [160.5581756, 61.89591393, 128.4129537, 251.6565109, 145.1419621, 21.6325104, 96.20972932, 226.9612627, 4.076331567, 219.0716879, 254.3140639, 213.6541456],
+    ("leader", "score_sum"): [150.1987408, 78.00332281, 123.7971256, 47.23707331, 103.8731833, 53.88374991, 91.79152119, 101.7501867, 177.3469822, 36.97234943, 159.9161865, 132.8209853],
+    ("lane", "lower_sum"): [0.6400752694, -0.8010566679, -0.06119433709, 1.230320374, 0.8027353906, 0.7918198949, 0.216169842, 0.8289290241, -1.685293375, 0.7974833914, 0.09196976822, 1.02179015],
+    ("lane", "score_sum"): [0.1866498794, 6.308013076, 5.265197672, 0.06224294101, 0.2057218635, 0.2488334388, 5.10409982, 0.04505315867, 8.235537833, 0.305766759, 4.986274038, 0.6264093526],
+}
+
+
+def test_margin_bounds_and_scores_are_the_golden_ones(safeil: MLPPolicy) -> None:
+    """A regression pin (cases found by mutation testing: a looser residual bound, other
+    branching scores and mis-sliced lane rows all stayed sound, so no soundness test saw
+    them)."""
+    env = cm.CertEnvelope()
+    props = cm.Properties.from_metadata(safeil.metadata)
+    layers = cm.planner_layers(safeil, False)
+    rng = np.random.default_rng(43)
+    root_lo, root_hi = env.root_boxes()["leader"]
+    centre = root_lo + rng.uniform(size=(12, 7)) * (root_hi - root_lo)
+    half = (root_hi - root_lo) * np.exp(rng.uniform(np.log(0.01), np.log(0.2), (12, 7)))
+    lo, hi = np.maximum(centre - half, root_lo), np.minimum(centre + half, root_hi)
+    for margin in ("leader", "lane"):
+        bb = cm.bound_boxes(layers, props, lo, hi, margin)
+        rows = cm.MARGIN_ROWS[margin]
+        got = {"lower_sum": bb.lower[:, rows].sum(axis=1),
+               "score_sum": bb.score[:, rows].sum(axis=(1, 2))}
+        for name, value in got.items():
+            np.testing.assert_allclose(value, GOLDEN_MARGIN_BOUNDS[margin, name], rtol=1e-8,
+                                       atol=1e-8, err_msg=f"{margin} {name}")
+
+
+def test_the_box_tree_grows_and_keeps_its_boxes() -> None:
+    from safeil_sumo.learn.certify import _Tree
+
+    tree = _Tree(2, cap=4)
+    first = tree.add(lo=np.zeros((3, 2)), hi=np.ones((3, 2)), part=0)
+    more = tree.add(lo=np.full((10, 2), 2.0), hi=np.full((10, 2), 3.0), part=1)
+    assert list(first) == [0, 1, 2] and list(more) == list(range(3, 13))
+    assert tree.n == 13 and tree.cap == 13 and tree.lo.shape == (13, 2)
+    assert np.all(tree.lo[:3] == 0.0) and np.all(tree.hi[3:13] == 3.0)
+    assert list(tree.part[:13]) == [0] * 3 + [1] * 10 and np.all(tree.lower[:13] == -np.inf)
+    tree.add(lo=np.zeros((1, 2)), hi=np.ones((1, 2)), part=0)
+    assert tree.cap == 26 and tree.n == 14 and np.all(tree.hi[3:13] == 3.0)
+
+
+def test_the_first_candidate_is_the_corner_minimising_the_linear_bound() -> None:
+    from safeil_sumo.learn.certify import _candidates
+
+    env = cm.CertEnvelope()
+    lo, hi = env.root_boxes()["free"]
+    lo, hi = lo[None], hi[None]
+    coef = np.array([[1.0, -1.0, 2.0, -3.0, 0.5, -0.5, 1.0]])
+    pts, _ = _candidates(env, lo, hi, np.array([1]), coef, np.random.default_rng(0), 2)
+    np.testing.assert_array_equal(pts[0, 0], np.where(coef[0] > 0, lo[0], hi[0]))
+    np.testing.assert_array_equal(pts[0, 1], 0.5 * (lo[0] + hi[0]))
+    assert pts.shape == (1, 4, 7)
+
+
 def test_box_volumes_bracket_a_monte_carlo_estimate() -> None:
     env = cm.CertEnvelope()
     rng = np.random.default_rng(4)
