@@ -692,10 +692,43 @@ def test_a_certificate_says_what_the_shipped_one_says_of_its_own_run(tmp_path) -
         assert m.stopped_by == "boxes" and got["complete"] is False
         assert (got["certified"], got["stopped_by"], got["boxes_bounded"]) == (
             m.certified, "boxes", m.boxes_bounded)
+    # a run whose margins were all proven is complete
+    from safeil_sumo.learn.certificate import build_certificate
+
+    proven = dataclasses.replace(result, margins={
+        n: dataclasses.replace(m, stopped_by="proven") for n, m in result.margins.items()})
+    done = build_certificate(proven, path)
+    assert done["complete"] is True and all(m["complete"] for m in done["margins"].values())
     # a value JSON cannot hold (NaN) is refused before anything is written
     with pytest.raises(ValueError):
         write_certificate(dataclasses.replace(result, seconds=math.nan), path, tmp_path / "c")
     assert not (tmp_path / "c").exists() or not any((tmp_path / "c").iterdir())
+
+
+def test_a_certificate_file_is_refused_with_its_reason(tmp_path) -> None:
+    from safeil_sumo.learn.certificate import CertificateError, read_certificate
+
+    good = json.loads((pol.shipped_checkpoint("safeil").parent / "safeil.certificate.json")
+                      .read_text())
+    path = tmp_path / "c.json"
+    cases = ((b"{not json", "unreadable certificate"),
+             (json.dumps([1, 2]).encode(), "not a safeil-certificate file"),
+             (json.dumps({**good, "format": "other"}).encode(), "not a safeil-certificate file"),
+             (json.dumps({**good, "format_version": 9}).encode(),
+              "format version 9, this code reads 1"),
+             (json.dumps({**good, "coordinates": ["a"]}).encode(),
+              "envelope coordinates ['a'] are not this code's"),
+             (json.dumps({k: v for k, v in good.items() if k != "coordinates"}).encode(),
+              "envelope coordinates None are not this code's"))
+    for body, reason in cases:
+        path.write_bytes(body)
+        with pytest.raises(CertificateError) as err:
+            read_certificate(path)
+        assert str(err.value).startswith(f"{path}: ") and reason in str(err.value), reason
+    with pytest.raises(CertificateError, match="no certificate"):
+        read_certificate(tmp_path / "none.json")
+    assert read_certificate(pol.shipped_checkpoint("safeil").parent
+                            / "safeil.certificate.json") == good
 
 
 def test_cli_certifies_writes_and_checks(tmp_path, capsys) -> None:

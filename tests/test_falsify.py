@@ -287,7 +287,7 @@ def test_search_config_edges_and_messages() -> None:
     for bad, message in (({"batch": 0}, "budget"),
                          ({"seed": -1}, "seed must be >= 0, got -1"),
                          ({"elite_fraction": 1.5},
-                          r"elite fraction and smoothing must be in \(0, 1\]"),
+                          r"^elite fraction and smoothing must be in \(0, 1\]$"),
                          ({"smoothing": 0.0}, "smoothing"), ({"smoothing": 1.5}, "smoothing"),
                          ({"min_std": 0.0}, r"min std must be in \(0, 0.5\], got 0.0"),
                          ({"min_std": 0.6}, "min std"),
@@ -313,6 +313,8 @@ def test_the_box_draws_and_the_cem_update_by_hand() -> None:
         lo, hi = spec.leader_speed_range_mps
         assert lo == hi == round(v["leader_speed_mps"], 2)
         if spec.leader_kind == "braking":
+            assert spec.initial_gap_m == round(v["gap_m"], 2) and spec.ego_speed_mps == 30.0
+            assert spec.brake_time_s == round(v["brake_onset_s"], 2)
             assert spec.brake_decel_mps2 == round(v["brake_decel_mps2"], 2)
             assert spec.brake_to_mps == round(max(0.0, lo - spec.brake_decel_mps2
                                                   * v["brake_duration_s"]), 2)
@@ -336,6 +338,20 @@ def test_the_box_draws_and_the_cem_update_by_hand() -> None:
     assert two[0] == pytest.approx(0.2, abs=1e-15)
 
 
+def test_the_elite_among_tied_scores_is_the_first_drawn() -> None:
+    """40 points, 5 distinct low scores and 35 tied at the cap: the elite (a quarter, 10) is the
+    5 low ones and the first 5 tied ones in draw order (a stable sort: the result must not
+    depend on the sort's algorithm)."""
+    cfg = fz.SearchConfig(elite_fraction=0.25, smoothing=1.0, min_std=0.01)
+    u = np.random.default_rng(9).random((40, fz.DIM))
+    scores = np.full(40, fz.TTC_CAP_S)
+    low = [3, 11, 19, 27, 35]
+    scores[low] = [0.1, 0.2, 0.3, 0.4, 0.5]
+    elite = low + [k for k in range(40) if k not in low][:5]
+    new_mean, _ = fz.cem_update(u, scores, np.full(fz.DIM, 0.5), np.full(fz.DIM, 0.3), cfg)
+    np.testing.assert_allclose(new_mean, u[elite].mean(axis=0), rtol=0, atol=1e-15)
+
+
 def test_the_search_loop_by_hand() -> None:
     """Two CEM batches: the first uniform, the second from the update of the uniform prior
     (mean 0.5, std 1 / sqrt 12) with smoothing 0.5; the progress callback gets each batch's
@@ -349,7 +365,9 @@ def test_the_search_loop_by_hand() -> None:
     mean, std = fz.cem_update(u1, np.array([o.score for o in planted(u1)]),
                               np.full(fz.DIM, 0.5), np.full(fz.DIM, fz.uniform_std()), cfg)
     u2 = fz.draw(rng, 4, mean, std)
-    np.testing.assert_array_equal(res.u[:8], np.concatenate([u1, u2]))
+    mean, std = fz.cem_update(u2, np.array([o.score for o in planted(u2)]), mean, std, cfg)
+    u3 = fz.draw(rng, 2, mean, std)  # the third batch from the second update, not the prior
+    np.testing.assert_array_equal(res.u, np.concatenate([u1, u2, u3]))
     with pytest.raises(ValueError, match="the objective gave 3 outcomes for 4 points"):
         fz.search(cfg, lambda u: planted(u)[:3])
 
@@ -366,6 +384,9 @@ def test_summary_by_hand() -> None:
                  "first_failure": 2, "failures": 1, "avoidable": 2, "errors": 1,
                  "best_score": 0.5, "best_min_ttc_s": 0.5, "best_flag": "ttc", "best_sim": 2,
                  "best_spec": fz.decode(res.u[1], "bc", 12.0, False).to_json()}
+    guarded = dataclasses.replace(res, config=dataclasses.replace(cfg, brake_guard=True))
+    assert fz.summary(guarded, "bc")["best_spec"] == fz.decode(res.u[1], "bc", 12.0,
+                                                               True).to_json()
     empty = fz.summary(fz.SearchResult(cfg, np.zeros((0, fz.DIM)), []), "bc")
     assert empty == {"policy": "bc", "method": "random", "seed": 2, "simulations": 0,
                      "first_failure": None, "failures": 0, "avoidable": 0, "errors": 0}

@@ -206,6 +206,39 @@ def test_probe_extras_of_a_hand_built_log() -> None:
     assert kept["series_t"] == [round(x, 3) for x in coarse["t"]]
 
 
+def test_steady_following_and_bands_at_their_edges() -> None:
+    """Constant speeds (no acceleration): |dv| below 0.5 m/s is steady, exactly 0.5 is not; a
+    gap of 0 is no leader ahead, 0.5 m is one; a speed exactly 3 m/s from the band's centre is
+    in the band; the rows say who they are (cases found by mutation testing)."""
+    rows = pd.concat([
+        _maneuver("a#0", "d1", 25.0, 25.0, 25.0, n=50),
+        _maneuver("b#0", "d2", 25.0, 25.5, 25.0, n=50),  # |dv| = 0.5: not steady
+        _maneuver("c#0", "d3", 25.0, 25.0, 0.0, n=50),  # no gap: no leader ahead
+        _maneuver("d#0", "d4", 22.0, 22.0, 0.5, n=50),  # 3 m/s below 25, a 0.5 m gap
+    ], ignore_index=True)
+    keep = gp.steady_following(rows)
+    assert list(keep.reshape(4, 50).all(axis=1)) == [True, False, False, True]
+    assert not keep.reshape(4, 50)[1:3].any()
+    # a tighter dv limit passed on: only exact followers
+    assert gp.steady_following(rows, max_dv=0.4).reshape(4, 50).all(axis=1).tolist() == [
+        True, False, False, True]
+    bands = gp.human_time_gap_bands(rows, speeds=(25.0,))
+    assert bands.iloc[0][["policy", "kind", "speed_mps", "samples", "maneuvers",
+                          "drivers"]].tolist() == ["humans", "steady_following", 25.0, 100, 2, 2]
+    strict = gp.human_time_gap_bands(rows, speeds=(25.0,), max_accel=-1.0)
+    assert strict.iloc[0]["samples"] == 0
+    # a time gap at exactly the lowest defined speed (1 m/s) is defined
+    assert gp.time_gap(np.array([10.0]), np.array([1.0]))[0] == 10.0
+
+
+def test_the_settling_band_is_the_one_asked_for() -> None:
+    t = np.arange(61.0)
+    gap = np.where(t < 20, 25.0, 20.0)
+    v = np.full_like(t, 20.0)
+    assert gp.response_metrics(t, gap, v, 5.0, band=0.3)["settling_time_s"] == 0.0
+    assert gp.response_metrics(t, gap, v, 5.0)["settling_time_s"] == 15.0
+
+
 def test_kind_of_every_index_of_a_kind() -> None:
     for kind, base in gp.KIND_BASE.items():
         assert gp.kind_of(base) == kind and gp.kind_of(base + 9999) == kind
@@ -379,6 +412,8 @@ def test_step_spec_edges_by_hand() -> None:
         "margin), beyond the probe's 7 km n74 stretch: use lower speeds")
     with pytest.raises(ValueError, match=r"would drive 7.1 km \(with 200 m margin\)"):
         gp.check_fits(replace(pull, max_time_s=pull.max_time_s + 100.0))
+    with pytest.raises(ValueError, match=r"would drive 8.1 km"):  # 8,051 m
+        gp.check_fits(pull, margin_m=8051.0 - need)
 
 
 def test_first_crossing_and_window_mean_by_hand() -> None:
