@@ -565,6 +565,44 @@ def test_a_deliberately_unsafe_network_gets_confirmed_counterexamples() -> None:
         assert result.envelope.recoverable(np.array(list(c["z"].values())))
 
 
+def test_a_short_branch_and_bound_of_bc_is_the_golden_one() -> None:
+    """600 boxes of bc (measured 2026-11-28, seed 0): shares, box counts, where the unproven
+    volume lies and the proven boxes' summary, as a regression pin of branch and bound's
+    accounting (cases found by mutation testing: the parts' weights, the split dimension and
+    the final-box rule changed none of the properties the other tests assert)."""
+    r = certify(pol.load("bc"), budget=Budget(boxes=600, batch=64, seed=0), progress=False)
+    lead, lane = r.margins["leader"], r.margins["lane"]
+    assert (lead.certified, lead.with_counterexample) == pytest.approx(
+        (0.1893634795559093, 0.44755819148584813), rel=1e-9)
+    assert (lead.proven_boxes, lead.counterexample_boxes, lead.open_boxes, lead.boxes_bounded,
+            lead.stopped_by, len(lead.counterexamples)) == (10, 103, 282, 300, "boxes", 20)
+    assert lead.unproven_by_dim["gap_m"] == pytest.approx([0.2493, 0.2493, 0.3057, 0.1958],
+                                                          abs=1e-4)
+    assert lead.unproven_by_dim["curvature_1pm"] == pytest.approx(
+        [0.2439, 0.2585, 0.2537, 0.2439], abs=1e-4)
+    assert lead.proven_summary["count"] == 10 and lead.proven_summary["depth_range"] == [0, 8]
+    assert lead.proven_summary["smallest_share"] == pytest.approx(0.0038853686763438812,
+                                                                  rel=1e-9)
+    assert (lane.certified, lane.proven_boxes, lane.counterexample_boxes, lane.open_boxes) == (
+        0.0, 0, 207, 302)
+    assert lane.with_counterexample == pytest.approx(0.8146796687085203, rel=1e-9)
+    assert lane.unproven_by_dim["relative_speed_mps"] == pytest.approx(
+        [0.2033, 0.2033, 0.247, 0.3464], abs=1e-4)
+
+
+def test_branch_and_bound_stops_when_only_small_counterexample_boxes_are_left() -> None:
+    """Every leader plan of the pushed network fails: with boxes holding a counterexample final
+    below 5 % of the envelope, the search ends before its budget, 'small', nothing certified."""
+    arrays, meta = load_checkpoint(pol.shipped_checkpoint("safeil"))
+    arrays = {k: v.copy() for k, v in arrays.items()}
+    arrays["output_mean"][[0, 2, 4]] += 300.0
+    unsafe = MLPPolicy(arrays, meta["architecture"], "unsafe", meta["horizon_s"], meta)
+    m = certify(unsafe, budget=Budget(boxes=600, batch=64, cex_min_share=0.05),
+                margins=("leader",), progress=False).margins["leader"]
+    assert (m.stopped_by, m.certified, m.boxes_bounded) == ("small", 0.0, 60)
+    assert m.open_boxes == m.counterexample_boxes == 31
+
+
 def test_bc_has_counterexamples_on_both_margins() -> None:
     result = certify(pol.load("bc"), budget=Budget(boxes=1200, batch=128), progress=False)
     for m in result.margins.values():
