@@ -289,10 +289,19 @@ def judge(names: list[str], reason: str) -> int:
 def mutmut_fastest_tests_first(args: list[str]) -> int:
     """``mutmut <args>``, each mutant's tests run fastest first (mutmut hands them over in a
     set's order and stops at the first failure): a killed mutant costs its fastest failing
-    test, not whichever test came first (the certification tests take 0.01-5 s each)."""
-    from mutmut.__main__ import cli
+    test, not whichever test came first (the certification tests take 0.01-5 s each); of a
+    sampled module only its sample is run."""
+    import mutmut.__main__ as mutmut_main
     from mutmut.state import state
     from mutmut.workers import isolation
+
+    collect = mutmut_main.collect_source_file_mutation_data
+
+    def collect_in_sample(*, mutant_names):
+        """Only the mutants in their module's sample (SAMPLE_FRACTION) are run."""
+        mutants, by_path = collect(mutant_names=mutant_names)
+        return [m for m in mutants if in_sample(m[1])], by_path
+    mutmut_main.collect_source_file_mutation_data = collect_in_sample
 
     for runner in (isolation.ForkServerRunner, isolation.ForkRunner):
         def submit(self, name, tests, cpu_limit, estimated, _submit=runner.submit):
@@ -301,7 +310,7 @@ def mutmut_fastest_tests_first(args: list[str]) -> int:
                            cpu_limit, estimated)
         runner.submit = submit
     try:
-        cli.main(args, prog_name="mutmut", standalone_mode=False)
+        mutmut_main.cli.main(args, prog_name="mutmut", standalone_mode=False)
     except SystemExit as exc:
         return int(exc.code or 0)
     return 0
