@@ -97,24 +97,6 @@ def test_a_toml_sweep_equals_the_same_sweep_from_flags(tmp_path, capsys) -> None
     assert exc.value.code == 2 and f"{unknown}: unknown key 'nope'" in capsys.readouterr().err
 
 
-def test_the_readme_python_example_runs(capsys) -> None:
-    from pathlib import Path
-
-    from tests.fixtures_data import NGSIM_PAIRS, require_file
-
-    require_file(NGSIM_PAIRS)  # the example drives behind a recorded NGSIM leader
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = readme.split("<!-- python-example -->", 1)[1].split("```python", 1)[1]
-    code = block.split("```", 1)[0]
-    namespace: dict = {"__name__": "readme_example"}
-    exec(compile(code, "README.md example", "exec"), namespace)  # noqa: S102 - our own README
-    shipped, mine = namespace["shipped"], namespace["mine"]
-    assert list(shipped.summary["scenario"]) == ["s0000", "s0001"]
-    assert (shipped.summary["flag"] == "").all()
-    assert mine.summary["policy"].iloc[0] == "cautious" and len(mine.log) > 100
-    assert "gap" in capsys.readouterr().out
-
-
 def test_api_rejects_what_is_no_policy() -> None:
     from safeil_sumo import api
 
