@@ -103,7 +103,7 @@ CLOSED_LOOP = FinetuneConfig(window=60.0, iters=400, style=True, equilibrium_wei
 # keeping taken on the straightened lane, a quarter of the envelope states on bends up to
 # R = 40 m at 6 m/s^2 (headings to 0.08, offsets to 0.8 m, the lines bent apart as a camera sees
 # them), the lateral tower started afresh with its inputs scaled to these states
-# (docs/human_likeness.md, "A fresh lateral tower": ZalaZone's handling course in the normal
+# (CHANGELOG.md, "A fresh lateral tower": ZalaZone's handling course in the normal
 # loop, 60 whole maneuvers: ended early 37 -> 0, lane departures 38 -> 5 beyond the human's,
 # the analytic lane follower's 4; lateral RMSE median 0.81 -> 0.08 m); its y outputs are offsets
 # from the lane centre, the centre along the plan built from the lane lines (lateral_mode

@@ -27,7 +27,7 @@ and from the data, with the envelope barrier's lane terms on top. It starts afre
 (``fresh_tower``), its inputs scaled to these states: the tower inherited from the open-loop
 model read the lane curvature on the highway data's scale (c2 spread 0.0002, a handling
 course's bends 50 standard deviations out), saturated there and, fitted on, followed its
-targets only on the bends it had seen (docs/human_likeness.md, "A fresh lateral tower for real
+targets only on the bends it had seen (CHANGELOG.md, "A fresh lateral tower for real
 bends").
 Where the plans are equally long (slow, or the fine-tune did not change x) on a straight lane
 the target is the reference's y exactly, so low-speed lane keeping is kept.
