@@ -359,7 +359,8 @@ def _between(l0: np.ndarray, l1: np.ndarray, d_lo: np.ndarray, d_hi: np.ndarray,
 class PeriodResult:
     """One period from the sets ``z``: the sets at its end, the property's lower bound over the
     whole period ``(N, r)`` (``-inf`` where no a-priori box was found), the a-priori box
-    ``(N, n)`` x2 and the controller's output interval ``(N, m)`` x2."""
+    ``(N, n)`` x2, the controller's output interval ``(N, m)`` x2, and the sets at the
+    ``substeps + 1`` instants of the period before order reduction."""
 
     end: Zonotope
     lower: np.ndarray
@@ -367,6 +368,7 @@ class PeriodResult:
     box_hi: np.ndarray
     u_lo: np.ndarray
     u_hi: np.ndarray
+    instants: tuple[Zonotope, ...]
 
 
 def advance_period(loop: Loop, maps: PeriodMaps, z: Zonotope, max_gens: int = 40
@@ -390,12 +392,12 @@ def advance_period(loop: Loop, maps: PeriodMaps, z: Zonotope, max_gens: int = 40
     d_lo = sum(x[0] for x in parts) + pc - slack
     d_hi = sum(x[1] for x in parts) + pc + slack
     tau = loop.period / loop.substeps
-    lows = [_affine_lower(p, _at_time(maps, j, z, u, q_mid, q_rad), loop.prop_offset)
-            for j in range(len(maps.times))]
+    sets = tuple(_at_time(maps, j, z, u, q_mid, q_rad) for j in range(len(maps.times)))
+    lows = [_affine_lower(p, s, loop.prop_offset) for s in sets]
     lower = np.min([_between(a, b, d_lo, d_hi, tau) for a, b in pairwise(lows)], axis=0)
     lower = np.where(ok[:, None], lower, -np.inf)
-    end = reduce_order(_at_time(maps, len(maps.times) - 1, z, u, q_mid, q_rad), max_gens)
-    return PeriodResult(end, lower, box_lo, box_hi, u_lo, u_hi)
+    end = reduce_order(sets[-1], max_gens)
+    return PeriodResult(end, lower, box_lo, box_hi, u_lo, u_hi, sets)
 
 
 def reach(loop: Loop, z: Zonotope, periods: int, maps: PeriodMaps | None = None,
