@@ -3,7 +3,7 @@
 Run with a separate venv holding immrax (PyPI) and jax, never the project's:
 
     python3.11 -m venv /tmp/immrax-venv && /tmp/immrax-venv/bin/pip install immrax
-    /tmp/immrax-venv/bin/python tools/immrax_acc.py /work/shared/benchmarks/arch_comp_acc
+    /tmp/immrax-venv/bin/python tools/immrax_acc.py ../shared/benchmarks/arch_comp_acc
 
 The controller is read from the benchmark's POLAR file by the project's own reader (numpy only,
 imported from this checkout) and loaded into an immrax ``NeuralNetwork`` in a temporary
