@@ -465,23 +465,25 @@ def test_every_outcome_field_round_trips_and_the_table_says_what_ran(tmp_path) -
     the lowest score so far."""
     cfg = fz.SearchConfig(method="random", budget=4, batch=4, seed=0, max_time_s=12.0,
                           brake_guard=False)
-    u = np.random.default_rng(3).random((4, fz.DIM))
+    u = np.random.default_rng(3).random((5, fz.DIM))
+    # an error's text is any string, also one pandas would read as missing by default ("NA")
     outcomes = [fz.Outcome(0.5, True, 0.5, "ttc", True, ""),
                 fz.Outcome(math.inf, False, math.nan, "", False, "boom, with a comma"),
                 fz.Outcome(3.0, False, 3.0, "", True, ""),
-                fz.Outcome(1.0, True, 4.0, "lane_departure", True, "")]
+                fz.Outcome(1.0, True, 4.0, "lane_departure", True, ""),
+                fz.Outcome(math.inf, False, math.nan, "", False, "NA")]
     res = fz.SearchResult(cfg, u, outcomes)
     df = fz.table(res, "bc")
     specs = [fz.decode(x, "bc", 12.0, False) for x in u]
-    assert list(df["sim"]) == [1, 2, 3, 4] and list(df.columns[:3]) == ["sim", "u0", "u1"]
+    assert list(df["sim"]) == [1, 2, 3, 4, 5] and list(df.columns[:3]) == ["sim", "u0", "u1"]
     assert list(df["net"]) == [s.net for s in specs]
     assert list(df["leader_kind"]) == [s.leader_kind for s in specs]
     assert list(df["spec"]) == [json.dumps(s.to_json(), sort_keys=True) for s in specs]
-    assert list(df["best_so_far"]) == [0.5, 0.5, 0.5, 0.5]
+    assert list(df["best_so_far"]) == [0.5] * 5
     df.to_csv(tmp_path / "e.csv", index=False)
     back = fz.read_table(tmp_path / "e.csv", cfg)
     assert back.config is cfg and np.allclose(back.u, u, rtol=0, atol=1e-15)
-    assert len(back.outcomes) == 4
+    assert len(back.outcomes) == 5
     assert all(_same(a, b) for a, b in zip(back.outcomes, outcomes, strict=True))
     empty = fz.from_table(fz.table(fz.SearchResult(cfg, np.zeros((0, fz.DIM)), []), "bc"), cfg)
     assert empty.u.shape == (0, fz.DIM) and empty.outcomes == []
@@ -558,11 +560,15 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
     monkeypatch.setattr(fz, "closed_loop_objective", objective)
     cfg = fz.SearchConfig(method="random", budget=20, batch=10, seed=0, max_time_s=12.0,
                           brake_guard=False)
-    folder = tmp_path / "study"
+    folder = tmp_path / "studies" / "m"  # made with its parents
     first = fz.run_or_load(str(weights), cfg, folder)
     # searched with the planner's objective at the config's time limit and guard setting
     assert made == [(str(weights), 12.0, False)] and calls == [(cfg, planted)]
     assert sorted(p.name for p in folder.iterdir()) == ["config.json", "evaluations.csv"]
+    # the table as written: no index column, each row's spec names the planner searched
+    written = pd.read_csv(folder / "evaluations.csv")
+    assert list(written.columns) == list(fz.table(first, str(weights)).columns)
+    assert {json.loads(s)["policy"] for s in written["spec"]} == {str(weights)}
     assert json.loads((folder / "config.json").read_text()) == {
         "policy": str(weights), "policy_fingerprint": planner_registry.fingerprint(str(weights)),
         **dataclasses.asdict(cfg)}
