@@ -205,7 +205,7 @@ def report(patterns: tuple[str, ...]) -> int:
     # judged mutants of this report's patterns that no longer exist (renumbered or removed)
     codes, _ = load_results(patterns)
     gone = sorted(m for m in set(load_equivalent()) - set(codes)
-                  if any(fnmatch.fnmatch(m, p) for p in patterns))
+                  if any(fnmatch.fnmatch(m, p) for p in patterns) and in_sample(m))
     for name in gone:
         print(f"equivalent entry names no mutant in scope: {name}")
     if left:
