@@ -88,6 +88,7 @@ OPENACC_LANE_WIDTH = 3.5  # [m] assumed (no lane data in OpenACC)
 MIN_GAP = 0.1  # [m] smallest bumper gap kept; smaller (incl. negative) values are clipped to it
 MIN_HEADING_SPEED = 1.0  # [m/s] floor on the longitudinal speed when computing heading
 MAX_PATH_CURVATURE = 1.0 / 250.0  # [1/m]
+MAX_PLAUSIBLE_SPEED = 70.0  # [m/s] (252 km/h) any single speed sample above: km/h read as m/s
 NGSIM_GRID_MIN_ROWS = 100  # [-] fewest rows to estimate the NGSIM lane-grid offset from
 
 NGSIM_CSV_COLUMNS = (
@@ -112,6 +113,26 @@ def _require(df: pd.DataFrame, columns: tuple[str, ...] | list[str], source: str
     if missing:
         raise SchemaError(f"{source}: missing column(s) {', '.join(map(repr, missing))} "
                           f"(have: {', '.join(map(str, df.columns))})")
+
+
+class ImportArgumentError(SchemaError):
+    """An import asked for in a way the importers do not know: a format, a column-map role or a
+    unit; the message lists the known ones."""
+
+
+def check_speeds(speed: np.ndarray, source: str, column: str, declared: str = "m/s") -> None:
+    """Raise SchemaError naming the first row (0-based data row) of ``speed`` ``(N,)`` [m/s] above
+    :data:`MAX_PLAUSIBLE_SPEED`: km/h read as m/s, say. ``declared`` is the unit the file was
+    read in (named in the message). NaN passes (no sample)."""
+    v = np.abs(np.asarray(speed, float))
+    with np.errstate(invalid="ignore"):
+        big = v > MAX_PLAUSIBLE_SPEED
+    if big.any():
+        i = int(np.flatnonzero(big)[0])
+        hint = "km/h given where m/s is declared?" if declared == "m/s" else "is the unit right?"
+        raise SchemaError(f"{source}, column {column!r}, row {i}: speed {v[i]:.4g} m/s (read "
+                          f"as {declared}) is implausible, above {MAX_PLAUSIBLE_SPEED:g} m/s: "
+                          f"{hint}")
 
 
 def _read_table(path: Path, **kwargs) -> pd.DataFrame:
