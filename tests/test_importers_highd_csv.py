@@ -186,11 +186,12 @@ def test_highd_trucks_and_cars_both_imported_class_in_stats(scene):
 
 def test_highd_heading_tilts_the_lines(tmp_path):
     """Drifting left at 0.5 m/s while driving 20 m/s, in either direction (yVelocity -0.5 on the
-    lower lanes, +0.5 on the upper): psi = atan(0.5 / 20), c1 = -0.025, c0 = offset / cos."""
+    lower lanes, +0.5 on the upper): psi = atan(0.5 / 20), c1 = -0.025, c0 = offset / cos; the
+    leaders drive 22 m/s."""
     cars = [vehicle(1, "Car", 2, 100.0, 20.0, 4.0, 2.0, 20.0, 5, preceding=2, vy=-0.5),
-            vehicle(2, "Car", 2, 130.0, 20.0, 4.0, 2.0, 20.0, 5),
+            vehicle(2, "Car", 2, 130.0, 20.0, 4.0, 2.0, 22.0, 5),
             vehicle(3, "Car", 1, 300.0, 6.0, 4.0, 2.0, -20.0, 2, preceding=4, vy=0.5),
-            vehicle(4, "Car", 1, 270.0, 6.0, 4.0, 2.0, -20.0, 2)]
+            vehicle(4, "Car", 1, 270.0, 6.0, 4.0, 2.0, -22.0, 2)]
     df = import_highd(write_highd(tmp_path, cars, frames=3))
     psi = np.arctan2(0.5, 20.0)
     for vid in (1, 3):
@@ -202,6 +203,7 @@ def test_highd_heading_tilts_the_lines(tmp_path):
         # the leader 26 m ahead (30 m front to front, minus its 4 m) straight along the road
         assert first["lead_x"] == pytest.approx(26.0 * np.cos(psi))
         assert first["lead_y"] == pytest.approx(-26.0 * np.sin(psi))
+        assert first["lead_v"] == 22.0 and first["v_x"] == 20.0  # the leader's own speed
 
 
 def _turned(v: dict, road_length: float, road_height: float) -> dict:

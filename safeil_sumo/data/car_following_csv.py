@@ -87,8 +87,8 @@ def _numbers(raw: pd.DataFrame, column: str, source: str, required: bool) -> np.
         what = f"not a number: {raw[column].iloc[i]!r}" if text[i] else "empty (a value needed)"
         raise SchemaError(f"{source}, column {column!r}, row {i}: {what}")
     if np.isinf(num).any():
-        raise SchemaError(f"{source}, column {column!r}, row {int(np.flatnonzero(np.isinf(num))[0])}"
-                          ": infinite value")
+        i = int(np.flatnonzero(np.isinf(num))[0])
+        raise SchemaError(f"{source}, column {column!r}, row {i}: infinite value")
     return num
 
 

@@ -1,5 +1,5 @@
-"""highD recordings (the levelXdata layout) into the drive schema; see :mod:`safeil_sumo.data.importers`
-for the conversions (its module doc, section "highD")."""
+"""highD recordings (the levelXdata layout) into the drive schema; the conversions are in the
+module doc of :mod:`safeil_sumo.data.importers`, section "highD"."""
 
 from __future__ import annotations
 
