@@ -478,7 +478,10 @@ def test_spec_dispatch_to_each_importer(tmp_path):
     acc.mkdir()
     write_openacc(acc / "JRC-VC_280219_part2.csv.gz", gz=True)
     write_openacc(acc / "JRC-VC_280219_part3.csv")
-    assert import_drive(f"openacc:{acc}")["recording_id"].nunique() == 8
+    (acc / "Vicolungo_veh_specifications.csv").write_text("Vehicles,Max power (kW)\nA,100\n")
+    from_dir = import_drive(f"openacc:{acc}")
+    assert from_dir["recording_id"].nunique() == 8
+    assert from_dir.attrs["import_stats"]["files_skipped"] == ["Vicolungo_veh_specifications.csv"]
     assert import_drive(f"OpenACC:{acc / 'JRC-VC_280219_part3.csv'}")["recording_id"].nunique() == 4
     ngsim = import_drive(f"ngsim:{write_ngsim_csv(tmp_path / 'trajectories.csv')}")
     assert list(ngsim["recording_id"].unique()) == ["2-1", "3-2", "3-1"]

@@ -15,6 +15,8 @@ from safeil_sumo.data.car_following_csv import import_car_following_csv
 from safeil_sumo.data.highd import import_highd
 from safeil_sumo.data.importers import (
     ImportArgumentError,
+    _fields,
+    _head_lines,
     import_ngsim_csv,
     import_ngsim_pairs,
     import_openacc_files,
@@ -43,11 +45,19 @@ def split_spec(spec: str) -> tuple[str, Path]:
 
 
 def _openacc(path: Path) -> pd.DataFrame:
-    files = (sorted(f for f in path.iterdir() if f.name.lower().endswith((".csv", ".csv.gz")))
-             if path.is_dir() else [path])
+    """One OpenACC file, or every one in a directory: the ``.csv``/``.csv.gz`` files whose first
+    row is the metadata ``Date`` row (a campaign folder also holds e.g. the vehicles'
+    specifications; those are skipped and listed in ``import_stats["files_skipped"]``)."""
+    if not path.is_dir():
+        return import_openacc_files([path])
+    csvs = sorted(f for f in path.iterdir() if f.name.lower().endswith((".csv", ".csv.gz")))
+    files = [f for f in csvs if _fields((_head_lines(f, 1) or [""])[0])[0] == "Date"]
     if not files:
-        raise SchemaError(f"{path}: no OpenACC file (.csv, .csv.gz) in the directory")
-    return import_openacc_files(list(files))
+        raise SchemaError(f"{path}: no OpenACC file (.csv, .csv.gz starting with the 'Date' "
+                          f"metadata row) in the directory ({len(csvs)} other CSV files)")
+    out = import_openacc_files(files)
+    out.attrs["import_stats"]["files_skipped"] = [f.name for f in csvs if f not in files]
+    return out
 
 
 def _ngsim(path: Path) -> pd.DataFrame:
