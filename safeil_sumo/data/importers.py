@@ -1,4 +1,7 @@
-"""Real recordings into the drive schema (:mod:`safeil_sumo.data.schema`): NGSIM and JRC OpenACC.
+"""Real recordings into the drive schema (:mod:`safeil_sumo.data.schema`): NGSIM, JRC OpenACC, highD
+(:mod:`~safeil_sumo.data.highd`) and plain car-following CSVs
+(:mod:`~safeil_sumo.data.car_following_csv`); :func:`safeil_sumo.data.drive_import.import_drives`
+reads any of them by a ``"format:path"`` spec (``docs/your_own_drives.md``).
 
 Every importer takes a path to the ORIGINAL file layout, checks the columns it needs (a missing
 one raises :class:`~safeil_sumo.data.schema.SchemaError` naming file and column) and returns a
@@ -67,6 +70,57 @@ naming the row: the file has lost its ACC flag, so it is not read as if it were 
   ``followers_acc_skipped``, ``driver_from_metadata``, ``lead_speed_missing``,
   ``ivs_without_follower``, ``rows_nan_skipped``, ``runs_short_skipped``,
   ``rows_short_skipped``, ``gap_clipped``, ``curvature_clipped``, ``recordings``, ``rows``.
+
+highD (:func:`~safeil_sumo.data.highd.import_highd`; the levelXdata file layout, a directory, a
+prefix ``DIR/01`` or ``DIR/01_tracks.csv``; each recording ``NN`` is ``NN_tracks.csv``,
+``NN_tracksMeta.csv``, ``NN_recordingMeta.csv``; inD/rounD/exiD share the layout, not the columns,
+and are refused in one line):
+- image frame: ``x, y`` = the UPPER-LEFT corner of the axis-aligned box, y pointing DOWN; the box
+  is ``width`` long along x and ``height`` wide across. ``drivingDirection`` 1 = upper lanes,
+  driving towards -x; 2 = lower lanes, towards +x (``d = -1`` / ``+1``).
+- road frame (the schema's world): ``X = d x``, ``Y = -d y``: every vehicle drives towards +X
+  with +Y on its LEFT (direction 2: y flipped up; direction 1: the image turned 180 degrees, a
+  rotation, not a mirror, so left stays left). Position = the front centre: image
+  ``(x + width, y + height/2)`` for ``d = +1``, ``(x, y + height/2)`` for ``d = -1``.
+- ``time = frame / frameRate`` (25 Hz); ``v_x = d xVelocity`` (the speed along the driving
+  direction, = ``|xVelocity|``); a vehicle whose median is negative drives against its
+  ``drivingDirection`` (an error). Heading ``yaw = atan2(-d yVelocity, max(v_x, 1 m/s))``
+  (highD's tracks are smoothed already: no filter).
+- lane lines: the carriageway's markings (``upperLaneMarkings`` for direction 1,
+  ``lowerLaneMarkings`` for 2, ``;``-separated image y) in road-frame ``Y = -d m``; the ego's
+  lane is the pair bracketing its centre ``Y`` (outside every marking: the nearest lane, counted
+  as ``outside_markings``; the pipeline then drops the row as a line crossing). Straight road:
+  ``c0 = (Y_line - Y) / cos(yaw)``, ``c1 = -tan(yaw)``, ``c2 = c3 = 0``. ``lane_index =
+  laneId``.
+- leader: ``precedingId`` (0 = none) at the same frame; bumper gap along the road = the
+  leader's rear ``X`` (image ``x`` for ``d = +1``, ``x + width`` for ``d = -1``, times ``d``)
+  minus the ego's front ``X``, clipped to :data:`MIN_GAP` (``gap_clipped``); lateral offset =
+  leader centre ``Y`` minus ego ``Y``; both rotated into the ego frame as for NGSIM.
+  ``lead_v`` = the leader's own ``d xVelocity``. A ``precedingId`` without a row of that vehicle
+  at that frame is no leader (``leader_row_missing``). Lane changes stay in the recording: the
+  pipeline removes them (``laneId`` changes, line crossings).
+- recording ids ``highd_<NN>_<id>`` (``NN`` = recordingMeta ``id``, two digits), one per vehicle,
+  cars and trucks alike. ``import_stats`` per recording: ``vehicle_class`` (id -> ``Car`` /
+  ``Truck``: the schema has no column for it), ``cars``, ``trucks``, ``frame_rate_hz``,
+  ``rows_without_leader``, ``leader_row_missing``, ``gap_clipped``, ``outside_markings``,
+  ``recordings``, ``rows``.
+- errors (one line, file, column, 0-based data row): a missing column (the columns found
+  listed), an empty file, a non-number, a ``drivingDirection`` other than 1/2, fewer than two
+  lane markings, a vehicle missing from tracksMeta, an ``|xVelocity|`` above
+  :data:`MAX_PLAUSIBLE_SPEED` (km/h?), no row with a leader.
+
+car-following CSV (:func:`~safeil_sumo.data.car_following_csv.import_car_following_csv`): one row
+per sample; roles ``time`` [s], ``v``, ``gap`` [m, bumper to bumper, empty = no leader], optional
+``lead_v``, ``id``, ``driver``, mapped from the file's columns by name (unmapped roles default to a
+column of the role's own name).
+- speeds in ``speed_unit``: ``"m/s"`` (default) or ``"km/h"`` (times 1/3.6); any speed above
+  :data:`MAX_PLAUSIBLE_SPEED` after conversion names its row (km/h read as m/s).
+- longitudinal only, as OpenACC without a path: the ego is centred in a straight lane of width
+  3.5 m, ``c0l = +1.75``, ``c0r = -1.75``, ``c1 = c2 = c3 = 0``; ``x`` = trapezoid integral of
+  ``v`` from 0 per recording, ``y = yaw = 0``; ``lead_x = gap`` clipped to :data:`MIN_GAP`,
+  ``lead_y = 0``, ``lead_v`` NaN where not given (the pipeline differentiates the gap).
+- recordings: ``<file name without extensions>[_<driver>][_<id>]``; rows grouped by recording in
+  order of first appearance, time strictly increasing within one (else the file row is named).
 """
 
 from __future__ import annotations
@@ -88,6 +142,7 @@ OPENACC_LANE_WIDTH = 3.5  # [m] assumed (no lane data in OpenACC)
 MIN_GAP = 0.1  # [m] smallest bumper gap kept; smaller (incl. negative) values are clipped to it
 MIN_HEADING_SPEED = 1.0  # [m/s] floor on the longitudinal speed when computing heading
 MAX_PATH_CURVATURE = 1.0 / 250.0  # [1/m]
+MAX_PLAUSIBLE_SPEED = 70.0  # [m/s] (252 km/h) any single speed sample above: km/h read as m/s
 NGSIM_GRID_MIN_ROWS = 100  # [-] fewest rows to estimate the NGSIM lane-grid offset from
 
 NGSIM_CSV_COLUMNS = (
@@ -112,6 +167,26 @@ def _require(df: pd.DataFrame, columns: tuple[str, ...] | list[str], source: str
     if missing:
         raise SchemaError(f"{source}: missing column(s) {', '.join(map(repr, missing))} "
                           f"(have: {', '.join(map(str, df.columns))})")
+
+
+class ImportArgumentError(SchemaError):
+    """An import asked for in a way the importers do not know: a format, a column-map role or a
+    unit; the message lists the known ones."""
+
+
+def check_speeds(speed: np.ndarray, source: str, column: str, declared: str = "m/s") -> None:
+    """Raise SchemaError naming the first row (0-based data row) of ``speed`` ``(N,)`` [m/s] above
+    :data:`MAX_PLAUSIBLE_SPEED`: km/h read as m/s, say. ``declared`` is the unit the file was
+    read in (named in the message). NaN passes (no sample)."""
+    v = np.abs(np.asarray(speed, float))
+    with np.errstate(invalid="ignore"):
+        big = v > MAX_PLAUSIBLE_SPEED
+    if big.any():
+        i = int(np.flatnonzero(big)[0])
+        hint = "km/h given where m/s is declared?" if declared == "m/s" else "is the unit right?"
+        raise SchemaError(f"{source}, column {column!r}, row {i}: speed {v[i]:.4g} m/s (read "
+                          f"as {declared}) is implausible, above {MAX_PLAUSIBLE_SPEED:g} m/s: "
+                          f"{hint}")
 
 
 def _read_table(path: Path, **kwargs) -> pd.DataFrame:
