@@ -269,6 +269,11 @@ def test_the_study_by_hand(tmp_path, monkeypatch) -> None:
         "--out runs/w"))
     assert fz.write_worst(_result(3, [gone], budget=1, batch=1), "bc", tmp_path / "z") is None
     assert not (tmp_path / "z").exists()
+    # a worst case without a flag says so, under the default name
+    calm = fz.Outcome(2.5, False, 2.5, "", True)
+    toml = fz.write_worst(_result(4, [calm], budget=1, batch=1), "bc", tmp_path / "v")
+    assert toml == tmp_path / "v" / "worst.toml" and (tmp_path / "v" / "worst.json").is_file()
+    assert "min TTC 2.500 s, no flag\n" in toml.read_text()
 
 
 def test_search_config_is_checked() -> None:
@@ -485,6 +490,10 @@ def test_every_outcome_field_round_trips_and_the_table_says_what_ran(tmp_path) -
     assert back.config is cfg and np.allclose(back.u, u, rtol=0, atol=1e-15)
     assert len(back.outcomes) == 5
     assert all(_same(a, b) for a, b in zip(back.outcomes, outcomes, strict=True))
+    # a table read with pandas' defaults (empty cells and "NA" as NaN): empty texts, not "nan"
+    loose = fz.from_table(pd.read_csv(tmp_path / "e.csv"), cfg)
+    assert [o.flag for o in loose.outcomes] == ["ttc", "", "", "lane_departure", ""]
+    assert [o.error for o in loose.outcomes] == ["", "boom, with a comma", "", "", ""]
     empty = fz.from_table(fz.table(fz.SearchResult(cfg, np.zeros((0, fz.DIM)), []), "bc"), cfg)
     assert empty.u.shape == (0, fz.DIM) and empty.outcomes == []
     with pytest.raises(ValueError):  # points and outcomes of different lengths
