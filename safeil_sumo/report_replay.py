@@ -65,7 +65,8 @@ def planners(model: str) -> list[str]:
 
 def _source(ctx: EvalContext, source: str, held: set[str]
             ) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
-    """Replay ``source``'s held-out maneuvers whole: (maneuvers, per-maneuver table, ids)."""
+    """Replay ``source``'s held-out maneuvers whole: (maneuvers, per-maneuver table, ids);
+    ``OSError`` / ``ValueError`` when the source cannot be read."""
     s = ctx.settings
     maneuvers, _ = process_drive(load_source(source, s.data_dir), PipelineConfig(rate_hz=10.0))
     only = sorted(held & set(maneuvers["maneuver_id"].astype(str)))
@@ -158,15 +159,20 @@ def replay(ctx: EvalContext) -> Section:
     """Section 4: whole held-out maneuvers, the table per planner and the traces figure."""
     sidecar = held_out_sidecar(ctx.model)
     held = set(held_out_maneuvers(sidecar))
-    frames, maneuvers, commands, counts = [], {}, [], {}
+    frames, maneuvers, commands, counts, skipped = [], {}, [], {}, []
     for source in REPLAY_SOURCES:
-        maneuvers[source], df, only = _source(ctx, source, held)
+        try:
+            maneuvers[source], df, only = _source(ctx, source, held)
+        except (OSError, ValueError) as exc:  # e.g. a data folder without this source
+            skipped.append(f"{source} skipped: {exc}.")
+            df, only = pd.DataFrame(), []
         counts[f"{source}_maneuvers"] = len(only)
         if only:
             frames.append(df)
             commands.append(_source_command(ctx, source, only, sidecar))
-    pooled = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame(
-        columns=["maneuver_id", "policy", "status", "rmse_gap", "source"])
+    if not frames:  # nothing to judge: the section's error, not a failed check
+        raise ValueError("no held-out maneuver to replay " + " ".join(skipped))
+    pooled = pd.concat(frames, ignore_index=True)
     pooled.to_csv(ctx.table("replay_maneuvers.csv"), index=False)
     agg = ra.aggregate(pooled, ctx.settings.seed) if len(pooled) else pd.DataFrame()
     agg.to_csv(ctx.table("replay_planners.csv"), index=False)
@@ -184,7 +190,7 @@ def replay(ctx: EvalContext) -> Section:
         figures.insert(0, rel)
     notes = (f"Held-out maneuvers: those of {shown_path(sidecar)} (`metrics.val_maneuvers`)"
              + ("" if ctx.settings.replay_maneuvers is None else
-                f", the first {ctx.settings.replay_maneuvers} per source") + ".",)
+                f", the first {ctx.settings.replay_maneuvers} per source") + ".", *skipped)
     return Section("replay", "Whole-maneuver replays of held-out maneuvers", MEASURES, numbers,
                    _checks(numbers, ctx.model), (*commands, *pick_commands), tuple(figures),
                    notes)

@@ -24,7 +24,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pandas as pd
@@ -79,7 +79,9 @@ QUICK = {"sweep_scenarios": 30, "gap_speeds_mps": (25.0,), "replay_maneuvers": 2
 def settings(quick: bool = False, **given: object) -> EvalSettings:
     """The full defaults, or the quick ones with ``quick``; ``given`` (not None) wins."""
     chosen = {**(QUICK if quick else {}), **{k: v for k, v in given.items() if v is not None}}
-    return EvalSettings(quick=quick, **chosen)  # type: ignore[arg-type]
+    out = EvalSettings(quick=quick, **chosen)  # type: ignore[arg-type]
+    # a batch never larger than the search (a small budget's search is one batch)
+    return replace(out, falsify_batch=max(1, min(out.falsify_batch, out.falsify_budget)))
 
 
 @dataclass(frozen=True)
