@@ -102,7 +102,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def default_out(model: str, quick: bool) -> Path:
     """``runs/evaluate_<model>[_quick]``, the model's file name without its suffix for a path."""
-    name = Path(model).stem if pol._looks_like_path(model) else model
+    is_path = "/" in model or "\\" in model or model.endswith((".safetensors", ".json"))
+    name = Path(model).stem if is_path else model
     return Path("runs") / (re.sub(r"[^A-Za-z0-9_.-]+", "_", f"evaluate_{name}")
                            + ("_quick" if quick else ""))
 

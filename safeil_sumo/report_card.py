@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import shlex
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from safeil_sumo.experiments.stats import wilson_interval
@@ -45,7 +45,7 @@ class Section:
     key: str
     title: str
     measures: str  # what the section measures, one paragraph
-    numbers: dict[str, Number] = field(default_factory=dict)
+    numbers: Mapping[str, Number] = field(default_factory=dict)
     checks: tuple[Check, ...] = ()
     commands: tuple[str, ...] = ()  # the console commands that reproduce it
     figures: tuple[str, ...] = ()  # paths relative to the report's folder

@@ -18,7 +18,15 @@ from safeil_sumo.data.sources import load_source
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.learn.checkpoint import CheckpointError, held_out_maneuvers
-from safeil_sumo.report_card import Check, Section, beats, best_median_worst, command_line, none_of
+from safeil_sumo.report_card import (
+    Check,
+    Number,
+    Section,
+    beats,
+    best_median_worst,
+    command_line,
+    none_of,
+)
 from safeil_sumo.report_sections import (
     REPLAY_BASELINES,
     REPLAY_SOURCES,
@@ -89,7 +97,9 @@ def _traces(ctx: EvalContext, pooled: pd.DataFrame, maneuvers: dict[str, pd.Data
     series: (figure panels, numbers, commands)."""
     mine = pooled[(pooled["policy"] == ctx.model) & (pooled["status"] == "ok")].reset_index()
     picks = best_median_worst(mine["rmse_gap"].to_numpy(float).tolist())
-    panels, numbers, commands = [], {}, []
+    panels: list[tuple[str, pd.DataFrame, dict[str, pd.DataFrame]]] = []
+    numbers: dict[str, Number] = {}
+    commands: list[str] = []
     names = planners(ctx.model)
     for label, i in picks:
         row = mine.iloc[i]
