@@ -389,9 +389,15 @@ def falsify(ctx: EvalContext) -> Section:
             "best_flag", "best_sim")
     numbers = {k: summary.get(k) for k in keys}
     failures = int(summary["failures"])
+    # what the failures were: a TTC flag at 0.9 s is not a collision
+    failed = evaluations[evaluations["failure"].astype(bool)] if len(evaluations) else evaluations
+    kinds = {k: int((failed["flag"] == k).sum()) if len(failed) else 0
+             for k in ("ttc", "lane_departure", "collision")}
+    numbers |= {f"failures_{k}": v for k, v in kinds.items()}
     check = Check("falsification (CEM)",
-                  f"{failures} failures in {summary['simulations']} simulations; worst min TTC "
-                  f"{summary.get('best_min_ttc_s', math.nan):.2f} s",
+                  f"{failures} failures ({kinds['ttc']} TTC, {kinds['lane_departure']} lane "
+                  f"departure, {kinds['collision']} collision) in {summary['simulations']} "
+                  f"simulations; worst min TTC {summary.get('best_min_ttc_s', math.nan):.2f} s",
                   "no avoidable failure found (no flag in a scenario braking at 6 m/s^2 avoids)",
                   none_of(failures, summary["errors"]))
     cmd = command_line("safeil-falsify", ["--policy", ctx.model, "--method", "cem",
