@@ -29,8 +29,10 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("experiments: sweeps, replays, probes, metrics",
      ("experiments.*",)),
     ("the Python API", ("api",)),
+    ("the report card: safeil-evaluate's sections over the engines",
+     ("report_card", "report_figures", "report_sections", "report_replay")),
     ("command lines", ("run", "sweep", "replay", "probe", "gap_probe", "results", "bench",
-                       "animate", "certify", "falsify", "cli_args")),
+                       "animate", "certify", "falsify", "evaluate", "cli_args")),
     ("Gymnasium environments (their rgb_array frames are the animation's)", ("envs.*",)),
 )
 CLI_LAYER = next(i for i, (what, _) in enumerate(LAYERS) if what == "command lines")
