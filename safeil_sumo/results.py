@@ -324,7 +324,7 @@ def openloop(out: Path, work: Path) -> pd.DataFrame:
     """Per method and dataset: errors and constraint margins on held-out maneuvers."""
     from safeil_sumo.data.tuples import Tuples
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-    from safeil_sumo.learn.evaluate import open_loop_metrics
+    from safeil_sumo.learn.open_loop_metrics import open_loop_metrics
     from safeil_sumo.learn.inference import load_policy
     from safeil_sumo.learn.torch_required import TORCH_MISSING, have_torch
 

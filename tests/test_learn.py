@@ -18,7 +18,7 @@ from scripts import load_training_script
 from safeil_sumo import bspline
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.features import planner_features
-from safeil_sumo.learn.evaluate import open_loop_metrics, plan_metrics
+from safeil_sumo.learn.open_loop_metrics import open_loop_metrics, plan_metrics
 from safeil_sumo.learn.losses import (
     BarrierConfig,
     barrier_terms,

@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
 from safeil_sumo.learn.envelope import sample_states
-from safeil_sumo.learn.evaluate import open_loop_metrics
+from safeil_sumo.learn.open_loop_metrics import open_loop_metrics
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.losses import (
     BarrierConfig,
