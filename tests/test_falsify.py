@@ -208,6 +208,7 @@ def test_the_worst_case_reruns_from_its_sweep_file(tmp_path, source: float, guar
     u[0] = source
     spec = fz.decode(u, "safeil", 25.0, guard)
     assert ("brake_guard = false\n" in fz.sweep_toml(spec)) is not guard
+    assert fz.sweep_toml(spec).startswith(f'net = ["{spec.net}"]\n')  # no comment: no head
     path = tmp_path / "worst.toml"
     path.write_text(fz.sweep_toml(spec, "a comment\non two lines"))
     assert sweep.build_specs(sweep.parse_args(["--config", str(path)])) == [spec]

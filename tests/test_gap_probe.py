@@ -227,6 +227,8 @@ def test_steady_following_and_bands_at_their_edges() -> None:
                           "drivers"]].tolist() == ["humans", "steady_following", 25.0, 100, 2, 2]
     strict = gp.human_time_gap_bands(rows, speeds=(25.0,), max_accel=-1.0)
     assert strict.iloc[0]["samples"] == 0
+    loose = gp.human_time_gap_bands(rows, speeds=(25.0,), max_dv=1.0)  # passed on: b is steady
+    assert loose.iloc[0][["samples", "maneuvers"]].tolist() == [150, 3]
     # a time gap at exactly the lowest defined speed (1 m/s) is defined
     assert gp.time_gap(np.array([10.0]), np.array([1.0]))[0] == 10.0
 
