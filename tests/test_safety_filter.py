@@ -318,3 +318,102 @@ def test_analytic_planner_with_the_filter_completes_curved500() -> None:
     assert s["completed"] and s["flag"] == "" and s["path_completed"] == 1.0, s
     assert s["max_abs_lateral_offset_m"] < 0.5
     assert policy.calls > 100 and policy.intervention_rate < 0.05
+
+
+# ------------------------------------------------- cases found by mutation testing (issue 43)
+
+
+def test_margins_and_bounds_by_hand_with_a_lateral_margin() -> None:
+    """A straight 3.5 m lane, a 1.8 m car, 0.1 m more clearance: the band is |y| <= 0.75 m; a
+    plan at y = 0.5 has margins 0.25 left and 1.25 right, at every control point and every
+    Bernstein coefficient but the car's own (its y is 0: 0.75 each side)."""
+    f = planner_features([1.75, 0.0, 0.0], [-1.75, 0.0, 0.0], 30.0, 30.0, 100.0)
+    safe = SafeSet(track=1.8, lateral_margin=0.1)
+    y_min, y_max = lateral_bounds(f, np.array([0.0, 20.0]), safe)
+    np.testing.assert_allclose([y_min, y_max], [[-0.75, -0.75], [0.75, 0.75]], atol=1e-12)
+    plan = np.array([[10.0, 0.5], [20.0, 0.5], [30.0, 0.5]])
+    m = plan_margins(f, plan, 5.0, safe)
+    np.testing.assert_allclose(m["left"], 0.25, atol=1e-12)
+    np.testing.assert_allclose(m["right"], 1.25, atol=1e-12)
+    b = bernstein_margins(f, plan, safe)
+    y_coef = plan[:, 1] @ bspline.ELEVATE_3_TO_6[:, 1:].T  # the plan's y, degree 6
+    np.testing.assert_allclose(b["left"], 0.75 - y_coef, atol=1e-12)
+    np.testing.assert_allclose(b["right"], 0.75 + y_coef, atol=1e-12)
+    assert b["left"][0] == pytest.approx(0.75) and b["left"][6] == pytest.approx(0.25)
+
+
+def test_an_unknown_mode_is_named() -> None:
+    f = planner_features([1.75, 0.0, 0.0], [-1.75, 0.0, 0.0], 30.0, 30.0, 100.0)
+    with pytest.raises(ValueError, match="mode must be one of .*'nope'"):
+        project_plan(f, np.zeros((3, 2)), 5.0, mode="nope")
+
+
+def test_a_lane_narrower_than_the_car_puts_the_control_points_on_its_centre() -> None:
+    """control_points mode, a 1 m lane off centre (lines at 1.5 and 0.5): y = 1.0."""
+    f = planner_features([1.5, 0.0, 0.0], [0.5, 0.0, 0.0], 20.0, 20.0, 50.0)
+    plan = np.array([[10.0, 3.0], [20.0, 0.0], [30.0, -3.0]])
+    filtered, acted = project_plan(f, plan, 4.0, mode="control_points")
+    assert acted
+    np.testing.assert_allclose(filtered[:, 1], 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["bernstein", "control_points"])
+def test_one_plan_for_many_states_and_many_plans_for_one_state(mode: str) -> None:
+    """Plans (4, 3, 2) with features (9,) give (4, 3, 2), each row filtered as alone; in the
+    default mode so do plans (3, 2) with features (4, 9) (control_points mode needs the plans'
+    batch shape: it writes into a copy of them)."""
+    rng = np.random.default_rng(5)
+    feats = np.stack([planner_features([1.75 + o, 0.0, 0.0], [-1.75 + o, 0.0, 0.0], 30.0,
+                                       30.0, 60.0) for o in (-1.0, -0.3, 0.3, 1.0)])
+    plan = np.array([[50.0, 0.4], [100.0, 0.8], [150.0, 1.2]])
+    if mode == "bernstein":
+        got, acted = project_plan(feats, plan, 5.0, mode=mode)
+        assert got.shape == (4, 3, 2) and acted.shape == (4,)
+        for k in range(4):
+            np.testing.assert_array_equal(got[k], project_plan(feats[k], plan, 5.0)[0])
+    plans = rng.uniform([0.0, -2.0], [150.0, 2.0], size=(4, 3, 2))
+    got, acted = project_plan(feats[1], plans, 5.0, mode=mode)
+    assert got.shape == (4, 3, 2) and acted.shape == (4,)
+    for k in range(4):
+        np.testing.assert_array_equal(got[k], project_plan(feats[1], plans[k], 5.0, mode=mode)[0])
+
+
+def test_a_plan_back_inside_from_a_car_outside_is_kept() -> None:
+    """The car is 0.5 m right of the band (band y in [0.5, 2.24]): a plan whose coefficients
+    k >= 1 are inside (y = 1.2, coefficient 1 = 0.6) is kept as it is, not replaced by the
+    lane centre (1.37)."""
+    near = planner_features([3.12, 0.0, 0.0], [-0.38, 0.0, 0.0], 30.0, 30.0, 200.0)
+    x = 30.0 * bspline.control_point_times(5.0)
+    plan = np.stack([x, np.full(3, 1.2)], axis=-1)
+    got, acted = project_plan(near, plan, 5.0)
+    assert not acted
+    np.testing.assert_array_equal(got, plan)
+
+
+def test_the_constant_speed_fallback_by_hand() -> None:
+    """A bend (c2 = 0.004), a lane centred 0.3 m left, and an x profile far from constant
+    speed (1, 2, 150 m): no cubic y follows the lane, so x becomes the constant-speed profile
+    ending at min(x3, 3 x_max_i / i) and y the lane centre at it, 0.3 + 0.004 end^2 (0, 1/3,
+    1). Far leader: end = 150 (the plan's own end); a leader 40 m ahead at 10 m/s: x_max =
+    (56.7, 73.3, 90) at t = 5/3, 10/3, 5 s, end = 90. In one batch, each as alone."""
+    def feats(d_lead: float) -> np.ndarray:
+        return planner_features([2.05, 0.0, 0.004], [-1.45, 0.0, 0.004], 30.0, 10.0, d_lead)
+
+    plan = np.array([[1.0, 0.0], [2.0, 0.0], [150.0, 8.0]])
+    want = {}
+    for d, end in ((200.0, 150.0), (40.0, 90.0)):
+        got, acted = project_plan(feats(d), plan, 5.0)
+        want[d] = np.stack([end * np.array([1 / 3, 2 / 3, 1.0]),
+                            0.3 + 0.004 * end**2 * np.array([0.0, 1 / 3, 1.0])], axis=-1)
+        assert acted
+        np.testing.assert_allclose(got, want[d], rtol=0, atol=1e-9)
+    both, _ = project_plan(np.stack([feats(200.0), feats(40.0)]), plan, 5.0)
+    np.testing.assert_allclose(both, np.stack([want[200.0], want[40.0]]), rtol=0, atol=1e-9)
+    # 2 m + 1 s of headway (32 m at 30 m/s): x_max = d - 32 + 10 t; the FIRST control point
+    # binds, end = 3 x_max_1 = 14 m (d = 20) and 29 m (d = 25); in one batch, each its own
+    headway = SafeSet(gap_min=2.0, time_gap=1.0)
+    got, _ = project_plan(np.stack([feats(20.0), feats(25.0)]), plan, 5.0, headway)
+    for k, end in enumerate((14.0, 29.0)):
+        np.testing.assert_allclose(got[k], np.stack(
+            [end * np.array([1 / 3, 2 / 3, 1.0]),
+             0.3 + 0.004 * end**2 * np.array([0.0, 1 / 3, 1.0])], axis=-1), rtol=0, atol=1e-9)
