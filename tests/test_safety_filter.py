@@ -388,6 +388,13 @@ def test_a_plan_back_inside_from_a_car_outside_is_kept() -> None:
     got, acted = project_plan(near, plan, 5.0)
     assert not acted
     np.testing.assert_array_equal(got, plan)
+    # far from constant speed on a bend, from outside: the reference at the plan's own x (the
+    # constant-speed fallback is for a car inside the band)
+    bend = planner_features([3.12, 0.0, 0.004], [-0.38, 0.0, 0.004], 30.0, 30.0, 200.0)
+    wild = np.array([[1.0, 0.0], [2.0, 0.0], [150.0, 8.0]])
+    got, acted = project_plan(bend, wild, 5.0)
+    assert acted
+    np.testing.assert_array_equal(got[:, 0], wild[:, 0])
 
 
 def test_the_constant_speed_fallback_by_hand() -> None:
