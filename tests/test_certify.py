@@ -588,6 +588,21 @@ def test_a_short_branch_and_bound_of_bc_is_the_golden_one() -> None:
     assert lane.with_counterexample == pytest.approx(0.8146796687085203, rel=1e-9)
     assert lane.unproven_by_dim["relative_speed_mps"] == pytest.approx(
         [0.2033, 0.2033, 0.247, 0.3464], abs=1e-4)
+    # the rest of the record: unknown is what neither proof nor counterexample covers, the
+    # parts' certified shares weigh up to the whole, the boxes' fields by name
+    weights = cm.CertEnvelope().part_weights()
+    for m in (lead, lane):
+        assert m.unknown == pytest.approx(max(0.0, 1.0 - m.certified - m.with_counterexample))
+        assert sum(weights[p] * m.certified_by_part[p] for p in weights) == pytest.approx(
+            m.certified, rel=1e-12)
+        assert 0.0 < m.seconds < 120.0
+        assert set(m.boxes) == {"proven_lo", "proven_hi", "proven_part", "open_lo", "open_hi",
+                                "open_part", "open_cex_z"}
+        for box in m.unproven_boxes:
+            assert set(box) == {"part", "share", "lower_bound_m", "counterexample_m", "lo",
+                                "hi"} and set(box["hi"]) == set(box["lo"])
+    assert 0.0 < lead.proven_summary["median_share"] <= 1.0
+    assert lead.certified_by_part["free"] > 0.0 and lead.certified_by_part["leader"] >= 0.0
 
 
 def test_branch_and_bound_stops_when_only_small_counterexample_boxes_are_left() -> None:
@@ -601,6 +616,9 @@ def test_branch_and_bound_stops_when_only_small_counterexample_boxes_are_left() 
                 margins=("leader",), progress=False).margins["leader"]
     assert (m.stopped_by, m.certified, m.boxes_bounded) == ("small", 0.0, 60)
     assert m.open_boxes == m.counterexample_boxes == 31
+    # every box left was bounded and refuted: each carries its lower bound and counterexample
+    assert all(isinstance(b["lower_bound_m"], float) and b["lower_bound_m"] < 0.0
+               and b["counterexample_m"] < 0.0 for b in m.unproven_boxes)
 
 
 def test_bc_has_counterexamples_on_both_margins() -> None:
@@ -839,3 +857,91 @@ def test_sampled_violations_weigh_the_parts_and_match_reference_margins() -> Non
     ol = pol.load("safeil_openloop")
     good = cm.sampled_violations(ol, cm.Properties.from_metadata(ol.metadata), 3000, seed=4)
     assert good["lane"]["violated"] < 0.02 < res["lane"]["violated"]
+
+
+# ------------------------------------------------- cases found by mutation testing (issue 43)
+
+
+def test_budget_edges_and_messages() -> None:
+    Budget(batch=1, cex_priority=1.0, n_random=0)  # the edges themselves are allowed
+    for bad in ({"batch": 0}, {"n_random": -1}, {"cex_priority": 0.0}, {"cex_priority": 1.5}):
+        with pytest.raises(CertifyError, match=r"batch must be >= 1, n_random >= 0 and "
+                                               r"cex_priority in \(0, 1\]"):
+            Budget(**bad)
+
+
+def test_certify_refuses_with_reasons(safeil: MLPPolicy) -> None:
+    with pytest.raises(CertifyError, match=r"margins must be among .*got \['nope'\]"):
+        certify(safeil, margins=("nope",), progress=False)
+    with pytest.raises(CertifyError, match="would be bounded for the other head"):
+        certify(safeil, props=cm.Properties.from_metadata(pol.load("bc").metadata, 6.0),
+                progress=False)
+    with pytest.raises(CertifyError, match="applies only to style-conditioned checkpoints"):
+        certify(pol.load("bc"), env=cm.CertEnvelope(time_gap_s=(1.0, 2.0)), progress=False)
+
+
+def test_a_time_budget_alone_stops_branch_and_bound() -> None:
+    m = certify(pol.load("bc"), budget=Budget(seconds=0.4), margins=("leader",),
+                progress=False).margins["leader"]
+    assert m.stopped_by == "seconds" and 0.2 <= m.seconds < 5.0 and m.boxes_bounded > 0
+
+
+def test_a_part_without_weight_gets_no_box_and_no_share() -> None:
+    r = certify(pol.load("bc"), env=cm.CertEnvelope(no_leader_share=0.0),
+                budget=Budget(boxes=40, batch=8), margins=("leader",), progress=False)
+    m = r.margins["leader"]
+    assert m.certified_by_part["free"] is None and m.certified_by_part["leader"] == m.certified
+    assert not np.any(m.boxes["open_part"]) and not np.any(m.boxes["proven_part"])
+
+
+def test_counterexample_candidates_lift_onto_the_recoverable_gap_only_when_closing() -> None:
+    from safeil_sumo.learn.certify import _candidates
+
+    env = cm.CertEnvelope()
+    lo, hi = (b.copy() for b in env.root_boxes()["leader"])
+    # closing at 10 m/s from 30 m/s: the recoverable gap is 100 / (2 b); the gap's low corner
+    # is lifted onto it, just above
+    lo[cm.V], hi[cm.V], lo[cm.DV], hi[cm.DV], lo[cm.GAP], hi[cm.GAP] = 30, 30, -10, -10, 1, 60
+    floor = 100.0 / (2.0 * env.brake_mps2)
+    coef = np.ones((1, len(lo)))  # every coefficient > 0: the low corner
+    pts, ok = _candidates(env, lo[None], hi[None], np.array([0]), coef,
+                          np.random.default_rng(0), 3)
+    assert pts[0, 0, cm.GAP] == floor * (1 + 1e-9) + 1e-9 and ok[0, 0]
+    assert pts[0, 1, cm.GAP] == 30.5  # the centre is recoverable as it is
+    # opening (the leader pulls away): nothing to lift, even 0.1 m behind
+    lo[cm.DV], hi[cm.DV], lo[cm.GAP], hi[cm.GAP] = 1.0, 2.0, 0.1, 0.2
+    pts, ok = _candidates(env, lo[None], hi[None], np.array([0]), coef,
+                          np.random.default_rng(0), 3)
+    assert np.all(pts[..., cm.GAP] <= 0.2) and np.all(ok)
+
+
+def test_a_point_box_counts_in_the_quarter_holding_it() -> None:
+    from safeil_sumo.learn.certify import _unproven_by_dim
+
+    env = cm.CertEnvelope()
+    lo, hi = env.root_boxes()["leader"]
+    z = lo + 0.1 * (hi - lo)  # 10 % into every range, the gap's in log d
+    z[cm.GAP] = lo[cm.GAP] * (hi[cm.GAP] / lo[cm.GAP]) ** 0.1
+    wide_lo, wide_hi = lo.copy(), hi.copy()
+    got = _unproven_by_dim(env, np.stack([z, wide_lo]), np.stack([z, wide_hi]),
+                           np.array([1.0, 0.0]))
+    assert all(v == [1.0, 0.0, 0.0, 0.0] for v in got.values()), got
+    top = _unproven_by_dim(env, hi[None], hi[None], np.array([2.0]))  # the top edge: last
+    assert all(v == [0.0, 0.0, 0.0, 1.0] for v in top.values()), top
+
+
+def test_propagate_and_layers_say_what_is_wrong() -> None:
+    layer = bnd.Layer(np.eye(2), np.zeros(2), [bnd.RELU, bnd.TANH])
+    assert layer.activation.dtype == np.int8 and list(layer.activation) == [bnd.RELU, bnd.TANH]
+    with pytest.raises(ValueError, match=r"boxes must be \(N, n_in\) twice"):
+        bnd.propagate([layer], np.zeros((1, 2)), np.zeros((1, 3)))
+    with pytest.raises(ValueError, match="box with hi < lo"):
+        bnd.propagate([layer], np.ones((1, 2)), np.zeros((1, 2)))
+
+
+def test_relaxation_of_a_point_interval_is_finite_and_exact() -> None:
+    p = np.array([-2.0, -0.3, 0.0, 0.7, 3.0])
+    for code, f in ((bnd.TANH, np.tanh), (bnd.RELU, lambda x: np.maximum(x, 0.0))):
+        a_l, b_l, a_u, b_u = bnd.relax(np.full(len(p), code), p, p)
+        assert np.all(np.isfinite([a_l, b_l, a_u, b_u]))
+        assert np.all(a_l * p + b_l <= f(p)) and np.all(a_u * p + b_u >= f(p))
