@@ -945,3 +945,43 @@ def test_relaxation_of_a_point_interval_is_finite_and_exact() -> None:
         a_l, b_l, a_u, b_u = bnd.relax(np.full(len(p), code), p, p)
         assert np.all(np.isfinite([a_l, b_l, a_u, b_u]))
         assert np.all(a_l * p + b_l <= f(p)) and np.all(a_u * p + b_u >= f(p))
+
+
+def test_properties_from_a_checkpoints_metadata_by_hand() -> None:
+    meta = {"horizon_s": 6.0, "train_config": {"track": 1.9, "gap_min": 2.0, "time_gap": 0.5},
+            "architecture": {"lateral_mode": "lane", "lane_keep_m": 0.3}}
+    p = cm.Properties.from_metadata(meta)
+    assert (p.horizon_s, p.track_m, p.gap_min_m, p.time_gap_margin_s, p.brake_mps2,
+            p.lane_keep_m) == (6.0, 1.9, 2.0, 0.5, 6.0, 0.3)
+    bare = cm.Properties.from_metadata({"horizon_s": 5.0})
+    assert (bare.track_m, bare.gap_min_m, bare.time_gap_margin_s, bare.lane_keep_m) == (
+        1.76, 0.0, 0.0, None)
+
+
+def test_the_envelope_refuses_bad_ranges_naming_them() -> None:
+    for bad in ({"gap_m": (0.0, 50.0)}, {"gap_m": (0.5, 50.0)}):
+        if bad["gap_m"][0] > 0:
+            cm.CertEnvelope(**bad)  # a positive gap below 1 m is allowed
+            continue
+        with pytest.raises(CertifyError, match=r"envelope gap_m must be > 0, got \(0.0, 50.0\)"):
+            cm.CertEnvelope(**bad)
+    for bad in ({"ego_speed_mps": (-np.inf, 40.0)}, {"ego_speed_mps": (3.0, np.nan)},
+                {"ego_speed_mps": (40.0, 3.0)}, {"ego_speed_mps": (3.0, 20.0, 40.0)}):
+        with pytest.raises(CertifyError, match="envelope ego_speed_mps must be a finite"):
+            cm.CertEnvelope(**bad)
+
+
+def test_the_recoverable_condition_and_the_leader_extra_by_hand() -> None:
+    """Braking at 6 m/s^2: closing at 6 m/s needs 3 m; a leader pulling away needs nothing.
+    The training's extra gap (2 m + 0.5 s) applies only where braking can still reach it."""
+    env = cm.CertEnvelope()
+    z = np.zeros((4, len(env.dims)))
+    z[:, cm.V] = 20.0
+    z[:, cm.DV] = [-6.0, -6.0, 3.0, 3.0]
+    z[:, cm.GAP] = [3.0, 3.01, 0.01, 0.5]
+    assert list(env.recoverable(z)) == [False, True, True, True]
+    props = cm.Properties(horizon_s=5.0, track_m=1.76, gap_min_m=2.0, time_gap_margin_s=0.5,
+                          brake_mps2=6.0, lane_keep_m=None)
+    v, v_lead = np.array([20.0, 20.0, 20.0]), np.array([14.0, 14.0, 25.0])
+    gap = np.array([15.1, 14.9, 12.1])  # margin 12 m; closing at 6 m/s needs more than 12 + 3
+    np.testing.assert_array_equal(cm._lead_extra(v, v_lead, gap, props), [12.0, 0.0, 12.0])
