@@ -30,7 +30,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
      ("experiments.*",)),
     ("the Python API", ("api",)),
     ("command lines", ("run", "sweep", "replay", "probe", "gap_probe", "results", "bench",
-                       "animate", "certify", "falsify", "cli_args")),
+                       "animate", "certify", "falsify", "train", "cli_args")),
     ("Gymnasium environments (their rgb_array frames are the animation's)", ("envs.*",)),
 )
 CLI_LAYER = next(i for i, (what, _) in enumerate(LAYERS) if what == "command lines")

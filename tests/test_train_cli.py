@@ -213,7 +213,17 @@ def test_the_shipped_recipe_states_the_shipped_settings():
     assert recipe.lateral_refit.config == shipped.LATERAL
     assert recipe.certify.time_gap_range_s == shipped.CERTIFY_TIME_GAP_S
     assert recipe.certify.max_boxes == shipped.CERTIFY_BOXES
-    assert recipe.closed_loop.config.iters == 400 and recipe.lateral_refit.config.steps == 16000
+    # the script reads these from the recipe now: its settings, written out
+    ol, cl, lr = recipe.openloop.config, recipe.closed_loop.config, recipe.lateral_refit.config
+    assert (ol.method, ol.barrier_lateral, ol.output_mode, ol.gap_min) == (
+        "safeil", "bernstein", "residual", 0.0)
+    assert (ol.envelope_weight, ol.monotone_weight, ol.monotone_margin_m) == (0.01, 1e4, 0.002)
+    assert ol.longitudinal_only_sources == ("openacc",) and ol.max_epochs == 400
+    assert (cl.window, cl.iters, cl.perturb, cl.settle_weight, cl.settle_after) == (
+        60.0, 400, 0.5, 3.0, 20.0)
+    assert cl.style and cl.towers and cl.lane_weight == cl.leader_weight == 1.0
+    assert lr.lateral_mode == "lane" and lr.steps == 16000 and lr.seed == 0
+    assert recipe.certify.time_gap_range_s == (0.6, 3.5) and recipe.certify.max_boxes == 400_000
 
 
 def test_a_user_recipe_inherits_the_shipped_settings(tiny: Path):

@@ -140,8 +140,8 @@ def import_drive(spec: DataSpec, progress: bool = False) -> pd.DataFrame:
 
     _check_paths(spec)
     if spec.format == "openacc":
-        return importers.import_openacc_files(_openacc_files(spec.paths),
-                                              max_curvature=spec.max_curvature_1pm)
+        files: list[str | Path] = list(_openacc_files(spec.paths))
+        return importers.import_openacc_files(files, max_curvature=spec.max_curvature_1pm)
     if spec.format == "ngsim":
         frames = [importers.import_ngsim_pairs(p) if p.suffix == ".parquet"
                   else importers.import_ngsim_csv(p) for p in spec.paths]

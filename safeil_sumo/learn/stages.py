@@ -278,10 +278,12 @@ def _run_one(stage: Stage, recipe: Recipe, paths: list[Path], starts: tuple[Path
                          progress=progress)
         return
     init, reference = starts
-    if init is None or (stage.name == "lateral_refit" and reference is None):
+    if init is None:
         raise RecipeError(f"stage {stage.name}: no checkpoint to start from")
     if stage.name == "closed_loop":
         finetune(stage.config, init, paths, prefix, progress=progress)
+    elif reference is None:
+        raise RecipeError("stage lateral_refit: no open-loop reference checkpoint")
     else:
         refit_lateral(stage.config, init, reference, paths, prefix, progress=progress)
 
@@ -386,6 +388,7 @@ def certify_final(recipe: Recipe, final: Path, out: Path, progress: bool, echo: 
     )
     from safeil_sumo.learn.certify import Budget, certify
     from safeil_sumo.learn.certify_margins import CertEnvelope
+    from safeil_sumo.learn.inference import MLPPolicy
 
     spec = recipe.certify
     path = certificate_path(final)
@@ -398,7 +401,10 @@ def certify_final(recipe: Recipe, final: Path, out: Path, progress: bool, echo: 
         echo("certificate: finished before (same weights and budget), skipped")
         return {**done["summary"], "status": "resumed"}
     echo(f"certificate: certifying {final.name}")
-    result = certify(planner_registry.load(str(final)),
+    policy = planner_registry.load(str(final))
+    if not isinstance(policy, MLPPolicy):  # cannot be: a checkpoint written above
+        raise RecipeError(f"{final}: not a network checkpoint")
+    result = certify(policy,
                      CertEnvelope(time_gap_s=spec.time_gap_range_s),
                      budget=Budget(seconds=spec.budget_s, boxes=spec.max_boxes,
                                    batch=spec.batch, seed=spec.seed), progress=progress)
