@@ -226,6 +226,15 @@ def test_the_shipped_recipe_states_the_shipped_settings():
     assert recipe.certify.time_gap_range_s == (0.6, 3.5) and recipe.certify.max_boxes == 400_000
 
 
+def test_data_given_on_the_command_line_keep_the_stages_sources_it_has(tmp_path: Path):
+    shipped = load_recipe()
+    both = shipped.with_data([parse_data_option(f"ngsim:{tmp_path}"),
+                              parse_data_option(f"openacc:{tmp_path}")])
+    assert both.closed_loop.sources == ("openacc", "ngsim")
+    one = shipped.with_data([parse_data_option(f"drive:{tmp_path}")])
+    assert one.closed_loop.sources == ()  # none left: all the data
+
+
 def test_a_user_recipe_inherits_the_shipped_settings(tiny: Path):
     recipe = load_recipe(tiny / "tiny.toml")
     assert recipe.openloop.config.envelope_weight == 0.01  # not set in tiny.toml

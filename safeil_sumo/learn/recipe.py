@@ -103,8 +103,16 @@ class Recipe:
         return (self.openloop, self.closed_loop, self.lateral_refit)
 
     def with_data(self, data: Sequence[DataSpec]) -> Recipe:
-        """The recipe on other data (``--data``)."""
-        return replace(self, data=tuple(data))
+        """The recipe on other data (``--data``): each stage keeps the sources it names that the
+        new data has, or all of them if it has none (a stage's ``sources`` named the recipe's
+        data)."""
+        names = {d.name for d in data}
+
+        def kept(stage: Stage) -> Stage:
+            return replace(stage, sources=tuple(s for s in stage.sources if s in names))
+
+        return replace(self, data=tuple(data), openloop=kept(self.openloop),
+                       closed_loop=kept(self.closed_loop), lateral_refit=kept(self.lateral_refit))
 
 
 def _fail(path: Path, where: str, what: str) -> RecipeError:

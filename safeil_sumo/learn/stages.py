@@ -441,7 +441,8 @@ def run_recipe(recipe: Recipe, out: Path, progress: bool = True, echo: Echo = pr
     summary["checkpoint"] = str(final)
     if recipe.certify.enabled:
         summary["certificate"] = certify_final(recipe, final, out, progress, echo)
-    summary["seconds"] = time.perf_counter() - start
+    summary["seconds"] = time.perf_counter() - start  # this run's
+    summary["training_seconds"] = sum(st.get("seconds", 0.0) for st in stages.values())
     _write_json(out / "summary.json", summary)
     with atomic_path(out / "summary.md") as tmp:
         tmp.write_text(summary_markdown(summary))
@@ -468,5 +469,7 @@ def summary_markdown(s: dict[str, Any]) -> str:
         shares = ", ".join(f"{m} {v:.4%}" for m, v in cert["certified"].items())
         lines += ["", f"Certificate: {shares}" + (" (complete)" if cert["complete"] else "")
                   + f", {cert['seconds']:.1f} s."]
-    lines += ["", f"Checkpoint `{s['checkpoint']}`; {s['seconds']:.1f} s in all.", ""]
+    tail = (f"Checkpoint `{s['checkpoint']}`; the stages trained "
+            f"{s['training_seconds']:.1f} s, this run took {s['seconds']:.1f} s.")
+    lines += ["", tail, ""]
     return "\n".join(lines)
