@@ -241,12 +241,13 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
 
 
-def stage_digest(previous: str, stage: Stage, recipe: Recipe, sources: list[str]) -> str:
+def stage_digest(previous: str, stage: Stage, recipe: Recipe, sources: list[str],
+                 init_sha256: str | None = None) -> str:
     """A stage's digest: the one before it (data and split, then each stage up to it), its
-    config and sources, and the checkpoint it starts from when not the open loop's."""
+    config and sources, and (the open loop off) the weights it starts from."""
     return _sha({"previous": previous, "stage": stage.name, "sources": sources,
                  "config": dataclasses.asdict(stage.config), "name": recipe.name,
-                 "init": recipe.init if not recipe.openloop.enabled else None})
+                 "init": init_sha256})
 
 
 def _finished(marker: Path, digest: str) -> dict[str, Any] | None:
@@ -305,16 +306,18 @@ def run_stages(recipe: Recipe, prepared: Prepared, out: Path, progress: bool, ec
                ) -> tuple[Path, dict[str, dict[str, Any]]]:
     """Run (or resume) the enabled stages; the last one's checkpoint prefix and per stage
     ``status`` (ran, resumed, off), ``seconds`` and the losses its checkpoint recorded."""
-    digest, last, reference = prepared.digest, None, None
+    digest, last, reference, init_sha = prepared.digest, None, None, None
     if not recipe.openloop.enabled:
-        last = reference = _init_checkpoint(recipe).with_suffix("")
+        init = _init_checkpoint(recipe)
+        last = reference = init.with_suffix("")
+        init_sha = hashlib.sha256(init.read_bytes()).hexdigest()
     report: dict[str, dict[str, Any]] = {}
     for stage in recipe.stages:
         if not stage.enabled:
             report[stage.name] = {"status": "off"}
             continue
         sources = stage_sources(stage, prepared)
-        digest = stage_digest(digest, stage, recipe, sources)
+        digest = stage_digest(digest, stage, recipe, sources, init_sha)
         prefix = out / "stages" / stage.name
         marker = prefix.with_name(f"{stage.name}.done.json")
         done = _finished(marker, digest)
