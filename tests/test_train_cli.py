@@ -155,6 +155,20 @@ def test_a_changed_stage_reruns_from_it(tiny: Path):
     assert [report[s]["status"] for s in STAGE_FILES] == ["resumed", "ran", "ran"]
 
 
+def test_a_renamed_recipe_retrains_nothing(tiny: Path):
+    shutil.copytree(tiny / "out", tiny / "renamed")
+    recipe = tiny / "renamed.toml"
+    recipe.write_text(TINY.format(iters=2).replace('name = "tiny"', 'name = "other"'))
+    for folder in ("openacc", "pairs.parquet"):  # the data beside the recipe, as for tiny.toml
+        assert (tiny / folder).exists()
+    assert main(["--recipe", str(recipe), "--out", str(tiny / "renamed"), "--no-progress"]) == 0
+    report = _summary(tiny, "renamed")["stages"]
+    assert [report[s]["status"] for s in STAGE_FILES] == ["resumed"] * 3
+    other = tiny / "renamed" / "other.safetensors"
+    assert other.read_bytes() == (tiny / "out" / "tiny.safetensors").read_bytes()
+    assert planner_registry.load(str(other)).name == "other"
+
+
 def test_a_damaged_stage_checkpoint_is_trained_again(tiny: Path):
     shutil.copytree(tiny / "out", tiny / "damaged")
     (tiny / "damaged" / "stages" / "openloop.safetensors").write_bytes(b"half a file")

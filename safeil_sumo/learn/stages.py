@@ -242,13 +242,13 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
 
 
-def stage_digest(previous: str, stage: Stage, recipe: Recipe, sources: list[str],
+def stage_digest(previous: str, stage: Stage, sources: list[str],
                  init_sha256: str | None = None) -> str:
     """A stage's digest: the one before it (data and split, then each stage up to it), its
-    config and sources, and (the open loop off) the weights it starts from."""
+    config and sources, and (the open loop off) the weights it starts from. Not the recipe's
+    name: the final checkpoint takes it (:func:`write_final`), renaming retrains nothing."""
     return _sha({"previous": previous, "stage": stage.name, "sources": sources,
-                 "config": dataclasses.asdict(stage.config), "name": recipe.name,
-                 "init": init_sha256})
+                 "config": dataclasses.asdict(stage.config), "init": init_sha256})
 
 
 def _finished(marker: Path, digest: str) -> dict[str, Any] | None:
@@ -318,7 +318,7 @@ def run_stages(recipe: Recipe, prepared: Prepared, out: Path, progress: bool, ec
             report[stage.name] = {"status": "off"}
             continue
         sources = stage_sources(stage, prepared)
-        digest = stage_digest(digest, stage, recipe, sources, init_sha)
+        digest = stage_digest(digest, stage, sources, init_sha)
         prefix = out / "stages" / stage.name
         marker = prefix.with_name(f"{stage.name}.done.json")
         done = _finished(marker, digest)
