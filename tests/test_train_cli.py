@@ -169,6 +169,19 @@ def test_a_renamed_recipe_retrains_nothing(tiny: Path):
     assert planner_registry.load(str(other)).name == "other"
 
 
+def test_the_open_loop_off_starts_from_init(tiny: Path):
+    """From the open loop's checkpoint as ``init``: the same closed loop and refit."""
+    init = tiny / "out" / "stages" / "openloop.safetensors"
+    recipe = tiny / "from_init.toml"
+    recipe.write_text(f'init = "{init}"\n'
+                      + TINY.format(iters=2).replace("[openloop]\n", "[openloop]\nenabled = false\n"))
+    assert main(["--recipe", str(recipe), "--out", str(tiny / "from_init"), "--no-progress"]) == 0
+    report = _summary(tiny, "from_init")["stages"]
+    assert [report[s]["status"] for s in STAGE_FILES] == ["off", "ran", "ran"]
+    assert ((tiny / "from_init" / "tiny.safetensors").read_bytes()
+            == (tiny / "out" / "tiny.safetensors").read_bytes())
+
+
 def test_a_damaged_stage_checkpoint_is_trained_again(tiny: Path):
     shutil.copytree(tiny / "out", tiny / "damaged")
     (tiny / "damaged" / "stages" / "openloop.safetensors").write_bytes(b"half a file")
