@@ -32,7 +32,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("the report card: safeil-evaluate's sections over the engines",
      ("report_card", "report_figures", "report_sections", "report_replay")),
     ("command lines", ("run", "sweep", "replay", "probe", "gap_probe", "results", "bench",
-                       "animate", "certify", "falsify", "evaluate", "cli_args")),
+                       "animate", "certify", "falsify", "evaluate", "train", "cli_args")),
     ("Gymnasium environments (their rgb_array frames are the animation's)", ("envs.*",)),
 )
 CLI_LAYER = next(i for i, (what, _) in enumerate(LAYERS) if what == "command lines")

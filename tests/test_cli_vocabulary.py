@@ -20,7 +20,7 @@ from safeil_sumo import cli_args
 
 REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ("run", "sweep", "replay", "probe", "gap_probe", "certify", "falsify", "results",
-            "bench", "animate", "evaluate")
+            "bench", "animate", "evaluate", "train")
 # where a quantity has a unit, the option's name ends in it
 UNIT_SUFFIXES = {"s": "-s", "m/s": "-mps", "m": "-m", "Hz": "-hz", "m/s^2": "-mps2", "km": "-km"}
 # words naming a time, speed, distance or rate: such an option carries a unit suffix

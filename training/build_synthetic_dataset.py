@@ -16,35 +16,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import time
-from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.data.pipeline import PipelineConfig, run_pipeline
-from safeil_sumo.data.recorder import RecordingConfig, record_drive
 from safeil_sumo.data.report import plot_maneuver, write_report
 from safeil_sumo.data.schema import load_drive, save_drive
-from safeil_sumo.data.synthetic import sample_driver
+from safeil_sumo.data.synthetic_drives import record_drivers
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "data" / "synthetic" / "drives.parquet"
-
-
-def drive_one(job: tuple[int, int, bool]) -> tuple[pd.DataFrame, dict]:
-    """Record driver ``i`` (one worker process, one SUMO)."""
-    i, seed, lane_changes = job
-    params = sample_driver(np.random.default_rng([seed, i]), lane_changes=lane_changes)
-    cfg = RecordingConfig(seed=seed * 1000 + i, recording_id=f"n74_d{i:02d}")
-    df = record_drive(params, cfg)
-    stats = df.attrs["recording_stats"] | {"params": asdict(params)}
-    df.attrs = {}
-    return df, stats
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -63,14 +47,9 @@ def main(argv: list[str] | None = None) -> None:
         return
 
     t0 = time.perf_counter()
-    jobs = [(i, args.seed, not args.no_lane_changes) for i in range(args.drivers)]
-    frames: dict[int, pd.DataFrame] = {}
-    stats: dict[int, dict] = {}
-    with mp.get_context("spawn").Pool(args.workers, maxtasksperchild=1) as pool:
-        results = pool.imap(drive_one, jobs)  # ordered: the output does not depend on timing
-        for (i, _, _), (df, st) in tqdm(zip(jobs, results, strict=True), total=len(jobs), unit="drive"):
-            frames[i], stats[i] = df, st
-    drives = pd.concat([frames[i] for i in range(args.drivers)], ignore_index=True)
+    drives, stats_list = record_drivers(args.drivers, args.seed, not args.no_lane_changes,
+                                        args.workers)
+    stats = dict(enumerate(stats_list))
     save_drive(drives, args.out)
     wall = time.perf_counter() - t0
     hours = sum(s["duration_s"] for s in stats.values()) / 3600.0

@@ -58,7 +58,8 @@ with training_imports():  # without torch: one line that says what to install, n
 
     from safeil_sumo.learn.closed_loop import FinetuneConfig
     from safeil_sumo.learn.finetune import finetune
-    from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
+    from safeil_sumo.learn.lateral_refit import refit_lateral
+    from safeil_sumo.learn.recipe import load_recipe
     from safeil_sumo.learn.trainer import TrainConfig, train_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
@@ -67,7 +68,10 @@ SYNTHETIC = DATA_DIR / "synthetic" / "tuples.parquet"
 REAL = (DATA_DIR / "openacc_tuples.parquet", DATA_DIR / "ngsim_tuples.parquet")
 MODELS = REPO / "safeil_sumo" / "models"
 WORK = DATA_DIR / "models"
-SEED = 0
+# safeil's stages are stated once, in the shipped recipe (safeil_sumo/recipes/shipped.toml),
+# which `safeil-train` runs as its default; the settings' reasons are the comments below
+SHIPPED = load_recipe()
+SEED = SHIPPED.seed
 
 # the recipes are configs, trained in-process by learn.trainer.train_checkpoint and
 # learn.finetune.finetune (training/train.py and training/closed_loop_finetune.py are their
@@ -79,8 +83,10 @@ MIXED = TrainConfig(seed=SEED, longitudinal_only_sources=("openacc",))
 # docs/leader_following.md)
 # the monotonicity penalty asks for 2 mm of growth per 2 m of gap: without it a few probe states
 # (8 of 117 pairs) still planned up to 2.5 cm less for a farther leader; with 2 mm none does
-SAFEIL = replace(MIXED, method="safeil", barrier_lateral="bernstein", output_mode="residual",
-                 envelope_weight=0.01, monotone_weight=10000.0, monotone_margin_m=0.002)
+# (the recipe's [openloop]: replace(MIXED, method="safeil", barrier_lateral="bernstein",
+# output_mode="residual", envelope_weight=0.01, monotone_weight=10000.0,
+# monotone_margin_m=0.002))
+SAFEIL = SHIPPED.openloop.config
 SAFEIL_CANDIDATES = {
     "safeil_margin0": SAFEIL,
     "safeil_margin2m": replace(SAFEIL, gap_min=2.0),
@@ -96,9 +102,9 @@ SAFEIL_CANDIDATES = {
 # (the lateral plan stays safeil_openloop's exactly; docs/human_likeness.md: on the 24 unseen
 # ZalaZone drivers' whole drives gap RMSE 33.5 / 26.4 / 61.5 m -> 5.13 / 5.94 / 17.0 m,
 # median / mean / worst; the calibrated IDM 7.45 / 7.79 / 28.5 m)
-CLOSED_LOOP = FinetuneConfig(window=60.0, iters=400, style=True, equilibrium_weight=1.0,
-                             perturb=0.5, settle_weight=3.0, settle_after=20.0,
-                             lane_weight=1.0, leader_weight=1.0, towers=True, seed=SEED)
+# (the recipe's [closed_loop]: window 60 s, 400 iterations, style, equilibrium weight 1,
+# perturb 0.5, settle weight 3 after 20 s, lane and leader weights 1, towers)
+CLOSED_LOOP: FinetuneConfig = SHIPPED.closed_loop.config
 # lateral refit: the towers' y control points refitted to their own x, the reference's lane
 # keeping taken on the straightened lane, a quarter of the envelope states on bends up to
 # R = 40 m at 6 m/s^2 (headings to 0.08, offsets to 0.8 m, the lines bent apart as a camera sees
@@ -110,12 +116,12 @@ CLOSED_LOOP = FinetuneConfig(window=60.0, iters=400, style=True, equilibrium_wei
 # "lane", bspline.lane_following_y: the plan follows any bend by construction; ZalaZone: no
 # collision, worst lateral RMSE 1.46 -> 0.59 m; docs/human_likeness.md, "A lateral plan that
 # follows the lane by construction")
-LATERAL = LateralRefitConfig(seed=SEED, lateral_mode="lane")
+LATERAL = SHIPPED.lateral_refit.config  # (the recipe's [lateral_refit]: lateral_mode "lane")
 # the shipped safeil's certificate (docs/certification.md): both margins over the whole envelope
 # and every style setting a user may choose; a box budget, so the same on any machine (the
 # shipped model proves in ~46,000 boxes)
-CERTIFY_TIME_GAP_S = (0.6, 3.5)
-CERTIFY_BOXES = 400_000
+CERTIFY_TIME_GAP_S = SHIPPED.certify.time_gap_range_s  # (0.6, 3.5)
+CERTIFY_BOXES = SHIPPED.certify.max_boxes  # 400,000
 OTHERS = {
     "safeil_paper": replace(MIXED, method="safeil", barrier_lateral="control_points"),
     "bc": replace(MIXED, method="bc", output_mode="residual"),
@@ -155,7 +161,7 @@ def _certify(checkpoint: Path) -> None:
 
     result = certify(planner_registry.load(str(checkpoint)),
                      CertEnvelope(time_gap_s=CERTIFY_TIME_GAP_S),
-                     budget=Budget(seconds=3600.0, boxes=CERTIFY_BOXES), progress=False)
+                     budget=Budget(seconds=SHIPPED.certify.budget_s, boxes=CERTIFY_BOXES), progress=False)
     shares = ", ".join(f"{m} {r.certified:.4%}" for m, r in result.margins.items())
     print(f"certified {checkpoint.name}: {shares}; {write_certificate(result, checkpoint)}")
 
