@@ -324,8 +324,8 @@ def openloop(out: Path, work: Path) -> pd.DataFrame:
     """Per method and dataset: errors and constraint margins on held-out maneuvers."""
     from safeil_sumo.data.tuples import Tuples
     from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
-    from safeil_sumo.learn.open_loop_metrics import open_loop_metrics
     from safeil_sumo.learn.inference import load_policy
+    from safeil_sumo.learn.open_loop_metrics import open_loop_metrics
     from safeil_sumo.learn.torch_required import TORCH_MISSING, have_torch
 
     if not have_torch():  # this section trains; the runtime install has no torch

@@ -18,7 +18,6 @@ from scripts import load_training_script
 from safeil_sumo import bspline
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.features import planner_features
-from safeil_sumo.learn.open_loop_metrics import open_loop_metrics, plan_metrics
 from safeil_sumo.learn.losses import (
     BarrierConfig,
     barrier_terms,
@@ -29,6 +28,7 @@ from safeil_sumo.learn.losses import (
     safe_loss,
 )
 from safeil_sumo.learn.model import PlannerMLP
+from safeil_sumo.learn.open_loop_metrics import open_loop_metrics, plan_metrics
 from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 from safeil_sumo.safety_filter import SafeSet, plan_margins
 

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, ngsim_pairs_frame, require_file, write_openacc
 from scripts import load_training_script
@@ -292,3 +293,17 @@ def test_without_torch_it_says_what_to_install(tmp_path: Path):
     proc = subprocess.run([sys.executable, "-m", "safeil_sumo.train", "--dry-run"], env=env,
                           cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 1 and proc.stderr.strip() == TORCH_MISSING
+
+
+def test_a_car_following_csv_is_data_by_path(tmp_path) -> None:
+    """``--data csv:FILE`` goes through the car-following importer (default column names) and
+    the paper's pipeline, like any other format."""
+    from safeil_sumo.data.by_path import FORMATS, load_data, parse_data_option
+
+    assert {"highd", "csv"} <= set(FORMATS)
+    t = np.arange(0.0, 60.0, 0.1)
+    v = 25.0 + np.sin(t / 5.0)
+    pd.DataFrame({"time": t, "v": v, "gap": 30.0 + 2.0 * np.cos(t / 5.0),
+                  "lead_v": v + 0.2}).to_csv(tmp_path / "pairs.csv", index=False)
+    (drive,) = load_data([parse_data_option(f"csv:{tmp_path / 'pairs.csv'}")])
+    assert len(drive) == len(t) and np.allclose(drive["v_x"], v)

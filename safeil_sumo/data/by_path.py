@@ -23,9 +23,12 @@ from safeil_sumo.data.pipeline import PipelineConfig, PipelineReport, run_pipeli
 from safeil_sumo.data.schema import SchemaError
 from safeil_sumo.data.tuples import Tuples
 
-FORMATS = ("openacc", "ngsim", "drive", "synthetic")
+FORMATS = ("openacc", "ngsim", "highd", "csv", "drive", "synthetic")
 FORMAT_HELP = ("openacc:DIR|FILE (JRC OpenACC csv[.gz]; a folder: every *.csv / *.csv.gz in it), "
-               "ngsim:FILE (the I-80 pairs .parquet or an original NGSIM .csv), drive:FILE (a "
+               "ngsim:FILE (the I-80 pairs .parquet or an original NGSIM .csv), highd:DIR|PREFIX "
+               "(levelXdata NN_tracks/NN_tracksMeta/NN_recordingMeta.csv), csv:FILE (car "
+               "following: columns time, v, gap[, lead_v, id, driver] in s, m/s, m; "
+               "docs/your_own_drives.md), drive:FILE (a "
                "drive in the project's schema, .csv/.parquet), synthetic:DRIVERS (that many "
                "synthetic drivers recorded in SUMO on n74)")
 OPENACC_SUFFIXES = (".csv", ".csv.gz")
@@ -145,6 +148,10 @@ def import_drive(spec: DataSpec, progress: bool = False) -> pd.DataFrame:
     if spec.format == "ngsim":
         frames = [importers.import_ngsim_pairs(p) if p.suffix == ".parquet"
                   else importers.import_ngsim_csv(p) for p in spec.paths]
+    elif spec.format in ("highd", "csv"):
+        from safeil_sumo.data.drive_import import import_drive as import_by_spec
+
+        frames = [import_by_spec(f"{spec.format}:{p}") for p in spec.paths]
     elif spec.format == "drive":
         frames = [load_drive(p) for p in spec.paths]
     elif spec.format == "synthetic":

@@ -187,8 +187,8 @@ def _data(items: Any, base: Path, path: Path, seed: int) -> tuple[DataSpec, ...]
         where = f"[[data]] #{i + 1} "
         _check_keys(path, where, item, DATA_KEYS)
         if "format" not in item:
-            raise _fail(path, f"{where}format", "missing (one of openacc, ngsim, drive, "
-                                                "synthetic)")
+            raise _fail(path, f"{where}format",
+                        "missing (one of openacc, ngsim, highd, csv, drive, synthetic)")
         raw = item.get("path", [])
         paths = [raw] if isinstance(raw, str) else _typed(raw, ("",), path, f"{where}path")
         fields = {k: v for k, v in item.items() if k not in ("path", "format")}

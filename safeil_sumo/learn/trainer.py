@@ -28,7 +28,6 @@ from tqdm.auto import tqdm
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import save_checkpoint, tuples_fingerprint
 from safeil_sumo.learn.envelope import sample_states
-from safeil_sumo.learn.open_loop_metrics import open_loop_metrics
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.losses import (
     BarrierConfig,
@@ -37,6 +36,7 @@ from safeil_sumo.learn.losses import (
     safe_loss,
 )
 from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES, PlannerMLP
+from safeil_sumo.learn.open_loop_metrics import open_loop_metrics
 from safeil_sumo.safety_filter import SafeSet
 
 METHODS = ("safeil", "bc")
