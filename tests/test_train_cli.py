@@ -219,7 +219,7 @@ def test_an_unknown_data_format_is_one_line(tmp_path: Path, capsys: pytest.Captu
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1
-    assert "unknown data format 'hdf5'" in err and "openacc, ngsim, drive, synthetic" in err
+    assert "unknown data format 'hdf5'" in err and "openacc, ngsim, highd, csv, drive, synthetic" in err
 
 
 def test_a_missing_data_path_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]):

@@ -31,7 +31,6 @@ FORMAT_HELP = ("openacc:DIR|FILE (JRC OpenACC csv[.gz]; a folder: every *.csv / 
                "docs/your_own_drives.md), drive:FILE (a "
                "drive in the project's schema, .csv/.parquet), synthetic:DRIVERS (that many "
                "synthetic drivers recorded in SUMO on n74)")
-OPENACC_SUFFIXES = (".csv", ".csv.gz")
 
 
 class DataError(ValueError):
@@ -101,30 +100,18 @@ def parse_data_option(text: str) -> DataSpec:
     return DataSpec(fmt, (Path(rest).resolve(),))
 
 
-def _is_openacc(path: Path) -> bool:
-    """Whether a csv[.gz] starts as an OpenACC file does (its ``Date`` metadata row): a
-    campaign's folder also holds other tables (e.g. the vehicles' specifications)."""
-    from safeil_sumo.data.importers import _head_lines
-
-    try:
-        head = _head_lines(path, 1)
-    except SchemaError:
-        return False
-    return bool(head) and head[0].lstrip('\ufeff"').startswith("Date")
-
-
 def _openacc_files(paths: Sequence[Path]) -> list[Path]:
-    """The OpenACC files of files and folders (a folder: its csv[.gz] files that start with
-    OpenACC's metadata rows, sorted by name)."""
+    """The OpenACC files of files and folders (a folder: its files that start with OpenACC's
+    metadata rows, sorted by name)."""
+    from safeil_sumo.data.drive_import import openacc_folder_files
+
     files: list[Path] = []
     for p in paths:
         if p.is_dir():
-            found = sorted(f for f in p.iterdir()
-                           if f.name.endswith(OPENACC_SUFFIXES) and _is_openacc(f))
-            if not found:
-                raise DataError(f"{p}: no OpenACC file (*.csv, *.csv.gz starting with its "
-                                "metadata rows) in this folder")
-            files.extend(found)
+            try:
+                files.extend(openacc_folder_files(p)[0])
+            except SchemaError as exc:
+                raise DataError(str(exc)) from None
         else:
             files.append(p)
     return files

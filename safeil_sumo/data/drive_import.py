@@ -44,19 +44,35 @@ def split_spec(spec: str) -> tuple[str, Path]:
     return fmt, Path(path.strip())
 
 
-def _openacc(path: Path) -> pd.DataFrame:
-    """One OpenACC file, or every one in a directory: the ``.csv``/``.csv.gz`` files whose first
-    row is the metadata ``Date`` row (a campaign folder also holds e.g. the vehicles'
-    specifications; those are skipped and listed in ``import_stats["files_skipped"]``)."""
-    if not path.is_dir():
-        return import_openacc_files([path])
+def is_openacc_file(path: Path) -> bool:
+    """Whether a csv[.gz] starts as an OpenACC file does: its first field is the metadata row's
+    ``Date`` (a byte-order mark and quotes allowed); an unreadable file is not one."""
+    try:
+        head = _head_lines(path, 1)
+    except SchemaError:
+        return False
+    return bool(head) and _fields(head[0].lstrip("\ufeff"))[0] == "Date"
+
+
+def openacc_folder_files(path: Path) -> tuple[list[Path], list[Path]]:
+    """The OpenACC files of a directory, sorted by name, and its other ``.csv``/``.csv.gz``
+    files (a campaign folder also holds e.g. the vehicles' specifications)."""
     csvs = sorted(f for f in path.iterdir() if f.name.lower().endswith((".csv", ".csv.gz")))
-    files = [f for f in csvs if _fields((_head_lines(f, 1) or [""])[0])[0] == "Date"]
+    files = [f for f in csvs if is_openacc_file(f)]
     if not files:
         raise SchemaError(f"{path}: no OpenACC file (.csv, .csv.gz starting with the 'Date' "
                           f"metadata row) in the directory ({len(csvs)} other CSV files)")
+    return files, [f for f in csvs if f not in files]
+
+
+def _openacc(path: Path) -> pd.DataFrame:
+    """One OpenACC file, or every one in a directory (:func:`openacc_folder_files`; the others
+    are listed in ``import_stats["files_skipped"]``)."""
+    if not path.is_dir():
+        return import_openacc_files([path])
+    files, others = openacc_folder_files(path)
     out = import_openacc_files(files)
-    out.attrs["import_stats"]["files_skipped"] = [f.name for f in csvs if f not in files]
+    out.attrs["import_stats"]["files_skipped"] = [f.name for f in others]
     return out
 
 
