@@ -103,3 +103,17 @@ def test_committed_files_match_the_generator(tmp_path):
     n74.build_n74(tmp_path / "n74")
     for name in ("n74.nod.xml", "n74.edg.xml", "n74.con.xml", "n74.net.xml", "n74.rou.xml"):
         assert (tmp_path / "n74" / name).read_text() == (n74.n74_dir() / name).read_text(), name
+
+
+def test_an_installed_package_builds_n74_once_into_the_cache(tmp_path, monkeypatch):
+    """Without the checkout's sumo_scenarios/ (a wheel install), the n74 files are built into
+    the network cache from the same code, once, and equal the committed ones."""
+    committed = n74.n74_dir()
+    monkeypatch.setattr(n74, "COMMITTED_DIR", tmp_path / "no_checkout" / "n74")
+    monkeypatch.setenv("SAFEIL_SUMO_CACHE", str(tmp_path / "cache"))
+    built = n74.n74_dir()
+    assert built == tmp_path / "cache" / "n74"
+    for name in ("n74.net.xml", "n74.rou.xml", "n74.json"):
+        assert (built / name).read_text() == (committed / name).read_text(), name
+    stamp = (built / "n74.net.xml").stat().st_mtime_ns
+    assert n74.n74_dir() == built and (built / "n74.net.xml").stat().st_mtime_ns == stamp

@@ -45,6 +45,7 @@ from safeil_sumo.geometry import Polyline
 from safeil_sumo.scenarios.network import run_netconvert
 
 NAME = "n74"
+COMMITTED_DIR = Path(__file__).resolve().parents[2] / "sumo_scenarios" / NAME  # a checkout's
 ROAD_LENGTH_M = 29_200.0  # [m] paper, Fig. 2 caption
 LANE_WIDTH_M = 3.5  # [m]
 MAIN_LANES = 2  # [-] per direction
@@ -469,8 +470,17 @@ def stretch_road(from_km: float = 0.0, to_km: float | None = None, lane: str = "
 
 
 def n74_dir() -> Path:
-    """The committed ``sumo_scenarios/n74`` folder."""
-    return Path(__file__).resolve().parents[2] / "sumo_scenarios" / NAME
+    """The n74 files: the committed ``sumo_scenarios/n74`` of a checkout; an installed package
+    (which holds no ``sumo_scenarios/``) builds them once into the network cache
+    (:func:`safeil_sumo.scenarios.catalogue.default_cache_dir`), from the same code."""
+    if (COMMITTED_DIR / f"{NAME}.json").is_file():
+        return COMMITTED_DIR
+    from safeil_sumo.scenarios.catalogue import default_cache_dir
+
+    folder = default_cache_dir() / NAME
+    if not (folder / f"{NAME}.json").is_file():
+        build_n74(folder)
+    return folder
 
 
 if __name__ == "__main__":
