@@ -251,3 +251,44 @@ def curved_openacc_text(duration: float = 240.0, speed_bias: float = 0.005,
     meta = ("Date,28,2,2019\nVehicle_order,car1,car2\nNumber_of_vehicles,2\nACC,0\n"
             "Distance_setting,min\n")
     return meta + df.to_csv(index=False)
+
+
+# ------------------------------------------------------------------- the tiny recipe
+
+# safeil-train on the tiny recordings of write_tiny_recordings ({iters}: closed-loop iterations)
+TINY_RECIPE = """\
+name = "tiny"
+[[data]]
+format = "openacc"
+path = "openacc"
+[[data]]
+format = "ngsim"
+path = "pairs.parquet"
+[split]
+by = "driver"
+fraction = 0.3
+[openloop]
+max_epochs = 3
+patience = 3
+hidden = [8, 8]
+[closed_loop]
+window = 10.0
+iters = {iters}
+batch = 4
+settle_after = 5.0
+[lateral_refit]
+steps = 3
+batch = 64
+[certify]
+max_boxes = 64
+budget_s = 20.0
+time_gap_range_s = [1.0, 2.0]
+"""
+
+
+def write_tiny_recordings(folder: Path) -> None:
+    """Two OpenACC files (one gzipped) and an NGSIM pairs table: the tiny recipe's data."""
+    (folder / "openacc").mkdir(parents=True)
+    write_openacc(folder / "openacc" / "run_a.csv", n=400)
+    write_openacc(folder / "openacc" / "run_b.csv.gz", gz=True, n=400, v=25.0, spacing=35.0)
+    ngsim_pairs_frame(300).to_parquet(folder / "pairs.parquet")

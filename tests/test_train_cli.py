@@ -14,7 +14,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, ngsim_pairs_frame, require_file, write_openacc
+from fixtures_data import (
+    NGSIM_PAIRS,
+    OPENACC_DIR,
+    require_file,
+    write_tiny_recordings,
+)
+from fixtures_data import (
+    TINY_RECIPE as TINY,
+)
 from scripts import load_training_script
 
 from safeil_sumo import planner_registry
@@ -27,49 +35,14 @@ from safeil_sumo.learn.torch_required import TORCH_MISSING
 from safeil_sumo.train import main
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = """\
-name = "tiny"
-[[data]]
-format = "openacc"
-path = "openacc"
-[[data]]
-format = "ngsim"
-path = "pairs.parquet"
-[split]
-by = "driver"
-fraction = 0.3
-[openloop]
-max_epochs = 3
-patience = 3
-hidden = [8, 8]
-[closed_loop]
-window = 10.0
-iters = {iters}
-batch = 4
-settle_after = 5.0
-[lateral_refit]
-steps = 3
-batch = 64
-[certify]
-max_boxes = 64
-budget_s = 20.0
-time_gap_range_s = [1.0, 2.0]
-"""
 STAGE_FILES = ("openloop", "closed_loop", "lateral_refit")
-
-
-def _write_data(folder: Path) -> None:
-    (folder / "openacc").mkdir(parents=True)
-    write_openacc(folder / "openacc" / "run_a.csv", n=400)
-    write_openacc(folder / "openacc" / "run_b.csv.gz", gz=True, n=400, v=25.0, spacing=35.0)
-    ngsim_pairs_frame(300).to_parquet(folder / "pairs.parquet")
 
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A folder with the tiny recordings and recipe, and one uninterrupted run in ``out``."""
     folder = tmp_path_factory.mktemp("tiny")
-    _write_data(folder)
+    write_tiny_recordings(folder)
     (folder / "tiny.toml").write_text(TINY.format(iters=2))
     assert _train(folder, "out") == 0
     return folder

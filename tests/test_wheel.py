@@ -14,37 +14,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from fixtures_data import ngsim_pairs_frame, write_openacc
+from fixtures_data import TINY_RECIPE, write_tiny_recordings
 
 REPO = Path(__file__).resolve().parents[1]
-RECIPE = """\
-name = "tiny"
-[[data]]
-format = "openacc"
-path = "openacc"
-[[data]]
-format = "ngsim"
-path = "pairs.parquet"
-[split]
-by = "driver"
-fraction = 0.3
-[openloop]
-max_epochs = 3
-patience = 3
-hidden = [8, 8]
-[closed_loop]
-window = 10.0
-iters = 2
-batch = 4
-settle_after = 5.0
-[lateral_refit]
-steps = 3
-batch = 64
-[certify]
-max_boxes = 64
-budget_s = 20.0
-time_gap_range_s = [1.0, 2.0]
-"""
+
 
 
 @pytest.fixture(scope="module")
@@ -61,11 +34,8 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dic
                            check=True, capture_output=True, text=True).stdout.strip()
     (Path(inner) / "outer_dependencies.pth").write_text("\n".join(site.getsitepackages()))
     work = root / "work"
-    (work / "openacc").mkdir(parents=True)
-    write_openacc(work / "openacc" / "run_a.csv", n=400)
-    write_openacc(work / "openacc" / "run_b.csv.gz", gz=True, n=400, v=25.0, spacing=35.0)
-    ngsim_pairs_frame(300).to_parquet(work / "pairs.parquet")
-    (work / "tiny.toml").write_text(RECIPE)
+    write_tiny_recordings(work)
+    (work / "tiny.toml").write_text(TINY_RECIPE.format(iters=2))
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["SAFEIL_SUMO_CACHE"] = str(root / "cache")
     return root / "venv" / "bin", work, env

@@ -132,10 +132,7 @@ def import_drive(spec: DataSpec, progress: bool = False) -> pd.DataFrame:
     if spec.format == "openacc":
         files: list[str | Path] = list(_openacc_files(spec.paths))
         return importers.import_openacc_files(files, max_curvature=spec.max_curvature_1pm)
-    if spec.format == "ngsim":
-        frames = [importers.import_ngsim_pairs(p) if p.suffix == ".parquet"
-                  else importers.import_ngsim_csv(p) for p in spec.paths]
-    elif spec.format in ("highd", "csv"):
+    if spec.format in ("ngsim", "highd", "csv"):
         from safeil_sumo.data.drive_import import import_drive as import_by_spec
 
         frames = [import_by_spec(f"{spec.format}:{p}") for p in spec.paths]
