@@ -396,3 +396,39 @@ def dataclass_from_args(cls: type, args: argparse.Namespace):
     """``cls`` built from the options :func:`add_dataclass_options` added (``ValueError`` from
     its checks)."""
     return cls(**{f.name: getattr(args, f.name) for f in dataclasses.fields(cls)})
+
+
+def add_data_options(parser: CommandParser, what: str) -> None:
+    """``--data FORMAT:PATH ...`` (``what`` the data is for) and :func:`add_csv_options`;
+    :func:`data_specs` parses them."""
+    from safeil_sumo.data.by_path import FORMAT_HELP
+
+    parser.add_argument("--data", nargs="+", default=None, metavar="FORMAT:PATH",
+                        help=f"{what}: {FORMAT_HELP}")
+    add_csv_options(parser)
+
+
+def add_csv_options(parser: CommandParser) -> None:
+    """``--map`` and ``--speed-unit``: how ``csv:`` data reads (docs/your_own_drives.md)."""
+    from safeil_sumo.data.car_following_csv import SPEED_UNITS
+
+    parser.add_argument("--map", default="", metavar="ROLE=COLUMN,...",
+                        help="csv data: the file's column of each role (time, v, gap, lead_v, "
+                             "id, driver), e.g. time=t,v=follower_speed (default: columns "
+                             "named as the roles)")
+    parser.add_argument("--speed-unit", choices=tuple(SPEED_UNITS), default="m/s",
+                        help="csv data: the unit of its speed columns (default m/s)")
+
+
+def data_specs(parser: CommandParser, args: argparse.Namespace) -> list | None:
+    """The :class:`~safeil_sumo.data.by_path.DataSpec` of each ``--data`` (None without it);
+    a usage error in one line for a bad spec, or ``--map`` / ``--speed-unit`` without csv."""
+    from safeil_sumo.data.by_path import DataError, parse_data_option
+
+    try:
+        specs = [parse_data_option(d, args.map, args.speed_unit) for d in args.data or ()]
+    except DataError as exc:
+        parser.error(str(exc))
+    if (args.map or args.speed_unit != "m/s") and not any(s.format == "csv" for s in specs):
+        parser.error("--map and --speed-unit read csv data: give --data csv:FILE")
+    return specs if args.data is not None else None

@@ -35,6 +35,8 @@ from safeil_sumo import report_replay
 from safeil_sumo import report_sections as rs
 from safeil_sumo.cli_args import (
     CommandParser,
+    add_data_options,
+    data_specs,
     finite_float,
     interruptible,
     nonnegative_int,
@@ -69,9 +71,11 @@ def build_parser() -> CommandParser:
                    help=f"run these sections only ({', '.join(KEYS)}); the others are "
                         "reported as not run")
     p.add_argument("--scenarios", type=nonnegative_int, default=None,
-                   help="scenarios of the curved500 sweep (default 200; --quick 30)")
+                   help="scenarios of the curved500 sweep (default 1000; --quick 30)")
     p.add_argument("--maneuvers", type=nonnegative_int, default=None,
-                   help="held-out maneuvers replayed per source (default all; --quick 2)")
+                   help="maneuvers replayed per source (default all; --quick 2)")
+    add_data_options(p, "recordings of your own, replayed whole beside the held-out "
+                        "maneuvers (the ones the model held out of training, else all)")
     p.add_argument("--speeds-mps", type=finite_float, nargs="+", default=None, metavar="V",
                    help="gap probe speeds [m/s] (default 15 25 35; --quick 25)")
     p.add_argument("--budget-s", type=finite_float, default=None, metavar="S",
@@ -89,6 +93,11 @@ def build_parser() -> CommandParser:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = build_parser()
     args = p.parse_args(argv)
+    args.data_specs = data_specs(p, args) or []
+    for spec in args.data_specs:
+        missing = [str(q) for q in spec.paths if not q.exists()]
+        if missing:
+            p.error(f"--data {spec.label()}: {missing[0]} does not exist")
     if args.workers < 1:
         p.error("--workers must be >= 1")
     if args.scenarios == 0 or args.budget_sims == 0:
@@ -178,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = rs.settings(args.quick, seed=args.seed, sweep_scenarios=args.scenarios,
                            replay_maneuvers=args.maneuvers, certify_budget_s=args.budget_s,
                            falsify_budget=args.budget_sims, workers=args.workers,
-                           data_dir=args.data_dir,
+                           data_dir=args.data_dir, data=tuple(args.data_specs),
                            gap_speeds_mps=tuple(args.speeds_mps) if args.speeds_mps else None)
     out = args.out or default_out(args.model, args.quick)
     out.mkdir(parents=True, exist_ok=True)
@@ -186,8 +195,9 @@ def main(argv: list[str] | None = None) -> int:
               "command": rc.command_line("safeil-evaluate", sys.argv[1:] if argv is None
                                          else argv),
               "commit": outputs.git_commit(), "seconds_total": math.nan,
-              "settings": {k: (str(v) if isinstance(v, Path) else v)
-                           for k, v in vars(settings).items()}}
+              "settings": {**{k: (str(v) if isinstance(v, Path) else v)
+                              for k, v in vars(settings).items()},
+                           "data": [spec.label() for spec in settings.data]}}
     sections = evaluate(rs.EvalContext(args.model, out, settings), tuple(args.only or KEYS),
                         header)
     verdict = rc.overall(sections)

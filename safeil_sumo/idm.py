@@ -125,6 +125,24 @@ def maneuvers_from_rows(rows) -> list[Maneuver]:
     return out
 
 
+def maneuvers_from_tuples(tuples) -> list[Maneuver]:
+    """:class:`Maneuver` list from training tuples (:class:`safeil_sumo.data.tuples.Tuples`;
+    ``features`` ``v_x, v_lead, d_lead`` and ``t`` per sample), in maneuver-id order. A tuple needs a horizon of future, so each maneuver ends one
+    horizon before the recording's rows do."""
+    from safeil_sumo.features import FEATURE_NAMES
+
+    iv, il, ig = (FEATURE_NAMES.index(k) for k in ("v_x", "v_lead", "d_lead"))
+    ids = np.asarray(tuples.maneuver_id).astype(str)
+    out = []
+    for mid in np.unique(ids):
+        rows = np.flatnonzero(ids == mid)
+        rows = rows[np.argsort(np.asarray(tuples.t)[rows], kind="stable")]
+        f = tuples.features[rows]
+        out.append(Maneuver(str(mid), np.asarray(tuples.t, float)[rows], f[:, iv].astype(float),
+                            f[:, ig].astype(float), f[:, il].astype(float)))
+    return out
+
+
 def _stacked(maneuvers: list[Maneuver]) -> dict[str, np.ndarray]:
     """Maneuvers padded to one (M, N) array each, for a simulation vectorised over maneuvers."""
     n = max(len(m.times) for m in maneuvers)
@@ -277,6 +295,13 @@ def save_model(path: str | Path, fits: dict[str, IDMFit], default: str,
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         Path(tmp).write_text(json.dumps(doc, indent=1) + "\n")
+
+
+def baseline_path(checkpoint: str | Path) -> Path:
+    """The IDM ``safeil-train`` calibrates on a checkpoint's training maneuvers, beside it:
+    ``<name>.idm.json`` for ``<name>.safetensors`` (the report card's baseline)."""
+    checkpoint = Path(checkpoint)
+    return checkpoint.with_name(f"{checkpoint.stem}.idm.json")
 
 
 def is_model_file(path: str | Path) -> bool:

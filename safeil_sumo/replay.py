@@ -28,6 +28,7 @@ from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import (
     CommandParser,
     add_brake_guard_option,
+    add_csv_options,
     add_plan_rate_option,
     add_policy_option,
     finite_float,
@@ -63,10 +64,13 @@ def build_parser() -> CommandParser:
                       description="Replay a recorded maneuver in SUMO and compare the closed "
                                   "loop with the human.")
     p.add_argument("--source", default="openacc",
-                   help="openacc (Vicolungo), zalazone (the ZalaZone handling course), ngsim, or a "
-                        "drive file (Parquet/CSV in the drive schema)")
+                   help="openacc (Vicolungo), zalazone (the ZalaZone handling course), ngsim "
+                        "(from --data-dir), recordings by FORMAT:PATH (openacc:DIR, ngsim:FILE, "
+                        "highd:DIR, csv:FILE, drive:FILE; docs/your_own_drives.md) or a drive "
+                        "file (Parquet/CSV in the drive schema)")
     p.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR,
                    help=f"folder of the real data (default {DEFAULT_DATA_DIR})")
+    add_csv_options(p)
     p.add_argument("--maneuver", default="auto",
                    help="a maneuver id (see --list), 'longest', 'auto' (the window most like "
                         "the paper's: 115 km/h, 58.6 m gap), or 'all' / a comma-separated list "
@@ -215,7 +219,7 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        drive = load_source(args.source, args.data_dir)
+        drive = load_source(args.source, args.data_dir, args.map, args.speed_unit)
         maneuvers, _ = process_drive(drive, PipelineConfig(rate_hz=args.rate_hz))
         if args.list:
             print(rp.maneuver_table(maneuvers).to_string(float_format=lambda v: f"{v:.2f}"))

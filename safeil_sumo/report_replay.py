@@ -1,18 +1,25 @@
-"""Section 4 of ``safeil-evaluate``: held-out maneuvers of the real human data replayed whole
-(what ``safeil-replay --maneuver all --windows whole`` does), by the model beside the calibrated
-IDM and the constant-speed follower; the best, the median and the worst maneuver (by the model's
-gap RMSE against the human) replayed again (``safeil-replay --maneuver ID --duration-s 0``) to
-draw the human's and each planner's gap and speed over time."""
+"""Section 4 of ``safeil-evaluate``: held-out maneuvers of the real human data, and of any
+recordings given with ``--data``, replayed whole (what ``safeil-replay --maneuver all --windows
+whole`` does), by the model beside the calibrated IDM (:func:`baseline_idm`) and the
+constant-speed follower; the best, the median and the worst maneuver (by the model's gap RMSE
+against the human) replayed again (``safeil-replay --maneuver ID --duration-s 0``) to draw the
+human's and each planner's gap and speed over time."""
 
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
 
+from safeil_sumo import idm
 from safeil_sumo import planner_registry as pol
 from safeil_sumo import report_figures as figs
+from safeil_sumo.data.by_path import DataSpec, load_data
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import load_source
 from safeil_sumo.experiments import maneuver_replay as rp
@@ -40,7 +47,7 @@ from safeil_sumo.report_sections import (
 
 MEASURES = (
     "Human-likeness on maneuvers held out of training: each maneuver of OpenACC (motorway) and "
-    "NGSIM I-80 (congested) rebuilt in SUMO from its start to its end, the leader on its "
+    "NGSIM I-80 (congested), and of any recordings given with --data, rebuilt in SUMO from its start to its end, the leader on its "
     "recorded speed, the ego driven closed loop by each planner; the gap RMSE [m] against the "
     "human over the maneuver, per planner: the median with its bootstrap 95 % interval, the "
     "worst; the calibrated IDM and a constant-speed follower (the literature's naive baseline) "
@@ -66,33 +73,100 @@ def held_out_sidecar(model: str) -> Path:
     return SHIPPED_SIDECAR
 
 
+def baseline_idm(model: str) -> str:
+    """The calibrated IDM the model is compared with: the one ``safeil-train`` calibrated on a
+    checkpoint's training maneuvers beside it (:func:`safeil_sumo.idm.baseline_path`), else the
+    shipped ``idm`` (calibrated on the shipped SafeIL's training data)."""
+    path = pol.policy_file(model)
+    own = idm.baseline_path(path) if path.suffix == ".safetensors" else None
+    return str(own) if own is not None and idm.is_model_file(own) else "idm"
+
+
 def planners(model: str) -> list[str]:
     """The model, then the baselines it is not."""
-    return list(dict.fromkeys([model, *REPLAY_BASELINES]))
+    return list(dict.fromkeys([model, baseline_idm(model), *REPLAY_BASELINES[1:]]))
 
 
-def _source(ctx: EvalContext, source: str, held: set[str]
-            ) -> tuple[pd.DataFrame, pd.DataFrame, list[str]]:
-    """Replay ``source``'s held-out maneuvers whole: (maneuvers, per-maneuver table, ids);
-    ``OSError`` / ``ValueError`` when the source cannot be read."""
+@dataclass(frozen=True)
+class ReplaySource:
+    """One source of maneuvers: ``name`` (tables and file names), how its drive frame loads,
+    the ``safeil-replay`` options that name it, and whether the user gave it (``--data``:
+    every maneuver is replayed when the model held none of them out)."""
+
+    name: str
+    load: Callable[[], pd.DataFrame]
+    options: tuple[str, ...]
+    given: bool = False
+
+
+def data_name(spec: DataSpec, taken: set[str]) -> str:
+    """A short name of a ``--data`` source: ``<format>_<file or folder name>`` (a number added
+    when two share it)."""
+    stem = Path(str(spec.paths[0]).rstrip("/")).name.split(".")[0] if spec.paths else ""
+    base = re.sub(r"[^A-Za-z0-9_-]+", "_", f"{spec.format}_{stem}").strip("_")
+    name, k = base, 2
+    while name in taken:
+        name, k = f"{base}_{k}", k + 1
+    taken.add(name)
+    return name
+
+
+def _load_given(spec: DataSpec) -> pd.DataFrame:
+    return load_data([spec])[0]
+
+
+def replay_sources(ctx: EvalContext) -> list[ReplaySource]:
+    """OpenACC and NGSIM from the data folder, then each ``--data`` spec."""
     s = ctx.settings
-    maneuvers, _ = process_drive(load_source(source, s.data_dir), PipelineConfig(rate_hz=10.0))
-    only = sorted(held & set(maneuvers["maneuver_id"].astype(str)))
-    only = only if s.replay_maneuvers is None else only[:s.replay_maneuvers]
+    out = [ReplaySource(src, partial(load_source, src, s.data_dir),
+                        ("--source", src, "--data-dir", shown_path(s.data_dir)))
+           for src in REPLAY_SOURCES]
+    taken = set(REPLAY_SOURCES)
+    for spec in s.data:
+        csv = (*(("--map", spec.columns) if spec.columns else ()),
+               *(("--speed-unit", spec.speed_unit) if spec.speed_unit != "m/s" else ()))
+        out.append(ReplaySource(data_name(spec, taken), partial(_load_given, spec),
+                                ("--source", f"{spec.format}:{shown_path(spec.paths[0])}", *csv),
+                                given=True))
+    return out
+
+
+def maneuvers_to_replay(ids: set[str], held: set[str], given: bool, cap: int | None
+                        ) -> tuple[list[str], bool]:
+    """Which of a source's maneuver ``ids`` are replayed, sorted, the first ``cap`` (None: all),
+    and whether they are held-out ones: those the model held out; for a source the user gave
+    that has none of them, every one (its recordings were not the training data's held-out
+    part, so they may be new to the model or its training data: the report says which)."""
+    only = sorted(ids & held)
+    is_held = bool(only)
+    if given and not is_held:
+        only = sorted(ids)
+    return (only if cap is None else only[:cap]), is_held
+
+
+def _source(ctx: EvalContext, src: ReplaySource, held: set[str]
+            ) -> tuple[pd.DataFrame, pd.DataFrame, list[str], bool]:
+    """Replay ``src``'s held-out maneuvers whole (a given source without any: all of them):
+    (maneuvers, per-maneuver table, ids, whether they are the held-out ones); ``OSError`` /
+    ``ValueError`` when the source cannot be read."""
+    s = ctx.settings
+    maneuvers, _ = process_drive(src.load(), PipelineConfig(rate_hz=10.0))
+    ids = set(maneuvers["maneuver_id"].astype(str)) if len(maneuvers) else set()
+    only, is_held = maneuvers_to_replay(ids, held, src.given, s.replay_maneuvers)
     if not only:
-        return maneuvers, pd.DataFrame(), []
-    folder = ctx.work / f"replay_{source}"
+        return maneuvers, pd.DataFrame(), [], is_held
+    folder = ctx.work / f"replay_{src.name}"
     wins = ra.windows(maneuvers, "whole", only=only)
     records = ra.replay_all(maneuvers, wins, planners(ctx.model), folder,
                             rp.ReplayConfig(seed=s.seed), s.workers, progress=False)
-    df, _ = ra.write(folder, records, {"source": source, "maneuvers": only,
-                                       "windows_mode": "whole"}, s.seed, f"{source} whole")
-    copy_figure(folder / "replay_all.png", ctx, f"replay_{source}_cdf.png")
-    return maneuvers, df.assign(source=source), only
+    df, _ = ra.write(folder, records, {"source": src.name, "maneuvers": only,
+                                       "windows_mode": "whole"}, s.seed, f"{src.name} whole")
+    copy_figure(folder / "replay_all.png", ctx, f"replay_{src.name}_cdf.png")
+    return maneuvers, df.assign(source=src.name), only, is_held
 
 
-def _traces(ctx: EvalContext, pooled: pd.DataFrame, maneuvers: dict[str, pd.DataFrame]
-            ) -> tuple[list, dict, list[str]]:
+def _traces(ctx: EvalContext, pooled: pd.DataFrame, maneuvers: dict[str, pd.DataFrame],
+            sources: dict[str, ReplaySource]) -> tuple[list, dict, list[str]]:
     """The best, median and worst maneuver (the model's gap RMSE) replayed again for their
     series: (figure panels, numbers, commands)."""
     mine = pooled[(pooled["policy"] == ctx.model) & (pooled["status"] == "ok")].reset_index()
@@ -116,18 +190,30 @@ def _traces(ctx: EvalContext, pooled: pd.DataFrame, maneuvers: dict[str, pd.Data
         panels.append((title, res.human, res.compared))
         numbers |= {f"{label}_maneuver": f"{source}:{mid}", f"{label}_gap_rmse_m": rmse}
         commands.append(command_line("safeil-replay", [
-            "--source", source, "--maneuver", mid, "--duration-s", 0, "--policy", *names,
+            *sources[source].options, "--maneuver", mid, "--duration-s", 0, "--policy", *names,
             "--seed", ctx.settings.seed, "--out", f"runs/replay_evaluate_{label}"]))
     return panels, numbers, commands
 
 
-def _source_command(ctx: EvalContext, source: str, only: list[str], sidecar: Path) -> str:
+def _source_command(ctx: EvalContext, src: ReplaySource, only: list[str], sidecar: Path,
+                    is_held: bool) -> str:
     """The ``safeil-replay`` command of one source's whole-maneuver replays."""
-    which = (["--maneuver", "all", "--held-out-of", shown_path(sidecar)]
-             if ctx.settings.replay_maneuvers is None else ["--maneuver", ",".join(only)])
+    if ctx.settings.replay_maneuvers is not None:
+        which = ["--maneuver", ",".join(only)]
+    else:
+        which = ["--maneuver", "all", *(["--held-out-of", shown_path(sidecar)] if is_held
+                                        else [])]
     return command_line("safeil-replay", [
-        "--source", source, *which, "--windows", "whole", "--policy", *planners(ctx.model),
-        "--seed", ctx.settings.seed, "--out", f"runs/replay_evaluate_{source}"])
+        *src.options, *which, "--windows", "whole", "--policy", *planners(ctx.model),
+        "--seed", ctx.settings.seed, "--out", f"runs/replay_evaluate_{src.name}"])
+
+
+def _label(policy: str, model: str) -> str:
+    """A planner's prefix in the numbers: ``model``, ``idm`` (whichever calibrated IDM) or its
+    own name."""
+    if policy == model:
+        return "model"
+    return "idm" if policy == baseline_idm(model) else policy
 
 
 def _planner_numbers(agg: pd.DataFrame, model: str) -> dict:
@@ -136,7 +222,7 @@ def _planner_numbers(agg: pd.DataFrame, model: str) -> dict:
     human had none."""
     out: dict = {}
     for _, r in agg.iterrows():
-        p = "model" if r["policy"] == model else str(r["policy"])
+        p = _label(str(r["policy"]), model)
         out |= {f"{p}_gap_rmse_median_m": float(r["gap_rmse_median_m"]),
                 f"{p}_gap_rmse_median_lo_m": float(r["gap_rmse_median_lo"]),
                 f"{p}_gap_rmse_median_hi_m": float(r["gap_rmse_median_hi"]),
@@ -165,23 +251,49 @@ def _checks(numbers: dict, model: str) -> tuple[Check, ...]:
               beats(med, naive)))
 
 
+def _per_source_numbers(pooled: pd.DataFrame, model: str, seed: int) -> dict:
+    """Each source's median gap RMSE [m] per planner: ``<source>_<planner>_gap_rmse_median_m``
+    (given data is judged on its own, not only in the pool)."""
+    out: dict = {}
+    for source, df in pooled.groupby("source", sort=False):
+        agg = ra.aggregate(df, seed)
+        out |= {f"{source}_{_label(str(r['policy']), model)}_gap_rmse_median_m":
+                float(r["gap_rmse_median_m"]) for _, r in agg.iterrows()}
+    return out
+
+
+def _given_note(src: ReplaySource, only: list[str], is_held: bool) -> str:
+    label = src.options[1]
+    if is_held:
+        return f"{label} ({src.name}): the {len(only)} of its maneuvers the model held out."
+    return (f"{label} ({src.name}): none of its maneuvers is held out by the model; replayed: "
+            f"{len(only)} (a held-out score only if the model never trained on these "
+            "recordings).")
+
+
 def replay(ctx: EvalContext) -> Section:
-    """Section 4: whole held-out maneuvers, the table per planner and the traces figure."""
+    """Section 4: whole held-out (and given) maneuvers, the table per planner and the traces
+    figure."""
     sidecar = held_out_sidecar(ctx.model)
     held = set(held_out_maneuvers(sidecar))
-    frames, maneuvers, commands, counts, skipped = [], {}, [], {}, []
-    for source in REPLAY_SOURCES:
+    sources = replay_sources(ctx)
+    frames, maneuvers, commands, counts, notes = [], {}, [], {}, []
+    for src in sources:
         try:
-            maneuvers[source], df, only = _source(ctx, source, held)
+            maneuvers[src.name], df, only, is_held = _source(ctx, src, held)
         except (OSError, ValueError) as exc:  # e.g. a data folder without this source
-            skipped.append(f"{source} skipped: {exc}.")
-            df, only = pd.DataFrame(), []
-        counts[f"{source}_maneuvers"] = len(only)
+            if src.given:  # the user's own data must not be skipped quietly
+                raise ValueError(f"{src.options[1]}: {exc}") from exc
+            notes.append(f"{src.name} skipped: {exc}.")
+            df, only, is_held = pd.DataFrame(), [], False
+        counts[f"{src.name}_maneuvers"] = len(only)
+        if src.given:
+            notes.append(_given_note(src, only, is_held))
         if only:
             frames.append(df)
-            commands.append(_source_command(ctx, source, only, sidecar))
+            commands.append(_source_command(ctx, src, only, sidecar, is_held))
     if not frames:  # nothing to judge: the section's error, not a failed check
-        raise ValueError("no held-out maneuver to replay " + " ".join(skipped))
+        raise ValueError("no held-out maneuver to replay " + " ".join(notes))
     pooled = pd.concat(frames, ignore_index=True)
     pooled.to_csv(ctx.table("replay_maneuvers.csv"), index=False)
     agg = ra.aggregate(pooled, ctx.settings.seed) if len(pooled) else pd.DataFrame()
@@ -190,17 +302,25 @@ def replay(ctx: EvalContext) -> Section:
     numbers: dict = {"maneuvers": len(ok), **counts,
                      "failed_to_run": int(sum(counts.values()) - len(ok))}
     numbers |= _planner_numbers(agg, ctx.model) if len(agg) else {}
-    panels, picked, pick_commands = _traces(ctx, pooled, maneuvers)
+    numbers |= _per_source_numbers(pooled, ctx.model, ctx.settings.seed)
+    panels, picked, pick_commands = _traces(ctx, pooled, maneuvers,
+                                            {src.name: src for src in sources})
     numbers |= picked
-    figures = [f"figures/replay_{s}_cdf.png" for s in REPLAY_SOURCES
-               if (ctx.figures / f"replay_{s}_cdf.png").is_file()]
+    figures = [f"figures/replay_{src.name}_cdf.png" for src in sources
+               if (ctx.figures / f"replay_{src.name}_cdf.png").is_file()]
     if panels:
         path, rel = ctx.figure("replay_best_median_worst.png")
         figs.plot_replay_traces(panels, path)
         figures.insert(0, rel)
-    notes = (f"Held-out maneuvers: those of {shown_path(sidecar)} (`metrics.val_maneuvers`)"
+    idm_used = baseline_idm(ctx.model)
+    notes = [f"Held-out maneuvers: those of {shown_path(sidecar)} (`metrics.val_maneuvers`)"
              + ("" if ctx.settings.replay_maneuvers is None else
-                f", the first {ctx.settings.replay_maneuvers} per source") + ".", *skipped)
+                f", the first {ctx.settings.replay_maneuvers} per source") + ".",
+             "The calibrated IDM: " + ("the shipped `idm` (calibrated on the shipped SafeIL's "
+                                        "training data)" if idm_used == "idm" else
+                                        f"`{shown_path(Path(idm_used))}`, calibrated by "
+                                        "safeil-train on the model's training maneuvers") + ".",
+             *notes]
     return Section("replay", "Whole-maneuver replays of held-out maneuvers", MEASURES, numbers,
                    _checks(numbers, ctx.model), (*commands, *pick_commands), tuple(figures),
-                   notes)
+                   tuple(notes))

@@ -22,8 +22,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from safeil_sumo.cli_args import CommandParser, interruptible
-from safeil_sumo.data.by_path import FORMAT_HELP, DataError, parse_data_option
+from safeil_sumo.cli_args import CommandParser, add_data_options, data_specs, interruptible
+from safeil_sumo.data.by_path import DataError
 from safeil_sumo.learn.torch_required import training_imports
 
 
@@ -32,9 +32,8 @@ def build_parser() -> CommandParser:
     p.add_argument("--recipe", type=Path, default=None, metavar="TOML",
                    help="the training recipe (default: the shipped one, "
                         "safeil_sumo/recipes/shipped.toml)")
-    p.add_argument("--data", nargs="+", default=None, metavar="FORMAT:PATH",
-                   help=f"the recordings, replacing the recipe's data: {FORMAT_HELP}; each "
-                        "source is named after its format")
+    add_data_options(p, "the recordings, replacing the recipe's data (each source named after "
+                        "its format)")
     p.add_argument("--data-dir", type=Path, default=None, metavar="DIR",
                    help="folder the recipe's relative data paths start from (default: the "
                         "recipe's data_dir, else its folder; the shipped recipe: ../shared/data "
@@ -51,11 +50,7 @@ def build_parser() -> CommandParser:
 def parse_args(argv: list[str] | None = None) -> tuple[CommandParser, argparse.Namespace]:
     p = build_parser()
     args = p.parse_args(argv)
-    try:
-        args.data_specs = ([parse_data_option(d) for d in args.data] if args.data is not None
-                           else None)
-    except DataError as exc:
-        p.error(str(exc))
+    args.data_specs = data_specs(p, args)
     return p, args
 
 
@@ -80,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     shares = (", ".join(f"{m} {v:.4%}" for m, v in cert["certified"].items())
               if cert else "not certified")
     print(f"checkpoint: {summary['checkpoint']} (--policy {summary['checkpoint']}); "
-          f"certificate: {shares}; summary: {out / 'summary.md'}; {summary['seconds']:.0f} s")
+          f"certificate: {shares}; IDM baseline: {summary['idm']['path']}; summary: "
+          f"{out / 'summary.md'}; {summary['seconds']:.0f} s")
     return 0
 
 

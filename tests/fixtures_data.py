@@ -292,3 +292,18 @@ def write_tiny_recordings(folder: Path) -> None:
     write_openacc(folder / "openacc" / "run_a.csv", n=400)
     write_openacc(folder / "openacc" / "run_b.csv.gz", gz=True, n=400, v=25.0, spacing=35.0)
     ngsim_pairs_frame(300).to_parquet(folder / "pairs.parquet")
+
+
+CSV_COLUMNS = "time=t,v=spd,lead_v=ld_spd,gap=dist"  # the map of write_car_following_csv's file
+
+
+def write_car_following_csv(path: Path, duration_s: float = 60.0) -> Path:
+    """A car-following CSV as a user's logger might write it: its own column names
+    (:data:`CSV_COLUMNS` maps them), speeds in km/h, 10 Hz, a leader swaying around 25 m/s."""
+    t = np.arange(0.0, duration_s, 0.1)
+    v_lead = 25.0 + 2.0 * np.sin(t / 10.0)
+    v = 25.0 + 1.5 * np.sin((t - 1.5) / 10.0)
+    gap = 30.0 + 3.0 * np.sin(t / 12.0)
+    pd.DataFrame({"t": np.round(t, 1), "spd": v * 3.6, "ld_spd": v_lead * 3.6,
+                  "dist": gap}).to_csv(path, index=False)
+    return path

@@ -16,8 +16,11 @@ import pandas as pd
 import pytest
 
 from safeil_sumo import evaluate as ev
+from safeil_sumo import idm
 from safeil_sumo import report_card as rc
+from safeil_sumo import report_replay as rr
 from safeil_sumo import report_sections as rs
+from safeil_sumo.data.by_path import DataSpec
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR, NGSIM_FILE
 
 # ------------------------------------------------------------------- the rules, by hand
@@ -106,7 +109,51 @@ def test_quick_settings_and_overrides() -> None:
     assert (quick.sweep_scenarios, quick.replay_maneuvers, quick.gap_speeds_mps) == (30, 2, (25.0,))
     assert (quick.seed, quick.falsify_budget, quick.falsify_batch) == (3, 10, 10)
     full = rs.settings(False)
-    assert (full.sweep_scenarios, full.replay_maneuvers, full.falsify_budget) == (200, None, 1000)
+    assert (full.sweep_scenarios, full.replay_maneuvers, full.falsify_budget) == (1000, None, 1000)
+
+
+def test_maneuvers_to_replay_by_hand() -> None:
+    ids, held = {"c", "a", "b"}, {"b", "a", "z"}
+    assert rr.maneuvers_to_replay(ids, held, given=False, cap=None) == (["a", "b"], True)
+    assert rr.maneuvers_to_replay(ids, held, given=True, cap=1) == (["a"], True)
+    # the user's recordings, none held out by the model: every maneuver, capped
+    assert rr.maneuvers_to_replay(ids, {"z"}, given=True, cap=None) == (["a", "b", "c"], False)
+    assert rr.maneuvers_to_replay(ids, {"z"}, given=True, cap=2) == (["a", "b"], False)
+    assert rr.maneuvers_to_replay(ids, {"z"}, given=False, cap=None) == ([], False)
+
+
+def test_data_names_are_short_and_unique() -> None:
+    taken = {"openacc", "ngsim"}
+    a = DataSpec("csv", (Path("/x/my drives.v2.csv"),))
+    assert rr.data_name(a, taken) == "csv_my_drives"
+    assert rr.data_name(a, taken) == "csv_my_drives_2"
+    assert rr.data_name(DataSpec("highd", (Path("/d/highD/"),)), taken) == "highd_highD"
+
+
+def test_the_baseline_idm_is_the_one_trained_beside_the_checkpoint(tmp_path: Path) -> None:
+    model = tmp_path / "mine.safetensors"
+    model.write_bytes(b"")
+    assert rr.baseline_idm(str(model)) == "idm"  # none beside it: the shipped one
+    assert rr.baseline_idm("safeil") == "idm"
+    idm.save_model(idm.baseline_path(model), {"training": idm.IDMFit(
+        idm.IDMParams(), 1.0, 0.1, ("m",), 3)}, default="training")
+    assert (tmp_path / "mine.idm.json").is_file()
+    assert rr.baseline_idm(str(model)) == str(tmp_path / "mine.idm.json")
+    assert rr.planners(str(model)) == [str(model), str(tmp_path / "mine.idm.json"),
+                                       "constant_speed"]
+    assert rr.planners("idm") == ["idm", "constant_speed"]
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--data", "csv:nowhere.csv"], "--data csv:"),
+    (["--data", "tsv:x.csv"], "unknown data format 'tsv'"),
+    (["--map", "time=t"], "--map and --speed-unit read csv data"),
+])
+def test_bad_data_options_are_one_line(argv, message, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        ev.parse_args(["idm", *argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_.value.code == 2 and len(err) == 1 and message in err[0], err
 
 
 def test_default_out_names_the_model() -> None:

@@ -342,3 +342,27 @@ def test_equilibrium_gap_at_and_above_the_desired_speed_is_inf_without_warnings(
         gaps = idm.equilibrium_gap(np.array([P.v0_mps, P.v0_mps + 5.0, 20.0]), P)
     assert np.isinf(gaps[0]) and np.isinf(gaps[1])
     assert gaps[2] == pytest.approx(26.0 / math.sqrt(65.0 / 81.0))
+
+
+def test_maneuvers_from_tuples_by_hand() -> None:
+    """Samples grouped by maneuver id (sorted ids), each in time order, speed / leader speed /
+    gap from the features' v_x, v_lead, d_lead columns."""
+    from safeil_sumo.data.tuples import Tuples
+
+    feats = np.zeros((4, 9))
+    feats[:, 6:] = [[20.0, 21.0, 30.0], [10.0, 11.0, 15.0], [22.0, 23.0, 31.0],
+                    [12.0, 13.0, 16.0]]
+    t = Tuples(feats, np.zeros((4, 3, 2)), np.zeros((4, 2, 2)),
+               np.array(["b", "a", "b", "a"]), np.array(["s"] * 4), np.array([0.2, 0.1, 0.1, 0.0]),
+               horizon=0.2, rate_hz=10.0)
+    a, b = idm.maneuvers_from_tuples(t)
+    assert (a.maneuver_id, b.maneuver_id) == ("a", "b")
+    assert a.times.tolist() == [0.0, 0.1] and b.times.tolist() == [0.1, 0.2]
+    assert a.v.tolist() == [12.0, 10.0] and a.v_lead.tolist() == [13.0, 11.0]
+    assert b.gap.tolist() == [31.0, 30.0] and b.v.tolist() == [22.0, 20.0]
+
+
+def test_baseline_path_sits_beside_the_checkpoint() -> None:
+    from pathlib import Path
+
+    assert idm.baseline_path("runs/m/mine.safetensors") == Path("runs/m/mine.idm.json")

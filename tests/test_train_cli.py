@@ -79,6 +79,18 @@ def test_tiny_recipe_trains_end_to_end(tiny: Path, capsys: pytest.CaptureFixture
     features = np.array([[1.75, 0.0, 0.0, -1.75, 0.0, 0.0, 25.0, 25.0, 40.0]])
     assert np.isfinite(policy.plan(features)).all()
     assert load_certificate(out / "tiny.safetensors").valid
+    # the IDM calibrated on the same training maneuvers, beside it: the report card's baseline
+    fit = summary["idm"]
+    assert fit["status"] == "ran" and fit["path"] == str(out / "tiny.idm.json")
+    assert fit["fit_maneuvers"] + fit["held_out_maneuvers"] == sum(
+        c["maneuvers"] for c in summary["data"].values())
+    assert fit["held_out_maneuvers"] == len(summary["split"]["held_out_maneuvers"])
+    doc = json.loads((out / "tiny.idm.json").read_text())
+    assert doc["held_out_from"] == ["tiny.json"] and doc["default"] == "training"
+    assert not set(doc["fits"]["training"]["maneuver_ids"]) & set(
+        summary["split"]["held_out_maneuvers"])
+    assert planner_registry.load(str(out / "tiny.idm.json")).name == "idm"
+    assert "IDM baseline" in (out / "summary.md").read_text()
 
 
 def test_the_cost_is_printed_before_training(tiny: Path, capsys: pytest.CaptureFixture[str]):
@@ -280,3 +292,25 @@ def test_a_car_following_csv_is_data_by_path(tmp_path) -> None:
                   "lead_v": v + 0.2}).to_csv(tmp_path / "pairs.csv", index=False)
     (drive,) = load_data([parse_data_option(f"csv:{tmp_path / 'pairs.csv'}")])
     assert len(drive) == len(t) and np.allclose(drive["v_x"], v)
+
+
+def test_a_csv_column_map_and_speed_unit_from_the_recipe_or_the_command_line(tmp_path) -> None:
+    """A user's CSV with its own column names and km/h speeds: mapped by the recipe's
+    ``columns`` table and ``speed_unit``, or by ``--map`` / ``--speed-unit``, the same drive."""
+    from fixtures_data import CSV_COLUMNS, write_car_following_csv
+
+    from safeil_sumo.data.by_path import load_data
+    from safeil_sumo.train import parse_args
+
+    write_car_following_csv(tmp_path / "log.csv")
+    cols = ", ".join(f'{k} = "{v}"' for k, v in (kv.split("=") for kv in CSV_COLUMNS.split(",")))
+    (tmp_path / "r.toml").write_text(f'name = "r"\n[[data]]\nformat = "csv"\npath = "log.csv"\n'
+                                     f'speed_unit = "km/h"\ncolumns = {{{cols}}}\n')
+    (from_recipe,) = load_recipe(tmp_path / "r.toml").data
+    _, args = parse_args(["--data", f"csv:{tmp_path / 'log.csv'}", "--map", CSV_COLUMNS,
+                          "--speed-unit", "km/h"])
+    (from_cli,) = args.data_specs
+    assert from_recipe.columns == from_cli.columns == CSV_COLUMNS
+    a, b = load_data([from_recipe, from_cli])
+    raw = pd.read_csv(tmp_path / "log.csv")
+    assert np.allclose(a["v_x"], raw["spd"] / 3.6) and np.allclose(b["v_x"], a["v_x"])

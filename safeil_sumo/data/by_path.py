@@ -44,7 +44,9 @@ class DataSpec:
     training recipe's ``longitudinal_only_sources`` and each stage's ``sources`` refer to it);
     ``max_curvature_1pm``: openacc's lane-curvature clip [1/m] (a test track needs more than the
     motorway default); ``drivers``, ``seed``, ``lane_changes``: synthetic's drivers, their
-    seed, whether they change lane; ``workers``: synthetic's SUMO processes."""
+    seed, whether they change lane; ``workers``: synthetic's SUMO processes; ``columns``,
+    ``speed_unit``: csv's column map (``"time=t,v=speed,gap=gap"``, empty: the default names)
+    and the unit of its speeds (``m/s`` or ``km/h``; docs/your_own_drives.md)."""
 
     format: str
     paths: tuple[Path, ...] = ()
@@ -54,6 +56,8 @@ class DataSpec:
     seed: int = 0
     lane_changes: bool = True
     workers: int = 2
+    columns: str = ""
+    speed_unit: str = "m/s"
 
     def __post_init__(self) -> None:
         if self.format not in FORMATS:
@@ -67,6 +71,8 @@ class DataSpec:
                                 f"0, got {self.drivers}, {self.workers}, {self.seed}")
         elif not self.paths:
             raise DataError(f"{self.format} data needs a path")
+        if (self.columns or self.speed_unit != "m/s") and self.format != "csv":
+            raise DataError(f"columns and speed_unit are for csv data, not {self.format}")
         if not self.max_curvature_1pm > 0:
             raise DataError(f"max_curvature_1pm must be > 0, got {self.max_curvature_1pm}")
 
@@ -82,9 +88,10 @@ class DataSpec:
         return f"{self.format}:{','.join(map(str, self.paths))}"
 
 
-def parse_data_option(text: str) -> DataSpec:
+def parse_data_option(text: str, columns: str = "", speed_unit: str = "m/s") -> DataSpec:
     """``FORMAT:PATH`` (``--data``) -> a spec (path relative to the working folder);
-    :class:`DataError` in one line for a missing or unknown format."""
+    :class:`DataError` in one line for a missing or unknown format. ``columns`` and
+    ``speed_unit`` (``--map``, ``--speed-unit``) apply to a ``csv`` spec only."""
     fmt, sep, rest = text.partition(":")
     if not sep or not rest:
         raise DataError(f"--data {text!r}: expected FORMAT:PATH, FORMAT one of "
@@ -97,7 +104,8 @@ def parse_data_option(text: str) -> DataSpec:
             return DataSpec("synthetic", drivers=int(rest))
         except ValueError:
             raise DataError(f"--data {text!r}: synthetic takes a number of drivers") from None
-    return DataSpec(fmt, (Path(rest).resolve(),))
+    csv = {"columns": columns, "speed_unit": speed_unit} if fmt == "csv" else {}
+    return DataSpec(fmt, (Path(rest).resolve(),), **csv)
 
 
 def _openacc_files(paths: Sequence[Path]) -> list[Path]:
@@ -135,7 +143,8 @@ def import_drive(spec: DataSpec, progress: bool = False) -> pd.DataFrame:
     if spec.format in ("ngsim", "highd", "csv"):
         from safeil_sumo.data.drive_import import import_drive as import_by_spec
 
-        frames = [import_by_spec(f"{spec.format}:{p}") for p in spec.paths]
+        frames = [import_by_spec(f"{spec.format}:{p}", spec.columns or None, spec.speed_unit)
+                  for p in spec.paths]
     elif spec.format == "drive":
         frames = [load_drive(p) for p in spec.paths]
     elif spec.format == "synthetic":

@@ -27,10 +27,12 @@ ZALAZONE_MAX_CURVATURE = 1.0 / 40.0
 _OPENACC_RECORDING = re.compile(r"^(?P<file>.+)_f(?P<k>\d+)(?:_s\d+)?$")
 
 
-def load_source(source: str, data_dir: Path = DEFAULT_DATA_DIR) -> pd.DataFrame:
+def load_source(source: str, data_dir: Path = DEFAULT_DATA_DIR, columns: str = "",
+                speed_unit: str = "m/s") -> pd.DataFrame:
     """A validated drive frame of ``openacc`` (Vicolungo, the all-human day), ``zalazone`` (the
     ZalaZone handling course, lane curvature clipped at :data:`ZALAZONE_MAX_CURVATURE`),
-    ``ngsim`` or a drive file path."""
+    ``ngsim``, recordings by ``FORMAT:PATH`` (:mod:`safeil_sumo.data.by_path`; ``columns`` and
+    ``speed_unit`` read a ``csv:``) or a drive file path."""
     from safeil_sumo.data.importers import import_ngsim_pairs, import_openacc
 
     if source == "ngsim":
@@ -43,6 +45,11 @@ def load_source(source: str, data_dir: Path = DEFAULT_DATA_DIR) -> pd.DataFrame:
         frames = [import_openacc(f) if source == "openacc"
                   else import_openacc(f, max_curvature=ZALAZONE_MAX_CURVATURE) for f in files]
         return pd.concat([f for f in frames if len(f)], ignore_index=True)
+    from safeil_sumo.data.by_path import FORMATS, load_data, parse_data_option
+
+    fmt, sep, _ = source.partition(":")
+    if sep and fmt in FORMATS and not Path(source).exists():
+        return load_data([parse_data_option(source, columns, speed_unit)])[0]
     return load_drive(source)
 
 

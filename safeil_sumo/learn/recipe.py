@@ -33,7 +33,7 @@ STAGES = tuple(STAGE_CONFIGS)
 STAGE_KEYS = ("enabled", "sources")  # besides the config's fields
 TOP_KEYS = ("name", "seed", "data_dir", "init", "data", "pipeline", "split", *STAGES, "certify")
 DATA_KEYS = ("format", "path", "name", "max_curvature_1pm", "drivers", "seed", "lane_changes",
-             "workers")
+             "workers", "columns", "speed_unit")
 SPLIT_BY = ("driver", "maneuver")
 INHERITED = ("pipeline", *STAGES, "certify")  # a user's recipe takes these from the shipped one
 
@@ -189,6 +189,8 @@ def _data(items: Any, base: Path, path: Path, seed: int) -> tuple[DataSpec, ...]
         if "format" not in item:
             raise _fail(path, f"{where}format",
                         "missing (one of openacc, ngsim, highd, csv, drive, synthetic)")
+        if isinstance(item.get("columns"), dict):  # columns = {time = "t", v = "speed"}
+            item = {**item, "columns": ",".join(f"{k}={v}" for k, v in item["columns"].items())}
         raw = item.get("path", [])
         paths = [raw] if isinstance(raw, str) else _typed(raw, ("",), path, f"{where}path")
         fields = {k: v for k, v in item.items() if k not in ("path", "format")}

@@ -2,8 +2,9 @@
 
 ``out/`` holds ``data/`` (each source's processed tuples), ``stages/`` (each stage's checkpoint
 and a ``<stage>.done.json`` marker), the final checkpoint ``<name>.safetensors`` + ``.json``, its
-certificate ``<name>.certificate.json`` and ``summary.json`` / ``summary.md``. Every file is
-written atomically (:mod:`safeil_sumo.atomic`), a stage's marker last: a stage whose marker
+certificate ``<name>.certificate.json``, the IDM calibrated on the same training maneuvers
+``<name>.idm.json`` (the report card's baseline) and ``summary.json`` / ``summary.md``. Every
+file is written atomically (:mod:`safeil_sumo.atomic`), a stage's marker last: a stage whose marker
 holds the same digest (the recipe's data, split and every stage up to it) and whose checkpoint
 still has the weights it recorded is not run again, so a rerun after an interrupt resumes at
 the first unfinished stage. Deterministic for the recipe's seeds: the stages' own functions
@@ -38,7 +39,9 @@ Echo = Callable[[str], None]
 # lateral refit 379 s for 16,000 steps x 2,048 states; certificate ~48 s for ~46,000 boxes
 # (docs/certification.md)
 COST_S = {"openloop": 1124.0 / (400 * 63646), "closed_loop": 2257.0 / (400 * 64 * 60.0),
-          "lateral_refit": 379.0 / (16000 * 2048), "certify": 48.0 / 46000}
+          "lateral_refit": 379.0 / (16000 * 2048), "certify": 48.0 / 46000,
+          # the IDM calibration, measured on OpenACC and NGSIM (111 s for 93,207 samples)
+          "idm": 111.0 / 93207}
 UNITS = {"openloop": "tuple-epochs", "closed_loop": "episode-seconds",
          "lateral_refit": "state-steps", "certify": "boxes"}
 
@@ -231,6 +234,11 @@ def describe_plan(recipe: Recipe, prepared: Prepared) -> tuple[list[str], float]
         total += est
         lines.append(f"certificate: up to {cert.max_boxes or 'unlimited'} boxes or "
                      f"{cert.budget_s:g} s: up to ~{_duration(est)}")
+    samples = sum(c["tuples"] for c in prepared.counts.values())
+    est = samples * COST_S["idm"]
+    total += est
+    lines.append(f"IDM baseline: calibrated on the training maneuvers ({samples:,} samples): "
+                 f"~{_duration(est)}")
     lines.append(f"estimated: ~{_duration(total)} (from the shipped run's costs on 2 shared "
                  "cores; finished stages are skipped)")
     return lines, total
@@ -421,6 +429,45 @@ def certify_final(recipe: Recipe, final: Path, out: Path, progress: bool, echo: 
     return {**summary, "status": "ran"}
 
 
+def fit_idm_baseline(prepared: Prepared, final: Path, out: Path, seed: int, echo: Echo
+                     ) -> dict[str, Any]:
+    """The IDM the report card compares the model with (``safeil-evaluate``): its five
+    parameters calibrated (:func:`safeil_sumo.idm.fit_idm`) on the model's training maneuvers,
+    every source pooled, the held-out maneuvers left out of the fit and scored; written beside
+    the checkpoint (:func:`safeil_sumo.idm.baseline_path`, ``held_out_from`` naming its
+    sidecar). Reused when
+    its marker holds the same data digest. Its summary: path, parameters, RMSEs, seconds."""
+    from safeil_sumo import idm
+
+    path, marker = idm.baseline_path(final), out / "stages" / "idm.done.json"
+    digest = _sha({"idm": prepared.digest, "seed": seed})
+    done = _read_json(marker)
+    if done is not None and done.get("digest") == digest and idm.is_model_file(path):
+        echo("IDM baseline: calibrated before (same data), skipped")
+        return {**done["summary"], "status": "resumed"}
+    held = set(prepared.held_out)
+    maneuvers = [m for paths in prepared.files.values() for p in paths
+                 for m in idm.maneuvers_from_tuples(Tuples.load(p))]
+    train = [m for m in maneuvers if m.maneuver_id not in held]
+    test = [m for m in maneuvers if m.maneuver_id in held]
+    echo(f"IDM baseline: calibrating on {len(train)} training maneuvers")
+    start = time.perf_counter()
+    fit = idm.fit_idm(train, seed=seed)
+    score: dict[str, Any] = {"fit_rmse_gap_m": fit.rmse_gap_m,
+                             "fit_rmse_speed_mps": fit.rmse_speed_mps,
+                             "fit_maneuvers": len(train), "held_out_maneuvers": len(test)}
+    if test:
+        gap, speed = idm.evaluate_fit(test, fit.params)
+        score |= {"held_out_rmse_gap_m": gap, "held_out_rmse_speed_mps": speed}
+    idm.save_model(path, {"training": fit}, default="training",
+                   extra={"scores": {"training": score},
+                          "held_out_from": [final.with_suffix(".json").name]})
+    summary = {"path": str(path), "params": dataclasses.asdict(fit.params), **score,
+               "seconds": time.perf_counter() - start}
+    _write_json(marker, {"digest": digest, "summary": summary})
+    return {**summary, "status": "ran"}
+
+
 def run_recipe(recipe: Recipe, out: Path, progress: bool = True, echo: Echo = print,
                dry_run: bool = False) -> dict[str, Any]:
     """Run the recipe into ``out`` (resuming finished stages) and write the summary; with
@@ -445,6 +492,7 @@ def run_recipe(recipe: Recipe, out: Path, progress: bool = True, echo: Echo = pr
     summary["checkpoint"] = str(final)
     if recipe.certify.enabled:
         summary["certificate"] = certify_final(recipe, final, out, progress, echo)
+    summary["idm"] = fit_idm_baseline(prepared, final, out, recipe.seed, echo)
     summary["seconds"] = time.perf_counter() - start  # this run's
     summary["training_seconds"] = sum(st.get("seconds", 0.0) for st in stages.values())
     _write_json(out / "summary.json", summary)
@@ -473,6 +521,13 @@ def summary_markdown(s: dict[str, Any]) -> str:
         shares = ", ".join(f"{m} {v:.4%}" for m, v in cert["certified"].items())
         lines += ["", f"Certificate: {shares}" + (" (complete)" if cert["complete"] else "")
                   + f", {cert['seconds']:.1f} s."]
+    fit = s.get("idm")
+    if fit:
+        held = (f", held out {fit['held_out_rmse_gap_m']:.2f} m" if "held_out_rmse_gap_m" in fit
+                else "")
+        text = (f"IDM baseline `{fit['path']}`: gap RMSE on its {fit['fit_maneuvers']} training "
+                f"maneuvers {fit['fit_rmse_gap_m']:.2f} m{held}.")
+        lines += ["", text]
     tail = (f"Checkpoint `{s['checkpoint']}`; the stages trained "
             f"{s['training_seconds']:.1f} s, this run took {s['seconds']:.1f} s.")
     lines += ["", tail, ""]
