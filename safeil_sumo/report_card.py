@@ -218,4 +218,5 @@ def report_json(header: dict[str, Number], sections: Sequence[Section]) -> dict:
          "seconds": s.seconds, "numbers": dict(s.numbers),
          "checks": [{"name": c.name, "key": c.key, "criterion": c.criterion,
                      "passed": c.passed, "verdict": c.verdict} for c in s.checks],
-         "commands": list(s.commands), "figures": list(s.figures)} for s in sections]}
+         "commands": list(s.commands), "figures": list(s.figures),
+         "notes": list(s.notes)} for s in sections]}

@@ -14,7 +14,12 @@ import sys
 from pathlib import Path
 
 import pytest
-from fixtures_data import TINY_RECIPE, write_tiny_recordings
+from fixtures_data import (
+    CSV_COLUMNS,
+    TINY_RECIPE,
+    write_car_following_csv,
+    write_tiny_recordings,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -35,6 +40,8 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dic
     (Path(inner) / "outer_dependencies.pth").write_text("\n".join(site.getsitepackages()))
     work = root / "work"
     write_tiny_recordings(work)
+    write_car_following_csv(work / "my_log.csv", duration_s=40.0)
+    (work / "no_data").mkdir()
     (work / "tiny.toml").write_text(TINY_RECIPE.format(iters=2))
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["SAFEIL_SUMO_CACHE"] = str(root / "cache")
@@ -55,13 +62,21 @@ def test_the_wheel_trains_and_evaluates_outside_the_checkout(installed) -> None:
     assert trained.returncode == 0, trained.stderr[-2000:]
     model = work / "tr" / "tiny.safetensors"
     assert model.is_file() and (work / "tr" / "summary.json").is_file()
+    assert (work / "tr" / "tiny.idm.json").is_file()  # the IDM calibrated beside it
     card = _run(bin_, work, env, "safeil-evaluate", str(model), "--quick", "--scenarios", "2",
-                "--speeds-mps", "25", "--only", "safety", "gap_probe", "certificate",
-                "--out", "card")
+                "--speeds-mps", "25", "--only", "safety", "gap_probe", "replay", "certificate",
+                "--data", "csv:my_log.csv", "--map", CSV_COLUMNS, "--speed-unit", "km/h",
+                "--data-dir", "no_data", "--out", "card")
     assert card.returncode in (0, 1), card.stderr[-2000:]  # 1: a check failed, not a crash
     report = json.loads((work / "card" / "report.json").read_text())
     ran = {s["key"]: s for s in report["sections"] if s["status"] != "not run"}
-    assert set(ran) == {"safety", "gap_probe", "certificate"}, report["sections"]
+    assert set(ran) == {"safety", "gap_probe", "replay", "certificate"}, report["sections"]
     for key, section in ran.items():
         assert not section["error"] and section["numbers"] and section["commands"], key
-    assert (work / "card" / "report.md").read_text().count("safeil-") >= 3
+    assert (work / "card" / "report.md").read_text().count("safeil-") >= 4
+    # the user's recording, replayed beside the IDM trained with the model
+    replay = ran["replay"]["numbers"]
+    assert replay["csv_my_log_maneuvers"] == 1 and replay["maneuvers"] == 1
+    assert replay["model_gap_rmse_median_m"] >= 0 and replay["idm_gap_rmse_median_m"] >= 0
+    assert any("tiny.idm.json" in note for note in ran["replay"]["notes"])
+    assert any("--source csv:my_log.csv --map" in c for c in ran["replay"]["commands"])
