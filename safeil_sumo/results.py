@@ -23,7 +23,9 @@ Sections (``--only`` picks some; every sweep is resumable, its task files live i
   over every whole maneuver of OpenACC, NGSIM and the synthetic drives;
 - ``falsify``: the falsification study (``experiments/falsify.py``): CEM against random
   sampling at equal budget per planner, the curves and each planner's worst avoidable case;
-- and ``results/README.md`` with our numbers beside the paper's.
+- ``card``: the shipped ``safeil``'s report card (``safeil-evaluate safeil``, full budgets);
+- and ``results/README.md`` (the paper's safety test and replay beside ours, then the report
+  card) and ``results/studies.md`` (every other section).
 
 Only small outputs (PNG, CSV, Markdown) go to ``results/``; logs stay in the work folder.
 """
@@ -86,7 +88,8 @@ COLORS = {"safeil": "tab:green", "safeil_openloop": "tab:cyan", "safeil_paper": 
           "idm_population": "tab:orange"}
 NO_FILTER = ("analytic", "idm")  # rule-based planners: never run with the safety filter
 SECTIONS = ("safety", "large", "grids", "replay", "openloop", "efficiency", "leader",
-            "humanlike", "whole", "unseen", "lodo", "ablation", "instrument", "n74", "falsify")
+            "humanlike", "whole", "unseen", "lodo", "ablation", "instrument", "n74", "falsify",
+            "card")
 # the whole-maneuver replays: the planners, the naive baseline and the instrument's floor
 WHOLE_POLICIES = ("safeil", "safeil_openloop", "idm", "analytic", "bc", "constant_speed",
                   "recorded")
@@ -650,15 +653,58 @@ def _ablation_readme(out: Path) -> list[str]:
             table.read_text() if table.is_file() else "", ""]
 
 
+CARD = "report_card"  # results/report_card/: the shipped safeil's report card
+
+
+def card(out: Path, work: Path, workers: int, seed: int) -> dict:
+    """The shipped ``safeil``'s report card: ``safeil-evaluate safeil`` at its full budgets
+    (resumable in ``work/report_card``), its report, figures and tables copied into
+    ``out/report_card``. Facts: its overall verdict and wall time."""
+    from safeil_sumo import evaluate
+    from safeil_sumo.report_sections import shown_path
+
+    folder = work / CARD
+    evaluate.main(["safeil", "--workers", str(workers), "--seed", str(seed), "--out",
+                   shown_path(folder)])
+    target = out / CARD
+    target.mkdir(parents=True, exist_ok=True)
+    for name in ("report.md", "report.json"):
+        shutil.copyfile(folder / name, target / name)
+    for sub in ("figures", "data"):
+        shutil.rmtree(target / sub, ignore_errors=True)
+        shutil.copytree(folder / sub, target / sub)
+    report = json.loads((target / "report.json").read_text())
+    return {"overall": report["overall"], "seconds": report.get("seconds_total")}
+
+
+def front_page(out: Path, facts: dict) -> list[str]:
+    """``results/README.md``: the shipped ``safeil``'s report card (:func:`card`), after the
+    paper's two figures beside ours."""
+    lines = ["# Results: the shipped `safeil`", "",
+             ("`python -m safeil_sumo.results --only card safety replay` writes this page: the "
+              "paper's safety test and replay beside ours, then the report card of the shipped "
+              "`safeil`, `safeil-evaluate safeil` at its full budgets (its files in "
+              f"[`{CARD}/`]({CARD}/report.md)). Every other study (grids, many planners, "
+              "whole-drive human-likeness, unseen drivers, leave one driver out, n74, "
+              "falsification, sample efficiency) is in [studies.md](studies.md)."), "",
+             f"- git commit: `{facts.get('git_commit', '?')}`", ""]
+    lines += _safety_readme(facts) if "safety" in facts else []
+    lines += _replay_readme(facts) if facts.get("replay") else []
+    report = out / CARD / "report.md"
+    if report.is_file():
+        body = report.read_text().split("\n", 1)[1]  # its own title replaced by ours
+        body = body.replace("](figures/", f"]({CARD}/figures/").replace("\n## ", "\n### ")
+        lines += ["## The report card", "", body.strip(), ""]
+    return lines
+
+
 def write_readme(out: Path, facts: dict) -> None:
-    """``results/README.md``: our numbers beside the paper's, from ``facts.json``; a section
-    appears once its facts exist."""
+    """``results/README.md`` (:func:`front_page`) and ``results/studies.md``: our numbers beside
+    the paper's, from ``facts.json``; a section appears once its facts exist."""
     args = facts.get("args", {})
     lines = _head_readme(facts, args)
-    lines += _safety_readme(facts) if "safety" in facts else []
     lines += _large_readme(facts, args) if "large" in facts else []
     lines += _grids_readme(facts, args) if "grids" in facts else []
-    lines += _replay_readme(facts) if facts.get("replay") else []
     lines += _humanlike_readme(facts) if facts.get("humanlike") else []
     lines += _whole_readme(facts["whole"]) if facts.get("whole") else []
     lines += _unseen_readme(facts["unseen"]) if facts.get("unseen") else []
@@ -671,17 +717,19 @@ def write_readme(out: Path, facts: dict) -> None:
     lines += _efficiency_readme(facts) if facts.get("efficiency") else []
     lines += _n74_readme(facts["n74"]) if facts.get("n74") else []
     lines += _walls_readme(facts)
-    tmp = out / ".README.md.tmp"
-    tmp.write_text("\n".join(lines))
-    tmp.replace(out / "README.md")
+    for name, text in (("studies.md", lines), ("README.md", front_page(out, facts))):
+        tmp = out / f".{name}.tmp"
+        tmp.write_text("\n".join(text))
+        tmp.replace(out / name)
 
 
 def _head_readme(facts: dict, args: dict) -> list[str]:
     """The title, how the results were made, the commit and versions."""
     return [
-        "# Results",
+        "# Studies",
         "",
-        "Regenerated by `python -m safeil_sumo.results` (sections: `--only " + " ".join(SECTIONS)
+        "The shipped `safeil`'s report card and the paper's figures beside ours are on the "
+        "[front page](README.md). Regenerated by `python -m safeil_sumo.results` (sections: `--only " + " ".join(SECTIONS)
         + "`; sweeps resume from `runs/results_work/`). Everything here was measured by that "
         "command; the paper's numbers come from its figures.",
         "",
@@ -1442,6 +1490,7 @@ def _section_runs(a: argparse.Namespace) -> dict[str, Callable[[], object]]:
         "instrument": lambda: instrument(a.out, a.work, a.workers, a.seed),
         "n74": lambda: n74(a.out, a.work, a.workers, a.seed, a.quick),
         "falsify": lambda: falsify(a.out, a.work),
+        "card": lambda: card(a.out, a.work, a.workers, a.seed),
     }
 
 
