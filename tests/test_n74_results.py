@@ -317,8 +317,9 @@ def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
     # the run-wide args and commit stay those of the full run; n74's own are per section
     assert facts["args"] == before["args"] and facts["git_commit"] == before["git_commit"]
     assert set(facts["section_git_commit"]) == set(before.get("section_git_commit", {})) | {"n74"}
-    readme = (out / "README.md").read_text()
-    assert "## Safety on the 500 m-radius track" in readme and "## N74 drives" in readme
+    # the paper's figures on the front page, the studies (n74's among them) beside it
+    assert "## Safety on the 500 m-radius track" in (out / "README.md").read_text()
+    assert "## N74 drives" in (out / "studies.md").read_text()
     rates = pd.read_csv(out / "n74_rates.csv")
     assert rates["policy"].tolist() == ["analytic", "idm", "idm_population"]
     gaps = pd.read_csv(out / "n74_time_gap.csv").set_index("who")
@@ -331,7 +332,7 @@ def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
     assert drives.loc["idm_population", "time_gap_s"] in (1.2, 3.5)
     assert math.isnan(drives.loc["idm", "time_gap_s"])
     assert facts["n74"]["design"]["population"]["drives_per_planner"] == 1
-    assert "A population of drivers" in readme
+    assert "A population of drivers" in (out / "studies.md").read_text()
     for name in ("n74_flag_map.png", "n74_time_gap.png", "n74_drives.csv", "n74_flags.csv"):
         assert (out / name).stat().st_size > 0
 
