@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -115,19 +115,42 @@ def _load_given(spec: DataSpec) -> pd.DataFrame:
     return load_data([spec])[0]
 
 
+def training_sources(model: str) -> list[DataSpec] | None:
+    """The recorded data a checkpoint ``safeil-train`` wrote was trained on (its sidecar's
+    ``training_data``), one spec per path, without synthetic drivers (recorded in SUMO: no file
+    to replay); None for a model that does not name its data (the shipped ones)."""
+    path = pol.policy_file(model)
+    docs = load_json(path.with_suffix(".json")).get("training_data") \
+        if path.suffix == ".safetensors" else None
+    if not docs:
+        return None
+    specs = [DataSpec.from_json(d) for d in docs]
+    return [replace(s, paths=(p,)) for s in specs if s.format != "synthetic" for p in s.paths]
+
+
+def _options(spec: DataSpec) -> tuple[str, ...]:
+    """``safeil-replay``'s options naming one spec's (first) path."""
+    csv = (*(("--map", spec.columns) if spec.columns else ()),
+           *(("--speed-unit", spec.speed_unit) if spec.speed_unit != "m/s" else ()))
+    return ("--source", f"{spec.format}:{shown_path(spec.paths[0])}", *csv)
+
+
 def replay_sources(ctx: EvalContext) -> list[ReplaySource]:
-    """OpenACC and NGSIM from the data folder, then each ``--data`` spec."""
+    """The model's own training recordings when it names them (:func:`training_sources`), else
+    OpenACC and NGSIM from the data folder; then each ``--data`` spec."""
     s = ctx.settings
-    out = [ReplaySource(src, partial(load_source, src, s.data_dir),
-                        ("--source", src, "--data-dir", shown_path(s.data_dir)))
-           for src in REPLAY_SOURCES]
-    taken = set(REPLAY_SOURCES)
-    for spec in s.data:
-        csv = (*(("--map", spec.columns) if spec.columns else ()),
-               *(("--speed-unit", spec.speed_unit) if spec.speed_unit != "m/s" else ()))
-        out.append(ReplaySource(data_name(spec, taken), partial(_load_given, spec),
-                                ("--source", f"{spec.format}:{shown_path(spec.paths[0])}", *csv),
-                                given=True))
+    own = training_sources(ctx.model)
+    taken: set[str] = set()
+    if own is None:
+        out = [ReplaySource(src, partial(load_source, src, s.data_dir),
+                            ("--source", src, "--data-dir", shown_path(s.data_dir)))
+               for src in REPLAY_SOURCES]
+        taken |= set(REPLAY_SOURCES)
+    else:
+        out = [ReplaySource(data_name(spec, taken), partial(_load_given, spec), _options(spec))
+               for spec in own]
+    out += [ReplaySource(data_name(spec, taken), partial(_load_given, spec), _options(spec),
+                         given=True) for spec in s.data]
     return out
 
 
@@ -313,9 +336,11 @@ def replay(ctx: EvalContext) -> Section:
         figs.plot_replay_traces(panels, path)
         figures.insert(0, rel)
     idm_used = baseline_idm(ctx.model)
-    notes = [f"Held-out maneuvers: those of {shown_path(sidecar)} (`metrics.val_maneuvers`)"
-             + ("" if ctx.settings.replay_maneuvers is None else
-                f", the first {ctx.settings.replay_maneuvers} per source") + ".",
+    where = ("in the recordings the model was trained on (its sidecar's `training_data`)"
+             if training_sources(ctx.model) is not None else "in OpenACC and NGSIM")
+    notes = [f"Held-out maneuvers: those of {shown_path(sidecar)} (`metrics.val_maneuvers`), "
+             f"{where}" + ("" if ctx.settings.replay_maneuvers is None else
+                           f", the first {ctx.settings.replay_maneuvers} per source") + ".",
              "The calibrated IDM: " + ("the shipped `idm` (calibrated on the shipped SafeIL's "
                                         "training data)" if idm_used == "idm" else
                                         f"`{shown_path(Path(idm_used))}`, calibrated by "

@@ -26,7 +26,7 @@ from fixtures_data import (
 from scripts import load_training_script
 
 from safeil_sumo import planner_registry
-from safeil_sumo.data.by_path import parse_data_option
+from safeil_sumo.data.by_path import DataSpec, parse_data_option
 from safeil_sumo.learn.certificate import load_certificate
 from safeil_sumo.learn.inference import MLPPolicy
 from safeil_sumo.learn.recipe import load_recipe
@@ -79,6 +79,9 @@ def test_tiny_recipe_trains_end_to_end(tiny: Path, capsys: pytest.CaptureFixture
     features = np.array([[1.75, 0.0, 0.0, -1.75, 0.0, 0.0, 25.0, 25.0, 40.0]])
     assert np.isfinite(policy.plan(features)).all()
     assert load_certificate(out / "tiny.safetensors").valid
+    # the sidecar names the recordings (where the report card finds the held-out maneuvers)
+    named = json.loads((out / "tiny.json").read_text())["training_data"]
+    assert [DataSpec.from_json(d) for d in named] == list(load_recipe(tiny / "tiny.toml").data)
     # the IDM calibrated on the same training maneuvers, beside it: the report card's baseline
     fit = summary["idm"]
     assert fit["status"] == "ran" and fit["path"] == str(out / "tiny.idm.json")

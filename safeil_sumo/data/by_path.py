@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import pandas as pd
@@ -80,6 +80,20 @@ class DataSpec:
         """The spec with its relative paths taken from ``base``."""
         return replace(self, paths=tuple(p if p.is_absolute() else base / p
                                          for p in self.paths))
+
+    def to_json(self) -> dict:
+        """The spec as JSON (paths as strings): what a checkpoint records of its data."""
+        return {**asdict(self), "paths": [str(p) for p in self.paths]}
+
+    @staticmethod
+    def from_json(doc: dict) -> DataSpec:
+        """:meth:`to_json` read back; :class:`DataError` for an unknown format or field."""
+        known = {f.name for f in fields(DataSpec)}
+        unknown = sorted(set(doc) - known)
+        if unknown or "format" not in doc:
+            raise DataError(f"not a data spec: unknown fields {unknown}" if unknown
+                            else "not a data spec: no format")
+        return DataSpec(**{**doc, "paths": tuple(Path(p) for p in doc.get("paths", ()))})
 
     def label(self) -> str:
         """``format:path[,path]`` (or ``synthetic:N``), for messages."""

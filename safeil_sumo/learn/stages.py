@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from safeil_sumo.atomic import atomic_path
-from safeil_sumo.data.by_path import DataError, load_data, process, spec_digest
+from safeil_sumo.data.by_path import DataError, DataSpec, load_data, process, spec_digest
 from safeil_sumo.data.sources import driver_of
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.recipe import Recipe, RecipeError, Split, Stage
@@ -373,13 +373,16 @@ def stage_losses(name: str, prefix: Path) -> dict[str, Any]:
             "final": {k: (last or {}).get(k) for k in keys}}
 
 
-def write_final(last: Path, out: Path, name: str) -> Path:
+def write_final(last: Path, out: Path, name: str, data: Sequence[DataSpec] = ()) -> Path:
     """The last stage's checkpoint as ``out/<name>.safetensors`` + ``.json``: the weights
-    byte for byte, the sidecar naming the policy ``name`` and its weights file."""
+    byte for byte, the sidecar naming the policy ``name``, its weights file and the recordings
+    it was trained on (``training_data``: each spec's :meth:`~DataSpec.to_json`, where
+    ``safeil-evaluate`` finds its held-out maneuvers)."""
     weights = last.with_suffix(".safetensors").read_bytes()
     meta = json.loads(last.with_suffix(".json").read_text())
     meta["name"] = name
     meta["weights_file"] = f"{name}.safetensors"
+    meta["training_data"] = [spec.to_json() for spec in data]
     final = out / f"{name}.safetensors"
     with atomic_path(final) as tmp:
         tmp.write_bytes(weights)
@@ -487,7 +490,7 @@ def run_recipe(recipe: Recipe, out: Path, progress: bool = True, echo: Echo = pr
     if dry_run:
         return summary
     last, stages = run_stages(recipe, prepared, out, progress, echo)
-    final = write_final(last, out, recipe.name)
+    final = write_final(last, out, recipe.name, recipe.data)
     summary["stages"] = stages
     summary["checkpoint"] = str(final)
     if recipe.certify.enabled:
