@@ -270,3 +270,16 @@ def test_evaluate_idm_end_to_end_in_libsumo(tmp_path: Path) -> None:
     assert by_key["falsify"]["numbers"]["simulations"] == 5
     assert all(s["figures"] for k, s in by_key.items() if k != "certificate")
     assert proc.stdout.splitlines()[-1] == f"report: {out / 'report.md'}"
+
+
+def test_the_data_folder_comes_from_the_environment_when_set(tmp_path: Path) -> None:
+    """An installed package has no checkout beside ../shared: SAFEIL_SUMO_DATA names the data."""
+    code = "from safeil_sumo.data.sources import DEFAULT_DATA_DIR as d; print(d)"
+    env = {**os.environ, "SAFEIL_SUMO_DATA": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == str(tmp_path)
+    env.pop("SAFEIL_SUMO_DATA")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out.endswith("shared/data")

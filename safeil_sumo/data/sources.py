@@ -8,6 +8,7 @@ who drove each maneuver.
 from __future__ import annotations
 
 import functools
+import os
 import re
 from pathlib import Path
 
@@ -15,8 +16,10 @@ import pandas as pd
 
 from safeil_sumo.data.schema import SchemaError, load_drive
 
-# the project sits beside ../shared (checkout/safeil_sumo/data/sources.py -> ../shared/data)
-DEFAULT_DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data"
+DATA_DIR_VARIABLE = "SAFEIL_SUMO_DATA"  # where the real data is, for an installed package
+# else: the project sits beside ../shared (checkout/safeil_sumo/data/sources.py -> ../shared/data)
+DEFAULT_DATA_DIR = Path(os.environ.get(DATA_DIR_VARIABLE)
+                        or Path(__file__).resolve().parents[3] / "shared" / "data")
 NGSIM_FILE = Path("ngsim_i80") / "i80_pairs.parquet"
 OPENACC_GLOB = "openacc_vicolungo/JRC-VC_280219_*.csv.gz"  # the all-human day
 ZALAZONE_GLOB = "openacc_zalazone/handling_part*.csv.gz"  # the handling course, all human
