@@ -47,9 +47,10 @@ from safeil_sumo.report_sections import (
 
 MEASURES = (
     "Human-likeness on maneuvers held out of training: each maneuver of OpenACC (motorway) and "
-    "NGSIM I-80 (congested), and of any recordings given with --data, rebuilt in SUMO from its start to its end, the leader on its "
-    "recorded speed, the ego driven closed loop by each planner; the gap RMSE [m] against the "
-    "human over the maneuver, per planner: the median with its bootstrap 95 % interval, the "
+    "NGSIM I-80 (congested), or of the recordings the model names, and of any given with "
+    "--data, rebuilt in SUMO from its start to its end, the leader on its recorded speed, the "
+    "ego driven closed loop by each planner; the gap RMSE [m] against the human over the "
+    "maneuver, per planner: the median with its bootstrap 95 % interval, the "
     "worst; the calibrated IDM and a constant-speed follower (the literature's naive baseline) "
     "as references (docs/human_likeness.md).")
 
