@@ -17,10 +17,13 @@ import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 # checked by the scenario layer, re-exported for the CLIs
 from safeil_sumo.scenarios.spec import N74_LANES, lane_for_net  # noqa: F401
+
+if TYPE_CHECKING:
+    from safeil_sumo.data.by_path import DataSpec
 
 INTERRUPTED = 130  # exit code of a command ended by Ctrl-C (128 + SIGINT), as shells report it
 
@@ -420,7 +423,7 @@ def add_csv_options(parser: CommandParser) -> None:
                         help="csv data: the unit of its speed columns (default m/s)")
 
 
-def data_specs(parser: CommandParser, args: argparse.Namespace) -> list | None:
+def data_specs(parser: CommandParser, args: argparse.Namespace) -> list[DataSpec] | None:
     """The :class:`~safeil_sumo.data.by_path.DataSpec` of each ``--data`` (None without it);
     a usage error in one line for a bad spec, or ``--map`` / ``--speed-unit`` without csv."""
     from safeil_sumo.data.by_path import DataError, parse_data_option

@@ -118,8 +118,9 @@ def parse_data_option(text: str, columns: str = "", speed_unit: str = "m/s") -> 
             return DataSpec("synthetic", drivers=int(rest))
         except ValueError:
             raise DataError(f"--data {text!r}: synthetic takes a number of drivers") from None
-    csv = {"columns": columns, "speed_unit": speed_unit} if fmt == "csv" else {}
-    return DataSpec(fmt, (Path(rest).resolve(),), **csv)
+    if fmt == "csv":
+        return DataSpec(fmt, (Path(rest).resolve(),), columns=columns, speed_unit=speed_unit)
+    return DataSpec(fmt, (Path(rest).resolve(),))
 
 
 def _openacc_files(paths: Sequence[Path]) -> list[Path]:
