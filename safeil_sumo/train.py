@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     shares = (", ".join(f"{m} {v:.4%}" for m, v in cert["certified"].items())
               if cert else "not certified")
     print(f"checkpoint: {summary['checkpoint']} (--policy {summary['checkpoint']}); "
-          f"certificate: {shares}; IDM baseline: {summary['idm']['path']}; summary: "
+          f"certificate: {shares}; IDM baseline: {summary['idm'].get('path', 'none')}; summary: "
           f"{out / 'summary.md'}; {summary['seconds']:.0f} s")
     return 0
 

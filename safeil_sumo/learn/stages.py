@@ -453,6 +453,9 @@ def fit_idm_baseline(prepared: Prepared, final: Path, out: Path, seed: int, echo
                  for m in idm.maneuvers_from_tuples(Tuples.load(p))]
     train = [m for m in maneuvers if m.maneuver_id not in held]
     test = [m for m in maneuvers if m.maneuver_id in held]
+    if not train:  # nothing to calibrate on: the report card falls back to the shipped IDM
+        echo("IDM baseline: no training maneuver with a leader, not calibrated")
+        return {"status": "skipped"}
     echo(f"IDM baseline: calibrating on {len(train)} training maneuvers")
     start = time.perf_counter()
     fit = idm.fit_idm(train, seed=seed)
@@ -525,7 +528,7 @@ def summary_markdown(s: dict[str, Any]) -> str:
         lines += ["", f"Certificate: {shares}" + (" (complete)" if cert["complete"] else "")
                   + f", {cert['seconds']:.1f} s."]
     fit = s.get("idm")
-    if fit:
+    if fit and fit.get("status") != "skipped":
         held = (f", held out {fit['held_out_rmse_gap_m']:.2f} m" if "held_out_rmse_gap_m" in fit
                 else "")
         text = (f"IDM baseline `{fit['path']}`: gap RMSE on its {fit['fit_maneuvers']} training "
