@@ -1452,8 +1452,8 @@ def _falsify_readme(f: dict) -> list[str]:
             "`runs/results_work/falsify/*/evaluations.csv` (not committed), where a rerun reads "
             "the finished searches back: the section's own wall time below is such a rerun's; "
             "the searches took about 50 min on 2 shared cores, two at a time. Every planner runs "
-            "with the loop's brake guard, as shipped (docs/brake_guard.md; the study of the "
-            "planners alone is in docs/falsification.md).")
+            "with the loop's brake guard, as shipped (docs/brake_guard.md; `--no-brake-guard` "
+            "searches the planners alone: docs/falsification.md).")
     return ["## Falsification: searching for failures", "", text, "",
             _md_table(rows, {"planner": "planner", "budget": "simulations per search",
                              "cem": "CEM: to 1st failure", "random": "random: to 1st failure",
