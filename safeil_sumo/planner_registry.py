@@ -3,7 +3,10 @@
 ``"type": "idm"``, written by ``training/fit_idm.py``). Replays also know two kinematic
 pseudo-planners (:func:`load_for_replay`): ``recorded``, the human's own path
 (:mod:`safeil_sumo.sim.recorded_ego`), and ``constant_speed``, the ego keeping its initial speed
-on its lane centre (:mod:`safeil_sumo.sim.constant_speed_ego`)."""
+on its lane centre (:mod:`safeil_sumo.sim.constant_speed_ego`), and the adaptation variants
+(:data:`ADAPTATION_VARIANTS`): a shipped planner under another name, adapted another way by
+``replay --adapt-first-s`` (:func:`safeil_sumo.experiments.window_replays.adapt_planners`), so a
+replay can show them as extra rows."""
 
 from __future__ import annotations
 
@@ -21,6 +24,18 @@ MODELS_DIR = Path(__file__).resolve().parent / "models"
 SHIPPED = ("safeil", "safeil_openloop", "safeil_paper", "bc")
 NAMES = ("analytic", "idm", *SHIPPED)
 REPLAY_ONLY = (RECORDED_NAME, CONSTANT_SPEED_NAME)  # kinematic pseudo-planners of a replay
+# name -> (the planner it loads, how ``replay --adapt-first-s`` adapts it); a planner's own name
+# is adapted by the (s0, T) style estimator (``ESTIMATOR``). Replay only (load_for_replay).
+ESTIMATOR = "estimator"
+ADAPTATION_VARIANTS = {
+    # the IDM's five parameters refitted on the first seconds (the old adapted baseline)
+    "idm_refit5": ("idm", "refit5"),
+    # the planner as shipped, left unadapted beside the adapted ones (the same scored seconds)
+    "idm_unadapted": ("idm", "unadapted"),
+    "safeil_unadapted": ("safeil", "unadapted"),
+    # the time-gap setting from the shrunk median of gap / speed (learn.style.adapted_time_gap)
+    "safeil_median": ("safeil", "median"),
+}
 
 
 class PolicyError(ValueError):
@@ -35,6 +50,7 @@ def shipped_checkpoint(name: str) -> Path:
 def policy_file(name_or_path: str) -> Path:
     """The file a policy is loaded from: a shipped model's weights, the shipped IDM's model file
     for ``idm``, else the path given (which may not exist, or name no file at all)."""
+    name_or_path = ADAPTATION_VARIANTS.get(name_or_path, (name_or_path,))[0]
     if name_or_path in SHIPPED:
         return shipped_checkpoint(name_or_path)
     return MODELS_DIR / "idm.json" if name_or_path == "idm" else Path(name_or_path)
@@ -84,6 +100,10 @@ def load(name_or_path: str) -> Policy:
     if name_or_path == CONSTANT_SPEED_NAME:
         raise PolicyError("the 'constant_speed' baseline keeps a recorded maneuver's initial "
                           "speed: use it with python -m safeil_sumo.replay")
+    if name_or_path in ADAPTATION_VARIANTS:
+        raise PolicyError(f"{name_or_path!r} is a way of adapting "
+                          f"{ADAPTATION_VARIANTS[name_or_path][0]!r} to a driver: use it with "
+                          "python -m safeil_sumo.replay --adapt-first-s")
     if name_or_path == "analytic":
         return AnalyticPlanner()
     if name_or_path == "idm" or (name_or_path.endswith(".json")
@@ -120,12 +140,26 @@ def _looks_like_path(name: str) -> bool:
 def load_for_replay(name_or_path: str) -> Policy:
     """:func:`load`, plus ``recorded`` (an unbound :class:`RecordedPath`) and ``constant_speed``
     (an unbound :class:`ConstantSpeedPath`), which the replay binds to the maneuver it
-    rebuilds."""
+    rebuilds, and the :data:`ADAPTATION_VARIANTS` (their planner; an IDM named as the
+    variant)."""
     if name_or_path == RECORDED_NAME:
         return RecordedPath()
     if name_or_path == CONSTANT_SPEED_NAME:
         return ConstantSpeedPath()
+    if name_or_path in ADAPTATION_VARIANTS:
+        from dataclasses import replace
+
+        from safeil_sumo import idm
+
+        policy = load(ADAPTATION_VARIANTS[name_or_path][0])
+        return replace(policy, name=name_or_path) if isinstance(policy, idm.IDMPlanner) else policy
     return load(name_or_path)
+
+
+def adaptation_of(label: str) -> str:
+    """How ``replay --adapt-first-s`` adapts the planner of ``label`` (a name it was loaded
+    by): its :data:`ADAPTATION_VARIANTS` entry, else :data:`ESTIMATOR`."""
+    return ADAPTATION_VARIANTS.get(label, (label, ESTIMATOR))[1]
 
 
 def has_time_gap(policy: Policy) -> bool:

@@ -212,7 +212,10 @@ def test_replay_adapts_to_one_named_maneuver(tmp_path):
     assert table["start_s"].tolist() == [10.0]
 
 
-def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
+def test_adapt_planners_sets_every_planner_from_one_style_estimate(tmp_path):
+    """The default way: one (s0, T) estimate of the first seconds; the styled checkpoint and
+    the IDM are each set so that their steady gap is the estimate's at the speed seen (the IDM
+    through its own equilibrium), the IDM's v0, a, b, delta kept."""
     from test_replay import V
 
     from safeil_sumo import idm
@@ -223,21 +226,54 @@ def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
                     horizon=5.0)
     styled = pol.load(str(tmp_path / "m.safetensors"))
     shipped_idm = pol.load("idm")
-    planners = {"m": styled, "idm": shipped_idm, "analytic": pol.load("analytic")}
-    rows = _arc_rows(20.0, gap=40.0)
+    planners = {"m": styled, "idm": shipped_idm, "analytic": pol.load("analytic"),
+                "idm_unadapted": shipped_idm}
+    rows = _arc_rows(20.0, gap=40.0)  # 20 s steady at 40 m behind, both at V
+    est = ra.driver_style(rows)
+    assert est.samples == len(rows) and est.mean_speed_mps == pytest.approx(V)
+    assert est.gap_m(V) == pytest.approx(40.0, abs=0.5)  # 20 s of one speed: the gap there
     out = ra.adapt_planners(planners, rows)
+    assert out["m"].style == {"time_gap_s": pytest.approx(est.gap_m(V) / V)}
+    assert styled.style == {"time_gap_s": 1.5}  # the shared planner is untouched
+    p = out["idm"].params
+    assert float(idm.equilibrium_gap(V, p)) == pytest.approx(est.gap_m(V), rel=1e-6)
+    assert (p.v0_mps, p.a_max_mps2, p.b_mps2, p.delta) == (
+        shipped_idm.params.v0_mps, shipped_idm.params.a_max_mps2, shipped_idm.params.b_mps2,
+        shipped_idm.params.delta)
+    assert idm.LOWER[2] <= p.s0_m <= idm.UPPER[2]
+    assert out["analytic"] is planners["analytic"]
+    assert out["idm_unadapted"] is shipped_idm  # the named unadapted row: as it is
+
+
+def test_adapt_planners_named_variants_refit5_and_median(tmp_path):
+    """``idm_refit5`` refits the IDM's five parameters; ``safeil_median`` gets the shrunk
+    median of gap / speed (style.adapted_time_gap)."""
+    from test_replay import V
+
+    from safeil_sumo import idm
+    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.experiments import window_replays as ra
+
+    save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
+                    horizon=5.0)
+    styled = pol.load(str(tmp_path / "m.safetensors"))
+    shipped_idm = pol.load_for_replay("idm_refit5")
+    assert shipped_idm.name == "idm_refit5" and pol.adaptation_of("idm_refit5") == "refit5"
+    assert pol.adaptation_of("idm") == pol.ESTIMATOR
+    rows = _arc_rows(20.0, gap=40.0)
+    out = ra.adapt_planners({"safeil_median": styled, "idm_refit5": shipped_idm}, rows)
     # 20 s seen at 40 / V s, the default 1.5 s the prior (style.TimeGapPrior's spreads)
     w = TimeGapPrior(1.5).weight(20.0)
     assert 0.8 < w < 1.0
-    assert out["m"].style == {"time_gap_s": pytest.approx(1.5 ** (1 - w) * (40.0 / V) ** w,
-                                                          rel=1e-3)}
-    assert styled.style == {"time_gap_s": 1.5}  # the shared planner is untouched
-    assert out["analytic"] is planners["analytic"]
+    assert out["safeil_median"].style == {
+        "time_gap_s": pytest.approx(1.5 ** (1 - w) * (40.0 / V) ** w, rel=1e-3)}
     # the refitted IDM follows this driver better than the population fit
     man = idm.maneuvers_from_rows(rows)
-    fitted, _ = idm.evaluate_fit(man, out["idm"].params)
+    fitted, _ = idm.evaluate_fit(man, out["idm_refit5"].params)
     shipped, _ = idm.evaluate_fit(man, shipped_idm.params)
-    assert fitted < shipped and out["idm"].params != shipped_idm.params
+    assert fitted < shipped and out["idm_refit5"].params != shipped_idm.params
+    with pytest.raises(pol.PolicyError, match="adapt-first-s"):
+        pol.load("idm_refit5")
 
 
 def test_an_adapted_whole_replay_in_sumo(tmp_path):
@@ -257,7 +293,7 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     by_policy = {m["policy"]: m for m in rec["metrics"]}
     assert by_policy["recorded"]["rmse_gap"] < 0.2  # the instrument's floor on the rest
     assert by_policy["idm"]["end_reason"] != "collision"
-    # the IDM ran with the parameters fitted on the first 10 s, not the shipped ones
+    # the IDM ran with the (s0, T) estimated on the first 10 s, not the shipped ones
     from dataclasses import asdict
 
     from safeil_sumo import planner_registry as pol

@@ -151,13 +151,15 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
 
 
 MIN_SCORED_S = 20.0  # [s] an adapted maneuver needs this much left to score
+# the way adapt_planners adapts (a cached adapted result of another way is not reused)
+ADAPTATION_METHOD = "style-estimator-1"
 
 
 def driver_time_gap(first_rows: pd.DataFrame, default_s: float) -> float:
     """The driver's preferred time gap [s] estimated on a maneuver's first rows, a planner's
     default setting ``default_s`` [s] (the population's median) as the prior
     (:func:`safeil_sumo.learn.style.adapted_time_gap`; ``default_s`` itself without a following
-    sample): what :func:`adapt_planners` sets a styled checkpoint to."""
+    sample): what :func:`adapt_planners` sets a ``safeil_median`` checkpoint to."""
     from safeil_sumo.learn.style import TimeGapPrior, adapted_time_gap
 
     t = first_rows["time"].to_numpy(float)
@@ -166,29 +168,97 @@ def driver_time_gap(first_rows: pd.DataFrame, default_s: float) -> float:
                             first_rows["v_x"].to_numpy(float), dt_s, TimeGapPrior(default_s))
 
 
-def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0) -> dict:
+def driver_style(first_rows: pd.DataFrame, prior=None):
+    """The driver's (s0, T) posterior (:class:`safeil_sumo.learn.style_estimator.
+    StyleEstimate`) after a maneuver's first rows (``time, lead_x, v_x, v_lead``), from the
+    population ``prior`` (default :class:`~safeil_sumo.learn.style_estimator.StylePrior`)."""
+    from safeil_sumo.learn.style_estimator import estimate_drive
+
+    rows = first_rows.sort_values("time")
+    est, _ = estimate_drive(*(rows[c].to_numpy(float) for c in ("time", "lead_x", "v_x",
+                                                                "v_lead")), prior)
+    return est
+
+
+def driver_setting(first_rows: pd.DataFrame, default_s: float, prior=None) -> float:
+    """The time-gap setting [s] a planner with a time-gap input only (``gap = T v``) gets from
+    :func:`driver_style`: the estimated line's time gap at the mean speed of the steady samples
+    seen, ``s0 / v + T`` (:meth:`~safeil_sumo.learn.style_estimator.StyleEstimate.setting_s`);
+    ``default_s`` [s] without a steady sample."""
+    est = driver_style(first_rows, prior)
+    return est.setting_s(est.mean_speed_mps) if est.samples else float(default_s)
+
+
+def idm_style_params(params, est):
+    """The IDM's parameters ``params`` (:class:`safeil_sumo.idm.IDMParams`) with a driver's
+    style ``est`` (:class:`~safeil_sumo.learn.style_estimator.StyleEstimate`): s0 inside the
+    IDM's calibration bounds, and T such that the IDM's own steady gap
+    (:func:`safeil_sumo.idm.equilibrium_gap`, ``(s0 + v T) / sqrt(1 - (v / v0)^delta)``) equals
+    the estimated line's at the mean speed of the steady samples seen (the IDM's free-road term
+    lengthens its gap near v0: at 30 m/s and the shipped v0 of 41 m/s by 18 %, so setting the
+    line's T alone would set it farther back than the driver); v0, a, b and delta as calibrated.
+    Without a steady sample (or at v0): the line's own s0 and T, inside the bounds
+    (:func:`~safeil_sumo.learn.style_estimator.bounded_style`)."""
+    from dataclasses import replace
+
+    from safeil_sumo import idm
+    from safeil_sumo.learn.style_estimator import bounded_style
+
+    k0, kt = idm.FIT_FIELDS.index("s0_m"), idm.FIT_FIELDS.index("time_gap_s")
+    t_range = (idm.LOWER[kt], idm.UPPER[kt])
+    s0, t_gap = bounded_style(est, (idm.LOWER[k0], idm.UPPER[k0]), t_range)
+    v = est.mean_speed_mps
+    free = 1.0 - (v / params.v0_mps) ** params.delta if est.samples and v > 0 else 0.0
+    if free > 0.0:
+        t_gap = min(max((est.gap_m(v) * math.sqrt(free) - s0) / v, t_range[0]), t_range[1])
+    return replace(params, s0_m=s0, time_gap_s=t_gap)
+
+
+def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
+                   prior=None) -> dict:
     """The planners adapted to the driver of ``first_rows`` (a maneuver's first seconds, which
-    the score then leaves out): a style-conditioned checkpoint is set to the driver's preferred
-    time gap (:func:`driver_time_gap`, its default setting the prior); the IDM's five
-    parameters are fitted on those seconds (:func:`safeil_sumo.idm.fit_idm`, the same
-    calibration as the shipped fit). Other planners are returned as they are. Copies:
-    ``policies`` is unchanged."""
+    the score then leaves out), each by its label's way
+    (:func:`safeil_sumo.planner_registry.adaptation_of`):
+
+    - by default, one estimate for all: the driver's (s0, T) from the steady-following samples
+      of those seconds (:func:`driver_style`, the population ``prior``). Each planner is set so
+      that its steady gap is the estimated line's at the speed seen: the IDM gets s0 and T
+      (:func:`idm_style_params`), its v0, a, b and delta as calibrated; a style-conditioned
+      checkpoint the line's time gap at that speed (:func:`driver_setting`, its default
+      setting without a steady sample);
+    - ``idm_refit5``: the IDM's five parameters fitted on those seconds
+      (:func:`safeil_sumo.idm.fit_idm`, the same calibration as the shipped fit);
+    - ``safeil_median``: the checkpoint set to today's shrunk median of gap / speed
+      (:func:`driver_time_gap`);
+    - ``*_unadapted``, and planners without a setting: as they are.
+
+    Copies: ``policies`` is unchanged."""
     import copy
     from dataclasses import replace
 
     from safeil_sumo import idm
     from safeil_sumo import planner_registry as pol
 
+    est = None
     out = {}
     for label, policy in policies.items():
-        if isinstance(policy, idm.IDMPlanner):
+        how = pol.adaptation_of(label)
+        if how == "unadapted" or not pol.has_time_gap(policy):
+            out[label] = policy
+        elif isinstance(policy, idm.IDMPlanner) and how == "refit5":
             fit = idm.fit_idm(idm.maneuvers_from_rows(first_rows), seed=seed, starts=2)
             out[label] = replace(policy, params=fit.params)
-        elif pol.has_time_gap(policy):  # a styled checkpoint
+        elif how == "median":  # a styled checkpoint, today's setting
             time_gap = driver_time_gap(first_rows, policy.style["time_gap_s"])
             out[label] = pol.with_time_gap(copy.deepcopy(policy), time_gap)
         else:
-            out[label] = policy
+            est = est or driver_style(first_rows, prior)
+            if isinstance(policy, idm.IDMPlanner):
+                out[label] = replace(policy, params=idm_style_params(policy.params, est))
+            else:  # a styled checkpoint
+                setting = (est.setting_s(est.mean_speed_mps) if est.samples
+                           else policy.style["time_gap_s"])
+                out[label] = pol.with_time_gap(copy.deepcopy(policy), setting)
     return out
 
 
@@ -398,7 +468,10 @@ def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[s
     # weights' fingerprints) and the config, so a rerun with other policies, settings or a
     # retrained model never reuses a stale result
     policies = sorted(f"{n}@{planner_registry.fingerprint(n)}" for n in policy_names)
-    tag = hashlib.sha256(json.dumps([policies, repr(config)]).encode()).hexdigest()[:8]
+    key = [policies, repr(config)]
+    if any(w.adapt_s for w in wins):  # adapted results depend on how planners are adapted
+        key.append(ADAPTATION_METHOD)
+    tag = hashlib.sha256(json.dumps(key).encode()).hexdigest()[:8]
     tasks = Path(out_dir) / "tasks"
     tasks.mkdir(parents=True, exist_ok=True)
 
