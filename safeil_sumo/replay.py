@@ -97,16 +97,19 @@ def build_parser() -> CommandParser:
                         "--windows whole a cap on each maneuver from its start (default: whole)")
     p.add_argument("--adapt-first-s", type=finite_float, default=0.0, metavar="S",
                    help="with --windows whole: adapt the planners to each driver on the "
-                        "maneuver's first S seconds, then score the rest (a style-conditioned "
-                        "checkpoint gets the driver's time gap, shrunk towards its default "
-                        "setting the less following those seconds hold; the IDM is refitted "
-                        "on them; "
-                        "maneuvers without 20 s left are skipped). Default 0: no adaptation")
+                        "maneuver's first S seconds, then score the rest: one estimate of the "
+                        "driver's standstill distance and time gap (learn/style_estimator.py, "
+                        "from the population prior) sets a style-conditioned checkpoint's time "
+                        "gap and the IDM's s0 and T; the extra rows idm_refit5 (the IDM's five "
+                        "parameters refitted), safeil_median (the shrunk median of gap / "
+                        "speed), idm_unadapted and safeil_unadapted adapt otherwise; "
+                        "maneuvers without 20 s left are skipped. Default 0: no adaptation")
     add_policy_option(p, ["analytic"],
                       "safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
                       "path: the instrument's error floor), constant_speed (the initial speed "
                       "held on the lane centre, no reaction to the leader: the naive "
-                      "baseline) and/or checkpoint paths")
+                      "baseline), with --adapt-first-s idm_refit5, safeil_median, "
+                      "idm_unadapted, safeil_unadapted, and/or checkpoint paths")
     p.add_argument("--rate-hz", type=finite_float, default=10.0, metavar="HZ",
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
     add_plan_rate_option(p)

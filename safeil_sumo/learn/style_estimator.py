@@ -317,7 +317,7 @@ def plot_convergence(traj: StyleTrajectory, path, hindsight: tuple[float, float]
                         label="steady following", zorder=0)
         ax.set_ylim(lo, hi)
         ax.set_ylabel(label)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="best")
     axes[-1].set_xlabel("time in the drive [s]")
     if title:
         axes[0].set_title(title, fontsize=9)
