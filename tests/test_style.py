@@ -272,6 +272,10 @@ def test_adapt_planners_named_variants_refit5_and_median(tmp_path):
     fitted, _ = idm.evaluate_fit(man, out["idm_refit5"].params)
     shipped, _ = idm.evaluate_fit(man, shipped_idm.params)
     assert fitted < shipped and out["idm_refit5"].params != shipped_idm.params
+    refit, calibrated = out["idm_refit5"].params, shipped_idm.params
+    # all five refitted, not only the style's two
+    assert (refit.v0_mps, refit.a_max_mps2, refit.b_mps2) != (
+        calibrated.v0_mps, calibrated.a_max_mps2, calibrated.b_mps2)
     with pytest.raises(pol.PolicyError, match="adapt-first-s"):
         pol.load("idm_refit5")
 

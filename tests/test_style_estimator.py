@@ -60,6 +60,15 @@ def test_one_update_by_hand_at_speed():
     assert post.s0_m == pytest.approx(4.0) and post.time_gap_s == pytest.approx(2.0)
     np.testing.assert_allclose(post.cov, [[8 / 3, -2 / 3], [-2 / 3, 2 / 3]], atol=1e-12)
     assert post.mean_speed_mps == 2.0
+    # the speed the line is centred on: the running mean of the samples' speeds
+    assert update(post, 10.0, 4.0, HAND).mean_speed_mps == pytest.approx(3.0)
+    assert update(update(post, 10.0, 4.0, HAND), 10.0, 6.0, HAND).mean_speed_mps == 4.0
+
+
+def test_the_prior_covariance_by_hand():
+    prior = StylePrior(sd_s0_m=2.0, sd_time_gap_s=0.5, corr=-0.5)
+    np.testing.assert_allclose(prior.cov, [[4.0, -0.5], [-0.5, 0.25]])
+    np.testing.assert_allclose(prior.initial().cov, prior.cov)
 
 
 def test_correlated_samples_count_one_per_correlation_time():
