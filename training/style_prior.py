@@ -40,7 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "safeil_sumo" / "models" / "safeil.safetensors"
 MIN_SAMPLES = 50  # [-] steady samples (5 s at 10 Hz) a maneuver needs for a line
 DT_S = 0.1  # [s] the rows' spacing
-TAUS_S = (math.inf, 1200.0, 600.0, 300.0, 120.0, 60.0)
+TAUS_S = (math.inf, 3600.0, 1200.0, 600.0, 300.0, 120.0, 60.0)
 HORIZON_S = 30.0  # [s] how far ahead the estimate predicts
 
 
