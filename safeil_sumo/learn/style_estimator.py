@@ -21,7 +21,10 @@ A recursive Bayesian (Kalman) estimate of ``theta = (s0, T)`` from steady-follow
   never collapses to zero (each step adds ``(1 - a^2) P0``): an estimate keeps following a
   driver whose gap-speed line changes with the traffic (the line is only locally linear:
   OpenACC drivers at 20-37 m/s keep longer time gaps the faster they go), and without steady
-  following it returns to the population over ``tau``. ``forget_tau_s = inf``: no forgetting.
+  following it returns to the population over ``tau``. ``forget_tau_s = inf``: no forgetting,
+  the default: within the recorded drives (at most 6 min) every finite tau predicted a
+  driver's later gaps worse (:attr:`StylePrior.forget_tau_s`), so forgetting is for drives much
+  longer than those.
 
 State and update are pure: :class:`StyleEstimate` is a frozen dataclass, :func:`update` returns
 a new one. :func:`steady_following` selects the samples (criteria at its constants);
