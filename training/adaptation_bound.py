@@ -133,9 +133,11 @@ def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
 
 
 def setting_from_first(rows: pd.DataFrame, seconds: float, default_s: float) -> float:
-    """The setting [s] ``replay --adapt-first-s seconds`` gives a planner of default setting
-    ``default_s`` on one maneuver's ``rows``: the driver's time gap estimated on its first
-    ``seconds`` (:func:`window_replays.driver_time_gap`), clipped to the trained range."""
+    """The setting [s] ``replay --adapt-first-s seconds`` gives the ``safeil_median`` row (a
+    planner of default setting ``default_s``) on one maneuver's ``rows``: the driver's shrunk
+    median time gap on its first ``seconds`` (:func:`window_replays.driver_time_gap`), clipped
+    to the trained range. (The ``safeil`` row's, from the (s0, T) estimator, is
+    :func:`window_replays.driver_setting`.)"""
     return clip_time_gap(ra.driver_time_gap(rp.window(rows, 0.0, seconds), default_s))
 
 
