@@ -239,6 +239,33 @@ class Plant:
         """:func:`resistance_force` at ``vx`` [m/s] (a float, or an array with ``xp=ARRAYS``)."""
         return xp.where(vx <= 0.0, 0.0, self.drag * vx * vx + self.rolling)
 
+    def actuators(self, steer0: FloatOrArray, force0: FloatOrArray, vx: FloatOrArray,
+                  steer_cmd: FloatOrArray, throttle: FloatOrArray, brake: FloatOrArray,
+                  xp: Namespace = FLOATS) -> tuple[FloatOrArray, FloatOrArray]:
+        """The actuators' next ``(steer, drive_force)``: road-wheel angle [rad] from ``steer0``
+        under ``steer_cmd`` (clipped, rate-limited, first-order lag), and the longitudinal tyre
+        force [N] from ``force0`` under the pedals at speed ``vx`` [m/s] (brake or drive lag)."""
+        p = self.params
+        # --- actuators -----------------------------------------------------------------------
+        max_steer = p.max_steer_rad
+        cmd = xp.clip(steer_cmd, -max_steer, max_steer)
+        d_steer = (cmd - steer0) * self.steer_gain
+        max_d = self.max_d_steer
+        delta = steer0 + xp.clip(d_steer, -max_d, max_d)
+
+        throttle = xp.clip(throttle, 0.0, 1.0)
+        brake = xp.clip(brake, 0.0, 1.0)
+        drive = available_drive_force(vx, p, xp)
+        target = throttle * drive - brake * self.max_brake_force
+        # brake circuit dynamics whenever braking is involved (applying or releasing); a first-
+        # order lag, or none for a time constant <= 0 (decay None)
+        braking = (target < 0.0) | (force0 < 0.0)  # flags: | is logical_or
+        fx_brake = target if self.brake_decay is None else (
+            target + (force0 - target) * self.brake_decay)
+        fx_drive = target if self.drive_decay is None else (
+            target + (force0 - target) * self.drive_decay)
+        return delta, xp.where(braking, fx_brake, fx_drive)
+
     def step(self, state: PlantState, steer_cmd: FloatOrArray, throttle: FloatOrArray,
              brake: FloatOrArray, xp: Namespace = FLOATS) -> PlantState:
         """Next ``(x, y, yaw, vx, vy, yaw_rate, steer, drive_force)`` (see :func:`step`).
@@ -251,26 +278,7 @@ class Plant:
         m, lf, lr, L = p.mass_kg, p.lf_m, p.lr_m, p.wheelbase_m
         x0, y0, yaw0, vx, vy, r, steer0, force0 = state
         where, clip = xp.where, xp.clip
-
-        # --- actuators -----------------------------------------------------------------------
-        max_steer = p.max_steer_rad
-        cmd = clip(steer_cmd, -max_steer, max_steer)
-        d_steer = (cmd - steer0) * self.steer_gain
-        max_d = self.max_d_steer
-        delta = steer0 + clip(d_steer, -max_d, max_d)
-
-        throttle = clip(throttle, 0.0, 1.0)
-        brake = clip(brake, 0.0, 1.0)
-        drive = available_drive_force(vx, p, xp)
-        target = throttle * drive - brake * self.max_brake_force
-        # brake circuit dynamics whenever braking is involved (applying or releasing); a first-
-        # order lag, or none for a time constant <= 0 (decay None)
-        braking = (target < 0.0) | (force0 < 0.0)  # flags: | is logical_or
-        fx_brake = target if self.brake_decay is None else (
-            target + (force0 - target) * self.brake_decay)
-        fx_drive = target if self.drive_decay is None else (
-            target + (force0 - target) * self.drive_decay)
-        fx = where(braking, fx_brake, fx_drive)
+        delta, fx = self.actuators(steer0, force0, vx, steer_cmd, throttle, brake, xp)
 
         # --- lateral: dynamic single track, implicit Euler with secant tyre stiffness -----------
         v_lo = p.kinematic_speed_low_mps
