@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from safeil_sumo.policy import PLAN_RATE_HZ
+
 LEADER_KINDS = ("constant", "braking", "accelerating", "recorded")
 MAX_SPEED_MPS = 100.0  # [m/s] above: a unit mistake (SUMO refuses such departures)
 DEFAULT_EGO_SPEED_MPS = 30.0  # [m/s] the ego's start speed unless given (~108 km/h)
@@ -68,7 +70,7 @@ class ScenarioSpec:
     initial_gap_m: float | tuple[float, float] = 50.0  # bumper gap, fixed or (low, high) [m]
     lane_noise_c0_m: float = 0.0  # std of camera lane-offset noise [m]
     radar_noise_m: float = 0.0  # std of radar range noise [m]
-    plan_rate_hz: float = 10.0  # re-planning rate [Hz]
+    plan_rate_hz: float = PLAN_RATE_HZ  # re-planning rate [Hz]
     max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
     stop_on_flag: bool = False  # end the scenario at its first safety flag
     # recorded leader: "ngsim", "openacc" or a CSV/Parquet profile file or folder
