@@ -235,10 +235,6 @@ class Plant:
             plant = cls._cache[key] = cls(params, dt)
         return plant
 
-    def resistance(self, vx: FloatOrArray, xp: Namespace = FLOATS) -> FloatOrArray:
-        """:func:`resistance_force` at ``vx`` [m/s] (a float, or an array with ``xp=ARRAYS``)."""
-        return xp.where(vx <= 0.0, 0.0, self.drag * vx * vx + self.rolling)
-
     def actuators(self, steer0: FloatOrArray, force0: FloatOrArray, vx: FloatOrArray,
                   steer_cmd: FloatOrArray, throttle: FloatOrArray, brake: FloatOrArray,
                   xp: Namespace = FLOATS) -> tuple[FloatOrArray, FloatOrArray]:
@@ -246,16 +242,17 @@ class Plant:
         under ``steer_cmd`` (clipped, rate-limited, first-order lag), and the longitudinal tyre
         force [N] from ``force0`` under the pedals at speed ``vx`` [m/s] (brake or drive lag)."""
         p = self.params
-        # --- actuators -----------------------------------------------------------------------
+        clip = xp.clip
         max_steer = p.max_steer_rad
-        cmd = xp.clip(steer_cmd, -max_steer, max_steer)
+        cmd = clip(steer_cmd, -max_steer, max_steer)
         d_steer = (cmd - steer0) * self.steer_gain
         max_d = self.max_d_steer
-        delta = steer0 + xp.clip(d_steer, -max_d, max_d)
+        delta = steer0 + clip(d_steer, -max_d, max_d)
 
-        throttle = xp.clip(throttle, 0.0, 1.0)
-        brake = xp.clip(brake, 0.0, 1.0)
-        drive = available_drive_force(vx, p, xp)
+        throttle = clip(throttle, 0.0, 1.0)
+        brake = clip(brake, 0.0, 1.0)
+        # available_drive_force, inline (a call per step saved)
+        drive = xp.minimum(p.max_drive_force_n, p.max_drive_power_w / xp.maximum(vx, 0.1))
         target = throttle * drive - brake * self.max_brake_force
         # brake circuit dynamics whenever braking is involved (applying or releasing); a first-
         # order lag, or none for a time constant <= 0 (decay None)
@@ -311,7 +308,8 @@ class Plant:
         fyf = where(dynamic, cf * (delta - (vy_dyn + lf * r_dyn) / u), 0.0)
 
         # --- longitudinal ----------------------------------------------------------------------
-        ax = (fx - self.resistance(vx, xp) - w * fyf * xp.sin(delta)) / m + w * vy * r
+        resistance = where(vx <= 0.0, 0.0, self.drag * vx * vx + self.rolling)  # resistance_force
+        ax = (fx - resistance - w * fyf * xp.sin(delta)) / m + w * vy * r
         # no reversing: brakes and resistances hold the car at standstill
         vx_new = xp.maximum(vx + ax * dt, 0.0)
 
