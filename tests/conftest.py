@@ -1,5 +1,9 @@
-"""Shared fixtures: roads built in memory (no SUMO) and the committed curved500 road; the
-property tests' draws seeded."""
+"""Shared fixtures: roads built in memory (no SUMO), the committed curved500 road and a fake SUMO
+API; the property tests' draws seeded.
+
+Helpers shared by several test files live in ``tests/fixtures_*.py`` (and ``bad_policies.py``,
+``scripts.py``), never in a test file: no test file imports another (tests/test_markers.py).
+"""
 
 import os
 from pathlib import Path
@@ -13,6 +17,8 @@ from hypothesis import settings
 settings.register_profile("seeded", derandomize=True)
 settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
+
+from fixtures_sumo import FakeSumoFactory
 
 from safeil_sumo.geometry import Polyline
 from safeil_sumo.scenarios.road import Lane, Road
@@ -41,3 +47,10 @@ def curved500():
     from safeil_sumo.scenarios.road import load_road
 
     return load_road(resolve_net("curved500"))
+
+
+@pytest.fixture
+def fake_sumo() -> FakeSumoFactory:
+    """An ``api_factory`` for the loop (``run_scenario(..., api_factory=fake_sumo)``): each SUMO
+    start makes a :class:`fixtures_sumo.FakeSumo`, kept in ``fake_sumo.made``."""
+    return FakeSumoFactory()

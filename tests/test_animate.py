@@ -205,9 +205,10 @@ def test_run_animate_names_and_errors(tmp_path, capsys, monkeypatch):
 
 
 def test_replay_animate_each_policy(tmp_path, capsys, monkeypatch):
+    from fixtures_data import arc_drive
+
     from safeil_sumo import replay
     from safeil_sumo.data.schema import save_drive
-    from tests.test_replay import arc_drive
 
     monkeypatch.setattr(an, "find_ffmpeg", lambda: None)
     drive = tmp_path / "arc.parquet"

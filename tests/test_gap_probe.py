@@ -572,7 +572,7 @@ def test_cli_bad_input_one_line(tmp_path, capsys, args, message) -> None:
 
 
 def test_human_bands_from_the_real_data() -> None:
-    from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, SHARED, require_file
+    from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, SHARED, require_file
 
     require_file(NGSIM_PAIRS)
     require_file(OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")

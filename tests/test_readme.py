@@ -64,7 +64,7 @@ def test_a_readme_python_block_runs(line: int, capsys) -> None:
     code = dict(python_blocks())[line]
     pytest.importorskip("libsumo")  # every block runs the closed loop
     if 'leader_profile="ngsim"' in code:
-        from tests.fixtures_data import NGSIM_PAIRS, require_file
+        from fixtures_data import NGSIM_PAIRS, require_file
 
         require_file(NGSIM_PAIRS)
     namespace: dict = {"__name__": f"readme_block_{line}"}

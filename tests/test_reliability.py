@@ -166,7 +166,7 @@ def test_importers_and_tuples_reject_bad_files(kind, reader, tmp_path):
 
 
 def _tuples_file(tmp: Path) -> Path:
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     make_tuples().save(tmp / "t.parquet")
     return tmp / "t.parquet"
@@ -632,7 +632,7 @@ def _assert_untouched(folder: Path, before: dict[str, bytes]) -> None:
 
 
 def test_crash_mid_write_leaves_old_files_intact(tmp_path, monkeypatch):
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     import safeil_sumo.data.schema as schema_mod
     import safeil_sumo.data.tuples as tuples_mod

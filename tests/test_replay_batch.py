@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
-from test_replay import arc_drive
+from fixtures_data import arc_drive
 
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.experiments.sweep_executor import even_units

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
-from test_replay import arc_drive
+from fixtures_data import arc_drive
 
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.schema import validate_drive

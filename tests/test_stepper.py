@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from bad_policies import DriftLeft, blind_cruise
-from test_golden import GOLDEN_COLUMNS, compare_with_reference
+from fixtures_golden import GOLDEN_COLUMNS, compare_with_reference
 
 from safeil_sumo import api, planner_registry
 from safeil_sumo.analytic import AnalyticPlanner

@@ -167,7 +167,8 @@ def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
 
 
 def _arc_rows(duration: float, gap: float = 50.0):
-    from test_replay import V, arc_drive
+    from fixtures_data import ARC_V as V
+    from fixtures_data import arc_drive
 
     rows = arc_drive(duration)
     rows["lead_x"] = gap
@@ -213,7 +214,7 @@ def test_replay_adapts_to_one_named_maneuver(tmp_path):
 
 
 def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
-    from test_replay import V
+    from fixtures_data import ARC_V as V
 
     from safeil_sumo import idm
     from safeil_sumo import planner_registry as pol

@@ -232,7 +232,7 @@ def test_profile_too_short_for_the_scenario(tmp_path, capsys) -> None:
 
 
 def test_recorded_ngsim_library_from_the_shared_data() -> None:
-    from tests.fixtures_data import NGSIM_PAIRS, require_file
+    from fixtures_data import NGSIM_PAIRS, require_file
 
     data_dir = require_file(NGSIM_PAIRS).parents[1]
     lib = rl.library("ngsim", str(data_dir))
@@ -360,8 +360,9 @@ def test_sweep_and_api_resolve_the_ego_speed_alike(tmp_path, slow_profile) -> No
 def test_explicit_ego_speed_wins_over_a_recorded_follower() -> None:
     from dataclasses import replace
 
+    from fixtures_data import NGSIM_PAIRS, require_file
+
     from safeil_sumo.scenarios.safety import scenario_seed
-    from tests.fixtures_data import NGSIM_PAIRS, require_file
 
     require_file(NGSIM_PAIRS)  # the library reads the default data folder, ../shared/data
     spec = ScenarioSpec(net="straight", index=2, leader_kind="recorded", leader_profile="ngsim")
@@ -417,8 +418,9 @@ def test_a_hard_but_plausible_braking_profile_is_accepted(tmp_path) -> None:
 
 @pytest.mark.parametrize("source", ["ngsim", "openacc"])
 def test_the_human_leader_libraries_are_plausible(source) -> None:
+    from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
+
     from safeil_sumo.sim.leaders import implausible_change
-    from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
 
     require_file(NGSIM_PAIRS if source == "ngsim"
                  else OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")
