@@ -180,6 +180,7 @@ def test_cli_missing_folder_and_bad_fps(tmp_path, capsys):
 # ------------------------------------------------------------------- run / replay --animate
 
 
+@pytest.mark.sumo
 def test_run_animate_names_and_errors(tmp_path, capsys, monkeypatch):
     from safeil_sumo import run
 
@@ -204,6 +205,7 @@ def test_run_animate_names_and_errors(tmp_path, capsys, monkeypatch):
     assert f"animation: {out / 'animation_s0000.gif'}" in capsys.readouterr().out
 
 
+@pytest.mark.sumo
 def test_replay_animate_each_policy(tmp_path, capsys, monkeypatch):
     from fixtures_data import arc_drive
 

@@ -289,6 +289,7 @@ def _libsumo_loaded(pid: int) -> bool:
         return False
 
 
+@pytest.mark.sumo
 def test_ctrl_c_in_a_running_scenario_is_one_line_and_130(tmp_path) -> None:
     """A real ``run`` sent SIGINT while SUMO runs its scenarios (libsumo loaded: the first
     scenario has started; 100 of them last far longer than the wait)."""

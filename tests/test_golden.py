@@ -103,6 +103,7 @@ def write_reference(name: str, result) -> Path:
     return path
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("name", list(SCENARIOS))
 def test_closed_loop_log_matches_reference(name, curved500):
     r = run_golden(name, curved500)
@@ -113,6 +114,7 @@ def test_closed_loop_log_matches_reference(name, curved500):
     assert not problems, "\n".join(problems)
 
 
+@pytest.mark.sumo
 def test_reference_comparison_catches_small_changes(curved500):
     """The comparison is not vacuous: a 1e-5 m shift of x, one flag step moved, or a changed
     end reason each fail it; round-off (1e-12) passes."""
@@ -137,6 +139,7 @@ def _hashes(road) -> dict[str, str]:
     return {name: log_hash(run_golden(name, road).log) for name in SCENARIOS}
 
 
+@pytest.mark.sumo
 def test_same_run_twice_is_bit_identical(curved500):
     """Determinism on one machine: the same scenarios in this process and in a fresh process
     give logs equal bit for bit (no state leaks between runs, no unseeded draw)."""

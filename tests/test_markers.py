@@ -1,10 +1,14 @@
-"""The test suite's own rules: no test file imports another (shared helpers live in
-tests/conftest.py and tests/fixtures_*.py)."""
+"""The test suite's own rules (tests/conftest.py): a test that starts SUMO is marked ``sumo``, and
+no test file imports another (shared helpers live in conftest.py and tests/fixtures_*.py)."""
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
+
+import pytest
+
+from safeil_sumo.sim import sumo_api
 
 TESTS = Path(__file__).resolve().parent
 
@@ -38,3 +42,10 @@ def test_no_test_file_imports_another() -> None:
                if (found := imported_test_files(p.read_text()))}
     assert imports == {}, ("move what they share into tests/conftest.py or a tests/fixtures_*.py "
                            f"module: {imports}")
+
+
+def test_an_unmarked_test_that_starts_sumo_fails() -> None:
+    """This test is not marked ``sumo``: conftest's guard fails it at the start, before SUMO
+    runs (it would be selected by ``-m "not sumo"``)."""
+    with pytest.raises(pytest.fail.Exception, match="starts SUMO but is not marked sumo"):
+        sumo_api.start(["-n", "no.net.xml"])

@@ -56,6 +56,7 @@ def test_the_readme_has_python_blocks() -> None:
     assert len(lines) >= 2 and api_example_line() in lines
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("line", [line for line, _ in python_blocks()],
                          ids=lambda line: f"README.md:{line}")
 def test_a_readme_python_block_runs(line: int, capsys) -> None:

@@ -146,6 +146,7 @@ def _check_result(res: rp.ReplayResult, folder) -> pd.Series:
     return row
 
 
+@pytest.mark.sumo
 def test_replay_synthetic_arc_end_to_end(tmp_path):
     res = rp.replay_maneuver(arc_drive(), {"analytic": AnalyticPlanner()}, tmp_path)
     row = _check_result(res, tmp_path)
@@ -162,6 +163,7 @@ def test_replay_synthetic_arc_end_to_end(tmp_path):
     assert res.human["d"].iloc[0] == pytest.approx(OFFSET, abs=0.06)
 
 
+@pytest.mark.sumo
 def test_replay_openacc_maneuver_with_analytic(tmp_path):
     from safeil_sumo.data.importers import import_openacc
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
@@ -182,6 +184,7 @@ def test_replay_openacc_maneuver_with_analytic(tmp_path):
     assert row["rmse_d"] < 0.2
 
 
+@pytest.mark.sumo
 def test_replay_ngsim_maneuver_with_analytic(tmp_path):
     from safeil_sumo.data.importers import import_ngsim_pairs
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
@@ -204,6 +207,7 @@ def test_replay_ngsim_maneuver_with_analytic(tmp_path):
 # ------------------------------------------------------------------------------------- CLI
 
 
+@pytest.mark.sumo
 def test_cli_on_a_drive_file(tmp_path, capsys):
     from safeil_sumo import replay as cli
 
@@ -329,6 +333,7 @@ def test_replay_aggregate_by_hand() -> None:
     assert (q["speed_rmse_median_mps"], q["time_gap_w1_median_s"]) == pytest.approx((0.5, 0.6))
 
 
+@pytest.mark.sumo
 def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
     from safeil_sumo import replay as cli
 
@@ -379,6 +384,7 @@ def test_aggregate_counts_each_collision_window_once():
     assert row["flags"] == 3 and row["windows"] == 3
 
 
+@pytest.mark.sumo
 def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
     from safeil_sumo import replay as cli
     from safeil_sumo.experiments import window_replays as ra

@@ -50,6 +50,7 @@ def _same(a, b, where: str = "") -> None:
         assert a == b, where
 
 
+@pytest.mark.sumo
 def test_batched_windows_give_the_records_of_one_simulation_per_run(tmp_path):
     maneuvers = _maneuvers()
     wins = ra.windows(maneuvers, "sliding", duration_s=10.0, stride_s=5.0)

@@ -30,6 +30,9 @@ from safeil_sumo.sim.loop_types import LoopConfig, Scenario
 from safeil_sumo.sim.recorded_ego import RecordedPath
 from safeil_sumo.sim.stepper import ClosedLoop
 
+# every test here runs SUMO (tests/conftest.py: the sumo marker)
+pytestmark = pytest.mark.sumo
+
 pytest.importorskip("libsumo")
 
 WALL_KEYS = ("wall_time_s", "steps_per_s")

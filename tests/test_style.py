@@ -195,6 +195,7 @@ def test_adapted_windows_leave_out_the_adaptation_seconds():
         ra.windows(maneuvers, "sliding", adapt_s=10.0)
 
 
+@pytest.mark.sumo
 def test_replay_adapts_to_one_named_maneuver(tmp_path):
     """``--adapt-first-s`` with one maneuver id (not only ``all`` or a list): scored after S."""
     import pandas as pd
@@ -241,6 +242,7 @@ def test_adapt_planners_sets_the_drivers_time_gap_and_refits_the_idm(tmp_path):
     assert fitted < shipped and out["idm"].params != shipped_idm.params
 
 
+@pytest.mark.sumo
 def test_an_adapted_whole_replay_in_sumo(tmp_path):
     import pandas as pd
 
@@ -290,6 +292,7 @@ def test_with_setting_sets_only_the_planners_that_have_one(tmp_path):
     assert ra.with_setting(planners, None) is planners
 
 
+@pytest.mark.sumo
 def test_a_replay_at_a_time_gap_setting_in_sumo(tmp_path):
     """Real libsumo: the same whole maneuver replayed with the IDM set to 1.0 s and to 2.5 s
     (``replay --time-gap-s``): it follows farther back at 2.5 s; the analytic planner, which has
@@ -347,6 +350,7 @@ def test_sweep_specs_carry_the_time_gap():
         ScenarioSpec(policy="idm", time_gap_s=0.0)
 
 
+@pytest.mark.sumo
 def test_run_time_gap_sets_the_planners_distance(tmp_path, capsys):
     """Real libsumo: the IDM told to keep 2.5 s settles farther back than told 1.0 s; a planner
     without the setting is refused in one line."""

@@ -16,6 +16,9 @@ from pathlib import Path
 import pytest
 from fixtures_data import TINY_RECIPE, write_tiny_recordings
 
+# every test here runs SUMO (tests/conftest.py: the sumo marker)
+pytestmark = pytest.mark.sumo
+
 REPO = Path(__file__).resolve().parents[1]
 
 
