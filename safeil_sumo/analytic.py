@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from safeil_sumo import bspline
+from safeil_sumo.policy import DEFAULT_TIME_GAP_S, PLAN_HORIZON_S
 
 
 @dataclass(frozen=True)
@@ -22,9 +23,9 @@ class AnalyticPlanner:
     """
 
     name: str = "analytic"
-    horizon: float = 5.0  # plan horizon T_h [s]
+    horizon: float = PLAN_HORIZON_S  # plan horizon T_h [s]
     samples: int = 20  # trajectory samples fitted by least squares [-]
-    time_gap_s: float = 1.5  # desired time gap [s]
+    time_gap_s: float = DEFAULT_TIME_GAP_S  # desired time gap [s]
     gap_min_m: float = 5.0  # desired standstill gap [m]
     k_gap: float = 0.08  # gap-error gain [1/s^2]
     k_speed: float = 0.5  # speed-difference gain [1/s]

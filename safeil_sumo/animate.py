@@ -35,7 +35,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.animation import FFMpegWriter, PillowWriter
 from matplotlib.patches import Polygon
-from matplotlib.transforms import Affine2D
+from matplotlib.transforms import Affine2D, Transform
 
 from safeil_sumo import bspline
 from safeil_sumo.atomic import atomic_path
@@ -285,9 +285,15 @@ class FrameDrawer:
         self.top, self.strip = top, strip
         self.view = Affine2D()
         world = self.view + top.transData
+        self._draw_road(world)
+        self._add_movers(world)
+        self._draw_strip()
 
-        # road: paved area between the outer lines, solid edges, dashed lines between lanes
-        lanes = ep.road.lanes
+    def _draw_road(self, world: Transform) -> None:
+        """The road in the top view: paved area between the outer lines, solid edges, dashed
+        lines between lanes."""
+        top = self.top
+        lanes = self.ep.road.lanes
         outline = np.concatenate([lanes[-1].left_boundary.points,
                                   lanes[0].right_boundary.points[::-1]])
         top.add_patch(Polygon(outline, closed=True, facecolor="0.88", edgecolor="none",
@@ -298,6 +304,10 @@ class FrameDrawer:
             top.plot(lane.right_boundary.points[:, 0], lane.right_boundary.points[:, 1],
                      color="white", lw=1.2, ls=(0, (6, 6)), transform=world)
 
+    def _add_movers(self, world: Transform) -> None:
+        """The top view's artists that :meth:`draw` moves (trail, plan, control points, ego,
+        leader, the recorded human), its axes and the figure's time stamp and flag text."""
+        top, ep = self.top, self.ep
         (self.trail,) = top.plot([], [], color="tab:blue", lw=0.8, alpha=0.5, transform=world)
         (self.spline,) = top.plot([], [], color="tab:orange", lw=1.6, transform=world,
                                   label="plan (B-spline)", zorder=4)
@@ -325,7 +335,10 @@ class FrameDrawer:
         self.flag_text = self.fig.text(0.93, 0.955, "", fontsize=9, weight="bold", ha="right",
                                        va="center")
 
-        # strip: speeds on the left axis, gap on the right one, a cursor at the frame's time
+    def _draw_strip(self) -> None:
+        """The strip below: speeds on the left axis, gap on the right one, a cursor at the
+        frame's time."""
+        strip, ep, log = self.strip, self.ep, self.ep.log
         strip.plot(self.t, log["v"], color="tab:blue", lw=1.0, label="ego v")
         strip.plot(self.t, log["leader_v"], color="0.35", lw=1.0, ls="--", label="leader v")
         gap_ax = strip.twinx()

@@ -29,6 +29,7 @@ from safeil_sumo.cli_args import (
     finite_float,
     interruptible,
     nonnegative_int,
+    positive_int,
 )
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 from safeil_sumo.experiments import gap_probe as gp
@@ -49,7 +50,7 @@ def build_parser() -> CommandParser:
     p.add_argument("--data-dir", type=Path, default=DEFAULT_DATA_DIR,
                    help=f"real human data for the humans' rows (default {DEFAULT_DATA_DIR})")
     p.add_argument("--no-humans", action="store_true", help="leave out the humans' rows")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=positive_int, default=1,
                    help="local worker processes, one simulation each (default 1)")
     p.add_argument("--out", type=Path, default=Path("runs/gap_probe"),
                    help="results folder (default runs/gap_probe); rerun to resume")
@@ -61,8 +62,6 @@ def build_parser() -> CommandParser:
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = build_parser()
     args = p.parse_args(argv)
-    if args.workers < 1:
-        p.error("--workers must be >= 1")
     if any(not gp.LEADER_STEP_MPS < v <= 60.0 for v in args.speeds_mps):
         p.error(f"--speeds-mps must be in ({gp.LEADER_STEP_MPS:g}, 60] m/s")
     if args.out.exists() and not args.out.is_dir():

@@ -10,6 +10,12 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+# The planner's defaults, each declared here only (tests/test_defaults.py): every module, command
+# and environment takes its default from these names
+PLAN_RATE_HZ = 10.0  # [Hz] how often the loop asks for a new plan
+PLAN_HORIZON_S = 5.0  # [s] a plan's horizon T_h: the time its last control point is reached
+DEFAULT_TIME_GAP_S = 1.5  # [s] a planner's preferred time gap to its leader unless one is set
+
 
 @runtime_checkable
 class Policy(Protocol):

@@ -35,6 +35,7 @@ from safeil_sumo.cli_args import (
     add_scenario_options,
     finite_float,
     interruptible,
+    positive_int,
     scenario_fields,
 )
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
@@ -121,9 +122,9 @@ def build_parser() -> CommandParser:
                    help="with --suite: one variant per family and net (CI)")
     p.add_argument("--safety-filter", choices=tuple(FILTER_OPTIONS), default="off",
                    help="run policies without (off), with (on) or both ways (default off)")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=positive_int, default=1,
                    help="local worker processes, one simulation each (default 1: in-process)")
-    p.add_argument("--batch", type=int, default=DEFAULT_BATCH, metavar="N",
+    p.add_argument("--batch", type=positive_int, default=DEFAULT_BATCH, metavar="N",
                    help=f"run up to N scenarios side by side in one SUMO simulation per worker "
                         f"(same net, planner and loop settings; traffic drives run alone); "
                         f"1: one simulation per scenario (default {DEFAULT_BATCH})")
@@ -150,10 +151,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
     if args.scenarios < 1:  # the specs' own rules are reported by main (build_specs)
         p.error("--scenarios must be >= 1")
-    if args.workers < 1:
-        p.error("--workers must be >= 1")
-    if args.batch < 1:
-        p.error("--batch must be >= 1")
     if args.scheduler is not None and args.workers != 1:
         p.error("use either --workers (local processes) or --scheduler (a Dask cluster)")
     if args.scheduler is not None and "://" not in args.scheduler:

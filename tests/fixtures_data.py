@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import gzip
+import math
 import os
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+
+from safeil_sumo.data.schema import validate_drive
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NGSIM_PAIRS = SHARED / "ngsim_i80" / "i80_pairs.parquet"
@@ -307,3 +310,33 @@ def write_car_following_csv(path: Path, duration_s: float = 60.0) -> Path:
     pd.DataFrame({"t": np.round(t, 1), "spd": v * 3.6, "ld_spd": v_lead * 3.6,
                   "dist": gap}).to_csv(path, index=False)
     return path
+
+
+# ------------------------------------------------------------------------- an arc, for replays
+
+ARC_R = 800.0  # [m] lane-centre radius of the synthetic recording
+ARC_V = 30.0  # [m/s]
+ARC_HALF = 1.75  # [m] half lane width
+ARC_OFFSET = 0.2  # [m] the human drives this far LEFT of the lane centre (inside of the left turn)
+
+
+def arc_drive(duration: float = 15.0, hz: float = 10.0, heading0: float = 0.6,
+              origin: tuple[float, float] = (5.0e5, 4.9e6)) -> pd.DataFrame:
+    """A schema drive on a left arc of radius ARC_R (lane centre) at ARC_V, the human ARC_OFFSET
+    left of it, a leader at constant speed 50 m ahead (the analytic planner's 1.5 s + 5 m); world
+    frame rotated by ``heading0`` and far from the origin."""
+    t = np.arange(0.0, duration + 1e-9, 1.0 / hz)
+    r = ARC_R - ARC_OFFSET
+    th = ARC_V * t / r
+    cx, cy = r * np.sin(th), ARC_R - r * np.cos(th)  # circle centre at (0, ARC_R)
+    c, s = math.cos(heading0), math.sin(heading0)
+    x = origin[0] + c * cx - s * cy
+    y = origin[1] + s * cx + c * cy
+    k = 1.0 / ARC_R
+    return validate_drive(pd.DataFrame({
+        "recording_id": "arc", "time": t, "x": x, "y": y,
+        "yaw": (th + heading0 + math.pi) % (2 * math.pi) - math.pi, "v_x": ARC_V,
+        "left_c0": ARC_HALF - ARC_OFFSET, "left_c1": 0.0, "left_c2": 0.5 * k, "left_c3": 0.0,
+        "right_c0": -ARC_HALF - ARC_OFFSET, "right_c1": 0.0, "right_c2": 0.5 * k, "right_c3": 0.0,
+        "lead_x": 50.0, "lead_y": 0.0, "lead_v": ARC_V, "maneuver_id": "arc#0",
+    }))

@@ -180,6 +180,7 @@ def test_cli_missing_folder_and_bad_fps(tmp_path, capsys):
 # ------------------------------------------------------------------- run / replay --animate
 
 
+@pytest.mark.sumo
 def test_run_animate_names_and_errors(tmp_path, capsys, monkeypatch):
     from safeil_sumo import run
 
@@ -204,10 +205,12 @@ def test_run_animate_names_and_errors(tmp_path, capsys, monkeypatch):
     assert f"animation: {out / 'animation_s0000.gif'}" in capsys.readouterr().out
 
 
+@pytest.mark.sumo
 def test_replay_animate_each_policy(tmp_path, capsys, monkeypatch):
+    from fixtures_data import arc_drive
+
     from safeil_sumo import replay
     from safeil_sumo.data.schema import save_drive
-    from tests.test_replay import arc_drive
 
     monkeypatch.setattr(an, "find_ffmpeg", lambda: None)
     drive = tmp_path / "arc.parquet"

@@ -363,13 +363,15 @@ def test_control_form_error_by_hand() -> None:
     assert 10.0 + reach.NET_MARGIN <= u.err[0, 0] <= 10.0 + reach.NET_MARGIN + 1e-8
     # the rounding radius: REL times (|alpha| + |delta|) (|in_c| + in_r) + |beta| + |gap|,
     # (0.9 + 0.2) (30 + 50) + 8 + 16 = 112, with the lines as CROWN gives them
-    nb = propagate(layers, np.array([[-20.0]]), np.array([[80.0]]))
+    in_r = 50.0 * (1.0 + REL)  # the set's generator, and the input box padded as in the code
+    pad = REL * (130.0 + 100.0 + in_r)
+    nb = propagate(layers, np.array([[30.0 - in_r - pad]]), np.array([[30.0 + in_r + pad]]))
     lin = crown(nb, layers, np.array([[1.0], [-1.0]]))
     cl, cu = lin.coef[0, 0, 0], -lin.coef[0, 1, 0]
     kl, ku = lin.const[0, 0], -lin.const[0, 1]
     alpha, delta, beta, gap = (cl + cu) / 2, cu - cl, (kl + ku) / 2, ku - kl
-    half = 0.5 * (delta * 30.0 + gap + abs(delta) * 50.0)
-    size = (abs(alpha) + abs(delta)) * 80.0 + abs(beta) + abs(gap)
+    half = 0.5 * (delta * 30.0 + gap + abs(delta) * in_r)
+    size = (abs(alpha) + abs(delta)) * (30.0 + in_r) + abs(beta) + abs(gap)
     assert size == pytest.approx(112.0, rel=1e-9)
     assert u.err[0, 0] == pytest.approx(half + reach.NET_MARGIN + REL * size, abs=1e-12)
     x = np.linspace(80.0, 180.0, 1001)[:, None]
@@ -420,3 +422,114 @@ def test_at_time_covers_every_map_of_the_enclosures() -> None:
         y = (phi @ x + gb @ uu + gc[:, 0] + ge @ q_mid[0]
              + maps.kernel_abs[0] @ q_rad[0] * sign)
         assert np.all((y >= lo[0]) & (y <= hi[0]))
+
+
+def test_prove_splits_by_the_weight_and_counts_by_hand() -> None:
+    """:func:`_relu_loop` over ``x1 in [-1, 1]``, ``x2 in [-10, 10]``, ``y0 = 0.03``, two
+    periods: halving ``x1`` once proves it (3 sets, 2 leaves); by width, ``x2`` is halved four
+    times first (1 + 2 + 4 + 8 + 16 + 32 = 63 sets, 32 leaves); with 10 sets allowed, 7 are
+    analysed and the next 8 would exceed the budget. ``y`` never decreases: the simulated
+    minimum is ``y0`` and the proven bound just below it."""
+    loop = _relu_loop()
+    lo, hi = np.array([-1.0, -10.0, 0.03]), np.array([1.0, 10.0, 0.03])
+    v = reach.prove(loop, lo, hi, 2, split_weight=np.array([1.0, 0.0, 0.0]))
+    assert (v.status, v.sets, v.proven, v.counterexample) == ("verified", 3, 2, None)
+    assert v.min_simulated == pytest.approx(0.03, abs=1e-15)
+    assert 0.03 - 1e-6 < v.min_lower <= 0.03
+    v = reach.prove(loop, lo, hi, 2)
+    assert (v.status, v.sets, v.proven) == ("verified", 63, 32)
+    v = reach.prove(loop, lo, hi, 2, max_sets=10)
+    assert (v.status, v.sets, v.proven, v.min_lower) == ("unknown", 7, 0, np.inf)
+    assert v.min_simulated == pytest.approx(0.03, abs=1e-15)
+
+
+def test_split_and_probe_points_by_hand() -> None:
+    lo, hi = np.array([[0.0, 1.0], [2.0, -4.0]]), np.array([[1.0, 5.0], [3.0, -3.5]])
+    s_lo, s_hi = reach._split(lo, hi, np.array([1.0, 1.0]))
+    assert s_lo.tolist() == [[0.0, 1.0], [2.0, -4.0], [0.0, 3.0], [2.5, -4.0]]
+    assert s_hi.tolist() == [[1.0, 3.0], [2.5, -3.5], [1.0, 5.0], [3.0, -3.5]]
+    pts = reach._probe_points(lo, hi, np.random.default_rng(0))
+    assert pts.shape == (14, 2)
+    assert pts[:6].tolist() == [[0.5, 3.0], [2.5, -3.75], *lo.tolist(), *hi.tolist()]
+    rows = np.tile(np.arange(2), 7)
+    assert np.all((pts >= lo[rows]) & (pts <= hi[rows]))
+    assert len(np.unique(pts[6:], axis=0)) == 8
+
+
+def test_prove_falsifies_reproducibly_from_a_random_probe() -> None:
+    """``y' = -relu(1 - 2 |x - 0.37|)`` (deepest inside the box, not at a centre or corner)
+    from ``y0 = 0.01``: falsified at the lowest probe, a random one; the default seed is 0."""
+    plant = _plant(np.zeros((2, 2)), [[0.0], [1.0]], np.zeros(2), np.zeros((2, 1)), [0], [0.0])
+    hidden = Layer(np.array([[2.0], [-2.0]]), np.array([-0.74, 0.74]),
+                   np.array([RELU, RELU], np.int8))
+    mid = Layer(np.array([[-1.0, -1.0]]), np.array([1.0]), np.array([RELU], np.int8))
+    out = Layer(np.array([[-1.0]]), np.array([0.0]), np.array([IDENTITY], np.int8))
+    loop = reach.Loop(plant, [hidden, mid, out], np.array([[1.0, 0.0]]), np.zeros(1), 0.1,
+                      np.array([[0.0, 1.0]]), np.zeros(1))
+    lo, hi = np.array([-1.0, 0.01]), np.array([1.0, 0.01])
+    v = reach.prove(loop, lo, hi, 1)
+    assert v.status == "falsified" and v.sets == 1 and v.proven == 0
+    x = v.counterexample
+    assert 0.0 < abs(x[0]) < 1.0 and x[1] == 0.01
+    assert v.min_simulated == pytest.approx(0.01 - 0.1 * (1 - 2 * abs(x[0] - 0.37)), abs=1e-12)
+    again = reach.prove(loop, lo, hi, 1, seed=0)
+    assert again.counterexample.tolist() == x.tolist()
+    assert reach.prove(loop, lo, hi, 1, seed=1).counterexample.tolist() != x.tolist()
+
+
+def test_reach_defaults_are_advance_periods() -> None:
+    """:func:`reach` without maps builds the loop's own and keeps 40 generators (the ACC
+    plant, 6 states, gains 7 a period: reduced from the 5th on), as :func:`advance_period`."""
+    loop = reach.Loop(arch_acc.acc_plant(), _zero_net(5), np.eye(5, 6), np.zeros(5), 0.1,
+                      np.array([[1.0, 0.0, 0.0, -1.0, -1.4, 0.0]]), np.array([-10.0]))
+    z = reach.Zonotope.from_box(arch_acc.INITIAL_LO[None], arch_acc.INITIAL_HI[None])
+    got = reach.reach(loop, z, 7)
+    maps = reach.period_maps(loop.plant, loop.period, loop.substeps)
+    for k in range(7):
+        res = reach.advance_period(loop, maps, z)
+        assert np.array_equal(got[:, k], res.lower)
+        z = res.end
+    assert z.gens.shape[-1] == 40
+
+
+def test_simulate_against_a_closed_form() -> None:
+    """``y' = v``, ``v' = 2`` from two states: ``y(t) = y0 + v0 t + t^2`` (RK4 exact for a
+    quadratic); the property ``y`` per set is its minimum over the instants."""
+    plant = _plant([[0.0, 1.0], [0.0, 0.0]], [[0.0], [0.0]], [0.0, 2.0], np.zeros((2, 1)),
+                   [0], [0.0])
+    loop = reach.Loop(plant, _zero_net(2), np.eye(2), np.zeros(2), 0.1,
+                      np.array([[1.0, 0.0]]), np.zeros(1))
+    x0 = np.array([[1, -0.1], [2, 0]])  # ints: the same numbers as floats
+    low, x_end = reach.simulate(loop, x0, 2, steps=10)
+    np.testing.assert_allclose(low[:, 0], [1.0 - 0.0025, 2.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(x_end, [[1.0 - 0.02 + 0.04, 0.3], [2.04, 0.4]], atol=1e-12)
+    traj = reach.simulate_period(loop, x0)
+    assert traj.shape == (2, 101, 2) and traj.dtype == float
+
+
+def test_advance_period_is_tight_between_instants_and_with_drag() -> None:
+    """The property ``y`` dips inside the period (``y' = v``, ``v' = 2``, ``v0 = -0.1``: min
+    0.9975 at 0.05 s): the bound over the period is below it by at most the envelope's
+    ``(d_hi - d_lo) tau / 4`` (~5e-4). With drag ``v' = -0.001 v^2`` from ``v0 = 30`` (a point):
+    the end set holds the exact ``v0 / (1 + 0.001 v0 t)`` and is narrower than 1e-3 in ``v``
+    (the drag's spread about its middle, not its size 0.9, enters the box)."""
+    plant = _plant([[0.0, 1.0], [0.0, 0.0]], [[0.0], [0.0]], [0.0, 2.0], np.zeros((2, 1)),
+                   [1], [0.0])
+    loop = reach.Loop(plant, _zero_net(2), np.eye(2), np.zeros(2), 0.1,
+                      np.array([[1.0, 0.0]]), np.zeros(1))
+    maps = reach.period_maps(plant, 0.1, 10)
+    x0 = np.array([[1.0, -0.1]])
+    res = reach.advance_period(loop, maps, reach.Zonotope.from_box(x0, x0))
+    assert 0.9975 - 1e-3 < res.lower[0, 0] <= 0.9975
+    drag = _plant([[0.0, 1.0], [0.0, 0.0]], [[0.0], [0.0]], [0.0, 0.0], [[0.0], [1.0]], [1],
+                  [1e-3])
+    loop = reach.Loop(drag, _zero_net(2), np.eye(2), np.zeros(2), 0.1,
+                      np.array([[1.0, 0.0]]), np.zeros(1))
+    maps = reach.period_maps(drag, 0.1, 10)
+    x0 = np.array([[0.0, 30.0]])
+    res = reach.advance_period(loop, maps, reach.Zonotope.from_box(x0, x0))
+    lo, hi = res.end.hull()
+    v_end = 30.0 / (1.0 + 0.03 * 0.1)
+    y_end = np.log(1.0 + 0.03 * 0.1) / 1e-3
+    assert lo[0, 1] <= v_end <= hi[0, 1] and lo[0, 0] <= y_end <= hi[0, 0]
+    assert hi[0, 1] - lo[0, 1] < 1e-3

@@ -88,6 +88,7 @@ def _assert_same(batch, scalar, atol=ATOL_M):
                 assert got == value or (pd.isna(value) and pd.isna(got)), (name, key, got, value)
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("placement", ["xy", "lane"])
 def test_mixed_batch_equals_scalar_runs(road, placement):
     cases = _mixed(road)
@@ -106,6 +107,7 @@ def test_mixed_batch_equals_scalar_runs(road, placement):
     print(f"largest difference ({placement}): {_largest_difference(batch, scalar):.3g}")
 
 
+@pytest.mark.sumo
 def test_stop_on_flag_and_one_policy(road):
     """stop_on_flag ends scenarios at their flag step while the others go on; one policy."""
     planner = blind_cruise()
@@ -118,6 +120,7 @@ def test_stop_on_flag_and_one_policy(road):
     _assert_same(run_batch(cases, planner, loop), scalar)
 
 
+@pytest.mark.sumo
 def test_summary_columns_give_the_same_summaries(road):
     """A batch that logs only SUMMARY_COLUMNS (the sweeps') summarises exactly as a full log,
     and a sweep's record (the leader-response metrics) reads nothing else."""
@@ -139,6 +142,7 @@ def test_summary_columns_give_the_same_summaries(road):
         run_batch(cases[0][:1], cases[0][1], loop, log_columns=("t", "speed"))
 
 
+@pytest.mark.sumo
 def test_the_loop_runs_on_one_blas_thread(road):
     """Planner calls inside a batch see one BLAS thread (a sweep runs a worker per core), and
     the limit is lifted after the batch."""
@@ -161,6 +165,7 @@ def test_the_loop_runs_on_one_blas_thread(road):
     assert blas_threads() == before
 
 
+@pytest.mark.sumo
 def test_placements_agree_on_the_paper_scenarios(road):
     """moveTo on lane coordinates gives the flags and trajectories of moveToXY: 10 paper
     scenarios of BC (it leaves its lane: the off-lane steps fall back to moveToXY) and blind
@@ -206,6 +211,7 @@ def test_copies_are_renamed_and_side_by_side(road, tmp_path):
                                                                        3000.0)
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("placement", ["xy", "lane"])
 def test_batch_of_different_nets_equals_runs_on_each_net(road, placement):
     """Scenarios on curved500 and on straight (one repeated) in one simulation: each copy of

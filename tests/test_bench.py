@@ -4,7 +4,12 @@ figure is measured and written."""
 import json
 import math
 
+import pytest
+
 from safeil_sumo.bench import main
+
+# every test here runs SUMO (tests/conftest.py: the sumo marker)
+pytestmark = pytest.mark.sumo
 
 
 def test_bench_quick_runs_and_writes_every_figure(tmp_path):

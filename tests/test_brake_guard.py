@@ -201,6 +201,7 @@ GENTLE_BRAKING = ScenarioSpec(
     brake_to_mps=0.0, ego_speed_mps=30.0, master_seed=572)
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("policy", ["safeil", "idm"])
 def test_guard_prevents_the_avoidable_collision(policy):
     """Falsification's case (docs/falsification.md): a leader 27.6 m ahead at 22.7 m/s brakes
@@ -221,6 +222,7 @@ def test_guard_prevents_the_avoidable_collision(policy):
         assert off["flag"] == "ttc" and off["min_ttc_s"] < 1.0
 
 
+@pytest.mark.sumo
 def test_guard_brakes_as_hard_as_the_car_can():
     """Falsification's worst case with the guard at the tracker's 8 m/s^2 limit: a leader
     24.8 m ahead at 15.8 m/s braking at 7.8 m/s^2 to a stop, the ego at 30 m/s, radar noise
@@ -237,6 +239,7 @@ def test_guard_brakes_as_hard_as_the_car_can():
     assert on["status"] == "ok" and on["end_reason"] != "collision" and on["min_gap_m"] > 0.0
 
 
+@pytest.mark.sumo
 def test_guard_is_logged_and_off_means_the_papers_loop():
     from safeil_sumo import planner_registry
     from safeil_sumo.experiments.sweep_executor import _task_parts
@@ -253,6 +256,7 @@ def test_guard_is_logged_and_off_means_the_papers_loop():
     assert off["guard_decel"].isna().all()
 
 
+@pytest.mark.sumo
 def test_guard_stays_out_of_ordinary_following(curved500):
     """The paper's safety test (leader at a constant 25-32 m/s): the guard never acts, so the
     runs are the planner's own (same logs as without it)."""

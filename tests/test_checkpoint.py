@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from test_learn import make_tuples
+from fixtures_training import make_tuples
 
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import (

@@ -174,10 +174,16 @@ def test_command_name_of_a_console_script(monkeypatch) -> None:
     ("run", ["--scenarios", "0"], "--scenarios must be >= 1"),
     ("run", ["--plan-rate-hz", "200"], "plan rate must be in (0, 100] Hz"),
     ("run", ["--ego-speed-mps", "nan"], "argument --ego-speed-mps: must be a finite number"),
-    ("sweep", ["--workers", "0"], "--workers must be >= 1"),
+    # positive_int: one type for every count of workers or batch size, one message
+    ("sweep", ["--workers", "0"], "argument --workers: must be >= 1, got 0"),
+    ("sweep", ["--batch", "0"], "argument --batch: must be >= 1, got 0"),
+    ("replay", ["--workers", "0"], "argument --workers: must be >= 1, got 0"),
+    ("replay", ["--batch", "-3"], "argument --batch: must be >= 1, got -3"),
+    ("replay", ["--stride-s", "0"], "--stride-s must be > 0 s"),
     ("sweep", ["--bogus"], "unrecognized arguments: --bogus"),
     ("replay", ["--rate-hz", "0"], "--rate-hz and --plan-rate-hz must be in (0, 100] Hz"),
-    ("gap_probe", ["--workers", "0"], "--workers must be >= 1"),
+    ("gap_probe", ["--workers", "0"], "argument --workers: must be >= 1, got 0"),
+    ("gap_probe", ["--workers", "two"], "argument --workers: not an integer: 'two'"),
     ("falsify", ["--budget-sims", "0"], "budget and batch must be >= 1"),
     ("animate", ["runs/x", "--fps", "0"], "--fps must be > 0"),
     ("results", ["--workers", "0"], "--workers, --large and --grid must be >= 1"),
@@ -188,6 +194,14 @@ def test_a_validation_error_is_one_line_without_usage(command, argv, message, ca
     assert err.count("\n") == 1, err
     assert err.startswith(f"python -m safeil_sumo.{command}: error: ") and message in err
     assert "usage:" not in err
+
+
+def test_positive_int_by_hand() -> None:
+    assert cli_args.positive_int("1") == 1 and cli_args.positive_int(" 12 ") == 12
+    for text, message in (("0", "must be >= 1, got 0"), ("-1", "must be >= 1, got -1"),
+                          ("1.5", "not an integer: '1.5'"), ("", "not an integer: ''")):
+        with pytest.raises(argparse.ArgumentTypeError, match=re.escape(message)):
+            cli_args.positive_int(text)
 
 
 def test_help_still_prints_the_usage(capsys) -> None:
@@ -275,6 +289,7 @@ def _libsumo_loaded(pid: int) -> bool:
         return False
 
 
+@pytest.mark.sumo
 def test_ctrl_c_in_a_running_scenario_is_one_line_and_130(tmp_path) -> None:
     """A real ``run`` sent SIGINT while SUMO runs its scenarios (libsumo loaded: the first
     scenario has started; 100 of them last far longer than the wait)."""

@@ -16,6 +16,9 @@ from safeil_sumo.sim.leaders import constant
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
 
+# every test here runs SUMO (tests/conftest.py: the sumo marker)
+pytestmark = pytest.mark.sumo
+
 
 def circle_fit(points: np.ndarray) -> tuple[np.ndarray, float]:
     """Algebraic least-squares circle: centre (2,), radius."""

@@ -207,7 +207,7 @@ def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
     import json
     from pathlib import Path
 
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     from safeil_sumo.learn.checkpoint import held_out_maneuvers, save_checkpoint
     from safeil_sumo.learn.model import PlannerMLP
@@ -289,7 +289,7 @@ def _tiny_finetune_setup(tmp_path):
     """A tiny initial checkpoint and tuples (tmp_path); the fine-tune arguments and script."""
     from pathlib import Path
 
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     from safeil_sumo.learn.checkpoint import save_checkpoint
     from safeil_sumo.learn.model import PlannerMLP

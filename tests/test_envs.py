@@ -37,6 +37,7 @@ def _plan(policy, features: np.ndarray) -> np.ndarray:
     return np.asarray(policy.plan(np.atleast_2d(features)), float).reshape(-1, 6)
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("env_id", list(envs.IDS))
 def test_check_env_passes_for_every_id(env_id):
     if env_id in envs.DATA_IDS and not HAS_DATA:
@@ -76,6 +77,7 @@ def _episode(env, seed, actions):
     return np.array(out), np.array(rewards), env.unwrapped.rollout().log
 
 
+@pytest.mark.sumo
 def test_reset_with_a_seed_gives_the_same_episode():
     """Twice in one process: the same index, observations, rewards and SUMO state (the leader
     read back from SUMO, in the log); another seed another episode."""
@@ -98,6 +100,7 @@ def test_reset_with_a_seed_gives_the_same_episode():
         env.close()
 
 
+@pytest.mark.sumo
 def test_brake_guard_option():
     """The loop's brake guard is on by default under plan actions and ``brake_guard=False``
     turns it off: a plan that ignores a braking leader is braked by the guard only."""
@@ -123,6 +126,7 @@ def test_brake_guard_option():
     assert logs[True]["gap"].min() > logs[False]["gap"].min()
 
 
+@pytest.mark.sumo
 def test_safeil_through_the_env_reproduces_run():
     """The shipped safeil planning from info["features"] gives run's flags and path."""
     policy = planner_registry.load("safeil")
@@ -148,6 +152,7 @@ def test_safeil_through_the_env_reproduces_run():
         env.close()
 
 
+@pytest.mark.sumo
 def test_a_coarser_physics_step_drives_the_same_episodes():
     """step_s=0.1 (one physics step per 10 Hz decision, the env's speed lever): the shipped
     safeil completes the same curved500 scenarios without a flag, its closest approach within
@@ -178,6 +183,7 @@ def test_a_coarser_physics_step_drives_the_same_episodes():
         assert coarse["steps"] * 10 == pytest.approx(fine["steps"], rel=0.01)
 
 
+@pytest.mark.sumo
 def test_vector_env_gives_the_single_envs_trajectories():
     """make_vec(vector_entry_point): sub-env i with seed s + i, through an autoreset, steps as a
     single env reset with seed s + i then reset again (to 1e-9: the single env runs on floats,
@@ -229,6 +235,7 @@ def test_vector_env_gives_the_single_envs_trajectories():
         env.close()
 
 
+@pytest.mark.sumo
 def test_traci_envs_run_side_by_side_in_one_process():
     """Gymnasium's SyncVectorEnv of traci envs (a SUMO process each, one Python process): the
     sub-envs do not close each other (libsumo's would) and step as the native vector env does
@@ -258,6 +265,7 @@ def test_traci_envs_run_side_by_side_in_one_process():
     _wait_gone(sumo)
 
 
+@pytest.mark.sumo
 def test_control_level_brakes():
     env = gym.make(CURVED, action_level="control", max_time_s=3.0)
     try:
@@ -273,6 +281,7 @@ def test_control_level_brakes():
         env.close()
 
 
+@pytest.mark.sumo
 def test_bad_input_fails_clearly():
     with pytest.raises(gym.error.Error):
         gym.make("safeil_sumo/NoSuchTask-v0")
@@ -317,6 +326,7 @@ def test_bad_input_fails_clearly():
         strict.close()
 
 
+@pytest.mark.sumo
 def test_render_rgb_array():
     env = gym.make(CURVED, render_mode="rgb_array", max_time_s=1.0)
     try:
@@ -340,6 +350,7 @@ def _sumo_running() -> bool:
     return True
 
 
+@pytest.mark.sumo
 def test_close_ends_sumo_and_a_second_env_takes_it_over():
     a, b = envs.SafeILEnv(max_time_s=2.0), envs.SafeILEnv(max_time_s=2.0)
     try:
@@ -366,6 +377,7 @@ def _descendants() -> list:
             and p.status() != psutil.STATUS_ZOMBIE]
 
 
+@pytest.mark.sumo
 def test_a_killed_worker_leaves_nothing_behind():
     """Async (a libsumo per worker process): kill a worker, the next step fails (no hang),
     close leaves no process. A native vector env on traci in a child process: kill the child,
@@ -449,6 +461,7 @@ def _drive(env, seed, policy, steps):
     return np.array(out), np.array(rewards), np.array(gaps)
 
 
+@pytest.mark.sumo
 def test_n74_traffic_is_seeded_and_single_only():
     """N74Traffic-v0 (real libsumo, SUMO's traffic leads): reset(seed=s) twice in one process
     gives the same observations, rewards and leaders; another seed other traffic. The native
@@ -483,6 +496,7 @@ def _need_openacc():
     require_file(OPENACC_DIR / "JRC-VC_280219_part3.csv.gz")
 
 
+@pytest.mark.sumo
 def test_replay_is_seeded_and_rewards_closeness_to_the_human():
     """Replay-v0 with radar noise (the index is the replay's seed): the same seed the same
     episode twice, another seed another; the default reward is -0.01 x the squared error of
@@ -524,6 +538,7 @@ def test_replay_is_seeded_and_rewards_closeness_to_the_human():
         gym.make(REPLAY, net="curved500")
 
 
+@pytest.mark.sumo
 def test_safeil_through_the_replay_env_reproduces_the_replay_cli(tmp_path, capsys):
     """The shipped safeil driven through Replay-v0 (defaults: OpenACC's paper-like window,
     JRC-VC_280219_part3_f4#1 from 72 s, held out of safeil's training) gives the replay CLI's

@@ -243,6 +243,7 @@ def test_a_failing_section_is_an_error_line_not_the_end(tmp_path, monkeypatch, c
     assert report["overall"] == "INCOMPLETE"
 
 
+@pytest.mark.sumo
 @pytest.mark.skipif(not (DEFAULT_DATA_DIR / NGSIM_FILE).is_file(), reason="no NGSIM data")
 def test_evaluate_idm_end_to_end_in_libsumo(tmp_path: Path) -> None:
     """A real run of every section on a test-sized budget: the quick budgets with a 3-scenario

@@ -504,6 +504,7 @@ def test_every_outcome_field_round_trips_and_the_table_says_what_ran(tmp_path) -
 # ----------------------------------------------------------------------- real libsumo
 
 
+@pytest.mark.sumo
 def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
     """A tiny CEM search of the analytic planner in SUMO, twice: the same scenarios and
     outcomes; its worst case is written as a spec and a sweep file; a rerun reads it back."""

@@ -516,6 +516,7 @@ def test_table_columns_and_edges_by_hand() -> None:
 # ------------------------------------------------------------------------ real closed loops
 
 
+@pytest.mark.sumo
 def test_idm_step_response_in_libsumo() -> None:
     # the ego starts 10 m closer than a 1 s time gap allows (5 m at 15 m/s) behind a leader at
     # 15 m/s; the calibrated IDM must open the gap to its own equilibrium (s0 + v T) /
@@ -539,6 +540,7 @@ def test_idm_step_response_in_libsumo() -> None:
     assert len(r["series_t"]) == 60 and r["series_t"][-1] == pytest.approx(30.0)
 
 
+@pytest.mark.sumo
 def test_cli_writes_the_results(tmp_path, capsys) -> None:
     out = tmp_path / "probe"
     code = main(["--policy", "analytic", "--speeds-mps", "25", "--kinds", "close",
@@ -572,7 +574,7 @@ def test_cli_bad_input_one_line(tmp_path, capsys, args, message) -> None:
 
 
 def test_human_bands_from_the_real_data() -> None:
-    from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, SHARED, require_file
+    from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, SHARED, require_file
 
     require_file(NGSIM_PAIRS)
     require_file(OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")
@@ -585,6 +587,7 @@ def test_human_bands_from_the_real_data() -> None:
     assert bands.loc[15.0, "drivers"] >= 10 and bands.loc[35.0, "drivers"] == 4
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("kind", ["far", "pull_away"])
 def test_shipped_safeil_regulates_the_gap_at_25_mps(kind):
     """Real libsumo, the shipped default at its default time-gap setting (docs/human_likeness.md:

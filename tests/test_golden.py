@@ -9,8 +9,8 @@ with a stored reference, ``tests/golden/<name>.npz``:
   bit-identical across CPUs (SIMD code paths: AVX-512 vs AVX2) nor across numpy / OpenBLAS
   releases. Measured: the same logs on this project's AVX-512 machine and with numpy's AVX-512
   groups and OpenBLAS's AVX-512 kernels switched off differ by at most 3e-13 (ttc) and 6e-14 m
-  (positions); the tolerances below (1e-6 m, 1e-6 m/s, ...) leave six orders of margin and
-  still catch any change of the loop's behaviour.
+  (positions); the tolerances (tests/fixtures_golden.py: 1e-6 m, 1e-6 m/s, ...) leave six orders
+  of margin and still catch any change of the loop's behaviour.
 
 Bit-identity is what can be promised on ONE machine with one set of library versions:
 ``test_same_run_twice_is_bit_identical`` runs each scenario in this process and again in a new
@@ -23,7 +23,6 @@ largest difference. ``python tests/test_golden.py --write`` rewrites them;
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import subprocess
@@ -32,16 +31,14 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 from bad_policies import DriftLeft, blind_cruise
+from fixtures_golden import GOLDEN_COLUMNS, GOLDEN_DIR, compare_with_reference, log_hash
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.leaders import constant, piecewise
 from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
-
-GOLDEN_DIR = Path(__file__).parent / "golden"
 
 
 def _noisy_analytic(road):
@@ -91,38 +88,6 @@ EXPECTED_OUTCOME = {
     "free_road": (400, "timeout"),
 }
 
-# discrete columns: equal at every step
-FLAG_COLUMNS = ("lane_departure", "ttc_flag", "collision")
-# continuous columns and their absolute tolerance across machines (units in the comments);
-# a relative tolerance of 1e-9 is added for the large values (x ~ 1e3 m, ttc up to 1e3 s)
-CONTINUOUS_ATOL = {
-    "t": 1e-9,  # s
-    "x": 1e-6, "y": 1e-6, "front_x": 1e-6, "front_y": 1e-6,  # m
-    "yaw": 1e-8, "steer": 1e-8, "steer_cmd": 1e-8,  # rad
-    "yaw_rate": 1e-8,  # rad/s
-    "v": 1e-6, "vy": 1e-6,  # m/s
-    "accel_cmd": 1e-6,  # m/s^2
-    "s": 1e-6, "d": 1e-6, "d_min": 1e-6, "d_max": 1e-6,  # m
-    "c0l": 1e-6, "c0r": 1e-6,  # m
-    "c1l": 1e-8, "c1r": 1e-8,  # -
-    "c2l": 1e-10, "c2r": 1e-10,  # 1/m
-    "v_lead_sensed": 1e-6, "leader_v": 1e-6,  # m/s
-    "d_lead_sensed": 1e-6, "leader_x": 1e-6, "leader_y": 1e-6, "gap": 1e-6,  # m
-    "ttc": 1e-6,  # s
-    "path_fraction": 1e-9,  # -
-}
-GOLDEN_COLUMNS = tuple(CONTINUOUS_ATOL) + FLAG_COLUMNS
-
-
-def log_hash(log: pd.DataFrame) -> str:
-    """SHA-256 over each golden column's name and float64 bytes, in column order."""
-    h = hashlib.sha256()
-    for col in GOLDEN_COLUMNS:
-        h.update(col.encode())
-        h.update(np.ascontiguousarray(log[col].to_numpy(dtype=np.float64)).tobytes())
-    return h.hexdigest()
-
-
 def run_golden(name: str, road):
     sc, policy, loop = SCENARIOS[name](road)
     return run_scenario(sc, policy, loop)
@@ -138,32 +103,7 @@ def write_reference(name: str, result) -> Path:
     return path
 
 
-def compare_with_reference(log: pd.DataFrame, end_reason: str, ref) -> list[str]:
-    """Every difference between a log and a stored reference beyond the tolerances, as text."""
-    problems = []
-    if (int(ref["rows"]), str(ref["end_reason"])) != (len(log), end_reason):
-        want = (int(ref["rows"]), str(ref["end_reason"]))
-        return [f"outcome {(len(log), end_reason)} != reference {want}"]
-    for col in FLAG_COLUMNS:
-        got, want = log[col].to_numpy(dtype=np.float64), ref[col]
-        if not np.array_equal(got, want):
-            steps = np.flatnonzero(got != want)
-            problems.append(f"{col}: differs at {len(steps)} steps, first {steps[0]}")
-    for col, atol in CONTINUOUS_ATOL.items():
-        got, want = log[col].to_numpy(dtype=np.float64), ref[col]
-        if not np.array_equal(np.isfinite(got), np.isfinite(want)) or not np.array_equal(
-                got[~np.isfinite(got)], want[~np.isfinite(want)], equal_nan=True):
-            problems.append(f"{col}: non-finite values (inf/nan) at other steps")
-            continue
-        fin = np.isfinite(want)
-        err = np.abs(got[fin] - want[fin])
-        bad = err > atol + 1e-9 * np.abs(want[fin])
-        if bad.any():
-            problems.append(f"{col}: {int(bad.sum())} steps beyond {atol:g}, "
-                            f"largest difference {err.max():.3g}")
-    return problems
-
-
+@pytest.mark.sumo
 @pytest.mark.parametrize("name", list(SCENARIOS))
 def test_closed_loop_log_matches_reference(name, curved500):
     r = run_golden(name, curved500)
@@ -174,6 +114,7 @@ def test_closed_loop_log_matches_reference(name, curved500):
     assert not problems, "\n".join(problems)
 
 
+@pytest.mark.sumo
 def test_reference_comparison_catches_small_changes(curved500):
     """The comparison is not vacuous: a 1e-5 m shift of x, one flag step moved, or a changed
     end reason each fail it; round-off (1e-12) passes."""
@@ -198,6 +139,7 @@ def _hashes(road) -> dict[str, str]:
     return {name: log_hash(run_golden(name, road).log) for name in SCENARIOS}
 
 
+@pytest.mark.sumo
 def test_same_run_twice_is_bit_identical(curved500):
     """Determinism on one machine: the same scenarios in this process and in a fresh process
     give logs equal bit for bit (no state leaks between runs, no unseeded draw)."""

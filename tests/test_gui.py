@@ -19,9 +19,10 @@ from matplotlib import image
 
 from safeil_sumo.sim import sumo_api
 
-pytestmark = pytest.mark.skipif(
+# every test here runs SUMO (tests/conftest.py: the sumo marker)
+pytestmark = [pytest.mark.sumo, pytest.mark.skipif(
     shutil.which("Xvfb") is None,
-    reason="Xvfb is not installed (apt-get install xvfb; see the README's sumo-gui paragraph)")
+    reason="Xvfb is not installed (apt-get install xvfb; see the README's sumo-gui paragraph)")]
 
 TIMING = ["wall_time_s", "steps_per_s"]  # the only summary columns allowed to differ
 

@@ -119,6 +119,7 @@ def test_shipped_idm_loads() -> None:
     assert isinstance(planner, idm.IDMPlanner) and planner.name == "idm"
 
 
+@pytest.mark.sumo
 def test_idm_completes_curved500_in_libsumo() -> None:
     from safeil_sumo.scenarios.catalogue import resolve_net
     from safeil_sumo.scenarios.road import load_road

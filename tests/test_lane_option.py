@@ -94,6 +94,7 @@ def test_a_lane_that_appears_later_says_where_to_start(tmp_path, capsys):
     assert code == 2 and len(err) == 1 and "right or left" in err[0]
 
 
+@pytest.mark.sumo
 def test_run_and_sweep_drive_the_left_lane_of_n74(tmp_path, capsys):
     """Real libsumo: 300 m of n74 in the left main lane, by run and by sweep."""
     from safeil_sumo.run import main

@@ -81,6 +81,7 @@ def test_bad_lateral_mode_is_refused():
         LoopConfig(lateral="road")
 
 
+@pytest.mark.sumo
 def test_lane_mode_keeps_a_planner_that_leaves_the_bend_on_its_lane(bend):
     scenario = _scenario(bend)
     free = run_scenario(scenario, StraightAhead(), LoopConfig()).log
@@ -113,6 +114,7 @@ def test_lane_mode_keeps_a_planner_that_leaves_the_bend_on_its_lane(bend):
     assert lane["v"].iloc[-1] < 12.5
 
 
+@pytest.mark.sumo
 def test_lane_mode_in_a_batch_equals_one_scenario(bend):
     """The N > 1 loop (arrays) puts its egos on their lanes as the N = 1 loop does."""
     scenario = _scenario(bend)

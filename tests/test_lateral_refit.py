@@ -6,13 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from fixtures_training import towers_checkpoint
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safeil_sumo.learn.checkpoint import load_model, save_checkpoint
+from safeil_sumo.learn.checkpoint import load_model
 from safeil_sumo.learn.lateral_refit import LateralRefitConfig, lateral_targets, refit_lateral
-from safeil_sumo.learn.model import PlannerMLP, split_towers, with_style_input
-from safeil_sumo.learn.trainer import TrainConfig
 
 
 def _lane(c0l=1.75, c1=0.0, c2=0.0, c0r=-1.75) -> torch.Tensor:
@@ -64,33 +63,11 @@ def test_same_length_gives_the_reference_back(c, k, width, xs, ys):
     torch.testing.assert_close(y, ref[..., 1], atol=1e-8, rtol=0)
 
 
-def _towers_checkpoint(tmp_path):
-    from test_learn import make_tuples
-
-    tup = make_tuples(n_maneuvers=3, per_maneuver=40, curved=True)
-    data = tmp_path / "tuples.parquet"
-    tup.save(data)
-    torch.manual_seed(0)
-    dense = PlannerMLP(hidden=(16, 16), output_mode="residual")
-    dense.set_scaling(tup.features, tup.control_points)
-    with torch.no_grad():
-        for p in dense.net.parameters():
-            p.normal_(0.0, 0.3)
-    cfg = TrainConfig(envelope_weight=0.01, output_mode="residual", barrier_lateral="bernstein")
-    save_checkpoint(tmp_path / "ref", dense, name="safeil", horizon=5.0, train_config=cfg)
-    towers = split_towers(with_style_input(dense, 1.5, 0.5))
-    with torch.no_grad():  # a different plan length than the reference's
-        towers.net[-1].bias[[0, 2, 4]] += 0.5
-    save_checkpoint(tmp_path / "towers", towers, name="safeil", horizon=5.0, train_config=cfg,
-                    style_default={"time_gap_s": 1.5})
-    return data
-
-
 @pytest.mark.parametrize("straight, bends", [(False, 0.0), (True, 0.25)])
 def test_refit_moves_only_the_lateral_plan_towards_the_targets(tmp_path, straight, bends):
     from safeil_sumo.learn.lateral_refit import _straightened
 
-    data = _towers_checkpoint(tmp_path)
+    data = towers_checkpoint(tmp_path)
     config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
                                 straight_reference=straight, bend_share=bends,
                                 fresh_tower=False, bend_line_split=0.0)
@@ -132,7 +109,7 @@ def test_a_fresh_lateral_tower_starts_straight_keeps_x_and_is_scaled_to_its_stat
     from safeil_sumo.learn.lateral_refit import _fresh_lateral_tower
     from safeil_sumo.learn.towers import weight_across_towers
 
-    data = _towers_checkpoint(tmp_path)
+    data = towers_checkpoint(tmp_path)
     config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
                                 fresh_tower=True, bend_line_split=2.0,
                                 bend_heading_error=0.08, bend_lateral_accel=6.0)
@@ -175,7 +152,7 @@ def test_a_lane_mode_refit_keeps_x_follows_the_lane_at_start_and_fits(tmp_path):
     from safeil_sumo import bspline
     from safeil_sumo.data.tuples import Tuples
 
-    data = _towers_checkpoint(tmp_path)
+    data = towers_checkpoint(tmp_path)
     config = LateralRefitConfig(steps=200, batch=128, lr=1e-2, lane_weight=0.0,
                                 lateral_mode="lane", lane_clearance_m=0.05)
     out = refit_lateral(config, tmp_path / "towers.safetensors", tmp_path / "ref.safetensors",

@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from fixtures_training import make_tuples
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data.tuples import Tuples
@@ -29,7 +30,6 @@ from safeil_sumo.learn.trainer import (
     split_by_maneuver,
     train,
 )
-from tests.test_learn import make_tuples
 
 SMALL = TrainConfig(max_epochs=3, patience=3, batch_size=64)
 

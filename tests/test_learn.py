@@ -1,6 +1,6 @@
 """Learning: barrier loss (hand-computed), model, training determinism, BC vs SafeIL, evaluation.
 
-Also home of the synthetic-tuples fixture builder used by the checkpoint and filter tests.
+The synthetic tuples are tests/fixtures_training.py's ``make_tuples``.
 """
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from fixtures_training import make_tuples
 from scripts import load_training_script
 
 from safeil_sumo import bspline
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.features import planner_features
 from safeil_sumo.learn.losses import (
     BarrierConfig,
     barrier_terms,
@@ -33,62 +33,6 @@ from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 from safeil_sumo.safety_filter import SafeSet, plan_margins
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def make_tuples(
-    n_maneuvers: int = 10,
-    per_maneuver: int = 30,
-    horizon: float = 5.0,
-    rate_hz: float = 4.0,
-    seed: int = 0,
-    curved: bool = True,
-) -> Tuples:
-    """Synthetic car-following tuples: straight or curved lanes (|R| >= 600 m), a driver that
-    follows at a constant time gap (linear ACC law) and returns to the lane centre; the target
-    control points are least-squares fits of the future, as in the real pipeline."""
-    rng = np.random.default_rng(seed)
-    n_future = round(horizon * rate_hz)
-    times = np.arange(1, n_future + 1) / rate_hz
-    dt = 0.05
-    n_steps = round(horizon / dt)
-    step_of_sample = np.round(times / dt).astype(int)
-    feats, futures, ids, ts = [], [], [], []
-    for m in range(n_maneuvers):
-        width = rng.uniform(3.3, 3.8)
-        c2 = rng.uniform(-1 / 1200, 1 / 1200) if curved else 0.0
-        v_lead_m = rng.uniform(22.0, 32.0)
-        gap_time = rng.uniform(1.2, 2.0)  # [s] the driver's preferred time gap
-        for j in range(per_maneuver):
-            offset = rng.normal(0.0, 0.2)  # [m] ego left of lane centre
-            c1 = rng.normal(0.0, 0.004) if curved else 0.0
-            v = v_lead_m + rng.normal(0.0, 1.5)
-            v_lead = v_lead_m + rng.normal(0.0, 0.5)
-            d = max(gap_time * v + rng.normal(0.0, 4.0), 8.0)
-            left = np.array([width / 2 - offset, c1, c2])
-            right = np.array([-width / 2 - offset, c1, c2])
-            feats.append(planner_features(left, right, v, v_lead, d))
-            # longitudinal: constant-time-gap follower; lateral: exponential return to centre
-            x, vx, gap = 0.0, v, d
-            xs = np.empty(n_steps + 1)
-            xs[0] = 0.0
-            for k in range(n_steps):
-                a = np.clip(0.1 * (gap - gap_time * vx) + 0.4 * (v_lead - vx), -4.0, 2.0)
-                x += vx * dt + 0.5 * a * dt * dt
-                gap += (v_lead - vx) * dt - 0.5 * a * dt * dt
-                vx += a * dt
-                xs[k + 1] = x
-            fx = xs[step_of_sample]
-            fy = -offset + c1 * fx + c2 * fx**2 + offset * np.exp(-times / 2.0)
-            futures.append(np.stack([fx, fy], axis=-1))
-            ids.append(f"m{seed:02d}_{m:03d}")
-            ts.append(j / rate_hz)
-    future = np.asarray(futures)
-    cp = bspline.fit_control_points(future, times / horizon)
-    n = len(feats)
-    return Tuples(
-        np.asarray(feats), cp, future, np.asarray(ids), np.full(n, "synthetic"),
-        np.asarray(ts), horizon, rate_hz,
-    )
 
 
 @pytest.fixture(scope="module")

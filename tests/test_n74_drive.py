@@ -33,6 +33,7 @@ def test_stretch_outside_the_road_is_refused_in_one_line(lo, hi, message):
         n74.stretch_road(lo, hi)
 
 
+@pytest.mark.sumo
 def test_run_n74_drives_three_km_without_flags(tmp_path, capsys):
     out = tmp_path / "res"
     code = main(["--net", "n74", "--from-km", "0", "--to-km", "3", "--policy", "analytic",
@@ -68,6 +69,7 @@ def _traffic_drive(seed: int = 0):
     return sc, api.run_scenarios([sc], "analytic")
 
 
+@pytest.mark.sumo
 def test_traffic_leaders_change_and_the_gap_stays_consistent():
     """Real libsumo: dense n74 traffic across the merge of ramp 1; the leader is SUMO's."""
     sc, result = _traffic_drive()
@@ -90,6 +92,7 @@ def test_traffic_leaders_change_and_the_gap_stays_consistent():
     assert s["collision_events"] == 0 and s["collision_per_100km"] == 0.0
 
 
+@pytest.mark.sumo
 def test_traffic_is_seeded():
     a = _traffic_drive(3)[1].log
     b = _traffic_drive(3)[1].log
@@ -102,6 +105,7 @@ def test_traffic_needs_n74(tmp_path, capsys):
     assert exc.value.code == 2 and "--traffic needs --net n74" in capsys.readouterr().err
 
 
+@pytest.mark.sumo
 def test_sweep_over_n74_stretches(tmp_path, capsys):
     """Sweeps take the same stretch and traffic options as run; their tasks drive the stretch."""
     from safeil_sumo.sweep import main as sweep_main

@@ -279,6 +279,7 @@ def test_drive_specs_share_seeds_across_planners():
                          (2, 3.0, 4.0, "default"), (3, 3.0, 4.0, "default")]
 
 
+@pytest.mark.sumo
 def test_drive_task_keeps_time_gaps_and_flags_of_a_traffic_drive():
     """Real libsumo: half a kilometre among dense traffic, the sweep's task record."""
     spec = nd.drive_specs(("analytic",), 0, ((4.0, 4.5),), 1, traffic="dense")[0]
@@ -292,6 +293,7 @@ def test_drive_task_keeps_time_gaps_and_flags_of_a_traffic_drive():
     json.dumps(record)  # a task file
 
 
+@pytest.mark.sumo
 def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
     """``--only n74 --quick`` adds its section to results/ without dropping the others'."""
     from safeil_sumo import results
@@ -337,6 +339,7 @@ def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
         assert (out / name).stat().st_size > 0
 
 
+@pytest.mark.sumo
 def test_run_on_n74_writes_the_flag_map(tmp_path, capsys):
     """Real libsumo: ``run --net n74`` puts flag_map.png beside its other plots."""
     from safeil_sumo.run import main

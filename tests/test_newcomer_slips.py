@@ -27,6 +27,7 @@ def test_every_env_id_in_the_docs_is_registered(doc: str) -> None:
     assert not missing, f"{doc} names ids gym.make does not know: {missing}"
 
 
+@pytest.mark.sumo
 def test_check_env_on_a_headless_machine(monkeypatch) -> None:
     """Without a display, Gymnasium's full check (render modes included) passes without
     starting sumo-gui, and render_mode="human" says why it cannot be."""
@@ -45,6 +46,7 @@ def test_check_env_on_a_headless_machine(monkeypatch) -> None:
         gym.make("safeil_sumo/Curved500-v0", render_mode="human")
 
 
+@pytest.mark.sumo
 def test_a_run_that_uses_up_its_recording_is_completed(tmp_path, capsys) -> None:
     """A real libsumo run behind a 25 s recorded leader, no time limit asked: it ends where the
     recording ends (``recording_end``), without a flag: completed."""
@@ -67,6 +69,7 @@ def test_a_run_that_uses_up_its_recording_is_completed(tmp_path, capsys) -> None
     assert "1/1 scenarios completed" in capsys.readouterr().out
 
 
+@pytest.mark.sumo
 def test_a_shorter_time_limit_is_still_a_timeout(tmp_path) -> None:
     """Asked for less than the recording: the time limit ends it, as before."""
     pytest.importorskip("libsumo")
@@ -83,6 +86,7 @@ def test_a_shorter_time_limit_is_still_a_timeout(tmp_path) -> None:
     assert result.summary["completed"].tolist() == [False]
 
 
+@pytest.mark.sumo
 def test_api_sweep_takes_policy_like_the_cli(tmp_path) -> None:
     pytest.importorskip("libsumo")
     from safeil_sumo import api

@@ -56,6 +56,7 @@ def test_the_readme_has_python_blocks() -> None:
     assert len(lines) >= 2 and api_example_line() in lines
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("line", [line for line, _ in python_blocks()],
                          ids=lambda line: f"README.md:{line}")
 def test_a_readme_python_block_runs(line: int, capsys) -> None:
@@ -64,7 +65,7 @@ def test_a_readme_python_block_runs(line: int, capsys) -> None:
     code = dict(python_blocks())[line]
     pytest.importorskip("libsumo")  # every block runs the closed loop
     if 'leader_profile="ngsim"' in code:
-        from tests.fixtures_data import NGSIM_PAIRS, require_file
+        from fixtures_data import NGSIM_PAIRS, require_file
 
         require_file(NGSIM_PAIRS)
     namespace: dict = {"__name__": f"readme_block_{line}"}

@@ -195,6 +195,7 @@ def _assert_holds(res: rp.ReplayResult, gap_rmse_m: float) -> pd.Series:
     return row
 
 
+@pytest.mark.sumo
 def test_recorded_replays_fixtures_of_every_source(tmp_path):
     openacc = tmp_path / "JRC-FIX_010119_part1.csv"
     openacc.write_text(openacc_text(n=300))
@@ -211,6 +212,7 @@ def test_recorded_replays_fixtures_of_every_source(tmp_path):
         assert row["max_gap"] < 0.05, name
 
 
+@pytest.mark.sumo
 def test_recorded_replays_a_long_curved_drive_whole(tmp_path):
     """240 s, 7 km: a tight curve whose lane curvature the importer clips, an S-bend and a long
     curve, GNSS noise and speed sensors 0.5 % high."""

@@ -274,6 +274,7 @@ def test_road_of_a_standing_start_starts_where_the_car_moves():
 # ------------------------------------------------------------------------ libsumo replays
 
 
+@pytest.mark.sumo
 def test_a_closed_course_in_laps_keeps_its_whole_road(tmp_path):
     """Two laps of a stadium course: the road passes its start (and the run-out its run-in)
     again. netconvert kept 329 m of the 1,235 m road before the node shapes; the recorded
@@ -319,6 +320,7 @@ def _window(drive: pd.DataFrame, recording: str, start_s: float, duration_s: flo
     raise AssertionError(f"no maneuver of {recording} at {start_s} s")
 
 
+@pytest.mark.sumo
 def test_vicolungo_without_the_unused_columns_replays_like_the_full_file(tmp_path):
     """Follower 3 and its leader 2 without ``Alt/U/VE/VN/VU`` (as some campaigns' files): the
     same drive, and the human's path over 20-30 s replays without a flag, within 6 cm of the
@@ -335,6 +337,7 @@ def test_vicolungo_without_the_unused_columns_replays_like_the_full_file(tmp_pat
     assert rows["cut"]["rmse_gap"] < 0.2
 
 
+@pytest.mark.sumo
 def test_a_heading_jump_at_a_maneuvers_start_is_not_a_departure(tmp_path):
     """The GNSS heading jumps by 0.4 rad on the first 3 samples of a window (a receiver
     reacquiring): the recorded human still replays without a flag (the replay takes its
@@ -345,6 +348,7 @@ def test_a_heading_jump_at_a_maneuvers_start_is_not_a_departure(tmp_path):
     _assert_holds(_replay_recorded(rows, tmp_path, mid), rebuild_m=0.06)
 
 
+@pytest.mark.sumo
 def test_a_position_jump_at_a_maneuvers_start_and_missing_samples(tmp_path):
     """In a file without ``Alt/U/VE/VN/VU`` for follower 3 and its leader, the first 3
     positions of a 20-30 s window lie 1 m to the side (a receiver reacquiring) and 3 samples
@@ -361,6 +365,7 @@ def test_a_position_jump_at_a_maneuvers_start_and_missing_samples(tmp_path):
     _assert_holds(_replay_recorded(rows, tmp_path / "replay", mid), rebuild_m=0.15)
 
 
+@pytest.mark.sumo
 def test_a_zalazone_maneuver_in_laps_replays_whole(tmp_path):
     """``handling_part22_f3#0``: 320 s, four laps of the handling course from a standstill
     start. Before: netconvert cut the road to 308 m of 3,992 m, the recorded human ended off

@@ -166,7 +166,7 @@ def test_importers_and_tuples_reject_bad_files(kind, reader, tmp_path):
 
 
 def _tuples_file(tmp: Path) -> Path:
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     make_tuples().save(tmp / "t.parquet")
     return tmp / "t.parquet"
@@ -532,6 +532,7 @@ def _run_with_fault(action, at_step=100):
                         api_factory=lambda args: FaultyLibsumo(args, at_step, action))
 
 
+@pytest.mark.sumo
 def test_sumo_exception_mid_run_is_recorded_and_log_kept():
     r = _run_with_fault(_boom)
     assert r.summary["end_reason"] == "error"
@@ -539,12 +540,14 @@ def test_sumo_exception_mid_run_is_recorded_and_log_kept():
     assert len(r.log) == 98 and np.isfinite(r.log["x"]).all()  # the first step is the setup's
 
 
+@pytest.mark.sumo
 def test_ego_removed_mid_run_is_an_error_with_the_log_kept():
     r = _run_with_fault(lambda api: api.vehicle.remove(EGO_ID))
     assert r.summary["end_reason"] == "error" and "'ego' is not known" in r.summary["error"]
     assert len(r.log) == 99
 
 
+@pytest.mark.sumo
 def test_leader_removed_mid_run_continues_as_free_road():
     r = _run_with_fault(lambda api: api.vehicle.remove(LEADER_ID))
     assert r.summary["end_reason"] == "timeout" and r.summary["error"] == ""
@@ -572,6 +575,7 @@ def _task_files(out: Path) -> dict[str, str]:
     return {p.name: p.read_text() for p in (out / "tasks").glob("*.json")}
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize(("workers", "batch"), [("1", "1"), ("2", "1"), ("2", "3")])
 def test_sigint_keeps_finished_results_and_rerun_completes_the_rest(workers, batch, tmp_path):
     """Batched (3 per simulation), a batch's records are saved when it ends."""
@@ -632,7 +636,7 @@ def _assert_untouched(folder: Path, before: dict[str, bytes]) -> None:
 
 
 def test_crash_mid_write_leaves_old_files_intact(tmp_path, monkeypatch):
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     import safeil_sumo.data.schema as schema_mod
     import safeil_sumo.data.tuples as tuples_mod
@@ -686,6 +690,7 @@ def test_crash_mid_write_leaves_old_files_intact(tmp_path, monkeypatch):
     load_checkpoint(tmp_path / "ck")  # still the old, consistent pair
 
 
+@pytest.mark.sumo
 def test_crash_while_writing_sweep_summary_keeps_task_files(tmp_path, monkeypatch):
     specs = [ScenarioSpec(net="straight", policy="analytic", max_time_s=1.0, index=i)
              for i in range(2)]
@@ -700,6 +705,7 @@ def test_crash_while_writing_sweep_summary_keeps_task_files(tmp_path, monkeypatc
     assert _task_files(tmp_path) == tasks
 
 
+@pytest.mark.sumo
 def test_failed_run_leaves_no_results_folder(tmp_path, monkeypatch, capsys):
     """A crash while assembling a run's folder (here: the plots) leaves nothing behind."""
     from safeil_sumo import run as run_cli
@@ -717,6 +723,7 @@ def test_failed_run_leaves_no_results_folder(tmp_path, monkeypatch, capsys):
 
 # -- determinism ---------------------------------------------------------------------------------
 
+@pytest.mark.sumo
 def test_run_cli_twice_gives_identical_steps_and_summary(tmp_path, capsys):
     from safeil_sumo.run import main
 
@@ -766,6 +773,7 @@ def test_names_from_config_cannot_leave_the_results_folder(name, tmp_path):
     assert re.fullmatch(r"[A-Za-z0-9_-]+", stem)
 
 
+@pytest.mark.sumo
 def test_run_default_folder_name_cannot_escape(tmp_path, monkeypatch, capsys):
     """A checkpoint's name (from its sidecar) becomes part of the default results folder."""
     from safeil_sumo import run as run_cli
@@ -783,6 +791,7 @@ def test_run_default_folder_name_cannot_escape(tmp_path, monkeypatch, capsys):
         ["a", "b", "c", "runs", made[0]])
 
 
+@pytest.mark.sumo
 def test_sweep_without_scheduler_makes_no_network_connection(tmp_path):
     """No default remote address: without --scheduler dask is not imported and no socket
     connects (sockets are patched to record any attempt)."""

@@ -9,39 +9,16 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
+from fixtures_data import ARC_HALF as HALF
+from fixtures_data import ARC_OFFSET as OFFSET
+from fixtures_data import ARC_R as R
+from fixtures_data import ARC_V as V
+from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, arc_drive, require_file
 
 from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.data.schema import save_drive, validate_drive
+from safeil_sumo.data.schema import save_drive
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.scenarios import recorded_road as rr
-from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
-
-R = 800.0  # [m] lane-centre radius of the synthetic recording
-V = 30.0  # [m/s]
-HALF = 1.75  # [m] half lane width
-OFFSET = 0.2  # [m] the human drives this far LEFT of the lane centre (inside of the left turn)
-
-
-def arc_drive(duration: float = 15.0, hz: float = 10.0, heading0: float = 0.6,
-              origin: tuple[float, float] = (5.0e5, 4.9e6)) -> pd.DataFrame:
-    """A schema drive on a left arc of radius R (lane centre), human OFFSET left of it, leader at
-    constant speed 50 m ahead (the analytic planner's 1.5 s + 5 m); world frame rotated by ``heading0`` and far from the origin."""
-    t = np.arange(0.0, duration + 1e-9, 1.0 / hz)
-    r = R - OFFSET
-    th = V * t / r
-    cx, cy = r * np.sin(th), R - r * np.cos(th)  # circle centre at (0, R)
-    c, s = math.cos(heading0), math.sin(heading0)
-    x = origin[0] + c * cx - s * cy
-    y = origin[1] + s * cx + c * cy
-    k = 1.0 / R
-    return validate_drive(pd.DataFrame({
-        "recording_id": "arc", "time": t, "x": x, "y": y,
-        "yaw": (th + heading0 + math.pi) % (2 * math.pi) - math.pi, "v_x": V,
-        "left_c0": HALF - OFFSET, "left_c1": 0.0, "left_c2": 0.5 * k, "left_c3": 0.0,
-        "right_c0": -HALF - OFFSET, "right_c1": 0.0, "right_c2": 0.5 * k, "right_c3": 0.0,
-        "lead_x": 50.0, "lead_y": 0.0, "lead_v": V, "maneuver_id": "arc#0",
-    }))
-
 
 # ------------------------------------------------------------------------------ pure geometry
 
@@ -169,6 +146,7 @@ def _check_result(res: rp.ReplayResult, folder) -> pd.Series:
     return row
 
 
+@pytest.mark.sumo
 def test_replay_synthetic_arc_end_to_end(tmp_path):
     res = rp.replay_maneuver(arc_drive(), {"analytic": AnalyticPlanner()}, tmp_path)
     row = _check_result(res, tmp_path)
@@ -185,6 +163,7 @@ def test_replay_synthetic_arc_end_to_end(tmp_path):
     assert res.human["d"].iloc[0] == pytest.approx(OFFSET, abs=0.06)
 
 
+@pytest.mark.sumo
 def test_replay_openacc_maneuver_with_analytic(tmp_path):
     from safeil_sumo.data.importers import import_openacc
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
@@ -205,6 +184,7 @@ def test_replay_openacc_maneuver_with_analytic(tmp_path):
     assert row["rmse_d"] < 0.2
 
 
+@pytest.mark.sumo
 def test_replay_ngsim_maneuver_with_analytic(tmp_path):
     from safeil_sumo.data.importers import import_ngsim_pairs
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
@@ -227,6 +207,7 @@ def test_replay_ngsim_maneuver_with_analytic(tmp_path):
 # ------------------------------------------------------------------------------------- CLI
 
 
+@pytest.mark.sumo
 def test_cli_on_a_drive_file(tmp_path, capsys):
     from safeil_sumo import replay as cli
 
@@ -352,6 +333,7 @@ def test_replay_aggregate_by_hand() -> None:
     assert (q["speed_rmse_median_mps"], q["time_gap_w1_median_s"]) == pytest.approx((0.5, 0.6))
 
 
+@pytest.mark.sumo
 def test_cli_replays_all_windows_aggregates_and_resumes(tmp_path, capsys):
     from safeil_sumo import replay as cli
 
@@ -402,6 +384,7 @@ def test_aggregate_counts_each_collision_window_once():
     assert row["flags"] == 3 and row["windows"] == 3
 
 
+@pytest.mark.sumo
 def test_duration_caps_whole_maneuver_replays(tmp_path, capsys):
     from safeil_sumo import replay as cli
     from safeil_sumo.experiments import window_replays as ra

@@ -15,7 +15,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
-from test_replay import arc_drive
+from fixtures_data import arc_drive
 
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.experiments.sweep_executor import even_units
@@ -50,6 +50,7 @@ def _same(a, b, where: str = "") -> None:
         assert a == b, where
 
 
+@pytest.mark.sumo
 def test_batched_windows_give_the_records_of_one_simulation_per_run(tmp_path):
     maneuvers = _maneuvers()
     wins = ra.windows(maneuvers, "sliding", duration_s=10.0, stride_s=5.0)

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pandas as pd
 import pytest
-from test_replay import arc_drive
+from fixtures_data import arc_drive
 
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.schema import validate_drive
@@ -156,6 +156,7 @@ def braking_drive(duration: float = 12.0, v0: float = 30.0, v1: float = 10.0,
     }))
 
 
+@pytest.mark.sumo
 def test_constant_speed_runs_into_a_braking_leader_and_the_collision_is_recorded(tmp_path):
     pytest.importorskip("libsumo")
     res = rp.replay_maneuver(braking_drive(), {"constant_speed": ConstantSpeedPath()}, tmp_path)
@@ -179,6 +180,7 @@ def test_constant_speed_runs_into_a_braking_leader_and_the_collision_is_recorded
         math.sqrt(np.mean(((expected - 20.0) / 20.0) ** 2)), abs=0.005)
 
 
+@pytest.mark.sumo
 def test_whole_replays_with_constant_speed_aggregate_per_policy_and_driver(tmp_path):
     pytest.importorskip("libsumo")
     maneuvers = pd.concat([braking_drive(), arc_drive(15.0).assign(maneuver_id="arc#0")],

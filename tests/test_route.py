@@ -190,6 +190,7 @@ def _run(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
     return scenario.road, run_scenario(scenario, AnalyticPlanner())
 
 
+@pytest.mark.sumo
 def test_a_batch_drives_the_route_to_its_end_like_run_scenario(two_edge_net) -> None:
     """Across the junction and up to the route's end, where SUMO would let an ego that its
     own step carries past the end arrive: both loops place it with moveToXY there."""
@@ -204,6 +205,7 @@ def test_a_batch_drives_the_route_to_its_end_like_run_scenario(two_edge_net) -> 
         np.testing.assert_allclose(batch.log[col], scalar.log[col], rtol=0, atol=1e-6)
 
 
+@pytest.mark.sumo
 def test_the_analytic_planner_drives_across_the_junction(two_edge_net) -> None:
     road, rollout = _run(two_edge_net, lane=1)
     log, summary = rollout.log, rollout.summary
@@ -223,6 +225,7 @@ def test_the_analytic_planner_drives_across_the_junction(two_edge_net) -> None:
     np.testing.assert_allclose(after["d_lead_sensed"], after["gap"], atol=1.0)
 
 
+@pytest.mark.sumo
 def test_the_leader_keeps_its_speed_on_scaled_lanes(two_edge_net) -> None:
     """On the outer lane of the curve SUMO's positions are scaled (lanes share the edge's
     length); the runner scales the leader's speed per SUMO lane, so its true speed stays the
@@ -239,6 +242,7 @@ def test_the_leader_keeps_its_speed_on_scaled_lanes(two_edge_net) -> None:
     assert np.abs(drift).max() < 0.05
 
 
+@pytest.mark.sumo
 def test_a_leader_beyond_the_first_edge_departs_on_the_next(two_edge_net) -> None:
     _, rollout = _run(two_edge_net, lane=1, gap=350.0)
     log = rollout.log
@@ -247,6 +251,7 @@ def test_a_leader_beyond_the_first_edge_departs_on_the_next(two_edge_net) -> Non
     assert log["leader_x"].iloc[0] > STRAIGHT_M
 
 
+@pytest.mark.sumo
 def test_run_cli_with_a_route(two_edge_net, tmp_path, capsys) -> None:
     import json
 

@@ -10,6 +10,7 @@ import pytest
 from safeil_sumo.run import main
 
 
+@pytest.mark.sumo
 def test_run_writes_the_results_folder(tmp_path, capsys):
     out = tmp_path / "res"
     code = main(["--net", "curved500", "--policy", "analytic", "--scenarios", "2", "--seed", "5",
@@ -63,6 +64,7 @@ def test_malformed_net_file(tmp_path, capsys):
     assert not (tmp_path / "res").exists()
 
 
+@pytest.mark.sumo
 def test_module_entry_point_runs_headless(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "safeil_sumo.run", "--net", "straight", "--policy", "analytic",

@@ -305,6 +305,7 @@ def test_wrapper_default_is_the_bernstein_mode() -> None:
 
 # ---------------------------------------------------------------- closed loop, real libsumo
 
+@pytest.mark.sumo
 def test_analytic_planner_with_the_filter_completes_curved500() -> None:
     """Before the Bernstein mode, the control-point clip made this 0/10 (lane departure)."""
     from safeil_sumo.scenarios.catalogue import resolve_net

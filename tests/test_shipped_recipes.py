@@ -138,7 +138,7 @@ def _run_script(name: str, *args: str) -> None:
 
 @pytest.fixture(scope="module")
 def tiny_data(tmp_path_factory) -> Path:
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     path = tmp_path_factory.mktemp("tiny") / "tuples.parquet"
     make_tuples(n_maneuvers=6, per_maneuver=30).save(path)
@@ -188,7 +188,7 @@ def test_finetune_gives_the_command_lines_checkpoint(tmp_path):
     """A tiny fine-tune (3 iterations, style, perturbed starts, settling) in this process and in
     a fresh one (the script): the same checkpoint."""
     import torch
-    from test_learn import make_tuples
+    from fixtures_training import make_tuples
 
     tup = make_tuples(n_maneuvers=4, per_maneuver=60, curved=True)  # 15 s maneuvers
     data = tmp_path / "tuples.parquet"
@@ -219,11 +219,11 @@ def test_finetune_gives_the_command_lines_checkpoint(tmp_path):
 def test_lateral_refit_gives_the_command_lines_checkpoint(tmp_path):
     """A tiny lateral refit in this process and through ``training/refit_lateral.py`` in a fresh
     one: the same checkpoint; the recipe's config is the default one at the shipped seed."""
-    from test_lateral_refit import _towers_checkpoint
+    from fixtures_training import towers_checkpoint
 
     from safeil_sumo.learn.lateral_refit import LateralRefitConfig, refit_lateral
 
-    data = _towers_checkpoint(tmp_path)
+    data = towers_checkpoint(tmp_path)
     init, ref = tmp_path / "towers.safetensors", tmp_path / "ref.safetensors"
     _run_script("refit_lateral", "--init", str(init), "--reference", str(ref), "--data",
                 str(data), "--steps", "5", "--batch", "32", "--out", str(tmp_path / "cli"),

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from bad_policies import DriftLeft, blind_cruise
-from test_golden import GOLDEN_COLUMNS, compare_with_reference
+from fixtures_golden import GOLDEN_COLUMNS, compare_with_reference
 
 from safeil_sumo import api, planner_registry
 from safeil_sumo.analytic import AnalyticPlanner
@@ -29,6 +29,9 @@ from safeil_sumo.sim.leaders import constant, piecewise
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario
 from safeil_sumo.sim.recorded_ego import RecordedPath
 from safeil_sumo.sim.stepper import ClosedLoop
+
+# every test here runs SUMO (tests/conftest.py: the sumo marker)
+pytestmark = pytest.mark.sumo
 
 pytest.importorskip("libsumo")
 

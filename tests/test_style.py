@@ -167,7 +167,8 @@ def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
 
 
 def _arc_rows(duration: float, gap: float = 50.0):
-    from test_replay import V, arc_drive
+    from fixtures_data import ARC_V as V
+    from fixtures_data import arc_drive
 
     rows = arc_drive(duration)
     rows["lead_x"] = gap
@@ -194,6 +195,7 @@ def test_adapted_windows_leave_out_the_adaptation_seconds():
         ra.windows(maneuvers, "sliding", adapt_s=10.0)
 
 
+@pytest.mark.sumo
 def test_replay_adapts_to_one_named_maneuver(tmp_path):
     """``--adapt-first-s`` with one maneuver id (not only ``all`` or a list): scored after S."""
     import pandas as pd
@@ -216,7 +218,7 @@ def test_adapt_planners_sets_every_planner_from_one_style_estimate(tmp_path):
     """The default way: one (s0, T) estimate of the first seconds; the styled checkpoint and
     the IDM are each set so that their steady gap is the estimate's at the speed seen (the IDM
     through its own equilibrium), the IDM's v0, a, b, delta kept."""
-    from test_replay import V
+    from fixtures_data import ARC_V as V
 
     from safeil_sumo import idm
     from safeil_sumo import planner_registry as pol
@@ -248,7 +250,7 @@ def test_adapt_planners_sets_every_planner_from_one_style_estimate(tmp_path):
 def test_adapt_planners_named_variants_refit5_and_median(tmp_path):
     """``idm_refit5`` refits the IDM's five parameters; ``safeil_median`` gets the shrunk
     median of gap / speed (style.adapted_time_gap)."""
-    from test_replay import V
+    from fixtures_data import ARC_V as V
 
     from safeil_sumo import idm
     from safeil_sumo import planner_registry as pol
@@ -280,6 +282,7 @@ def test_adapt_planners_named_variants_refit5_and_median(tmp_path):
         pol.load("idm_refit5")
 
 
+@pytest.mark.sumo
 def test_an_adapted_whole_replay_in_sumo(tmp_path):
     import pandas as pd
 
@@ -329,6 +332,7 @@ def test_with_setting_sets_only_the_planners_that_have_one(tmp_path):
     assert ra.with_setting(planners, None) is planners
 
 
+@pytest.mark.sumo
 def test_a_replay_at_a_time_gap_setting_in_sumo(tmp_path):
     """Real libsumo: the same whole maneuver replayed with the IDM set to 1.0 s and to 2.5 s
     (``replay --time-gap-s``): it follows farther back at 2.5 s; the analytic planner, which has
@@ -386,6 +390,7 @@ def test_sweep_specs_carry_the_time_gap():
         ScenarioSpec(policy="idm", time_gap_s=0.0)
 
 
+@pytest.mark.sumo
 def test_run_time_gap_sets_the_planners_distance(tmp_path, capsys):
     """Real libsumo: the IDM told to keep 2.5 s settles farther back than told 1.0 s; a planner
     without the setting is refused in one line."""

@@ -188,6 +188,7 @@ def test_recorded_draw_is_seeded_and_the_spec_id_is_stable(stop_and_go) -> None:
     assert task_id(spec) != task_id(ScenarioSpec(net="straight", index=3))
 
 
+@pytest.mark.sumo
 def test_recorded_profile_is_driven_in_sumo_within_5_cm_per_s(stop_and_go) -> None:
     spec = ScenarioSpec(net="straight", index=0, leader_kind="recorded",
                         leader_profile=stop_and_go, max_time_s=30.0, policy="analytic")
@@ -232,7 +233,7 @@ def test_profile_too_short_for_the_scenario(tmp_path, capsys) -> None:
 
 
 def test_recorded_ngsim_library_from_the_shared_data() -> None:
-    from tests.fixtures_data import NGSIM_PAIRS, require_file
+    from fixtures_data import NGSIM_PAIRS, require_file
 
     data_dir = require_file(NGSIM_PAIRS).parents[1]
     lib = rl.library("ngsim", str(data_dir))
@@ -288,6 +289,7 @@ def test_suite_specs_are_every_policy_family_net_and_variant() -> None:
         suite.family_specs("braking", "straight", v, "idm", 0) for v in range(3)]
 
 
+@pytest.mark.sumo
 def test_quick_suite_runs_every_family_in_libsumo(tmp_path) -> None:
     specs = suite.suite_specs(["analytic"], seed=0, variants=1)
     assert len(specs) == len(suite.FAMILIES) * len(suite.NETS)
@@ -313,6 +315,7 @@ def slow_profile(tmp_path) -> str:
     return _profile(tmp_path / "slow.csv", t, 6.5 + np.where(t > 10.0, np.sin(t - 10.0), 0.0))
 
 
+@pytest.mark.sumo
 def test_run_starts_the_ego_at_the_profile_speed_unless_given(tmp_path, slow_profile) -> None:
     import json
 
@@ -332,6 +335,7 @@ def test_run_starts_the_ego_at_the_profile_speed_unless_given(tmp_path, slow_pro
         assert summary["flag"].iloc[0] != "collision"  # NaN (no flag) or another flag
 
 
+@pytest.mark.sumo
 def test_sweep_and_api_resolve_the_ego_speed_alike(tmp_path, slow_profile) -> None:
     import json
 
@@ -360,8 +364,9 @@ def test_sweep_and_api_resolve_the_ego_speed_alike(tmp_path, slow_profile) -> No
 def test_explicit_ego_speed_wins_over_a_recorded_follower() -> None:
     from dataclasses import replace
 
+    from fixtures_data import NGSIM_PAIRS, require_file
+
     from safeil_sumo.scenarios.safety import scenario_seed
-    from tests.fixtures_data import NGSIM_PAIRS, require_file
 
     require_file(NGSIM_PAIRS)  # the library reads the default data folder, ../shared/data
     spec = ScenarioSpec(net="straight", index=2, leader_kind="recorded", leader_profile="ngsim")
@@ -417,8 +422,9 @@ def test_a_hard_but_plausible_braking_profile_is_accepted(tmp_path) -> None:
 
 @pytest.mark.parametrize("source", ["ngsim", "openacc"])
 def test_the_human_leader_libraries_are_plausible(source) -> None:
+    from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
+
     from safeil_sumo.sim.leaders import implausible_change
-    from tests.fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
 
     require_file(NGSIM_PAIRS if source == "ngsim"
                  else OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")

@@ -131,6 +131,7 @@ def test_breakdown_counts_flags_and_excludes_failed_tasks():
 
 # -- sweeps with real libsumo ----------------------------------------------------------------------
 
+@pytest.mark.sumo
 def test_resume_runs_only_missing_tasks(tmp_path):
     specs = short_specs(4)
     counter = Counting(tmp_path / "runs.log")
@@ -149,6 +150,7 @@ def test_resume_runs_only_missing_tasks(tmp_path):
     assert len(counter.runs()) == 6  # nothing left to do
 
 
+@pytest.mark.sumo
 def test_sequential_equals_parallel_and_same_seed_twice(tmp_path):
     specs = short_specs(4, initial_gap_m=(30, 80), radar_noise_m=0.5)
     seq = run_sweep(specs, tmp_path / "seq", workers=1, progress=False)
@@ -160,6 +162,7 @@ def test_sequential_equals_parallel_and_same_seed_twice(tmp_path):
     assert seq["leader_speed_mps"].nunique() == 4
 
 
+@pytest.mark.sumo
 def test_failures_are_recorded_and_others_complete(tmp_path):
     specs = [
         ScenarioSpec(index=0, **SHORT),
@@ -173,6 +176,7 @@ def test_failures_are_recorded_and_others_complete(tmp_path):
     assert out.loc[2, "error"].startswith("NetworkError: unknown track 'no_such_track'")
 
 
+@pytest.mark.sumo
 def test_killed_worker_is_recorded_and_the_sweep_goes_on(tmp_path):
     specs = short_specs(5)
     victim = task_id(specs[1])
@@ -191,6 +195,7 @@ def test_killed_worker_is_recorded_and_the_sweep_goes_on(tmp_path):
     assert counter.runs()[5:] == [victim] and (retried["status"] == "ok").all()
 
 
+@pytest.mark.sumo
 def test_task_timeout_kills_a_stuck_worker(tmp_path):
     specs = short_specs(3)
     counter = Counting(tmp_path / "runs.log", sleep_id=task_id(specs[0]))
@@ -203,6 +208,7 @@ def test_task_timeout_kills_a_stuck_worker(tmp_path):
     assert out.loc[0, "error"].startswith("TaskTimeout")
 
 
+@pytest.mark.sumo
 def test_dask_cluster_gives_the_sequential_results(tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     specs = short_specs(4, initial_gap_m=(30, 80))
@@ -221,6 +227,7 @@ def test_dask_cluster_gives_the_sequential_results(tmp_path):
 
 # -- CLI -----------------------------------------------------------------------------------------
 
+@pytest.mark.sumo
 def test_cli_grid_breakdown_and_bad_arguments(tmp_path, capsys):
     out = tmp_path / "cli"
     args = ["--net", "straight", "--policy", "analytic", "--scenarios", "2",
@@ -263,6 +270,7 @@ def test_batches_group_shareable_specs_in_order():
     assert [len(u) for u in batches(specs[:5], 32, workers=2)] == [3, 2]
 
 
+@pytest.mark.sumo
 def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):
     """The same records with --batch 3 on 2 workers as one scenario per simulation, a spec
     that cannot be built failing alone inside its batch."""
@@ -277,6 +285,7 @@ def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):
                                   rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.sumo
 def test_killed_worker_loses_only_its_batch(tmp_path):
     specs = short_specs(5)
     counter = Counting(tmp_path / "runs.log", kill_id=task_id(specs[1]))

@@ -170,6 +170,7 @@ def recordings():
     return record_drive(params, cfg), record_drive(params, cfg)
 
 
+@pytest.mark.sumo
 def test_recording_validates_against_the_schema(recordings, tmp_path):
     df, _ = recordings
     path = tmp_path / "drive.parquet"
@@ -180,11 +181,13 @@ def test_recording_validates_against_the_schema(recordings, tmp_path):
     assert set(back["lane_index"].unique()) <= {0.0, 1.0}
 
 
+@pytest.mark.sumo
 def test_recording_is_deterministic(recordings):
     a, b = recordings
     pd.testing.assert_frame_equal(a, b)
 
 
+@pytest.mark.sumo
 def test_recording_contains_leader_samples(recordings):
     df, _ = recordings
     lead = df["lead_x"].notna()

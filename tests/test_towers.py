@@ -187,6 +187,7 @@ def test_training_one_tower_leaves_the_other_towers_plan_exactly(tower, kept, mo
         keep_only_tower_gradients(towers, "vertical")
 
 
+@pytest.mark.sumo
 def test_shipped_safeil_stops_behind_a_braking_leader_on_the_curve():
     """libsumo: the leader-response suite's case that a towers fine-tune which also trained the
     lateral tower failed (curved500, leader braking at 4 m/s^2 to a stop, 50 m ahead): at

@@ -274,7 +274,7 @@ def test_the_shipped_split_of_the_real_data_is_the_shipped_models(tmp_path: Path
 
 
 def test_without_torch_it_says_what_to_install(tmp_path: Path):
-    from test_without_torch import HIDE_TORCH
+    from fixtures_training import HIDE_TORCH
 
     (tmp_path / "sitecustomize.py").write_text(HIDE_TORCH)
     env = {"PYTHONPATH": f"{tmp_path}:{REPO}", "PATH": "/usr/bin:/bin"}

@@ -33,6 +33,7 @@ def test_gui_without_a_display_fails_fast_with_one_line(monkeypatch, capsys, tmp
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.sumo
 def test_workers_die_with_a_killed_sweep(tmp_path) -> None:
     cmd = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policy",
            "analytic", "--scenarios", "40", "--workers", "2", "--no-progress", "--out",

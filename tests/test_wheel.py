@@ -21,6 +21,9 @@ from fixtures_data import (
     write_tiny_recordings,
 )
 
+# every test here runs SUMO (tests/conftest.py: the sumo marker)
+pytestmark = pytest.mark.sumo
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -34,7 +37,11 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dic
     (wheel,) = (root / "dist").glob("safeil_sumo-*.whl")
     subprocess.run([sys.executable, "-m", "venv", str(root / "venv")], check=True)
     py = root / "venv" / "bin" / "python"
-    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(wheel)], check=True)
+    # without PYTHONPATH: a checkout on it (with the egg-info the build leaves there) would make
+    # pip take the package as installed already and skip the wheel
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    subprocess.run([str(py), "-m", "pip", "install", "-q", "--no-deps", str(wheel)], check=True,
+                   env=env)
     inner = subprocess.run([str(py), "-c", "import site; print(site.getsitepackages()[0])"],
                            check=True, capture_output=True, text=True).stdout.strip()
     (Path(inner) / "outer_dependencies.pth").write_text("\n".join(site.getsitepackages()))
@@ -43,7 +50,6 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dic
     write_car_following_csv(work / "my_log.csv", duration_s=40.0)
     (work / "no_data").mkdir()
     (work / "tiny.toml").write_text(TINY_RECIPE.format(iters=2))
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["SAFEIL_SUMO_CACHE"] = str(root / "cache")
     return root / "venv" / "bin", work, env
 

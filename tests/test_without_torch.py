@@ -104,6 +104,7 @@ def test_every_shipped_planner_loads_and_plans_without_torch(no_torch):
     assert out.splitlines()[-1] == "torch imported: False"
 
 
+@pytest.mark.sumo
 def test_the_main_job_runs_in_sumo_without_torch(no_torch, tmp_path):
     """``python -m safeil_sumo.run --net curved500`` (the shipped safeil), 2 scenarios of 5 s."""
     out = _ok(_python(no_torch, "-m", "safeil_sumo.run", "--net", "curved500", "--scenarios",
@@ -115,6 +116,7 @@ def test_the_main_job_runs_in_sumo_without_torch(no_torch, tmp_path):
     assert (tmp_path / "steps.parquet").stat().st_size > 0
 
 
+@pytest.mark.sumo
 @pytest.mark.parametrize("argv", [
     ("safeil_sumo.sweep", "--policy", "safeil", "bc", "--scenarios", "2", "--max-time-s", "3",
      "--workers", "2"),
@@ -161,6 +163,7 @@ print("torch imported:", "torch" in sys.modules)
 '''
 
 
+@pytest.mark.sumo
 def test_every_gymnasium_env_steps_without_torch(no_torch):
     from safeil_sumo import envs
 

@@ -583,6 +583,45 @@ def openacc_pairs(raw: pd.DataFrame, src: str) -> tuple[list[tuple[int, int]], i
     return pairs, len(ivs) - len(pairs)
 
 
+def _openacc_run(recording_id: str, time: np.ndarray, e: np.ndarray, nn: np.ndarray,
+                 v: np.ndarray, gap: np.ndarray, lead_v: np.ndarray, dt: float,
+                 max_curvature: float, stats: dict) -> pd.DataFrame:
+    """One contiguous run of a follower as a recording: its pose from the east/north
+    positions ``e``/``nn`` [m] sampled every ``dt`` [s], lane lines OPENACC_LANE_WIDTH apart
+    curving as its path does (curvature clipped to ``max_curvature`` [1/m]) and its leader
+    at the inter-vehicle spacing ``gap`` [m] (floored at MIN_GAP; NaN: no leader). Counts the
+    clipped curvatures and gaps in ``stats``."""
+    half = 0.5 * OPENACC_LANE_WIDTH
+    yaw, kappa = openacc_heading_curvature(e, nn, dt)
+    stats["curvature_clipped"] += int((np.abs(kappa) > max_curvature).sum())
+    kappa = np.clip(kappa, -max_curvature, max_curvature)
+    stats["gap_clipped"] += int((gap < MIN_GAP).sum())
+    has_lead = np.isfinite(gap)
+    gap = np.where(has_lead, np.maximum(gap, MIN_GAP), np.nan)
+    return pd.DataFrame({
+        "recording_id": recording_id,
+        "time": time,
+        "x": e,
+        "y": nn,
+        "yaw": (yaw + np.pi) % (2 * np.pi) - np.pi,
+        "v_x": v,
+        "left_c0": half, "left_c1": 0.0, "left_c2": 0.5 * kappa, "left_c3": 0.0,
+        "right_c0": -half, "right_c1": 0.0, "right_c2": 0.5 * kappa, "right_c3": 0.0,
+        "lead_x": gap,
+        "lead_y": np.where(has_lead, 0.0, np.nan),
+        "lead_v": lead_v,
+    })
+
+
+def _no_drive() -> pd.DataFrame:
+    """An empty recording frame: the schema's columns, no rows."""
+    out = pd.DataFrame({c: pd.Series(dtype=float) for c in (
+        "time", "x", "y", "yaw", "v_x", "left_c0", "left_c1", "left_c2", "left_c3",
+        "right_c0", "right_c1", "right_c2", "right_c3", "lead_x", "lead_y", "lead_v")})
+    out.insert(0, "recording_id", pd.Series(dtype=str))
+    return out
+
+
 def import_openacc(path: str | Path, include_acc: bool = False,
                    max_curvature: float = MAX_PATH_CURVATURE) -> pd.DataFrame:
     """One OpenACC platoon file: one recording per contiguous run of each human follower (all
@@ -601,7 +640,6 @@ def import_openacc(path: str | Path, include_acc: bool = False,
     prefix = openacc_recording_prefix(path)
     dt = float(np.nanmedian(np.diff(time))) if len(time) > 1 else 0.1
     min_run = round(OPENACC_CURVATURE_WINDOW / dt) | 1  # the curvature filter's window
-    half = 0.5 * OPENACC_LANE_WIDTH
     frames: list[pd.DataFrame] = []
     stats = {"source": src, "followers_human": 0, "followers_acc_skipped": 0,
              "rows_nan_skipped": 0, "gap_clipped": 0, "curvature_clipped": 0,
@@ -632,34 +670,11 @@ def import_openacc(path: str | Path, include_acc: bool = False,
         runs = [r for r in runs if len(r) >= min_run]
         stats["pairs"] += int(bool(runs))
         for i, idx in enumerate(runs, start=1):
-            yaw, kappa = openacc_heading_curvature(e[idx], nn[idx], dt)
-            stats["curvature_clipped"] += int((np.abs(kappa) > max_curvature).sum())
-            kappa = np.clip(kappa, -max_curvature, max_curvature)
-            gap = ivs[idx]
-            stats["gap_clipped"] += int((gap < MIN_GAP).sum())
-            has_lead = np.isfinite(gap)
-            gap = np.where(has_lead, np.maximum(gap, MIN_GAP), np.nan)
-            frames.append(pd.DataFrame({
-                # one run keeps the plain id, so files without breaks keep their ids
-                "recording_id": f"{prefix}_f{k}" if len(runs) == 1 else f"{prefix}_f{k}_s{i}",
-                "time": time[idx],
-                "x": e[idx],
-                "y": nn[idx],
-                "yaw": (yaw + np.pi) % (2 * np.pi) - np.pi,
-                "v_x": v[idx],
-                "left_c0": half, "left_c1": 0.0, "left_c2": 0.5 * kappa, "left_c3": 0.0,
-                "right_c0": -half, "right_c1": 0.0, "right_c2": 0.5 * kappa, "right_c3": 0.0,
-                "lead_x": gap,
-                "lead_y": np.where(has_lead, 0.0, np.nan),
-                "lead_v": lead_v[idx],
-            }))
-    if not frames:
-        out = pd.DataFrame({c: pd.Series(dtype=float) for c in (
-            "time", "x", "y", "yaw", "v_x", "left_c0", "left_c1", "left_c2", "left_c3",
-            "right_c0", "right_c1", "right_c2", "right_c3", "lead_x", "lead_y", "lead_v")})
-        out.insert(0, "recording_id", pd.Series(dtype=str))
-    else:
-        out = validate_drive(pd.concat(frames, ignore_index=True), src)
+            # one run keeps the plain id, so files without breaks keep their ids
+            rid = f"{prefix}_f{k}" if len(runs) == 1 else f"{prefix}_f{k}_s{i}"
+            frames.append(_openacc_run(rid, time[idx], e[idx], nn[idx], v[idx], ivs[idx],
+                                       lead_v[idx], dt, max_curvature, stats))
+    out = validate_drive(pd.concat(frames, ignore_index=True), src) if frames else _no_drive()
     stats["recordings"] = len(frames)
     stats["rows"] = len(out)
     out.attrs["import_stats"] = stats

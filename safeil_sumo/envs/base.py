@@ -9,6 +9,7 @@ import weakref
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.policy import PLAN_RATE_HZ
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.loop_types import LoopConfig
 from safeil_sumo.sim.vehicle import VehicleParams
@@ -17,8 +18,9 @@ RESET_OPTIONS = ("index",)  # reset(options={"index": i}): episode i of the task
 _OWNER: list = [None]  # a weakref to the env whose SUMO simulation runs in this process
 
 
-def loop_config(step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
-                backend: str = "libsumo", brake_guard: bool = True) -> LoopConfig:
+def loop_config(step_s: float = 0.01, plan_rate_hz: float = PLAN_RATE_HZ,
+                stop_on_flag: bool = False, backend: str = "libsumo",
+                brake_guard: bool = True) -> LoopConfig:
     """The loop's settings (headless; ``LoopConfig`` checks the values). ``brake_guard``: the
     collision-avoidance braking under plan-level actions (docs/brake_guard.md; commands given
     at the control level are never guarded); False: the plans tracked alone."""

@@ -11,6 +11,7 @@ import numpy as np
 from safeil_sumo.envs import base
 from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
+from safeil_sumo.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
 from safeil_sumo.sim.loop_types import Rollout
 from safeil_sumo.sim.stepper import LIMIT_REASONS, TERMINAL_REASONS, ClosedLoop
 from safeil_sumo.sim.sumo_api import has_display
@@ -35,9 +36,10 @@ class SafeILEnv(gym.Env):
     metadata: ClassVar[dict] = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
 
     def __init__(self, task: str = "curved500", action_level: str = "plan",
-                 horizon_s: float = 5.0, reward: sp.RewardConfig | dict | None = None,
+                 horizon_s: float = PLAN_HORIZON_S, reward: sp.RewardConfig | dict | None = None,
                  out_of_space: str = "clip", render_mode: str | None = None,
-                 step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
+                 step_s: float = 0.01, plan_rate_hz: float = PLAN_RATE_HZ,
+                 stop_on_flag: bool = False,
                  backend: str = "libsumo", brake_guard: bool = True, **task_options) -> None:
         if not has_display():  # Gymnasium's check_env makes an env of every mode listed
             self.metadata = {**self.metadata, "render_modes": ["rgb_array"]}

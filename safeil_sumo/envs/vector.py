@@ -24,6 +24,7 @@ from gymnasium.vector.utils import batch_space
 from safeil_sumo.envs import base
 from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
+from safeil_sumo.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
 from safeil_sumo.sim.runner import SUMMARY_COLUMNS
 from safeil_sumo.sim.stepper import ClosedLoop
 from safeil_sumo.sim.vehicle import VehicleParams
@@ -38,9 +39,10 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
                 "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, task: str = "curved500", action_level: str = "plan",
-                 horizon_s: float = 5.0, reward: sp.RewardConfig | dict | None = None,
+                 horizon_s: float = PLAN_HORIZON_S, reward: sp.RewardConfig | dict | None = None,
                  out_of_space: str = "clip", render_mode: str | None = None,
-                 step_s: float = 0.01, plan_rate_hz: float = 10.0, stop_on_flag: bool = False,
+                 step_s: float = 0.01, plan_rate_hz: float = PLAN_RATE_HZ,
+                 stop_on_flag: bool = False,
                  backend: str = "libsumo", brake_guard: bool = True, **task_options) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) \
                 or num_envs < 1:

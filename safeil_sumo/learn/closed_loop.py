@@ -32,6 +32,7 @@ from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.features import FEATURE_NAMES
 from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms
 from safeil_sumo.learn.style import STANDSTILL_GAP_M
+from safeil_sumo.policy import PLAN_HORIZON_S
 
 V_X, V_LEAD, D_LEAD = (FEATURE_NAMES.index(n) for n in ("v_x", "v_lead", "d_lead"))
 
@@ -162,7 +163,7 @@ def plan_speed_accel(control_points: torch.Tensor, horizon: float, t: float,
 
 
 def rollout(model: torch.nn.Module, ep: Episodes, loop: LoopModel = LoopModel(),
-            horizon: float = 5.0, gap_offset_m: torch.Tensor | None = None,
+            horizon: float = PLAN_HORIZON_S, gap_offset_m: torch.Tensor | None = None,
             speed_offset_mps: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Drive every episode with ``model`` (features ``(N, 9)`` -> control points ``(N, 3, 2)``).
     ``gap_offset_m`` / ``speed_offset_mps`` (B,): the ego starts this much farther back / faster

@@ -15,6 +15,7 @@ import numpy as np
 from safeil_sumo.bspline import lane_following_y
 from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
+from safeil_sumo.policy import DEFAULT_TIME_GAP_S
 
 _ONE = (N_FEATURES,)
 _F64 = np.dtype(np.float64)
@@ -65,7 +66,8 @@ class MLPPolicy:
         self.style: dict[str, float] = {}
         if self.style_names:
             default = (self.metadata.get("style_default") or {})
-            self.set_style(**{n: float(default.get(n, 1.5)) for n in self.style_names})
+            self.set_style(**{n: float(default.get(n, DEFAULT_TIME_GAP_S))  # the one style
+                              for n in self.style_names})
         # residual output mode: x_i += v_x * t_i (constant-speed motion added back)
         mode = architecture.get("output_mode", "absolute")
         if mode not in ("absolute", "residual"):

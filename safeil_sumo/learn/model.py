@@ -38,6 +38,7 @@ from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn import spline
 from safeil_sumo.learn.style import STYLE_NAMES
 from safeil_sumo.learn.towers import N_OUTPUTS, tower_masks, tower_rows
+from safeil_sumo.policy import PLAN_HORIZON_S
 
 ACTIVATIONS = ("tanh", "relu")
 OUTPUT_MODES = ("absolute", "residual")
@@ -67,8 +68,9 @@ class PlannerMLP(nn.Module):
 
     def __init__(
         self, hidden: Sequence[int] = (64, 64), activation: str = "tanh",
-        output_mode: str = "absolute", horizon: float = 5.0, n_features: int = N_FEATURES,
-        towers: bool = False, lateral_mode: str = "absolute", lane_keep_m: float = 0.0,
+        output_mode: str = "absolute", horizon: float = PLAN_HORIZON_S,
+        n_features: int = N_FEATURES, towers: bool = False, lateral_mode: str = "absolute",
+        lane_keep_m: float = 0.0,
     ) -> None:
         super().__init__()
         if output_mode not in OUTPUT_MODES:

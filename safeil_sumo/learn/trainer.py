@@ -287,6 +287,25 @@ def train(
         torch.set_num_threads(prev_threads)
 
 
+def _validation_terms(model: PlannerMLP, x_va: torch.Tensor, y_va: torch.Tensor,
+                      w_va: torch.Tensor, env_val: torch.Tensor | None, horizon: float,
+                      config: TrainConfig) -> dict[str, float]:
+    """The validation loss terms of an epoch (``model`` in eval mode); with envelope states
+    ``env_val``, also the envelope barrier and the gap-monotone penalty (without its margin),
+    both added to the total with their weights."""
+    val_terms = evaluate_loss(model, x_va, y_va, horizon, config, w_va).as_floats()
+    if env_val is not None:
+        with torch.no_grad():
+            env_val_term = float(sum(envelope_barrier_terms(env_val, model(env_val), horizon,
+                                                            config.barrier)))
+            mono_val = float(gap_monotone_penalty(model, env_val))  # without the margin
+        val_terms[ENVELOPE_TERM] = env_val_term
+        val_terms[MONOTONE_TERM] = mono_val
+        val_terms["total"] += (config.envelope_weight * env_val_term
+                               + config.monotone_weight * mono_val)
+    return val_terms
+
+
 def _train(
     train: Tuples, val: Tuples, config: TrainConfig, horizon: float, progress: bool
 ) -> tuple[PlannerMLP, TrainHistory]:
@@ -339,16 +358,7 @@ def _train(
             for name, value in terms.as_floats().items():
                 sums[name] += value * len(idx)
         model.eval()
-        val_terms = evaluate_loss(model, x_va, y_va, horizon, config, w_va).as_floats()
-        if env_val is not None:
-            with torch.no_grad():
-                env_val_term = float(sum(envelope_barrier_terms(env_val, model(env_val), horizon,
-                                                                config.barrier)))
-                mono_val = float(gap_monotone_penalty(model, env_val))  # without the margin
-            val_terms[ENVELOPE_TERM] = env_val_term
-            val_terms[MONOTONE_TERM] = mono_val
-            val_terms["total"] += (config.envelope_weight * env_val_term
-                                   + config.monotone_weight * mono_val)
+        val_terms = _validation_terms(model, x_va, y_va, w_va, env_val, horizon, config)
         row = {"epoch": float(epoch)}
         row.update({f"train_{k}": v / n for k, v in sums.items()})
         row.update({f"val_{k}": v for k, v in val_terms.items()})

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from safeil_sumo.policy import PLAN_RATE_HZ
+
 LEADER_KINDS = ("constant", "braking", "accelerating", "recorded")
 MAX_SPEED_MPS = 100.0  # [m/s] above: a unit mistake (SUMO refuses such departures)
 DEFAULT_EGO_SPEED_MPS = 30.0  # [m/s] the ego's start speed unless given (~108 km/h)
@@ -68,7 +70,7 @@ class ScenarioSpec:
     initial_gap_m: float | tuple[float, float] = 50.0  # bumper gap, fixed or (low, high) [m]
     lane_noise_c0_m: float = 0.0  # std of camera lane-offset noise [m]
     radar_noise_m: float = 0.0  # std of radar range noise [m]
-    plan_rate_hz: float = 10.0  # re-planning rate [Hz]
+    plan_rate_hz: float = PLAN_RATE_HZ  # re-planning rate [Hz]
     max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
     stop_on_flag: bool = False  # end the scenario at its first safety flag
     # recorded leader: "ngsim", "openacc" or a CSV/Parquet profile file or folder
@@ -96,7 +98,14 @@ class ScenarioSpec:
     time_gap_s: float | None = None
 
     def __post_init__(self) -> None:
-        # normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same
+        self._normalise()
+        self._check_numbers()
+        self._check_leader()
+        self._check_ego_and_loop()
+        self._check_road()
+
+    def _normalise(self) -> None:
+        """Normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same."""
         set_ = object.__setattr__
         set_(self, "net", str(self.net))
         set_(self, "policy", str(self.policy))
@@ -125,6 +134,8 @@ class ScenarioSpec:
         set_(self, "traffic", "" if self.traffic in ("", "none", None) else str(self.traffic))
         set_(self, "lane", "" if self.lane in ("", None) else str(self.lane))
 
+    def _check_numbers(self) -> None:
+        """The time gap's range, non-negative seeds, every float finite."""
         if self.time_gap_s is not None and not (0 < self.time_gap_s <= 10):
             raise ValueError(f"time gap must be in (0, 10] s, got {self.time_gap_s}")
         if self.index < 0 or self.master_seed < 0:
@@ -137,6 +148,9 @@ class ScenarioSpec:
         for name, value in values.items():  # NaN passes every < / > check below
             if not all(math.isfinite(v) for v in np.atleast_1d(value)):
                 raise ValueError(f"{name} must be finite (no NaN/inf), got {value}")
+
+    def _check_leader(self) -> None:
+        """The leader's kind, speeds, gap, speed change and profile."""
         if self.leader_kind not in LEADER_KINDS:
             raise ValueError(f"leader kind must be one of {LEADER_KINDS}, got {self.leader_kind!r}")
         lo, hi = self.leader_speed_range_mps
@@ -152,6 +166,9 @@ class ScenarioSpec:
                              "m/s^2 and a final speed >= 0 m/s")
         if self.leader_profile and self.leader_kind != "recorded":
             raise ValueError("a leader profile needs leader kind 'recorded'")
+
+    def _check_ego_and_loop(self) -> None:
+        """The ego's speed, the sensors' noise and the plan rate."""
         if self.ego_speed_mps is not None and not 0 <= self.ego_speed_mps <= MAX_SPEED_MPS:
             raise ValueError(f"ego speed must be in [0, {MAX_SPEED_MPS:g}] m/s, "
                              f"got {self.ego_speed_mps}")
@@ -159,6 +176,9 @@ class ScenarioSpec:
             raise ValueError("sensor noise must be >= 0")
         if not 0 < self.plan_rate_hz <= 100:  # the loop's step is 0.01 s
             raise ValueError(f"plan rate must be in (0, 100] Hz, got {self.plan_rate_hz}")
+
+    def _check_road(self) -> None:
+        """The net's route, stretch, traffic and lane, and the duration."""
         if self.net == "n74" and self.route:
             raise ValueError("--net n74 drives a stretch of --from-km/--to-km; --route needs a "
                              ".net.xml path (e.g. sumo_scenarios/n74/n74.net.xml)")

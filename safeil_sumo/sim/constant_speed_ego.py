@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from safeil_sumo.geometry import Polyline
+from safeil_sumo.policy import PLAN_HORIZON_S
 from safeil_sumo.sim.recorded_ego import RecordedPathError
 
 CONSTANT_SPEED_NAME = "constant_speed"
@@ -35,7 +36,7 @@ class ConstantSpeedPath:
     s0: float = 0.0  # [m] arc length of the front bumper at t = 0
     speed: float = 0.0  # [m/s]
     name: str = CONSTANT_SPEED_NAME
-    horizon: float = 5.0  # [s] unused (nothing is planned); kept for the Policy protocol
+    horizon: float = PLAN_HORIZON_S  # [s] unused (nothing is planned); kept for the Policy protocol
 
     def __post_init__(self) -> None:
         if self.speed < 0:

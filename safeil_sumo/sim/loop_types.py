@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from safeil_sumo.policy import PLAN_RATE_HZ
 from safeil_sumo.scenarios.road import Road
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim import sensors as sen
@@ -71,7 +72,7 @@ class LoopConfig:
     """How the loop runs."""
 
     step_s: float = 0.01  # SUMO and plant step [s] (the paper's digital-twin step)
-    plan_rate_hz: float = 10.0  # re-planning rate [Hz]
+    plan_rate_hz: float = PLAN_RATE_HZ  # re-planning rate [Hz]
     max_time_s: float | None = None  # None: 2x the path at the initial speed + 10 s [s]
     stop_on_flag: bool = False  # end the run at the first safety flag
     offroad_stop_m: float = 6.0  # end the run when the ego centre is this far off its lane [m]

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from safeil_sumo.geometry import Polyline
+from safeil_sumo.policy import PLAN_HORIZON_S
 
 RECORDED_NAME = "recorded"
 
@@ -49,7 +50,7 @@ class RecordedPath:
     yaw: np.ndarray = field(default_factory=lambda: np.zeros(0))
     speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
     name: str = RECORDED_NAME
-    horizon: float = 5.0  # [s] unused (nothing is planned); kept for the Policy protocol
+    horizon: float = PLAN_HORIZON_S  # [s] unused (nothing is planned); kept for the Policy protocol
     lane: Polyline | None = None
     lane_start_s: float = 0.0  # [m]
 

@@ -432,10 +432,10 @@ class Kinematic:
 
     def move(self, live: _Live, t: FloatOrArray, xp: Namespace) -> Commands:
         states = []
-        for r, tj in zip(live.runs, xp.rows(t + self.dt)):
+        for r, tj in zip(live.runs, xp.rows(t + self.dt), strict=True):
             assert r.pose_at is not None, "a run's egos are all kinematic or none (check_scope)"
             states.append(_kinematic_state(r.pose_at(tj), self.vehicle))
-        live.st = tuple(xp.from_rows(col) for col in zip(*states))
+        live.st = tuple(xp.from_rows(col) for col in zip(*states, strict=True))
         nans = live.c.nans
         return nans, nans, nans
 
@@ -477,9 +477,11 @@ class _Live:
         n = len(runs)
         self.runs, self.xp = runs, xp
         self.idx = np.arange(n)
-        self.st: veh.PlantState = tuple(xp.from_rows([float(v) for v in col]) for col in zip(*(
-            (r.state0.x, r.state0.y, r.state0.yaw, r.state0.vx, r.state0.vy, r.state0.yaw_rate,
-             r.state0.steer, r.state0.drive_force) for r in runs)))  # the plant's state
+        self.st: veh.PlantState = tuple(  # the plant's state
+            xp.from_rows([float(v) for v in col]) for col in zip(*(
+                (r.state0.x, r.state0.y, r.state0.yaw, r.state0.vx, r.state0.vy,
+                 r.state0.yaw_rate, r.state0.steer, r.state0.drive_force) for r in runs),
+                strict=True))
         # PID memory
         self.integral: FloatOrArray = xp.full(n, 0.0)
         self.prev_error: FloatOrArray = xp.full(n, math.nan)
@@ -680,7 +682,7 @@ class ClosedLoop:
             args[args.index("-n") + 1] = str(net)
         runs = [_Scenario(i, sc, p, _horizon(p, horizon_s), self.loop, self.vehicle, dx,
                           len(self.columns), copies)
-                for i, (sc, p, dx) in enumerate(zip(scenarios, pols, shifts))]
+                for i, (sc, p, dx) in enumerate(zip(scenarios, pols, shifts, strict=True))]
         self._xp = ARRAYS if copies else FLOATS
         self._driver = Kinematic(self) if runs[0].pose_at is not None else PlanAndTrack(self)
         self._api = api = self.api_factory(args)
@@ -935,7 +937,7 @@ class ClosedLoop:
                 sen.add_lane_noise(lefts[j], rights[j], r.scenario.sensors, r.rng)
         leads: list[tuple[float, float]] = []  # per row: the leader's features v_lead, d_lead
         for r, left, right, (fx, fy, yj, vj) in zip(runs, lefts, rights,
-                                                    xp.each(fx_, fy_, yaw, v)):
+                                                    xp.each(fx_, fy_, yaw, v), strict=True):
             rear, v_true = _leader_rear(r)
             radar = sen.radar_leader(np.array((fx, fy)), yj, rear, v_true, left, right,
                                      r.scenario.sensors, r.rng)
@@ -1028,7 +1030,7 @@ class ClosedLoop:
         else:  # each scenario's own step (a restarted one's starts at its k0)
             rows = np.array(rows).T
             logged = rows if self._col_idx is None else rows[:, self._col_idx]
-            for r, row in zip(live.runs, logged):
+            for r, row in zip(live.runs, logged, strict=True):
                 log = r.rows
                 assert isinstance(log, np.ndarray), "a running scenario's log is kept"
                 log[k - r.k0] = row
@@ -1072,8 +1074,8 @@ class ClosedLoop:
         inside = (lane_placeable(d, s, v * dt, c.half_width, c.route_end) if self._on_lane
                   else c.no_flags)
         vehicle = api.vehicle
-        for r, (fx, fy, vj, sj, yj, on_lane) in zip(live.runs,
-                                                     xp.each(front_x, front_y, v, s, yaw, inside)):
+        for r, (fx, fy, vj, sj, yj, on_lane) in zip(
+                live.runs, xp.each(front_x, front_y, v, s, yaw, inside), strict=True):
             if on_lane:
                 lane, pos = sumo_lane_position(r.road, sj, vj * dt)
                 vehicle.moveTo(r.ego, r.lane_ids[lane], pos)

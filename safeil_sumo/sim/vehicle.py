@@ -235,9 +235,33 @@ class Plant:
             plant = cls._cache[key] = cls(params, dt)
         return plant
 
-    def resistance(self, vx: FloatOrArray, xp: Namespace = FLOATS) -> FloatOrArray:
-        """:func:`resistance_force` at ``vx`` [m/s] (a float, or an array with ``xp=ARRAYS``)."""
-        return xp.where(vx <= 0.0, 0.0, self.drag * vx * vx + self.rolling)
+    def actuators(self, steer0: FloatOrArray, force0: FloatOrArray, vx: FloatOrArray,
+                  steer_cmd: FloatOrArray, throttle: FloatOrArray, brake: FloatOrArray,
+                  xp: Namespace = FLOATS) -> tuple[FloatOrArray, FloatOrArray]:
+        """The actuators' next ``(steer, drive_force)``: road-wheel angle [rad] from ``steer0``
+        under ``steer_cmd`` (clipped, rate-limited, first-order lag), and the longitudinal tyre
+        force [N] from ``force0`` under the pedals at speed ``vx`` [m/s] (brake or drive lag)."""
+        p = self.params
+        clip = xp.clip
+        max_steer = p.max_steer_rad
+        cmd = clip(steer_cmd, -max_steer, max_steer)
+        d_steer = (cmd - steer0) * self.steer_gain
+        max_d = self.max_d_steer
+        delta = steer0 + clip(d_steer, -max_d, max_d)
+
+        throttle = clip(throttle, 0.0, 1.0)
+        brake = clip(brake, 0.0, 1.0)
+        # available_drive_force, inline (a call per step saved)
+        drive = xp.minimum(p.max_drive_force_n, p.max_drive_power_w / xp.maximum(vx, 0.1))
+        target = throttle * drive - brake * self.max_brake_force
+        # brake circuit dynamics whenever braking is involved (applying or releasing); a first-
+        # order lag, or none for a time constant <= 0 (decay None)
+        braking = (target < 0.0) | (force0 < 0.0)  # flags: | is logical_or
+        fx_brake = target if self.brake_decay is None else (
+            target + (force0 - target) * self.brake_decay)
+        fx_drive = target if self.drive_decay is None else (
+            target + (force0 - target) * self.drive_decay)
+        return delta, xp.where(braking, fx_brake, fx_drive)
 
     def step(self, state: PlantState, steer_cmd: FloatOrArray, throttle: FloatOrArray,
              brake: FloatOrArray, xp: Namespace = FLOATS) -> PlantState:
@@ -251,26 +275,7 @@ class Plant:
         m, lf, lr, L = p.mass_kg, p.lf_m, p.lr_m, p.wheelbase_m
         x0, y0, yaw0, vx, vy, r, steer0, force0 = state
         where, clip = xp.where, xp.clip
-
-        # --- actuators -----------------------------------------------------------------------
-        max_steer = p.max_steer_rad
-        cmd = clip(steer_cmd, -max_steer, max_steer)
-        d_steer = (cmd - steer0) * self.steer_gain
-        max_d = self.max_d_steer
-        delta = steer0 + clip(d_steer, -max_d, max_d)
-
-        throttle = clip(throttle, 0.0, 1.0)
-        brake = clip(brake, 0.0, 1.0)
-        drive = available_drive_force(vx, p, xp)
-        target = throttle * drive - brake * self.max_brake_force
-        # brake circuit dynamics whenever braking is involved (applying or releasing); a first-
-        # order lag, or none for a time constant <= 0 (decay None)
-        braking = (target < 0.0) | (force0 < 0.0)  # flags: | is logical_or
-        fx_brake = target if self.brake_decay is None else (
-            target + (force0 - target) * self.brake_decay)
-        fx_drive = target if self.drive_decay is None else (
-            target + (force0 - target) * self.drive_decay)
-        fx = where(braking, fx_brake, fx_drive)
+        delta, fx = self.actuators(steer0, force0, vx, steer_cmd, throttle, brake, xp)
 
         # --- lateral: dynamic single track, implicit Euler with secant tyre stiffness -----------
         v_lo = p.kinematic_speed_low_mps
@@ -303,7 +308,8 @@ class Plant:
         fyf = where(dynamic, cf * (delta - (vy_dyn + lf * r_dyn) / u), 0.0)
 
         # --- longitudinal ----------------------------------------------------------------------
-        ax = (fx - self.resistance(vx, xp) - w * fyf * xp.sin(delta)) / m + w * vy * r
+        resistance = where(vx <= 0.0, 0.0, self.drag * vx * vx + self.rolling)  # resistance_force
+        ax = (fx - resistance - w * fyf * xp.sin(delta)) / m + w * vy * r
         # no reversing: brakes and resistances hold the car at standstill
         vx_new = xp.maximum(vx + ax * dt, 0.0)
 
