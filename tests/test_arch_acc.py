@@ -533,3 +533,23 @@ def test_advance_period_is_tight_between_instants_and_with_drag() -> None:
     y_end = np.log(1.0 + 0.03 * 0.1) / 1e-3
     assert lo[0, 1] <= v_end <= hi[0, 1] and lo[0, 0] <= y_end <= hi[0, 0]
     assert hi[0, 1] - lo[0, 1] < 1e-3
+
+
+def test_advance_period_bound_is_the_envelope_of_the_instants() -> None:
+    """``x1' = 3``, ``x2' = -1`` from the origin, property ``x1 + x2`` (``P c = 2``): the bound
+    over the period is the smallest envelope (:func:`reach._between`) of consecutive instants'
+    bounds with the derivative ``[P c - s, P c + s]``, ``s = REL (|P| |c| + |P c|) = 6 REL``,
+    and below the true minimum 0."""
+    plant = _plant(np.zeros((2, 2)), np.zeros((2, 1)), [3.0, -1.0], np.zeros((2, 1)), [0],
+                   [0.0])
+    p = np.array([[1.0, 1.0]])
+    loop = reach.Loop(plant, _zero_net(2), np.eye(2), np.zeros(2), 0.1, p, np.zeros(1))
+    maps = reach.period_maps(plant, 0.1, 10)
+    x0 = np.zeros((1, 2))
+    res = reach.advance_period(loop, maps, reach.Zonotope.from_box(x0, x0))
+    lows = [reach._affine_lower(p, s, np.zeros(1)) for s in res.instants]
+    d_lo, d_hi = np.array([[2.0 - 6 * REL]]), np.array([[2.0 + 6 * REL]])
+    expected = min(reach._between(a, b, d_lo, d_hi, 0.01)[0, 0]
+                   for a, b in zip(lows, lows[1:], strict=False))
+    assert res.lower[0, 0] == expected
+    assert -1e-12 < res.lower[0, 0] <= 0.0

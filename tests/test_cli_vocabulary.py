@@ -30,6 +30,7 @@ QUANTITY_WORDS = ("time", "speed", "gap", "duration", "stride", "timeout", "rate
 UNITLESS = {
     "--speedup": "animate: a playback factor (simulated seconds per video second), no unit",
     "--budget-sims": "falsify, evaluate: counted in simulations",
+    "--speed-unit": "train, evaluate, replay: names the unit a CSV's speeds are in (m/s, km/h)",
 }
 
 
