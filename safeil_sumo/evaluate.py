@@ -40,6 +40,7 @@ from safeil_sumo.cli_args import (
     finite_float,
     interruptible,
     nonnegative_int,
+    positive_int,
 )
 from safeil_sumo.experiments import outputs
 
@@ -83,7 +84,7 @@ def build_parser() -> CommandParser:
                         "certificate (default 600; --quick 30)")
     p.add_argument("--budget-sims", type=nonnegative_int, default=None,
                    help="falsification simulations (default 1000; --quick 50)")
-    p.add_argument("--workers", type=int, default=1,
+    p.add_argument("--workers", type=positive_int, default=1,
                    help="local worker processes of the sweeps and replays (default 1)")
     p.add_argument("--data-dir", type=Path, default=rs.DEFAULT_DATA_DIR,
                    help=f"real human data (default {rs.DEFAULT_DATA_DIR})")
@@ -98,8 +99,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         missing = [str(q) for q in spec.paths if not q.exists()]
         if missing:
             p.error(f"--data {spec.label()}: {missing[0]} does not exist")
-    if args.workers < 1:
-        p.error("--workers must be >= 1")
     if args.scenarios == 0 or args.budget_sims == 0:
         p.error("--scenarios and --budget-sims must be >= 1")
     if args.budget_s is not None and args.budget_s <= 0:

@@ -48,7 +48,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.cli_args import CommandParser, interruptible
+from safeil_sumo.cli_args import CommandParser, interruptible, positive_int
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.stats import breakdown
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, comparable, run_sweep
@@ -1504,10 +1504,10 @@ def build_parser() -> CommandParser:
     p.add_argument("--work", type=Path, default=REPO / "runs" / "results_work",
                    help="sweep task files and logs (resumable; not committed)")
     p.add_argument("--only", nargs="+", choices=SECTIONS, default=list(SECTIONS))
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=positive_int, default=2)
     p.add_argument("--seed", type=int, default=0, help="master seed")
-    p.add_argument("--large", type=int, default=200, help="scenarios per bar in 'large'")
-    p.add_argument("--grid", type=int, default=20, help="scenarios per cell in 'grids'")
+    p.add_argument("--large", type=positive_int, default=200, help="scenarios per bar in 'large'")
+    p.add_argument("--grid", type=positive_int, default=20, help="scenarios per cell in 'grids'")
     p.add_argument("--fractions", type=float, nargs="+", default=[0.05, 0.15, 0.4, 1.0])
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--efficiency-scenarios", type=int, default=10)
@@ -1519,8 +1519,6 @@ def build_parser() -> CommandParser:
 def main(argv: list[str] | None = None) -> int:
     p = build_parser()
     args = p.parse_args(argv)
-    if args.workers < 1 or args.large < 1 or args.grid < 1:
-        p.error("--workers, --large and --grid must be >= 1")
     if args.quick:
         args.large, args.grid, args.fractions, args.seeds = 4, 2, [0.1, 1.0], [0]
         args.efficiency_scenarios = 2
