@@ -187,7 +187,9 @@ def test_command_name_of_a_console_script(monkeypatch) -> None:
     ("gap_probe", ["--workers", "two"], "argument --workers: not an integer: 'two'"),
     ("falsify", ["--budget-sims", "0"], "budget and batch must be >= 1"),
     ("animate", ["runs/x", "--fps", "0"], "--fps must be > 0"),
-    ("results", ["--workers", "0"], "--workers, --large and --grid must be >= 1"),
+    ("results", ["--workers", "0"], "argument --workers: must be >= 1, got 0"),
+    ("results", ["--grid", "0"], "argument --grid: must be >= 1, got 0"),
+    ("evaluate", ["idm", "--workers", "0"], "argument --workers: must be >= 1, got 0"),
 ])
 def test_a_validation_error_is_one_line_without_usage(command, argv, message, capsys) -> None:
     assert run_main(command, argv) == 2
