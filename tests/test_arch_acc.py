@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import os
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -550,6 +551,6 @@ def test_advance_period_bound_is_the_envelope_of_the_instants() -> None:
     lows = [reach._affine_lower(p, s, np.zeros(1)) for s in res.instants]
     d_lo, d_hi = np.array([[2.0 - 6 * REL]]), np.array([[2.0 + 6 * REL]])
     expected = min(reach._between(a, b, d_lo, d_hi, 0.01)[0, 0]
-                   for a, b in zip(lows, lows[1:], strict=False))
+                   for a, b in pairwise(lows))
     assert res.lower[0, 0] == expected
     assert -1e-12 < res.lower[0, 0] <= 0.0
