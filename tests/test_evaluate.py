@@ -243,6 +243,24 @@ def test_a_failing_section_is_an_error_line_not_the_end(tmp_path, monkeypatch, c
     assert report["overall"] == "INCOMPLETE"
 
 
+def test_a_data_file_the_importer_refuses_is_the_replay_sections_one_line_error(
+        tmp_path: Path, capsys) -> None:
+    """Your own recordings are never skipped quietly: a CSV without its gap column ends the
+    replay section with the importer's line (file, column), before any SUMO run."""
+    pd.DataFrame({"time": [0.0, 0.1], "v": [20.0, 20.1]}).to_csv(tmp_path / "log.csv",
+                                                                 index=False)
+    (tmp_path / "no_data").mkdir()
+    code = ev.main(["idm", "--only", "replay", "--data", f"csv:{tmp_path / 'log.csv'}",
+                    "--data-dir", str(tmp_path / "no_data"), "--out", str(tmp_path / "card")])
+    assert code == 1
+    (section,) = [s for s in json.loads((tmp_path / "card" / "report.json").read_text())
+                  ["sections"] if s["key"] == "replay"]
+    assert section["status"] == "error", section
+    # the user's spec leads the line (not the "nothing to replay" of skipped sources)
+    assert section["error"].startswith(f"ValueError: csv:{tmp_path / 'log.csv'}: "), section
+    assert "'gap'" in section["error"] and "\n" not in section["error"]
+
+
 @pytest.mark.sumo
 @pytest.mark.skipif(not (DEFAULT_DATA_DIR / NGSIM_FILE).is_file(), reason="no NGSIM data")
 def test_evaluate_idm_end_to_end_in_libsumo(tmp_path: Path) -> None:
