@@ -307,7 +307,8 @@ def replay(ctx: EvalContext) -> Section:
             maneuvers[src.name], df, only, is_held = _source(ctx, src, held)
         except (OSError, ValueError) as exc:  # e.g. a data folder without this source
             if src.given:  # the user's own data must not be skipped quietly
-                raise ValueError(f"{src.options[1]}: {exc}") from exc
+                named = str(exc).startswith(src.options[1])  # the importer's line names it
+                raise ValueError(str(exc) if named else f"{src.options[1]}: {exc}") from exc
             notes.append(f"{src.name} skipped: {exc}.")
             df, only, is_held = pd.DataFrame(), [], False
         counts[f"{src.name}_maneuvers"] = len(only)
