@@ -14,6 +14,7 @@ import hashlib
 import json
 from functools import lru_cache
 from pathlib import Path
+from typing import Protocol, cast
 
 from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.policy import Policy
@@ -171,6 +172,13 @@ def has_time_gap(policy: Policy) -> bool:
     return styled or isinstance(policy, idm.IDMPlanner)
 
 
+class _Styled(Protocol):
+    """A style-conditioned checkpoint's planner (:class:`~safeil_sumo.learn.inference.
+    MLPPolicy` with ``style_names``): its style inputs are set in place."""
+
+    def set_style(self, **style: float) -> None: ...
+
+
 def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:
     """``policy`` set to keep a preferred time gap ``time_gap_s`` [s] (an ACC's distance
     setting): a style-conditioned checkpoint's style input (:mod:`safeil_sumo.learn.style`,
@@ -184,8 +192,8 @@ def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:
         raise PolicyError(f"a time gap must be > 0 s, got {time_gap_s}")
     if isinstance(policy, idm.IDMPlanner):
         return replace(policy, params=replace(policy.params, time_gap_s=float(time_gap_s)))
-    if "time_gap_s" in getattr(policy, "style_names", ()):
-        policy.set_style(time_gap_s=float(time_gap_s))
+    if "time_gap_s" in getattr(policy, "style_names", ()):  # a style-conditioned checkpoint
+        cast(_Styled, policy).set_style(time_gap_s=float(time_gap_s))
         return policy
     raise PolicyError(f"{policy.name} has no time-gap setting (style-conditioned checkpoints "
                       "and the IDM have one)")

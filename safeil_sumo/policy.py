@@ -21,7 +21,11 @@ DEFAULT_TIME_GAP_S = 1.5  # [s] a planner's preferred time gap to its leader unl
 class Policy(Protocol):
     """Anything with a ``name``, a ``horizon`` [s] and ``plan(features (..., 9)) -> (..., 3, 2)``."""
 
-    name: str
-    horizon: float
+    # read-only: the planners are frozen dataclasses or set them once at construction
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def horizon(self) -> float: ...
 
     def plan(self, features: np.ndarray) -> np.ndarray: ...
