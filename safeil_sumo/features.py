@@ -8,6 +8,8 @@ y left, [m], [-], [1/m]), ``v_x`` ego speed [m/s], ``v_lead`` leader speed [m/s]
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 FEATURE_NAMES = ("c0l", "c1l", "c2l", "c0r", "c1r", "c2r", "v_x", "v_lead", "d_lead")
@@ -15,8 +17,8 @@ N_FEATURES = len(FEATURE_NAMES)
 
 
 def planner_features(
-    left_line: np.ndarray,
-    right_line: np.ndarray,
+    left_line: np.ndarray | Sequence[float],
+    right_line: np.ndarray | Sequence[float],
     v_x: np.ndarray | float,
     v_lead: np.ndarray | float,
     d_lead: np.ndarray | float,

@@ -32,8 +32,9 @@ def sumo_angle_to_yaw(angle_deg: float) -> float:
     return (math.radians(90.0 - angle_deg) + math.pi) % (2.0 * math.pi) - math.pi
 
 
-def world_to_ego(points: np.ndarray, origin: np.ndarray, yaw: float) -> np.ndarray:
-    """Express world points ``(..., 2)`` in the frame at ``origin (2,)`` rotated by ``yaw`` [rad]."""
+def world_to_ego(points: np.ndarray, origin: np.ndarray, yaw: float | np.ndarray) -> np.ndarray:
+    """Express world points ``(..., 2)`` in the frame at ``origin (2,)`` rotated by ``yaw`` [rad]
+    (or, broadcast, in one frame per row: ``origin (..., 1, 2)``, ``yaw (..., 1)``)."""
     c, s = np.cos(yaw), np.sin(yaw)
     d = np.asarray(points, dtype=float) - np.asarray(origin, dtype=float)
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
@@ -107,7 +108,7 @@ class Polyline:
     s: np.ndarray = field(init=False, repr=False)  # (N,) arc length at vertices [m]
     _tangents: np.ndarray = field(init=False, repr=False)  # (N-1, 2) unit segment directions
     _seg_len: np.ndarray = field(init=False, repr=False)  # (N-1,) [m]
-    _py: tuple = field(init=False, repr=False)  # plain-float copies for the per-step walk
+    _py: tuple[list[float], ...] = field(init=False, repr=False)  # plain-float copies for the per-step walk
 
     def __post_init__(self) -> None:
         p = np.ascontiguousarray(self.points, dtype=float)

@@ -38,8 +38,12 @@ import shutil
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from safeil_sumo.scenarios.road import Road
 
 from safeil_sumo.geometry import Polyline
 from safeil_sumo.scenarios.network import run_netconvert
@@ -433,7 +437,7 @@ def stretch_edges(from_m: float, to_m: float, net_dir: Path | None = None
 
 
 def stretch_road(from_km: float = 0.0, to_km: float | None = None, lane: str = "right",
-                 net_dir: Path | None = None):
+                 net_dir: Path | None = None) -> Road:
     """The :class:`~safeil_sumo.scenarios.road.Road` of direction A between two kilometre
     posts (reference-line chainage, the ``s_start``/``s_end`` of ``n74.json``; default: the
     whole carriageway), ego in the ``right`` (default) or ``left`` main lane.

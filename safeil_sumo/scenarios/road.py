@@ -13,7 +13,7 @@ import bisect
 import json
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +84,8 @@ class Road:
     meta: dict
     route_edges: tuple[str, ...] = ()
     ego_pieces: tuple[RoutePiece, ...] = ()
+    # the arc length [m] at which each ego piece ends: set by __post_init__
+    _piece_ends: list[float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if not self.route_edges:
@@ -179,7 +181,7 @@ def load_road(
             raise NetworkError(f"{net_path}: no edge {edge_id!r}")
         edge = matches[0]
 
-    lanes = []
+    lanes: list[Lane] = []
     for el in edge.iter("lane"):
         try:
             shape = _parse_shape(el.get("shape", ""))

@@ -71,7 +71,7 @@ class _Net:
         self.edge_lanes: dict[str, list[_SumoLane]] = {}  # road edges only, by lane index
         for edge in root.iter("edge"):
             eid = edge.get("id", "")
-            lanes = []
+            lanes: list[_SumoLane] = []
             for el in edge.iter("lane"):
                 lid = el.get("id", "")
                 try:
@@ -206,6 +206,9 @@ def _follow_ego_lane(net: _Net, edges: list[str], ego_lane: int
     pieces: list[tuple[_SumoLane, int]] = [(net.edge_lanes[edges[0]][ego_lane], 0)]
     for k, (a, b) in enumerate(pairwise(edges)):
         lane = net.lane(a, ego_index[-1])
+        if lane is None:  # a connection of the net leads to a lane its edge does not have
+            raise NetworkError(f"{net.path}: edge {a!r} has no lane index {ego_index[-1]}, "
+                               "which a connection of the net leads to")
         crossed = net.cross(lane, b)
         if crossed is None:
             reached = sorted({c.to_edge for (e, _), cs in net.connections.items() if e == a
@@ -242,8 +245,10 @@ def _route_lane(net: _Net, edges: list[str], lane0: _SumoLane, ego_index: list[i
     for k, b in enumerate(edges[1:]):
         crossed = net.cross(lane, b)
         nxt = None if crossed is None else net.lane(b, crossed[1])
-        if (crossed is None or crossed[1] != ego_index[k + 1] + offset
-                or abs(nxt.width - lane0.width) > WIDTH_TOLERANCE_M):
+        if crossed is None or nxt is None or crossed[1] != ego_index[k + 1] + offset:
+            end_k = k
+            break
+        if abs(nxt.width - lane0.width) > WIDTH_TOLERANCE_M:
             if offset == 0:  # the ego lane was followed before; only its width can differ
                 raise NetworkError(
                     f"{net.path}: the ego lane changes width from {lane0.width:g} m "

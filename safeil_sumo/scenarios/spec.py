@@ -12,11 +12,14 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import asdict, dataclass, fields
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from safeil_sumo.policy import PLAN_RATE_HZ
+
+if TYPE_CHECKING:
+    from safeil_sumo.sim.leaders import SpeedProfile
 
 LEADER_KINDS = ("constant", "braking", "accelerating", "recorded")
 MAX_SPEED_MPS = 100.0  # [m/s] above: a unit mistake (SUMO refuses such departures)
@@ -273,7 +276,7 @@ def resolve_road(net: str, route: tuple[str, ...] = (), from_km: float | None = 
     return _ROADS[key]
 
 
-def leader_profile(spec: ScenarioSpec, speed_mps: float):
+def leader_profile(spec: ScenarioSpec, speed_mps: float) -> SpeedProfile:
     """The leader's :class:`SpeedProfile` for an initial speed ``speed_mps`` [m/s]."""
     from safeil_sumo.sim.leaders import constant, piecewise
 
@@ -301,6 +304,7 @@ def build_scenario(spec: ScenarioSpec, road):
     glo, ghi = spec.gap_range_m
     gap = float(rng.uniform(glo, ghi)) if ghi > glo else glo
     ego_speed, max_time, limit_reason = spec.ego_speed_mps, spec.max_time_s, "timeout"
+    leader: SpeedProfile | None
     if spec.leader_kind == "recorded":  # the recording's leader and its follower's start
         from safeil_sumo.scenarios import recorded_leaders as rl
 
@@ -314,6 +318,8 @@ def build_scenario(spec: ScenarioSpec, road):
         max_time = min(max_time or math.inf, drawn.duration_s)
     else:
         leader = leader_profile(spec, speed)
+    # given, or the recording's; __post_init__ sets the default for every other leader kind
+    assert ego_speed is not None
     traffic = None
     if spec.traffic:  # SUMO's vehicles are the leaders: no scripted one
         from safeil_sumo.sim.traffic import n74_traffic

@@ -55,16 +55,20 @@ def _shift_shape(text: str, dx: float) -> str:
 def _shift(elem: ET.Element, dx: float) -> None:
     for node in elem.iter():
         for key in ("shape", "customShape"):
-            if node.get(key):
-                node.set(key, _shift_shape(node.get(key), dx))
-        if node.tag == "junction" and node.get("x") is not None:
-            node.set("x", f"{float(node.get('x')) + dx:.3f}")
+            if shape := node.get(key):
+                node.set(key, _shift_shape(shape, dx))
+        if node.tag == "junction" and (x := node.get("x")) is not None:
+            node.set("x", f"{float(x) + dx:.3f}")
 
 
-def _bounds(root: ET.Element) -> list[float] | None:
-    """``[x0, y0, x1, y1]`` [m] of a net's ``<location convBoundary>`` (None: no location)."""
+def _bounds(root: ET.Element) -> list[float]:
+    """``[x0, y0, x1, y1]`` [m] of a net's ``<location convBoundary>``; a ``ValueError`` for a
+    net without one."""
     loc = root.find("location")
-    return None if loc is None else [float(v) for v in loc.get("convBoundary").split(",")]
+    boundary = None if loc is None else loc.get("convBoundary")
+    if boundary is None:
+        raise ValueError("the net has no <location convBoundary>")
+    return [float(v) for v in boundary.split(",")]
 
 
 def copy_offset_m(net_path: Path, spacing_m: float) -> float:
@@ -90,10 +94,10 @@ def _rename(elem: ET.Element, i: int) -> None:
             continue
         for key in _ID_ATTRS:
             if key in node.attrib:
-                node.set(key, prefixed(i, node.get(key)))
+                node.set(key, prefixed(i, node.attrib[key]))
         for key in _LIST_ATTRS:
-            if node.get(key):
-                node.set(key, " ".join(prefixed(i, s) for s in node.get(key).split()))
+            if ids := node.get(key):
+                node.set(key, " ".join(prefixed(i, s) for s in ids.split()))
 
 
 def copies_xml(net_path: Path, n: int, offset_m: float = 0.0) -> bytes:

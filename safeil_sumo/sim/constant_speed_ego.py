@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from safeil_sumo.geometry import Polyline
 from safeil_sumo.policy import PLAN_HORIZON_S
 from safeil_sumo.sim.recorded_ego import RecordedPathError
@@ -56,7 +58,7 @@ class ConstantSpeedPath:
         xy, yaw = self.lane.point_at(self.s0 + self.speed * max(t, 0.0))
         return float(xy[0]), float(xy[1]), float(yaw), self.speed
 
-    def plan(self, features):
+    def plan(self, features: np.ndarray) -> np.ndarray:
         """Not a planner: the closed loop calls :meth:`pose_at` instead."""
         raise RecordedPathError("the 'constant_speed' pseudo-planner does not plan; the closed "
                                 "loop drives it through pose_at()")

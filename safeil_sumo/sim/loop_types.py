@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -119,4 +120,4 @@ class Rollout:
     """A finished run: per-step ``log`` and a flat ``summary`` of the scenario."""
 
     log: pd.DataFrame
-    summary: dict
+    summary: dict[str, Any]

@@ -53,6 +53,8 @@ class RecordedPath:
     horizon: float = PLAN_HORIZON_S  # [s] unused (nothing is planned); kept for the Policy protocol
     lane: Polyline | None = None
     lane_start_s: float = 0.0  # [m]
+    # the lane segment under each sample, (n,): set by __post_init__
+    _segments: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         t = np.asarray(self.times, float)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -34,7 +35,7 @@ def finish(scenario: Scenario, frame: pd.DataFrame, end_reason: str, error: str,
 def summarize(
     scenario: Scenario, log: pd.DataFrame, end_reason: str, error: str, wall_s: float,
     policy_name: str,
-) -> dict:
+) -> dict[str, Any]:
     """Flat per-scenario summary (what the sweeps and the paper's bar chart need)."""
     n = len(log)
     times = log["t"].to_numpy()
@@ -83,11 +84,11 @@ def _guard_time(log: pd.DataFrame) -> float:
     return float(np.count_nonzero(guard > 0.0) * dt)
 
 
-def drive_stats(log: pd.DataFrame, path_start_s: float) -> dict:
+def drive_stats(log: pd.DataFrame, path_start_s: float) -> dict[str, float]:
     """Distance driven and flag events per 100 km by kind (an event = a run of flagged steps)."""
     n = len(log)
     km = max(float(log["s"].iloc[-1]) - path_start_s, 0.0) / 1000.0 if n else 0.0
-    out: dict = {"km_driven": km}
+    out: dict[str, float] = {"km_driven": km}
     for col, kind in (("ttc_flag", "ttc"), ("lane_departure", "lane_departure"),
                       ("collision", "collision")):
         events = len(mon.event_starts(log[col].to_numpy(bool)))

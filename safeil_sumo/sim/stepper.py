@@ -964,7 +964,8 @@ class ClosedLoop:
                              f"shape {given.shape}")
         return given.reshape(len(self._runs), 3, 2)[live.idx]
 
-    def _checked_controls(self, live: _Live, controls: np.ndarray | None) -> tuple | None:
+    def _checked_controls(self, live: _Live, controls: np.ndarray | None
+                          ) -> tuple[FloatOrArray, FloatOrArray] | None:
         """The running scenarios' commands ``(acceleration, steering)`` of ``controls`` (floats
         at N = 1, columns ``(n,)`` else), or None; ``ValueError`` for a wrong shape or a value
         that is not finite."""
@@ -1248,7 +1249,9 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
     lines each camera sees, then one sampling and one stacked fit per (line, camera setting)."""
     fits = np.empty((2 * len(live), 4))  # row 2j: scenario j's left line, 2j + 1: its right
     xl, yl = x.tolist(), y.tolist()
-    groups: dict[tuple[int, float, int, float, float], tuple] = {}  # -> (line, camera, rows, arc lengths)
+    # -> (line, camera, rows, arc lengths)
+    groups: dict[tuple[int, float, int, float, float],
+                 tuple[Polyline, sen.SensorConfig, list[int], list[float]]] = {}
     for j, r in enumerate(live):
         lane, s_left, s_right = r.camera.lane_stations(xl[j], yl[j])
         config = r.scenario.sensors
@@ -1262,9 +1265,10 @@ def _camera_fits(live: list[_Scenario], x: np.ndarray, y: np.ndarray, yaw: np.nd
     # sampled per group, fitted in one stacked fit per number of samples (scenarios on many
     # roads have many groups; a fit is per point set, the same alone or stacked)
     points: dict[int, list[tuple[list[int], np.ndarray, np.ndarray]]] = {}
-    for line, config, rows, s0 in groups.values():
+    for line, config, rows, stations in groups.values():
         cars = np.array(rows) // 2
-        px, py = sen.ego_points_many(line, np.array(s0), x[cars], y[cars], yaw[cars], config)
+        px, py = sen.ego_points_many(line, np.array(stations), x[cars], y[cars], yaw[cars],
+                                     config)
         points.setdefault(px.shape[1], []).append((rows, px, py))
     for parts in points.values():
         if len(parts) == 1:

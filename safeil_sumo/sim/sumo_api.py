@@ -43,7 +43,7 @@ class VehicleDomain(Protocol):
     def subscribeContext(self, objectID: str, domain: int, dist: float,
                          varIDs: Sequence[int] = ..., begin: float = ...,
                          end: float = ...) -> None: ...
-    def getContextSubscriptionResults(self, objectID: str) -> dict: ...
+    def getContextSubscriptionResults(self, objectID: str) -> dict[str, dict[int, Any]]: ...
 
 
 class SimulationDomain(Protocol):
@@ -145,7 +145,7 @@ def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> S
         raise SumoError(f"unknown backend {backend!r}: use 'libsumo' or 'traci'")
     if gui:
         _start_gui(api, binary, args)
-        return api  # type: ignore[return-value]
+        return api
     label = f"safeil_sumo_{next(_TRACI_LABELS)}" if backend == "traci" else None
     try:
         if label is None:
@@ -154,7 +154,7 @@ def start(args: Sequence[str], backend: str = "libsumo", gui: bool = False) -> S
             api.start([binary, *args], label=label, doSwitch=False)
     except Exception as exc:  # libsumo raises TraCIException / FatalTraCIError
         raise SumoError(f"SUMO failed to start: {exc}") from exc
-    return api if label is None else api.getConnection(label)  # type: ignore[return-value]
+    return api if label is None else api.getConnection(label)
 
 
 def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
@@ -194,7 +194,7 @@ def _start_gui(traci: Any, binary: str, args: Sequence[str]) -> None:
         watchdog.cancel()
 
 
-def _kill_group(proc: subprocess.Popen) -> None:
+def _kill_group(proc: subprocess.Popen[Any]) -> None:
     with suppress(ProcessLookupError):  # already gone
         os.killpg(proc.pid, signal.SIGKILL)
 

@@ -218,7 +218,8 @@ def xy_placement_is_unambiguous(road: Road, front_xy: tuple[float, float], s_fro
 
 
 def footprints_overlap(front: tuple[float, float], yaw: float, vehicle: veh.VehicleParams,
-                       leader: tuple, lead_length: float, lead_width: float) -> bool:
+                       leader: tuple[tuple[float, float], float, float, tuple[float, float]],
+                       lead_length: float, lead_width: float) -> bool:
     """Whether the ego (front bumper ``front`` [m], heading ``yaw`` [rad]) overlaps the leader
     ``(rear_xy, speed, yaw, front_xy)`` of footprint ``lead_length`` x ``lead_width`` [m]."""
     half = 0.5 * vehicle.length_m

@@ -19,8 +19,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from safeil_sumo.sim.sumo_api import SumoApi
 
 # --traffic density -> factor on the flows of the route files [-]
 DENSITIES: dict[str, float] = {"light": 0.5, "default": 1.0, "dense": 2.0}
@@ -79,7 +83,7 @@ def n74_traffic(density: str = "default", net_dir: Path | None = None) -> Traffi
                    tuple(edges), tuple(lanes), tuple(flow))
 
 
-def prefill(api, traffic: Traffic, ego_edge: str, ego_pos_m: float, end_edge: str,
+def prefill(api: SumoApi, traffic: Traffic, ego_edge: str, ego_pos_m: float, end_edge: str,
             rng: np.random.Generator) -> int:
     """Insert vehicles along ``traffic.main_route`` from ``PREFILL_BEHIND_M`` behind the ego
     (on ``ego_edge`` at lane position ``ego_pos_m``) to the end of ``end_edge``; returns how
@@ -116,7 +120,7 @@ def prefill(api, traffic: Traffic, ego_edge: str, ego_pos_m: float, end_edge: st
     return n
 
 
-def read_leader(api, ego_id: str, dist_m: float) -> str:
+def read_leader(api: SumoApi, ego_id: str, dist_m: float) -> str:
     """SUMO's leader of the ego in its lane (and its continuation) within at least ``dist_m``
     [m], or "" (libsumo answers ``("", -1)``, traci ``None`` when there is none, and both raise
     or answer nothing useful while the ego is off every lane)."""

@@ -24,9 +24,9 @@ and ``from_each(tuples)`` is its inverse (the values of per-row tuples).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from types import SimpleNamespace
-from typing import TypeAlias, TypeVar
+from typing import Any, TypeAlias, TypeVar
 
 import numpy as np
 
@@ -79,11 +79,11 @@ def _from_each(rows: Sequence[tuple[T, ...]]) -> tuple[T, ...]:
     return rows[0]
 
 
-def _each_arrays(*values: np.ndarray) -> zip:
+def _each_arrays(*values: np.ndarray) -> Iterator[tuple[Any, ...]]:
     return zip(*(value.tolist() for value in values), strict=True)
 
 
-def _from_each_arrays(rows: Sequence[tuple]) -> tuple[np.ndarray, ...]:
+def _from_each_arrays(rows: Sequence[tuple[Any, ...]]) -> tuple[np.ndarray, ...]:
     return tuple(np.array(col) for col in zip(*rows, strict=True))
 
 
