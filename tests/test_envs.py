@@ -236,6 +236,24 @@ def test_vector_env_gives_the_single_envs_trajectories():
 
 
 @pytest.mark.sumo
+def test_vector_env_takes_a_seed_per_sub_env():
+    """``reset(seed=[s_0, ..., s_{n-1}])`` seeds each sub-env (as gymnasium's SyncVectorEnv):
+    ``[5, 6]`` is ``seed=5``'s episodes. The vector env's own generator takes ints only, so
+    the list once reached it and gymnasium refused it ("Seed must be a python integer")."""
+    venv = envs.SafeILVectorEnv(2, max_time_s=1.0)
+    try:
+        by_list, _ = venv.reset(seed=[5, 6])
+        indices = venv.indices.copy()
+        by_int, _ = venv.reset(seed=5)
+        np.testing.assert_array_equal(venv.indices, indices)
+        np.testing.assert_array_equal(by_list, by_int)
+        venv.reset(seed=np.int64(5))  # a numpy int too
+        np.testing.assert_array_equal(venv.indices, indices)
+    finally:
+        venv.close()
+
+
+@pytest.mark.sumo
 def test_traci_envs_run_side_by_side_in_one_process():
     """Gymnasium's SyncVectorEnv of traci envs (a SUMO process each, one Python process): the
     sub-envs do not close each other (libsumo's would) and step as the native vector env does

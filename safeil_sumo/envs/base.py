@@ -70,6 +70,11 @@ def check_options(options: dict | None, max_index: int) -> int | None:
     index = options.get("index")
     if index is None:
         return None
+    return check_index(index, max_index)
+
+
+def check_index(index: object, max_index: int) -> int:
+    """An episode index of ``reset(options={"index": ...})``: an int in [0, ``max_index``)."""
     if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not (
             0 <= index < max_index):
         raise ValueError(f"options['index'] must be an int in [0, {max_index}), got {index!r}")
@@ -96,6 +101,9 @@ def rgb_frame(log: pd.DataFrame, obs, i: int, road, vehicle: VehicleParams, name
     try:
         drawer.draw(len(log) - 1)
         drawer.fig.canvas.draw()
-        return np.asarray(drawer.fig.canvas.buffer_rgba())[..., :3].copy()
+        # matplotlib types a figure's canvas as the base class; the Agg canvas the drawer's
+        # figure has (its backend is Agg) has buffer_rgba
+        rgba = drawer.fig.canvas.buffer_rgba()  # type: ignore[attr-defined]
+        return np.asarray(rgba)[..., :3].copy()
     finally:
         drawer.close()

@@ -21,6 +21,7 @@ import resource
 import subprocess
 import sys
 import time
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -59,14 +60,14 @@ def measure(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
         return {"part": part, "n": 1, "step_s": step_s, "transitions_per_s": count / wall,
                 "transitions_per_cpu_s": count / cpu, "peak_rss_mb": _rss_mb()}
     mode = {"vector": "vector_entry_point", "sync": "sync", "async": "async"}[part]
-    backend = {"backend": "traci"} if part == "sync" else {}
+    backend: dict[str, Any] = {"backend": "traci"} if part == "sync" else {}
     venv = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode=mode, step_s=step_s, **backend)
     obs, _ = venv.reset(seed=0)
     count, t0, c0 = 0, time.perf_counter(), time.process_time()
     # at least MIN_STEPS vector steps: a SyncVectorEnv of 64 traci envs takes seconds per step
     while time.perf_counter() - t0 < seconds or count < MIN_STEPS * n:
-        a = np.asarray(planner.plan(np.asarray(obs, float)), float).reshape(n, 6)
-        obs, _, _, _, _ = venv.step(a)
+        actions = np.asarray(planner.plan(np.asarray(obs, float)), float).reshape(n, 6)
+        obs, _, _, _, _ = venv.step(actions)
         count += n
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     venv.close()

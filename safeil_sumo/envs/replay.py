@@ -22,6 +22,7 @@ import tempfile
 import weakref
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -91,7 +92,7 @@ def replay_task(source: str = DEFAULT_SOURCE, maneuver: str = DEFAULT_MANEUVER,
                 start_s: float = 0.0, duration_s: float | None = None,
                 data_dir: str | Path | None = None, lane_noise_c0_m: float = 0.0,
                 radar_noise_m: float = 0.0, master_seed: int = 0,
-                max_time_s: float | None = None, **unknown) -> ReplayTask:
+                max_time_s: float | None = None, **unknown: Any) -> ReplayTask:
     """The replay task of ``maneuver`` (an id, ``"auto"`` or ``"longest"``, as the replay CLI's
     ``--maneuver``) of ``source`` (``openacc``, ``zalazone``, ``ngsim`` or a drive file, in
     ``data_dir``, default ``../shared/data``), from ``start_s`` [s] (ignored with ``auto``)
@@ -128,9 +129,12 @@ def replay_task(source: str = DEFAULT_SOURCE, maneuver: str = DEFAULT_MANEUVER,
         shutil.rmtree(net_dir, ignore_errors=True)
         raise
     sc = prep.scenario
+    limit_s = sc.max_time_s  # the recording's length (prepare_replay sets it)
+    if max_time_s:
+        limit_s = max_time_s if limit_s is None else min(limit_s, max_time_s)
     sc = replace(sc, sensors=SensorConfig(lane_noise_c0_m=float(lane_noise_c0_m),
                                           radar_noise_m=float(radar_noise_m)),
-                 max_time_s=min(sc.max_time_s, max_time_s) if max_time_s else sc.max_time_s)
+                 max_time_s=limit_s)
     task = ReplayTask(f"replay {mid} @ {start:g} s", mid, start, sc,
                       prep.human["t"].to_numpy(float), prep.human["gap"].to_numpy(float),
                       net_dir)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import ClassVar
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -13,7 +13,7 @@ from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
 from safeil_sumo.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
 from safeil_sumo.sim.loop_types import Rollout
-from safeil_sumo.sim.stepper import LIMIT_REASONS, TERMINAL_REASONS, ClosedLoop
+from safeil_sumo.sim.stepper import LIMIT_REASONS, TERMINAL_REASONS, ClosedLoop, Observation
 from safeil_sumo.sim.sumo_api import has_display
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -33,7 +33,10 @@ class SafeILEnv(gym.Env):
     refused and not listed in the instance's ``metadata["render_modes"]``.
     """
 
-    metadata: ClassVar[dict] = {"render_modes": ["human", "rgb_array"], "render_fps": 10}
+    # gymnasium's Env declares metadata an instance attribute whose default is the class's
+    # (gymnasium.make reads it from the class, and __init__ narrows it per instance)
+    metadata: dict[str, Any] = {  # noqa: RUF012
+        "render_modes": ["human", "rgb_array"], "render_fps": 10}
 
     def __init__(self, task: str = "curved500", action_level: str = "plan",
                  horizon_s: float = PLAN_HORIZON_S, reward: sp.RewardConfig | dict | None = None,
@@ -59,7 +62,7 @@ class SafeILEnv(gym.Env):
         self.action_level = action_level
         self.vehicle = VehicleParams()
         self.observation_space = sp.observation_space()
-        self.action_space = sp.action_space(action_level, self.vehicle)
+        self.action_space: gym.spaces.Box = sp.action_space(action_level, self.vehicle)
         self.reward_config = sp.RewardConfig.of(
             reward, sp.REPLAY_REWARD if self.task.replay else None)
         self.out_of_space, self.horizon_s, self.render_mode = out_of_space, horizon_s, render_mode
@@ -68,7 +71,7 @@ class SafeILEnv(gym.Env):
         if render_mode == "human":  # sumo-gui: a process of its own, reached through traci
             self.loop_config = replace(self.loop_config, gui=True, backend="traci")
         self._loop: ClosedLoop | None = None
-        self._obs = None
+        self._obs: Observation | None = None
         self._done = True
         self._reset_once = self._lost = False
         self.index: int | None = None  # the episode's index in its task
@@ -78,7 +81,8 @@ class SafeILEnv(gym.Env):
 
     def lose_sumo(self) -> None:
         """Another env of this process takes SUMO: the episode ends here."""
-        self._loop.close()
+        if self._loop is not None:  # it holds SUMO (holds_sumo)
+            self._loop.close()
         self._done, self._lost = True, True
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -102,6 +106,8 @@ class SafeILEnv(gym.Env):
         if self._done:
             raise RuntimeError("step after the episode ended (terminated or truncated): call "
                                "reset()" if self._reset_once else "call reset() before step()")
+        # an episode runs (not done): reset() made the loop and its observation
+        assert self._loop is not None and self._obs is not None
         a = sp.checked_actions(action, self.action_space, self.out_of_space)[None]
         before = float(self._obs.s[0])
         try:
@@ -129,7 +135,7 @@ class SafeILEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        if self._loop is None or not self._reset_once:
+        if self._loop is None or not self._reset_once or self.index is None:
             raise RuntimeError("call reset() before render()")
         return base.rgb_frame(self._loop.rollout(0).log, self._obs, 0,
                               self.task.scenario(self.index).road, self.vehicle,

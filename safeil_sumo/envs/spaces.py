@@ -146,7 +146,8 @@ class RewardConfig:
             r = r + self.human_gap_per_m2 * (e * e)
         return np.where(events.sub_steps > 0, r, 0.0)
 
-    def reward_one(self, s_before: float, obs, events, human_gap: float | None = None
+    def reward_one(self, s_before: float, obs, events,
+                   human_gap: float | np.ndarray | None = None
                    ) -> float:
         """:meth:`rewards` of a one-scenario step, on Python floats (the same operations in the
         same order: the same value, bit for bit, without numpy's per-call overhead)."""
@@ -194,7 +195,7 @@ def infos(obs, events=None, human_gap: np.ndarray | None = None) -> dict[str, np
     return out
 
 
-def info_one(obs, events=None, human_gap: float | None = None) -> dict:
+def info_one(obs, events=None, human_gap: float | np.ndarray | None = None) -> dict:
     """``{k: v[0] for k, v in infos(obs, events, human_gap).items()}`` of a one-scenario step,
     built directly (the same keys and values)."""
     src = events if events is not None else obs

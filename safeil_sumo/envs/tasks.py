@@ -11,12 +11,17 @@ copy of the road in the one SUMO simulation (:meth:`safeil_sumo.sim.stepper.Clos
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from safeil_sumo.experiments.suite import FAMILIES, NETS, family_specs
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_road
 from safeil_sumo.sim.loop_types import Scenario
+
+if TYPE_CHECKING:
+    from safeil_sumo.envs.replay import ReplayTask
 
 MAX_INDEX = 2**31 - 1  # episode indices drawn in [0, MAX_INDEX)
 # leader-response families: the variant is the index (< 1000: the suite's index encodes the
@@ -66,13 +71,13 @@ class Task:
         return None
 
     @property
-    def net_path(self):
+    def net_path(self) -> Path:
         spec = self.spec_of(0)
         return resolve_road(spec.net, spec.route, spec.from_km, spec.to_km, spec.lane).net_path
 
 
 def make_task(task: str = "curved500", net: str | None = None, master_seed: int = 0,
-              max_time_s: float | None = None, profile: str = "", **spec: object) -> Task:
+              max_time_s: float | None = None, profile: str = "", **spec: Any) -> Task | ReplayTask:
     """The task ``task`` (one of :data:`TASKS`):
 
     - ``curved500``: the paper's safety test (a leader at a constant random speed in [25, 32]

@@ -13,7 +13,7 @@ episodes are those of a single env reset with the same seed.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -26,7 +26,7 @@ from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
 from safeil_sumo.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
 from safeil_sumo.sim.runner import SUMMARY_COLUMNS
-from safeil_sumo.sim.stepper import ClosedLoop
+from safeil_sumo.sim.stepper import ClosedLoop, Observation
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
@@ -35,8 +35,10 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
     :class:`~safeil_sumo.envs.single.SafeILEnv`'s. ``info`` holds arrays ``(num_envs,)`` (and
     Gymnasium's ``_<key>`` masks)."""
 
-    metadata: ClassVar[dict] = {"render_modes": ["rgb_array"], "render_fps": 10,
-                "autoreset_mode": AutoresetMode.NEXT_STEP}
+    # gymnasium's VectorEnv declares metadata an instance attribute whose default is the class's
+    # (gymnasium.make_vec reads it from the class)
+    metadata: dict[str, Any] = {  # noqa: RUF012
+        "render_modes": ["rgb_array"], "render_fps": 10, "autoreset_mode": AutoresetMode.NEXT_STEP}
 
     def __init__(self, num_envs: int = 1, task: str = "curved500", action_level: str = "plan",
                  horizon_s: float = PLAN_HORIZON_S, reward: sp.RewardConfig | dict | None = None,
@@ -58,7 +60,7 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         self.task = make_task(task, **task_options)
         self.action_level, self.vehicle = action_level, VehicleParams()
         self.single_observation_space = sp.observation_space()
-        self.single_action_space = sp.action_space(action_level, self.vehicle)
+        self.single_action_space: gym.spaces.Box = sp.action_space(action_level, self.vehicle)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         if self.task.traffic and self.num_envs > 1:
@@ -76,7 +78,7 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
                                log_columns=None if render_mode else SUMMARY_COLUMNS)
         self._rngs = [seeding.np_random(None)[0] for _ in range(self.num_envs)]
         self.indices = np.full(self.num_envs, -1)  # each sub-env's episode index
-        self._obs = None
+        self._obs: Observation | None = None
         self._autoreset = np.zeros(self.num_envs, bool)
         self._open = False  # SUMO runs (some scenario has not ended)
         self._lost = False  # another env of the process took SUMO (base.claim_sumo)
@@ -90,7 +92,9 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         self._open, self._lost = False, True
 
     def reset(self, *, seed: int | list | None = None, options: dict | None = None):
-        super().reset(seed=seed)
+        # the vector env's own generator takes an int seed only (gymnasium's seeding refuses a
+        # list, and numpy ints); a list seeds the sub-envs alone, as gymnasium's SyncVectorEnv
+        super().reset(seed=int(seed) if isinstance(seed, (int, np.integer)) else None)
         seeds = _seeds(seed, self.num_envs)
         for i, s in enumerate(seeds):
             if s is not None or seed is not None:
@@ -105,10 +109,10 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         base.claim_sumo(self, self.loop.loop)
         self._open = False
         scenarios = [self.task.scenario(int(i)) for i in self.indices]
-        self._obs = self.loop.reset(scenarios, horizon_s=self.horizon_s)
+        self._obs = obs = self.loop.reset(scenarios, horizon_s=self.horizon_s)
         self._open, self._autoreset[:], self._lost = True, False, False
-        return sp.observe(self._obs.features), _with_masks(sp.infos(
-            self._obs, human_gap=self.task.human_gap_at(self._obs.t)))
+        return sp.observe(obs.features), _with_masks(sp.infos(
+            obs, human_gap=self.task.human_gap_at(obs.t)))
 
     def step(self, actions):
         if self._obs is None:
@@ -123,9 +127,9 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
                 self.indices[i] = self.task.draw_index(self._rngs[i])
             obs, info = self._reset_all()
             return obs, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), info
-        for i in np.flatnonzero(self._autoreset):
-            self.indices[i] = self.task.draw_index(self._rngs[i])
-            self.loop.restart(int(i), self.task.scenario(int(self.indices[i])),
+        for k in np.flatnonzero(self._autoreset):
+            self.indices[k] = self.task.draw_index(self._rngs[k])
+            self.loop.restart(int(k), self.task.scenario(int(self.indices[k])),
                               horizon_s=self.horizon_s)
         before = self._obs.s
         try:
@@ -179,7 +183,7 @@ def _option_indices(options: dict | None, n: int, max_index: int) -> list[int] |
     index = list(np.atleast_1d(index))
     if len(index) != n:
         raise ValueError(f"options['index'] needs {n} indices, got {len(index)}")
-    return [base.check_options({"index": int(i)}, max_index) for i in index]
+    return [base.check_index(int(i), max_index) for i in index]
 
 
 def _with_masks(info: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
