@@ -26,6 +26,7 @@ import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -33,7 +34,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from matplotlib.animation import FFMpegWriter, PillowWriter
+from matplotlib.animation import AbstractMovieWriter, FFMpegWriter, PillowWriter
 from matplotlib.patches import Polygon
 from matplotlib.transforms import Affine2D, Transform
 
@@ -116,7 +117,8 @@ def _run_road(run_dir: Path, config: dict) -> Road:
     if config.get("stretch_km"):  # run --net n74 --from-km/--to-km
         from safeil_sumo.scenarios.n74 import stretch_road
 
-        return stretch_road(*config["stretch_km"], net_dir=path.parent)
+        from_km, to_km = config["stretch_km"]
+        return stretch_road(from_km, to_km, net_dir=path.parent)
     if route:  # a run along several edges (run --route)
         from safeil_sumo.scenarios.route import load_route
 
@@ -175,7 +177,9 @@ def load_episode(run_dir: Path | str, scenario: str | None = None,
             road = _run_road(run_dir, config)
     except NetworkError as exc:
         raise AnimateError(str(exc)) from exc
-    vehicle = config.get("vehicle") if isinstance(config.get("vehicle"), dict) else {}
+    vehicle = config.get("vehicle")
+    if not isinstance(vehicle, dict):
+        vehicle = {}
     default = VehicleParams()
     log = log.sort_values("t", kind="stable").reset_index(drop=True)
     if len(log) == 0:
@@ -361,7 +365,7 @@ class FrameDrawer:
             _at_least(ax, min_span)
         strip.grid(alpha=0.3)
         lines = strip.get_lines()[:2] + gap_ax.get_lines()[:1]
-        strip.legend(lines, [ln.get_label() for ln in lines], loc="lower left", fontsize=6.5,
+        strip.legend(lines, [str(ln.get_label()) for ln in lines], loc="lower left", fontsize=6.5,
                      ncol=3, framealpha=0.8)
 
     def _heading_at(self, x: float, y: float) -> float:
@@ -393,7 +397,7 @@ class FrameDrawer:
         self.trail.set_data(ep.log["front_x"].to_numpy()[: i + 1],
                             ep.log["front_y"].to_numpy()[: i + 1])
         t = float(row["t"])
-        if self.human is not None:
+        if self.human is not None and ep.human is not None:  # the line is drawn with a human
             h = ep.human
             k = int(np.clip(np.searchsorted(h["t"].to_numpy(float), t + 1e-9, side="right") - 1,
                             0, len(h) - 1))
@@ -462,7 +466,7 @@ class _GifWriter(PillowWriter):
     4, so a long scenario's frames fit in memory. Octree quantisation keeps the small red
     control points that median cut merges into the orange spline."""
 
-    def grab_frame(self, **savefig_kwargs) -> None:
+    def grab_frame(self, **savefig_kwargs: Any) -> None:
         super().grab_frame(**savefig_kwargs)
         from PIL import Image
 
@@ -508,10 +512,12 @@ def animate(run_dir: Path | str, scenario: str | None = None, policy: str | None
         # an interrupted animation leaves no half-written file
         with atomic_path(out) as tmp, \
                 matplotlib.rc_context({"animation.ffmpeg_path": ffmpeg or "ffmpeg"}):
+            # matplotlib's stubs type fps as int; its writers take any positive frame rate
+            writer: AbstractMovieWriter
             if ffmpeg:
-                writer = FFMpegWriter(fps=fps, codec="h264", bitrate=-1)
+                writer = FFMpegWriter(fps=fps, codec="h264", bitrate=-1)  # type: ignore[arg-type]
             else:
-                writer = _GifWriter(fps=fps)
+                writer = _GifWriter(fps=fps)  # type: ignore[arg-type]
             # GIF frame delays are whole centiseconds: fps above 50 play slower than asked
             with writer.saving(drawer.fig, str(tmp), dpi):
                 for i in rows:

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 from tqdm import tqdm
@@ -66,7 +67,7 @@ def road(net: str = "curved500", route: Sequence[str] = (), from_km: float | Non
     return resolve_road(net, tuple(route), from_km, to_km, "" if lane is None else str(lane))
 
 
-def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: object) -> Scenario:
+def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: Any) -> Scenario:
     """Scenario ``index`` of master ``seed`` on ``net``; ``spec`` takes any
     :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` field (``leader_kind="recorded"``,
     ``leader_profile="ngsim"``, ``leader_speed_range_mps=(20, 25)``, ``initial_gap_m=30``,
@@ -76,7 +77,7 @@ def scenario(net: str = "curved500", index: int = 0, seed: int = 0, **spec: obje
 
 
 def build_scenarios(net: str = "curved500", count: int = 10, seed: int = 0,
-                    **spec: object) -> list[Scenario]:
+                    **spec: Any) -> list[Scenario]:
     """Scenarios ``0..count-1`` of master ``seed`` (the sweep's builder: scenario i of a run is
     task i of a sweep)."""
     return [scenario(net, i, seed, **spec) for i in range(count)]
@@ -101,7 +102,7 @@ def run_scenarios(scenarios: Sequence[Scenario], policy: str | Policy,
 
 
 def run(net: str = "curved500", policy: str | Policy = "safeil", scenarios: int = 10,
-        seed: int = 0, loop: LoopConfig | None = None, **spec: object) -> RunResult:
+        seed: int = 0, loop: LoopConfig | None = None, **spec: Any) -> RunResult:
     """Run ``scenarios`` scenarios (indices 0..n-1 of master ``seed``) closed loop in libsumo."""
     planner = load_policy(policy)  # a bad policy fails before any scenario is built
     return run_scenarios(build_scenarios(net, scenarios, seed, **spec), planner, loop)
@@ -118,7 +119,7 @@ def policy_names(policy: str | Sequence[str]) -> list[str]:
 
 def sweep(policy: str | Sequence[str], out: str | Path, scenarios: int = 10,
           nets: Sequence[str] = ("curved500",), seed: int = 0, workers: int = 1,
-          batch: int = DEFAULT_BATCH, **spec: object) -> pd.DataFrame:
+          batch: int = DEFAULT_BATCH, **spec: Any) -> pd.DataFrame:
     """A resumable sweep (nets x policies x scenarios; ``spec``: ScenarioSpec fields) written to
     ``out``; returns its summary (one row per task). ``policy``: a name or path, or several
     (they travel to worker processes); up to ``batch`` scenarios share one SUMO simulation

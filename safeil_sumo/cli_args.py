@@ -87,8 +87,11 @@ class CommandParser(argparse.ArgumentParser):
                     return f"{flag} on|off was replaced by {flag} / --no-{flag[2:]}: use {new}"
         return None
 
-    def parse_known_args(self, args: Sequence[str] | None = None,
-                         namespace: argparse.Namespace | None = None):
+    # typeshed types parse_known_args as overloads on the namespace's class; this one forwards
+    # whatever it is given, so it matches none of them exactly
+    def parse_known_args(  # type: ignore[override]
+            self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
         argv = list(sys.argv[1:] if args is None else args)
         message = self.old_spelling(argv)
         if message:
@@ -371,10 +374,11 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
     built (:func:`dataclass_from_args`), so each rule lives in one place. Each option's help is
     ``helps[name]``, else the field's ``help`` metadata, else its name."""
     defaults = cls()
+    names, choices = names or {}, choices or {}
     for f in dataclasses.fields(cls):
         default = getattr(defaults, f.name)
         flag = "--" + f.name.replace("_", "-")
-        if f.name in (names or {}):
+        if f.name in names:
             if isinstance(parser, CommandParser):
                 parser.rename(**{f.name: names[f.name]})
             flag = names[f.name]
@@ -392,7 +396,7 @@ def add_dataclass_options(parser: argparse.ArgumentParser, cls: type, *,
                 kw["type"] = int_list
             else:
                 kw["nargs"] = "*"
-        if f.name in (choices or {}):
+        if f.name in choices:
             kw["choices"] = choices[f.name]
         parser.add_argument(*flags, **kw)
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
@@ -34,6 +35,9 @@ from safeil_sumo.cli_args import (
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 from safeil_sumo.experiments import gap_probe as gp
 from safeil_sumo.experiments import outputs
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 def build_parser() -> CommandParser:
@@ -69,7 +73,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def format_table(table) -> str:
+def format_table(table: pd.DataFrame) -> str:
     """The printed summary: one line per run, then the humans' bands."""
     runs = table[table["policy"] != gp.HUMANS]
     cols = {"policy": "policy", "speed_mps": "v[m/s]", "kind": "kind",

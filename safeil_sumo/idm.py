@@ -58,7 +58,7 @@ class IDMParams:
 
     @staticmethod
     def from_vector(x: np.ndarray, delta: float = 4.0) -> IDMParams:
-        return IDMParams(*map(float, x), delta=delta)
+        return IDMParams(**dict(zip(FIT_FIELDS, map(float, x), strict=True)), delta=delta)
 
     def vector(self) -> np.ndarray:
         return np.array([getattr(self, name) for name in FIT_FIELDS])
@@ -219,12 +219,9 @@ def fit_idm(maneuvers: list[Maneuver], seed: int = 0, starts: int = 4) -> IDMFit
     rng = np.random.default_rng(seed)
     x0s = [np.clip(IDMParams().vector(), lo, hi)]
     x0s += [rng.uniform(lo, hi) for _ in range(max(starts - 1, 0))]
-    best = None
-    for x0 in x0s:
-        res = least_squares(residuals, x0, bounds=(lo, hi), x_scale=hi - lo, diff_step=1e-3,
-                            max_nfev=200)
-        if best is None or res.cost < best.cost:
-            best = res
+    fits = [least_squares(residuals, x0, bounds=(lo, hi), x_scale=hi - lo, diff_step=1e-3,
+                          max_nfev=200) for x0 in x0s]
+    best = min(fits, key=lambda res: res.cost)  # the first of the cheapest
     params = IDMParams.from_vector(best.x)
     rmse_gap, rmse_speed = evaluate_fit(maneuvers, params)
     return IDMFit(params, rmse_gap, rmse_speed, tuple(m.maneuver_id for m in maneuvers),

@@ -40,6 +40,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -124,7 +125,8 @@ def safety(out: Path, work: Path, workers: int, seed: int) -> dict:
     _save_csv(table, out / "safety_curved500.csv")
 
     fig, ax = plt.subplots(figsize=(11, 4.5))
-    bars = [("paper: SafeIL", PAPER_SAFEIL, "tab:green", "//"),
+    bars: list[tuple[str, Any, str, str | None]] = [
+            ("paper: SafeIL", PAPER_SAFEIL, "tab:green", "//"),
             ("paper: BC", PAPER_BC, "tab:red", "//")]
     for p in POLICIES:
         sub = df[df["policy"] == p].sort_values("index")
@@ -284,7 +286,8 @@ def replay(out: Path, work: Path, seed: int) -> pd.DataFrame:
     from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import maneuver_replay as rp
 
-    sources = {"openacc": ("openacc", "auto"), "ngsim": ("ngsim", "auto")}
+    sources: dict[str, tuple[str, str | list[str]]] = {"openacc": ("openacc", "auto"),
+                                                        "ngsim": ("ngsim", "auto")}
     synthetic = REPO / "data" / "synthetic" / "drives.parquet"
     held = _held_out_synthetic(synthetic)
     if held is not None:
@@ -338,7 +341,8 @@ def openloop(out: Path, work: Path) -> pd.DataFrame:
 
     datasets = {"synthetic": SHIPPED_DATA, "ngsim": REPO / "data" / "ngsim_tuples.parquet",
                 "openacc": REPO / "data" / "openacc_tuples.parquet"}
-    methods = {"safeil": {"method": "safeil", "barrier_lateral": "bernstein"},
+    methods: dict[str, dict[str, Any]] = {
+        "safeil": {"method": "safeil", "barrier_lateral": "bernstein"},
                "safeil_paper": {"method": "safeil"}, "bc": {"method": "bc"}}
     rows = []
     for data_name, path in datasets.items():
@@ -386,7 +390,8 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
     tuples = Tuples.load(SHIPPED_DATA)
     tr_all, va = split_by_maneuver(tuples, 0.2, 0)
     ids = np.array(sorted(tr_all.maneuvers))
-    methods = {"safeil": {"method": "safeil", "barrier_lateral": "bernstein"},
+    methods: dict[str, dict[str, Any]] = {
+        "safeil": {"method": "safeil", "barrier_lateral": "bernstein"},
                "bc": {"method": "bc"}}
     ckpt_dir = work / "efficiency" / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
@@ -481,12 +486,14 @@ def _md_table(rows: list[dict], columns: dict[str, str]) -> str:
     return "\n".join([head, sep, *body])
 
 
-def _pct(rate: float, low: float | None = None, high: float | None = None) -> str:
+def _pct(rate: float | None, low: float | None = None, high: float | None = None) -> str:
     if rate is None or (isinstance(rate, float) and math.isnan(rate)):
         return "–"
     text = f"{100 * rate:.0f} %"
     # 3 significant digits: 1,000/1,000 has the interval [99.6, 100], not "[100, 100]"
-    return text + (f" [{100 * low:.3g}, {100 * high:.3g}]" if low is not None else "")
+    if low is None or high is None:
+        return text
+    return text + f" [{100 * low:.3g}, {100 * high:.3g}]"
 
 
 def _whole_rows(whole: list[dict]) -> list[dict]:
@@ -1230,7 +1237,9 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
               # one core's time of every drive (stable across resumes, unlike the wall time)
               "drives_core_s": round(float(ok["task_wall_time_s"].sum()), 1)}
     if population:
-        drawn = np.array(sorted({s.index: s.time_gap_s for s in population}.values()))
+        # every population drive has its setting (nd.population_specs)
+        drawn = np.array(sorted({s.index: s.time_gap_s for s in population
+                                 if s.time_gap_s is not None}.values()))
         est = np.array(list(estimates.values()))
         design["population"] = {
             "planners": list(nd.POPULATION_PLANNERS), "seeds_per_stretch": pop_per,

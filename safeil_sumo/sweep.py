@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -183,7 +184,7 @@ def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
     ]
 
 
-def check_inputs(nets: list[str], policies: list[str], profiles: list[str] = (),
+def check_inputs(nets: list[str], policies: list[str], profiles: Sequence[str] = (),
                  route: tuple[str, ...] = (), from_km: float | None = None,
                  to_km: float | None = None, lane: str = "",
                  time_gap_s: float | None = None) -> None:

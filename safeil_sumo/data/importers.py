@@ -128,7 +128,9 @@ from __future__ import annotations
 import gzip
 import itertools
 import re
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -189,7 +191,7 @@ def check_speeds(speed: np.ndarray, source: str, column: str, declared: str = "m
                           f"{hint}")
 
 
-def _read_table(path: Path, **kwargs) -> pd.DataFrame:
+def _read_table(path: Path, **kwargs: Any) -> pd.DataFrame:
     if not path.is_file():
         raise SchemaError(f"{path}: no such file")
     try:
@@ -641,7 +643,7 @@ def import_openacc(path: str | Path, include_acc: bool = False,
     dt = float(np.nanmedian(np.diff(time))) if len(time) > 1 else 0.1
     min_run = round(OPENACC_CURVATURE_WINDOW / dt) | 1  # the curvature filter's window
     frames: list[pd.DataFrame] = []
-    stats = {"source": src, "followers_human": 0, "followers_acc_skipped": 0,
+    stats: dict[str, Any] = {"source": src, "followers_human": 0, "followers_acc_skipped": 0,
              "rows_nan_skipped": 0, "gap_clipped": 0, "curvature_clipped": 0,
              "pairs": 0, "ivs_without_follower": ivs_unused, "driver_from_metadata": 0,
              "lead_speed_missing": 0, "runs_short_skipped": 0, "rows_short_skipped": 0}
@@ -681,7 +683,7 @@ def import_openacc(path: str | Path, include_acc: bool = False,
     return out
 
 
-def import_openacc_files(paths: list[str | Path], include_acc: bool = False,
+def import_openacc_files(paths: Sequence[str | Path], include_acc: bool = False,
                          max_curvature: float = MAX_PATH_CURVATURE) -> pd.DataFrame:
     """Several OpenACC files into one drive frame (recording ids stay unique per file)."""
     parts = [import_openacc(p, include_acc, max_curvature) for p in paths]

@@ -460,9 +460,13 @@ def process_drive(drive: pd.DataFrame, config: PipelineConfig | None = None
     cfg = config or PipelineConfig()
     steps: list[StepResult] = []
     df = drive
-    for step in (remove_lane_changes, keep_leader_samples, leader_speed, remove_cut_events,
+
+    def keep_leaders(d: pd.DataFrame, _: PipelineConfig) -> tuple[pd.DataFrame, StepResult]:
+        return keep_leader_samples(d)  # the one step without options
+
+    for step in (remove_lane_changes, keep_leaders, leader_speed, remove_cut_events,
                  split_maneuvers, resample):
-        df, res = step(df) if step is keep_leader_samples else step(df, cfg)
+        df, res = step(df, cfg)
         steps.append(res)
     return df, steps
 

@@ -172,7 +172,7 @@ def lane_gaps(s_front_ego: float, s_front: np.ndarray, s_rear: np.ndarray, d: np
     return tuple(out)
 
 
-def _insert_ego(api, cfg: RecordingConfig, route_edges: list[str]) -> None:
+def _insert_ego(api: sumo_api.SumoApi, cfg: RecordingConfig, route_edges: list[str]) -> None:
     """Add the ego once its start spot is free (no vehicle within -40 / +60 m in its lane)."""
     api.route.add("ego_route", route_edges)
     lane_id = f"{route_edges[0]}_{cfg.start_lane}"
@@ -338,7 +338,7 @@ def _layout_seed(cfg: RecordingConfig) -> int:
     return int(json.loads(meta.read_text())["seed"]) if meta.is_file() else n74.DEFAULT_SEED
 
 
-def _move(api, geo: n74.N74Geometry, s: float, d: float, yaw: float, v: float) -> None:
+def _move(api: sumo_api.SumoApi, geo: n74.N74Geometry, s: float, d: float, yaw: float, v: float) -> None:
     x, y = geo.frenet_to_xy(s, d)
     api.vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), yaw_to_sumo_angle(yaw), keepRoute=2)
     api.vehicle.setSpeed(EGO_ID, v)

@@ -167,9 +167,9 @@ def _check_time_order(out: pd.DataFrame, source: str) -> tuple[np.ndarray, np.nd
     dt = np.diff(t)
     bad_t = np.r_[False, (dt <= 0) & ~starts[1:]]
     if bad_t.any():
-        i = _first(bad_t)
-        raise _fail(source, "time", i, f"time does not increase ({float(t[i - 1])!r} -> "
-                    f"{float(t[i])!r})")
+        row = _first(bad_t)
+        raise _fail(source, "time", row, f"time does not increase ({float(t[row - 1])!r} -> "
+                    f"{float(t[row])!r})")
     return starts, dt
 
 

@@ -33,6 +33,7 @@ import pandas as pd
 
 from safeil_sumo.experiments.sweep_executor import run_task
 from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.sim.loop_types import Rollout
 from safeil_sumo.sim.monitors import event_starts
 
 PLANNERS = ("safeil", "safeil_openloop", "bc", "analytic", "idm")
@@ -303,7 +304,7 @@ def row_name(policy: str, time_gap_s: float | None) -> str:
     return f"{policy}_{POPULATION}"
 
 
-def drive_extras(spec: ScenarioSpec, rollout) -> dict:
+def drive_extras(spec: ScenarioSpec, rollout: Rollout) -> dict:
     """What the section keeps of a drive's log: time gaps (3 decimals) and flag events."""
     log = rollout.log
     if len(log) < 2:

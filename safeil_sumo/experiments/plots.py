@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Collection
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -11,13 +13,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
+from matplotlib.axes import Axes
 
 from safeil_sumo.scenarios.road import Road
 
 TTC_CLIP_S = 20.0  # TTC axis upper limit [s] (inf when not closing)
 
 
-def _groups(logs: pd.DataFrame):
+def _groups(logs: pd.DataFrame) -> Collection[tuple[Any, pd.DataFrame]]:
     return logs.groupby("scenario", sort=False) if "scenario" in logs else [("run", logs)]
 
 
@@ -93,7 +96,7 @@ FLAG_STYLE = {  # kind -> (marker, colour, label) on route maps
 }
 
 
-def draw_flag_map(ax, route_xy: np.ndarray, events: pd.DataFrame, title: str,
+def draw_flag_map(ax: Axes, route_xy: np.ndarray, events: pd.DataFrame, title: str,
                   km_at_start: float = 0.0, tick_km: float = 5.0) -> None:
     """The route (``(N, 2)`` [m], x-y) in grey, labelled every ``tick_km`` [km] (its first
     point is at ``km_at_start`` [km]), and flag events (columns ``kind``, ``x``, ``y`` [m])

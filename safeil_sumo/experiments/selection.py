@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -32,7 +33,7 @@ FAMILIES = ("paper", "approach", "braking", "cut_in")
 def battery(policy: str, per_family: int = 3, seed: int = VALIDATION_SEED) -> list[ScenarioSpec]:
     """The validation specs of one policy (``per_family`` seeded scenarios per family)."""
     specs: list[ScenarioSpec] = []
-    common = {"policy": policy, "master_seed": seed, "max_time_s": 40.0}
+    common: dict[str, Any] = {"policy": policy, "master_seed": seed, "max_time_s": 40.0}
     for i in range(per_family):
         specs += [
             ScenarioSpec(net="curved500", index=1000 + i, **common),

@@ -161,7 +161,9 @@ def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
         except Exception as exc:  # noqa: BLE001
             for k, *_ in parts:
                 records[k] = failed_record(specs[k], f"{type(exc).__name__}: {exc}")
-    return records
+    # run_batch reports every scenario it was given (on_done), so none is left without one
+    return [failed_record(specs[k], "NoRecord: the batch ended without this task's record")
+            if r is None else r for k, r in enumerate(records)]
 
 
 # scenarios per SUMO simulation in sweeps by default (``sweep --batch``): measured on curved500
@@ -350,7 +352,7 @@ def run_sweep(
     if todo and scheduler is None and workers > 1:
         _prepare_nets(todo)
 
-    units = batches(todo, batch, workers) if batch > 1 else [(s,) for s in todo]
+    units: list[Unit] = batches(todo, batch, workers) if batch > 1 else [(s,) for s in todo]
     bar = tqdm(total=len(todo), desc="sweep", unit="task", disable=not progress or None,
                initial=0, dynamic_ncols=True)
     failed = 0
@@ -504,14 +506,14 @@ def _run_local(
         for w in first:  # assign() may replace a worker in pool, so iterate a separate list
             assign(w)
         while any(w.unit is not None for w in pool):
-            busy = [w for w in pool if w.unit is not None]
-            ready = set(wait([w.conn for w in busy] + [w.process.sentinel for w in busy],
+            busy = [(w, w.unit) for w in pool if w.unit is not None]
+            ready = set(wait([w.conn for w, _ in busy] + [w.process.sentinel for w, _ in busy],
                              timeout=1.0))
-            for w in busy:
-                records = _poll(w, ready, task_timeout_s)
+            for w, unit in busy:
+                records = _poll(w, unit, ready, task_timeout_s)
                 if records is None:
                     continue
-                save(w.unit, records)
+                save(unit, records)
                 w.unit = None
                 if not w.process.is_alive():
                     pool.remove(w)
@@ -530,8 +532,9 @@ def _run_local(
             w.kill()
 
 
-def _poll(w: _Worker, ready: set, task_timeout_s: float | None) -> list[dict[str, Any]] | None:
-    """The records of a busy worker's unit if it is over (result, death or timeout), else
+def _poll(w: _Worker, unit: Unit, ready: set, task_timeout_s: float | None
+          ) -> list[dict[str, Any]] | None:
+    """The records of a busy worker's ``unit`` if it is over (result, death or timeout), else
     None."""
     if w.conn in ready or w.process.sentinel in ready:
         try:
@@ -542,12 +545,12 @@ def _poll(w: _Worker, ready: set, task_timeout_s: float | None) -> list[dict[str
         if not w.process.is_alive():
             return [failed_record(s, f"WorkerDied: worker process died (exit code "
                                      f"{w.process.exitcode}) while running the task")
-                    for s in w.unit]
+                    for s in unit]
     if task_timeout_s is not None and time.monotonic() - w.started > task_timeout_s:
         w.process.kill()
         w.process.join(timeout=5)
         return [failed_record(s, f"TaskTimeout: no result after {task_timeout_s:g} s; "
-                                 "worker killed") for s in w.unit]
+                                 "worker killed") for s in unit]
     return None
 
 

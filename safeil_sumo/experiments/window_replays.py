@@ -51,6 +51,7 @@ from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.sweep_executor import even_units
+from safeil_sumo.policy import Policy
 
 WINDOW_MODES = ("paper", "sliding", "whole")
 HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
@@ -121,8 +122,8 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
         raise ValueError(f"windows must be one of {WINDOW_MODES}, got {mode!r}")
     if adapt_s and mode != "whole":
         raise ValueError("adapting to the driver (adapt_s) needs whole-maneuver windows")
-    if mode != "whole":
-        duration_s = duration_s or rp.PAPER_DURATION_S
+    window_s = duration_s or rp.PAPER_DURATION_S  # paper / sliding: the windows' length [s]
+    cap_s = duration_s or 0.0  # whole: the cap from each maneuver's start [s] (0: none)
     table = rp.maneuver_table(maneuvers)
     if only is not None:
         unknown = sorted(set(only) - set(table.index))
@@ -137,16 +138,16 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
         if mode == "whole" and adapt_s:
             if dur - adapt_s < MIN_SCORED_S:
                 continue
-            capped = bool(duration_s) and duration_s < dur - adapt_s - 1e-9
-            out.append(Window(str(mid), float(adapt_s), float(duration_s) if capped else None,
+            capped = bool(cap_s) and cap_s < dur - adapt_s - 1e-9
+            out.append(Window(str(mid), float(adapt_s), float(cap_s) if capped else None,
                               float(adapt_s)))
         elif mode == "whole":
-            capped = bool(duration_s) and duration_s < dur - 1e-9
-            out.append(Window(str(mid), 0.0, float(duration_s) if capped else None))
-        elif dur >= duration_s - 1e-9:
-            starts = [0.0] if mode == "paper" else np.arange(0.0, dur - duration_s + 1e-9,
+            capped = bool(cap_s) and cap_s < dur - 1e-9
+            out.append(Window(str(mid), 0.0, float(cap_s) if capped else None))
+        elif dur >= window_s - 1e-9:
+            starts = [0.0] if mode == "paper" else np.arange(0.0, dur - window_s + 1e-9,
                                                              stride_s)
-            out += [Window(str(mid), float(s), duration_s) for s in starts]
+            out += [Window(str(mid), float(s), window_s) for s in starts]
     return out
 
 
@@ -175,8 +176,9 @@ def driver_style(first_rows: pd.DataFrame, prior=None):
     from safeil_sumo.learn.style_estimator import estimate_drive
 
     rows = first_rows.sort_values("time")
-    est, _ = estimate_drive(*(rows[c].to_numpy(float) for c in ("time", "lead_x", "v_x",
-                                                                "v_lead")), prior)
+    t, gap, speed, lead_speed = (rows[c].to_numpy(float) for c in ("time", "lead_x", "v_x",
+                                                                   "v_lead"))
+    est, _ = estimate_drive(t, gap, speed, lead_speed, prior)
     return est
 
 
@@ -375,7 +377,7 @@ def _run_batched(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict
     preps: dict[int, rp.ReplayPrep] = {}
     rollouts: dict[int, dict] = {}  # window -> label -> rollout, until the window's record
     used: dict[int, dict] = {}  # window -> label -> the planner it ran (adapted or not)
-    batched: list[tuple[int, str, object]] = []  # (window, label, planner) of the batch
+    batched: list[tuple[int, str, Policy]] = []  # (window, label, planner) of the batch
 
     def settle(k: int, rec: dict | None = None) -> None:
         """Window ``k``'s record (``rec``, else its comparison once all its runs ended)."""
@@ -425,7 +427,9 @@ def _run_batched(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict
             except Exception as exc:  # noqa: BLE001 - failed records, never an exception
                 for k in sorted(rollouts):
                     settle(k, _failed(wins[k], exc))
-    return records
+    # run_batch reports every scenario it was given (on_done), so every window is settled
+    return [_failed(wins[k], RuntimeError("the batch ended without this window's record"))
+            if r is None else r for k, r in enumerate(records)]
 
 
 _STATE: dict = {}

@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 import torch
 import torch.nn.functional as F
 
@@ -83,7 +84,7 @@ class Episodes:
     def __len__(self) -> int:
         return len(self.lanes)
 
-    def take(self, idx) -> Episodes:
+    def take(self, idx: np.ndarray) -> Episodes:
         return Episodes(self.lanes[idx], self.v_human[idx], self.gap_human[idx],
                         self.v_lead[idx], self.s_lead[idx], self.maneuver_id[np.asarray(idx)],
                         self.dt_s, None if self.style is None else self.style[idx])
@@ -273,7 +274,7 @@ def settling_episodes(n: int, lanes: torch.Tensor, rng: np.random.Generator, win
     v0 = np.maximum(v_lead + rng.uniform(-cfg.speed_step_mps, cfg.speed_step_mps, n), 0.0)
     t = np.arange(steps) * dt_s
 
-    def f32(a) -> torch.Tensor:
+    def f32(a: npt.ArrayLike) -> torch.Tensor:
         return torch.as_tensor(np.asarray(a), dtype=torch.float32)
 
     v_human = np.repeat(v_lead[:, None], steps, 1)
