@@ -690,6 +690,7 @@ def card(out: Path, work: Path, workers: int, seed: int) -> dict:
 def front_page(out: Path, facts: dict) -> list[str]:
     """``results/README.md``: the shipped ``safeil``'s report card (:func:`card`), after the
     paper's two figures beside ours."""
+    commit = facts.get("section_git_commit", {}).get("card", facts.get("git_commit", "?"))
     lines = ["# Results: the shipped `safeil`", "",
              ("`python -m safeil_sumo.results --only card safety replay` writes this page: the "
               "paper's safety test and replay beside ours, then the report card of the shipped "
@@ -697,7 +698,7 @@ def front_page(out: Path, facts: dict) -> list[str]:
               f"[`{CARD}/`]({CARD}/report.md)). Every other study (grids, many planners, "
               "whole-drive human-likeness, unseen drivers, leave one driver out, n74, "
               "falsification, sample efficiency) is in [studies.md](studies.md)."), "",
-             f"- git commit: `{facts.get('git_commit', '?')}`", ""]
+             f"- the card's git commit: `{commit}`", ""]
     lines += _safety_readme(facts) if "safety" in facts else []
     lines += _replay_readme(facts) if facts.get("replay") else []
     report = out / CARD / "report.md"
