@@ -153,26 +153,24 @@ def finite_float(text: str) -> float:
     return value
 
 
-def positive_int(text: str) -> int:
-    """An int >= 1 (worker processes, batch sizes)."""
+def _int_at_least(text: str, low: int) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    if value < low:
+        raise argparse.ArgumentTypeError(f"must be >= {low}, got {value}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """An int >= 1 (worker processes, batch sizes)."""
+    return _int_at_least(text, 1)
 
 
 def nonnegative_int(text: str) -> int:
     """An int >= 0 (seeds, counts)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+    return _int_at_least(text, 0)
 
 
 def add_leader_options(parser: CommandParser, kinds: tuple[str, ...],
@@ -441,12 +439,16 @@ def add_csv_options(parser: CommandParser) -> None:
 def data_specs(parser: CommandParser, args: argparse.Namespace) -> list[DataSpec] | None:
     """The :class:`~safeil_sumo.data.by_path.DataSpec` of each ``--data`` (None without it);
     a usage error in one line for a bad spec, or ``--map`` / ``--speed-unit`` without csv."""
-    from safeil_sumo.data.by_path import DataError, parse_data_option
+    from safeil_sumo.data.by_path import DataError, missing_paths, parse_data_option
 
     try:
         specs = [parse_data_option(d, args.map, args.speed_unit) for d in args.data or ()]
     except DataError as exc:
         parser.error(str(exc))
+    for spec in specs:  # before any work: a missing path is the user's typo
+        missing = missing_paths(spec)
+        if missing:
+            parser.error(f"--data {spec.label()}: {missing[0]} does not exist")
     if (args.map or args.speed_unit != "m/s") and not any(s.format == "csv" for s in specs):
         parser.error("--map and --speed-unit read csv data: give --data csv:FILE")
     return specs if args.data is not None else None

@@ -95,10 +95,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = build_parser()
     args = p.parse_args(argv)
     args.data_specs = data_specs(p, args) or []
-    for spec in args.data_specs:
-        missing = [str(q) for q in spec.paths if not q.exists()]
-        if missing:
-            p.error(f"--data {spec.label()}: {missing[0]} does not exist")
     if args.scenarios == 0 or args.budget_sims == 0:
         p.error("--scenarios and --budget-sims must be >= 1")
     if args.budget_s is not None and args.budget_s <= 0:

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from fixtures_training import HIDE_TORCH
 
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 from safeil_sumo.learn.torch_required import TORCH_MISSING
@@ -25,22 +26,6 @@ pytest.importorskip("libsumo")
 
 REPO = Path(__file__).resolve().parents[1]
 HAS_DATA = all((DEFAULT_DATA_DIR / d).is_dir() for d in ("ngsim_i80", "openacc_vicolungo"))
-
-HIDE_TORCH = '''\
-import sys
-
-
-class _HideTorch:
-    """torch is not installed (tests/test_without_torch.py)."""
-
-    def find_spec(self, name, path=None, target=None):
-        if name.split(".")[0] == "torch":
-            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
-        return None
-
-
-sys.meta_path.insert(0, _HideTorch())
-'''
 
 
 @pytest.fixture(scope="module")

@@ -37,26 +37,19 @@ import pandas as pd
 from scipy.optimize import minimize
 
 REPO = Path(__file__).resolve().parents[1]
-SHIPPED = REPO / "safeil_sumo" / "models" / "safeil.safetensors"
+sys.path.insert(0, str(REPO / "training"))
+from time_gap_prior import (  # a sibling script: its data, helpers and targets
+    LATER_S,
+    SHIPPED,
+    correlation_time_s,
+    scored_maneuvers,
+    source_rows,
+)
+
 MIN_SAMPLES = 50  # [-] steady samples (5 s at 10 Hz) a maneuver needs for a line
 DT_S = 0.1  # [s] the rows' spacing
 TAUS_S = (math.inf, 3600.0, 1200.0, 600.0, 300.0, 120.0, 60.0)
 HORIZON_S = 30.0  # [s] how far ahead the estimate predicts
-
-
-def _rows(source: str) -> pd.DataFrame:
-    from safeil_sumo.data.pipeline import PipelineConfig, process_drive
-    from safeil_sumo.data.sources import load_source
-
-    return process_drive(load_source(source), PipelineConfig(rate_hz=1.0 / DT_S))[0]
-
-
-def correlation_time_s(x: np.ndarray, dt_s: float) -> float:
-    """Integral correlation time [s] of ``x`` (to its autocorrelation's first negative lag)."""
-    x = np.asarray(x, float) - np.mean(x)
-    ac = np.correlate(x, x, "full")[len(x) - 1:] / (x.var() * len(x))
-    first_negative = int(np.argmax(ac < 0)) if (ac < 0).any() else len(ac)
-    return float(ac[:first_negative].sum() * 2.0 * dt_s)
 
 
 def maneuver_lines(rows: pd.DataFrame) -> pd.DataFrame:
@@ -122,27 +115,17 @@ def prediction_error(rows: pd.DataFrame, prior) -> float:
 
 
 SEEN_S = (2.0, 10.0, 30.0, 60.0)  # [s] first seconds seen (part 3)
-LATER_S = 60.0  # [s] the time gap kept after this is the target (part 3)
 
 
 def setting_errors(rows: pd.DataFrame, default_s: float, prior) -> pd.DataFrame:
     """Part 3 of the module doc: mean |setting - later time gap| [s] per way (rows) and first
     seconds seen (columns)."""
-    from safeil_sumo.learn.style import (
-        TimeGapPrior,
-        adapted_time_gap,
-        clip_time_gap,
-        estimate_time_gap,
-    )
+    from safeil_sumo.learn.style import TimeGapPrior, adapted_time_gap, clip_time_gap
     from safeil_sumo.learn.style_estimator import estimate_drive
 
     out = []
-    for _, g in rows.groupby("maneuver_id", sort=False):
-        t = g["time"].to_numpy(float) - g["time"].iloc[0]
+    for g, t, later in scored_maneuvers(rows):
         gap, v, vl = (g[c].to_numpy(float) for c in ("lead_x", "v_x", "v_lead"))
-        later = estimate_time_gap(gap[t >= LATER_S], v[t >= LATER_S])
-        if t[-1] < LATER_S + 20.0 or not np.isfinite(later):
-            continue
         for seen in SEEN_S:
             first = t < seen
             est, _ = estimate_drive(t[first], gap[first], v[first], vl[first], prior)
@@ -162,7 +145,7 @@ def main() -> int:
     from safeil_sumo.learn.style_estimator import StylePrior
 
     held = set(held_out_maneuvers(SHIPPED))
-    rows = {s: _rows(s) for s in ("ngsim", "openacc", "zalazone")}
+    rows = {s: source_rows(s) for s in ("ngsim", "openacc", "zalazone")}
     training = pd.concat([rows[s] for s in ("ngsim", "openacc")], ignore_index=True)
     training = training[~training["maneuver_id"].isin(held)]
     lines = maneuver_lines(training)

@@ -30,7 +30,7 @@ LATER_S = 60.0  # [s] the later time gap is the one kept after this
 MIN_REST_S = 20.0  # [s] a maneuver needs this long after LATER_S
 
 
-def _rows(source: str) -> pd.DataFrame:
+def source_rows(source: str) -> pd.DataFrame:
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
 
@@ -63,6 +63,19 @@ def spreads(rows: pd.DataFrame, min_samples: int = 100) -> dict[str, float]:
             "within_log_sd": float(np.median(within)), "correlation_s": float(np.median(corr))}
 
 
+def scored_maneuvers(rows: pd.DataFrame):
+    """Each maneuver of ``rows`` with ``MIN_REST_S`` after ``LATER_S`` and a time gap kept
+    after ``LATER_S``: ``(its rows, t [s] from its start, that later time gap [s])``."""
+    from safeil_sumo.learn.style import estimate_time_gap
+
+    for _, g in rows.groupby("maneuver_id", sort=False):
+        t = g["time"].to_numpy(float) - g["time"].iloc[0]
+        gap, v = g["lead_x"].to_numpy(float), g["v_x"].to_numpy(float)
+        later = estimate_time_gap(gap[t >= LATER_S], v[t >= LATER_S])
+        if t[-1] >= LATER_S + MIN_REST_S and np.isfinite(later):
+            yield g, t, later
+
+
 def prediction_errors(rows: pd.DataFrame, default_s: float) -> pd.DataFrame:
     """Mean |setting - later time gap| [s] per estimator (rows) and first seconds seen
     (columns) over the maneuvers of ``rows`` long enough (module doc, part 2)."""
@@ -74,12 +87,8 @@ def prediction_errors(rows: pd.DataFrame, default_s: float) -> pd.DataFrame:
     )
 
     out = []
-    for _, g in rows.groupby("maneuver_id", sort=False):
-        t = g["time"].to_numpy(float) - g["time"].iloc[0]
+    for g, t, later in scored_maneuvers(rows):
         gap, v = g["lead_x"].to_numpy(float), g["v_x"].to_numpy(float)
-        later = estimate_time_gap(gap[t >= LATER_S], v[t >= LATER_S])
-        if t[-1] < LATER_S + MIN_REST_S or not np.isfinite(later):
-            continue
         for seen in SEEN_S:
             first = t < seen
             plain = estimate_time_gap(gap[first], v[first])
@@ -98,7 +107,7 @@ def main() -> int:
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
 
     held = set(held_out_maneuvers(SHIPPED))
-    rows = {s: _rows(s) for s in ("ngsim", "openacc", "zalazone")}
+    rows = {s: source_rows(s) for s in ("ngsim", "openacc", "zalazone")}
     training = pd.concat([rows[s] for s in ("ngsim", "openacc")], ignore_index=True)
     training = training[~training["maneuver_id"].isin(held)]
     print("TimeGapPrior spreads on the shipped safeil's training maneuvers:", spreads(training))

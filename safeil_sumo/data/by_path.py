@@ -140,10 +140,15 @@ def _openacc_files(paths: Sequence[Path]) -> list[Path]:
     return files
 
 
+def missing_paths(spec: DataSpec) -> list[Path]:
+    """The paths of ``spec`` that do not exist."""
+    return [p for p in spec.paths if not p.exists()]
+
+
 def _check_paths(spec: DataSpec) -> None:
-    for p in spec.paths:
-        if not p.exists():
-            raise DataError(f"{spec.format} data {p} does not exist")
+    missing = missing_paths(spec)
+    if missing:
+        raise DataError(f"{spec.format} data {missing[0]} does not exist")
 
 
 def import_drive(spec: DataSpec, progress: bool = False) -> pd.DataFrame:
