@@ -1,0 +1,217 @@
+"""The closed-loop bounds (safeil_sumo.learn.loop_invariant) against the loop's own code.
+
+The one-period image must contain every state the REAL tracker (controller.track_values),
+brake guard and plant (vehicle.Plant) reach from states of a cell, under random leader
+accelerations, sensing errors, PID integrals and guard estimates in the stated sets; the
+pieces' monotonicity and relaxations are checked on their own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from safeil_sumo.learn import loop_invariant as li
+from safeil_sumo.learn.inference import load_policy
+from safeil_sumo.planner_registry import shipped_checkpoint
+from safeil_sumo.sim import brake_guard as grd
+from safeil_sumo.sim import controller as ctl
+from safeil_sumo.sim import vehicle as veh
+from safeil_sumo.sim.xp import ARRAYS
+
+FINITE = st.floats(-6.0, 6.0, allow_nan=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(FINITE, st.floats(0.0, 8.0), st.floats(0.0, 1.0))
+def test_tanh_parallel_lines_hold_over_the_interval(lo: float, width: float, at: float) -> None:
+    l, u = np.array([lo]), np.array([lo + width])
+    s, o, d = li.tanh_parallel_lines(l, u)
+    z = lo + at * width
+    assert s[0] * z + o[0] - d[0] <= math.tanh(z) <= s[0] * z + o[0] + d[0]
+
+
+def test_tanh_parallel_lines_are_tight_on_a_narrow_interval() -> None:
+    s, _, d = li.tanh_parallel_lines(np.array([0.5]), np.array([0.52]))
+    # the gap between chord and arc is at most max|tanh''| w^2 / 8, d is half of it
+    assert d[0] <= 0.77 * 0.02 ** 2 / 16 + 1e-12
+    assert s[0] == pytest.approx(1 - math.tanh(0.51) ** 2, rel=1e-3)
+
+
+SPEED = st.floats(0.0, 45.0)
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.floats(0.5, 150.0), st.floats(0.0, 20.0), SPEED, st.floats(0.0, 5.0), SPEED,
+       st.floats(0.0, 5.0), st.floats(0.0, 10.0), st.floats(0.0, 5.0))
+def test_guard_demand_is_monotone_in_each_argument(gap, dgap, v, dv, vl, dvl, b, db) -> None:
+    """guard_bounds evaluates the demand at box corners: more gap or leader speed never asks
+    for more braking, more ego speed or leader braking never for less."""
+    guard = grd.BrakeGuard()
+
+    def demand(g, ve, vle, bl):
+        return float(grd.guard_decel(g, ve, vle, -bl, guard, ARRAYS))
+
+    base = demand(gap, v, vl, b)
+    assert demand(gap + dgap, v, vl, b) <= base + 1e-9
+    assert demand(gap, v + dv, vl, b) >= base - 1e-9
+    assert demand(gap, v, vl + dvl, b) <= base + 1e-9
+    assert demand(gap, v, vl, min(b + db, 10.0)) >= base - 1e-9
+
+
+def test_recoverable_by_hand() -> None:
+    a = li.LoopAssumptions()
+    # standing still: recoverable exactly when the gap is at least the margin
+    assert list(li.recoverable([0.5, 1.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], a)) == [False, True]
+    # same speeds, already braking fully: the ego (9 m/s^2 + drag) out-brakes the leader (6)
+    assert li.recoverable([2.0], [30.0], [30.0], [-9.0], a)[0]
+    # 30 m/s onto a standing car 30 m ahead: 30^2 / 18 = 50 m of braking is needed
+    assert not li.recoverable([30.0], [30.0], [0.0], [-9.0], a)[0]
+    assert li.recoverable([60.0], [30.0], [0.0], [-9.0], a)[0]
+
+
+def _one(x: float) -> np.ndarray:
+    return np.array([x])
+
+
+def test_command_by_hand() -> None:
+    """PID 1.5 (v_ref - v) + feed-forward, the integral anywhere in +-0.1 * 5 m; the guard's
+    demand caps the command from above where it is certainly on."""
+    ref = li.Reference(_one(0.2), _one(0.2), _one(True), _one(False), _one(0.5), _one(0.5))
+    v, dv = (_one(10.0), _one(10.0)), (_one(0.0), _one(0.0))
+    parts = li.LoopParts()
+    lo, hi = li._command(v, dv, ref, None, parts)
+    assert (lo[0], hi[0]) == pytest.approx((0.3, 1.3))
+    lo, hi = li._command(v, (_one(-0.1), _one(0.1)), ref, None, parts)  # sped up or slowed down
+    assert (lo[0], hi[0]) == pytest.approx((0.15, 1.45))
+    lo, hi = li._command(v, dv, ref, (_one(4.0), _one(4.0)), parts)
+    assert (lo[0], hi[0]) == pytest.approx((-4.0, -4.0))
+    lo, hi = li._command(v, dv, ref, (_one(0.0), _one(12.0)), parts)  # maybe off; full brake
+    assert (lo[0], hi[0]) == pytest.approx((-9.0, 1.3))
+    back = li.Reference(_one(0.2), _one(0.2), _one(False), _one(True), _one(0.0), _one(0.0))
+    lo, hi = li._command(v, dv, back, None, parts)  # a stop: 1.5 * (0 - 10), clipped at -8
+    assert (lo[0], hi[0]) == pytest.approx((-8.0, -8.0 + 0.0))
+
+
+def test_reference_bounds_of_a_constant_speed_plan() -> None:
+    """Raw x outputs 0 (the residual's constant speed) on the lane centre: the reference is
+    the sensed speed, so the speed error is the sensing error, and no acceleration."""
+    a = li.LoopAssumptions(lateral_offset_m=(0.0, 0.0), heading_error=(0.0, 0.0))
+    pb = li.PlanBounds(np.zeros((1, 3)), np.zeros((1, 4, 3)), np.zeros((1, 3)), np.zeros((1, 3)),
+                       np.zeros((1, 3)), _one(19.8), _one(20.2))
+    for t in (0.0, 0.05, 0.29):
+        r = li.reference_bounds(pb, t, 5.0, 0.93, a)
+        assert (r.err_lo[0], r.err_hi[0]) == pytest.approx((-0.2, 0.2), abs=1e-6)
+        assert (r.acc_lo[0], r.acc_hi[0]) == pytest.approx((0.0, 0.0), abs=1e-6)
+        assert r.forwards[0] and not r.backwards[0]
+
+
+@pytest.fixture(scope="module")
+def safeil():
+    return load_policy(shipped_checkpoint("safeil"))
+
+
+def _real_period(policy, g, v, vl, f, lane, time_gap, integral, leader_accel, sensing, a_est,
+                 guard_on, a, parts):
+    """One decision period of the real tracker, guard and plant for N states ``(N,)``; the
+    leader moves by explicit Euler on its new speed (SUMO's). Returns the final
+    ``(g, v, vl, f)`` and the smallest gap met."""
+    vehicle = parts.vehicle
+    n = len(g)
+    width, offset, heading = lane
+    feats = np.stack([width / 2 - offset, heading, 0 * g, -width / 2 - offset, heading, 0 * g,
+                      v + sensing[0], vl + sensing[1], g + sensing[2]], axis=1)
+    policy.set_style(time_gap_s=float(time_gap))
+    cps = policy.plan(feats)
+    yaw = -np.arctan(heading)
+    d = vehicle.cog_to_front_bumper_m
+    state = (-d * np.cos(yaw), offset - d * np.sin(yaw), yaw, v.copy(), 0 * g, 0 * g, 0 * g,
+             f * vehicle.mass_kg)
+    target = ctl.make_targets(cps, np.full(n, policy.horizon), 0 * g, offset + 0 * g, yaw)
+    demand = grd.guard_decel(feats[:, 8], feats[:, 6], feats[:, 7], a_est, parts.guard, ARRAYS)
+    plant = veh.Plant.of(vehicle, a.step_s)
+    lead_x, lead_v, g_min = g.copy(), vl.copy(), g.copy()
+    prev_error = np.full(n, math.nan)
+    for j in range(a.steps_per_decision):
+        steer, accel, integral, prev_error = ctl.track_values(
+            target, np.full(n, j * a.step_s), *state[:6], vehicle, integral, prev_error,
+            parts.controller, a.step_s, ARRAYS)
+        if guard_on:
+            override = (demand > 0.0) & (demand > -accel)
+            accel = np.where(override, np.maximum(-demand, -vehicle.max_brake_decel_mps2), accel)
+        throttle, brake = veh.pedals_from_accel_vx(accel, state[3], vehicle, ARRAYS)
+        state = plant.step(state, steer, throttle, brake, ARRAYS)
+        lead_v = np.clip(lead_v + leader_accel[:, j] * a.step_s, 0.0, a.speed_limit_mps)
+        lead_x = lead_x + lead_v * a.step_s
+        gap = lead_x - (state[0] + d * np.cos(state[2]))
+        g_min = np.minimum(g_min, gap)
+    return gap, state[3], lead_v, state[7] / vehicle.mass_kg, g_min
+
+
+@pytest.mark.parametrize("guard_on", [True, False])
+def test_period_image_contains_the_real_loop(safeil, guard_on: bool) -> None:
+    rng = np.random.default_rng(7)
+    a = li.LoopAssumptions()
+    parts = li.LoopParts() if guard_on else li.LoopParts(guard=None)
+    grid = li.Grid()
+    rows = slice(4, 6)
+    time_gap = (1.2, 1.6)
+    image, g_min = li.period_image(safeil, grid, rows, time_gap, a, parts)
+    eg, ev, el, ef = grid.axes()
+    n = 4000
+    ig, iv, il, jf = (rng.integers(0, k, n) for k in image[0][0].shape)
+    pick = lambda e, i, off=0: e[i + off] + rng.random(n) * (e[i + off + 1] - e[i + off])
+    g, v, vl, f = pick(eg, ig, rows.start), pick(ev, iv), pick(el, il), pick(ef, jf)
+    lane = (rng.uniform(*a.lane_width_m, n), rng.uniform(*a.lateral_offset_m, n),
+            rng.uniform(*a.heading_error, n))
+    sensing = (rng.uniform(-1, 1, (3, n)) * np.array([[a.speed_sensing_mps],
+                                                      [a.speed_sensing_mps], [a.gap_sensing_m]]))
+    leader = rng.uniform(*a.leader_accel_mps2, (n, a.steps_per_decision))
+    leader[rng.random(n) < 0.3] = a.leader_accel_mps2[0]  # the extremes too
+    integral = rng.uniform(-1, 1, n) * parts.controller.integral_limit_m
+    a_est = -rng.uniform(0, grd.BrakeGuard().max_leader_decel_mps2, n)
+    got = _real_period(safeil, g, v, vl, f, lane, rng.uniform(*time_gap), integral, leader,
+                       sensing, a_est, guard_on, a, li.LoopParts())
+    cell = (ig, iv, il, jf)
+    for k, name in enumerate(("gap", "speed", "leader speed", "force")):
+        lo, hi = image[k][0][cell], image[k][1][cell]
+        assert np.all(got[k] >= lo) and np.all(got[k] <= hi), (
+            f"{name} outside its bound in {np.sum((got[k] < lo) | (got[k] > hi))} of {n}")
+    assert np.all(got[4] >= g_min[cell])
+    # not vacuous: the image is a few cells wide, not the whole axis
+    assert np.median(image[1][1] - image[1][0]) < 2.0
+    assert np.median(image[3][1] - image[3][0]) < 5.0
+
+
+def test_range_max_equals_brute_force() -> None:
+    rng = np.random.default_rng(1)
+    rho = rng.integers(0, 50, (20, 17, 8)).astype(np.int32)
+    first = np.stack([rng.integers(0, n, 3000) for n in rho.shape])
+    span = np.stack([rng.integers(1, 14, 3000) for _ in rho.shape])
+    last = np.minimum(first + span - 1, np.array(rho.shape)[:, None] - 1)
+    got = li._range_max(li._window_maxima(rho), first, last)
+    want = [rho[a:d + 1, b:e + 1, c:f + 1].max() for a, b, c, d, e, f in zip(*first, *last, strict=True)]
+    assert got.tolist() == want
+
+
+def test_gap_floor_by_hand() -> None:
+    """Four gap rows, two speed columns. Column 1's row 0 fails; column 0's cells fall one row
+    per period into column 1 (from row 1 into row 0, ...); column 1's fall into themselves.
+    Column 1's floor becomes 1; column 0's row 1 falls to row 0 < 1, so its floor becomes 2;
+    its row 2 falls to row 1 >= 1 and stays."""
+    shape = (4, 2, 1, 1)
+    first = np.zeros((4, *shape), np.int16)
+    last = np.zeros((4, *shape), np.int16)
+    rows = np.arange(4)[:, None, None, None]
+    first[0] = np.where(np.arange(2)[None, :, None, None] == 0, np.maximum(rows - 1, 0), rows)
+    first[1] = last[1] = 1  # every image lies in column 1
+    fails = np.zeros(shape, bool)
+    fails[0, 1] = True
+    first[0, 0, 0] = 0  # column 0's row 0 falls below the grid's first row: its own row
+    rho, rounds = li.gap_floor(li.Successors(first, last, fails))
+    assert rho[:, 0, 0].tolist() == [2, 1]
+    assert rounds == 3
