@@ -597,19 +597,19 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
 def test_results_section_from_toy_searches(tmp_path, monkeypatch) -> None:
     """``results --only falsify``'s table, curves, worst cases and README lines (searches on
     the planted objective instead of SUMO)."""
-    from safeil_sumo import results
+    from safeil_sumo.studies import falsification
 
     study = (fz.StudyRun("bc", 300, 50, (0, 1)), fz.StudyRun("safeil", 200, 50, (0,)))
     monkeypatch.setattr(fz, "STUDY", study)
     monkeypatch.setattr(fz, "run_or_load",
                         lambda policy, cfg, folder, progress=False: fz.search(cfg, planted))
-    facts = json.loads(json.dumps(results.falsify(tmp_path, tmp_path / "work")))
+    facts = json.loads(json.dumps(falsification.falsify(tmp_path, tmp_path / "work")))
     rows = pd.read_csv(tmp_path / "falsify.csv")
     assert len(rows) == 6 and set(rows["method"]) == {"cem", "random"}
     assert (tmp_path / "falsify.png").stat().st_size > 0
     assert set(facts["worst"]) == {"bc", "safeil"}
     toml = tmp_path / facts["worst"]["bc"]["toml"]
     assert toml.is_file() and (toml.with_suffix(".json")).is_file()
-    text = "\n".join(results._falsify_readme(facts))
+    text = "\n".join(falsification.falsify_readme(facts))
     assert "## Falsification" in text and "falsify.png" in text
     assert "python -m safeil_sumo.sweep --config results/falsify/worst_bc.toml" in text

@@ -238,26 +238,26 @@ def _real_tuples(tmp_path: Path) -> tuple[Path, ...]:
     from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, require_file
     from scripts import load_training_script
 
-    from safeil_sumo import results
+    from safeil_sumo.studies import n74_traffic
 
-    if all(p.is_file() for p in results.TRAINING_TUPLES):
-        return results.TRAINING_TUPLES
+    if all(p.is_file() for p in n74_traffic.TRAINING_TUPLES):
+        return n74_traffic.TRAINING_TUPLES
     require_file(NGSIM_PAIRS)
     require_file(OPENACC_DIR / "JRC-VC_280219_part2.csv.gz")
     build_real_datasets = load_training_script("build_real_datasets")
     assert build_real_datasets.main(["--data-dir", str(NGSIM_PAIRS.parents[1]),
                                      "--out", str(tmp_path)]) == 0
-    return tuple(tmp_path / p.name for p in results.TRAINING_TUPLES)
+    return tuple(tmp_path / p.name for p in n74_traffic.TRAINING_TUPLES)
 
 
 def test_training_settings_are_the_shipped_safeils_training_estimates(tmp_path):
     """The real tuples the shipped safeil was fine-tuned on: the median of the estimates is its
     default setting, their spread its style input's scaling."""
-    from safeil_sumo import results
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
+    from safeil_sumo.studies.shared import SHIPPED_SAFEIL
 
-    meta = json.loads(results.SHIPPED_SAFEIL.read_text())
-    ckpt = results.SHIPPED_SAFEIL.with_suffix(".safetensors")
+    meta = json.loads(SHIPPED_SAFEIL.read_text())
+    ckpt = SHIPPED_SAFEIL.with_suffix(".safetensors")
     est = nd.training_settings(ckpt, _real_tuples(tmp_path))
     assert not set(est) & set(held_out_maneuvers(ckpt))
     values = np.array(list(est.values()))
@@ -297,6 +297,7 @@ def test_drive_task_keeps_time_gaps_and_flags_of_a_traffic_drive():
 def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
     """``--only n74 --quick`` adds its section to results/ without dropping the others'."""
     from safeil_sumo import results
+    from safeil_sumo.studies import n74_traffic
 
     out = tmp_path / "results"
     out.mkdir()
@@ -306,9 +307,9 @@ def test_section_quick_keeps_the_other_sections(tmp_path, monkeypatch):
                            "lead_x": [30.0, 40.0, math.nan, 20.0, 25.0, 30.0],
                            "v_x": [30.0] * 6, "lane_index": [0.0] * 6})
     drives.to_parquet(tmp_path / "drives.parquet")
-    monkeypatch.setattr(results, "SYNTHETIC_DRIVES", tmp_path / "drives.parquet")
+    monkeypatch.setattr(n74_traffic, "SYNTHETIC_DRIVES", tmp_path / "drives.parquet")
     monkeypatch.setattr(nd, "PLANNERS", ("analytic", "idm"))
-    monkeypatch.setattr(results, "QUICK_STRETCH_KM", (4.0, 4.3))
+    monkeypatch.setattr(n74_traffic, "QUICK_STRETCH_KM", (4.0, 4.3))
     monkeypatch.setattr(nd, "POPULATION_PLANNERS", ("idm",))
     monkeypatch.setattr(nd, "training_settings", lambda *a: {"m0": 1.2, "m1": 9.0})
     assert results.main(["--only", "n74", "--quick", "--out", str(out), "--work",
