@@ -9,12 +9,14 @@
 - :func:`execute` runs a job's tasks in this process (``workers=1``), in local worker processes
   (one libsumo per process: docs/architecture.md) or on a Dask cluster (``scheduler``). Every
   record is written atomically to ``<tasks_dir>/<task_id>.json`` as its task ends, also inside
-  a unit: a worker sends each record as it is emitted (Dask: through a ``distributed.Queue``, pickled).
-  A rerun skips the tasks whose record file is there (resume).
-- Ctrl-C (SIGINT, also sent to the whole process group) ends :func:`execute` with
-  ``KeyboardInterrupt`` after the records already emitted are written: local workers ignore
-  SIGINT, the parent reads what their pipes hold, then kills them; a record being written is
-  finished first.
+  a unit: a worker sends each record as it is emitted (Dask: its file's text, through a
+  ``distributed.Queue``). A rerun skips the tasks whose record file is there (resume).
+- Ctrl-C (SIGINT, to this process or its whole process group) ends :func:`execute` with
+  ``KeyboardInterrupt`` once every record made before it is written: a record being made,
+  written or read waits for its end (:func:`deferred_interrupt`); local workers stop their unit,
+  send what they made and end (the parent sends them SIGINT too and waits at most
+  :data:`INTERRUPT_GRACE_S`, then kills them); on Dask the records on the queue are written and
+  the other units cancelled.
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
-import pickle
 import signal
 import threading
 import time
@@ -153,9 +154,11 @@ class _Saver:
     def __exit__(self, *exc: object) -> None:
         self.bar.close()
 
-    def save(self, unit: Unit, k: int, record: Record) -> None:
+    def save(self, unit: Unit, k: int, record: Record, text: str | None = None) -> None:
+        """Write ``record`` (as ``text``, its JSON, when given) for the unit's k-th task."""
         with deferred_interrupt():  # a Ctrl-C waits until the record is on disk
-            outputs.write_json(record_path(self.tdir, self.job, unit[k]), record)
+            outputs.write_text(record_path(self.tdir, self.job, unit[k]),
+                               outputs.json_text(record) if text is None else text)
         self.failed += record.get("status") != STATUS_OK
         self.bar.update(1)
         if self.failed:
@@ -442,7 +445,7 @@ def _dask_unit(job: Job, queue_name: str, index: int, unit: Unit) -> list[Record
         records[k] = record
         with suppress(Exception):  # the unit's result still carries the record
             queue = queue or Queue(queue_name)
-            queue.put([index, k, pickle.dumps(record)])
+            queue.put([index, k, outputs.json_text(record)])  # the file's text
 
     # libsumo holds ONE simulation per process: a Dask worker with several threads must not
     # run two units at once in the same process
@@ -457,15 +460,15 @@ def _run_dask(units: list[Unit], address: str, job: Job, saver: _Saver) -> None:
     client = Client(address)  # only the address the user gave
     saved: set[tuple[int, int]] = set()
 
-    def save(index: int, k: int, record: Record) -> None:
+    def save(index: int, k: int, record: Record, text: str | None = None) -> None:
         if (index, k) not in saved:
             saved.add((index, k))
-            saver.save(units[index], k, record)
+            saver.save(units[index], k, record, text)
 
     def drain(queue: Any) -> None:  # the records the workers have put on the queue so far
         with deferred_interrupt(), suppress(Exception):
-            for index, k, data in queue.get(batch=True):
-                save(index, k, pickle.loads(data))  # our own workers' records
+            for index, k, text in queue.get(batch=True):
+                save(index, k, json.loads(text), text)
 
     try:
         queue = Queue(client=client)
