@@ -119,14 +119,17 @@ def policy_names(policy: str | Sequence[str]) -> list[str]:
 
 def sweep(policy: str | Sequence[str], out: str | Path, scenarios: int = 10,
           nets: Sequence[str] = ("curved500",), seed: int = 0, workers: int = 1,
-          batch: int = DEFAULT_BATCH, **spec: Any) -> pd.DataFrame:
+          batch: int = DEFAULT_BATCH, scheduler: str | None = None,
+          **spec: Any) -> pd.DataFrame:
     """A resumable sweep (nets x policies x scenarios; ``spec``: ScenarioSpec fields) written to
     ``out``; returns its summary (one row per task). ``policy``: a name or path, or several
     (they travel to worker processes); up to ``batch`` scenarios share one SUMO simulation
-    (1: one each)."""
+    (1: one each). ``scheduler`` (``"tcp://host:port"``): the tasks run on that Dask cluster
+    instead of ``workers`` local processes."""
     specs = [ScenarioSpec(net=n, index=i, master_seed=seed, policy=p, **spec)
              for n in nets for p in policy_names(policy) for i in range(scenarios)]
-    return run_sweep(specs, out, workers=workers, progress=False, batch=batch)
+    return run_sweep(specs, out, workers=workers, scheduler=scheduler, progress=False,
+                     batch=batch)
 
 
 def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | Path,
