@@ -119,14 +119,17 @@ def policy_names(policy: str | Sequence[str]) -> list[str]:
 
 def sweep(policy: str | Sequence[str], out: str | Path, scenarios: int = 10,
           nets: Sequence[str] = ("curved500",), seed: int = 0, workers: int = 1,
-          batch: int = DEFAULT_BATCH, **spec: Any) -> pd.DataFrame:
+          batch: int = DEFAULT_BATCH, scheduler: str | None = None,
+          **spec: Any) -> pd.DataFrame:
     """A resumable sweep (nets x policies x scenarios; ``spec``: ScenarioSpec fields) written to
     ``out``; returns its summary (one row per task). ``policy``: a name or path, or several
     (they travel to worker processes); up to ``batch`` scenarios share one SUMO simulation
-    (1: one each)."""
+    (1: one each). ``scheduler`` (``"tcp://host:port"``): the tasks run on that Dask cluster
+    instead of ``workers`` local processes."""
     specs = [ScenarioSpec(net=n, index=i, master_seed=seed, policy=p, **spec)
              for n in nets for p in policy_names(policy) for i in range(scenarios)]
-    return run_sweep(specs, out, workers=workers, progress=False, batch=batch)
+    return run_sweep(specs, out, workers=workers, scheduler=scheduler, progress=False,
+                     batch=batch)
 
 
 def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | Path,
@@ -134,7 +137,8 @@ def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | P
            workers: int = 1, duration_s: float | None = None, stride_s: float = 20.0,
            config: ReplayConfig | None = None, progress: bool = False,
            name: str | None = None, manifest: dict | None = None, batch: int = REPLAY_BATCH,
-           adapt_first_s: float = 0.0) -> tuple[pd.DataFrame, pd.DataFrame]:
+           adapt_first_s: float = 0.0, scheduler: str | None = None
+           ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Replay every window of ``maneuvers`` (``"all"`` or ids) of ``source`` (``openacc``,
     ``ngsim``, a drive file, or an already processed maneuvers frame) with each ``policy`` (a
     name or path, or several; ``recorded`` for the human's own path): ``(per-window table,
@@ -144,7 +148,9 @@ def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | P
     by side in one SUMO simulation (1: one simulation per run; the same records).
     ``adapt_first_s`` [s] (``whole`` windows): the planners are adapted to each driver on the
     maneuver's first seconds, which are then not scored (``window_replays.adapt_planners``);
-    not with ``config.time_gap_s``, the planners' time-gap setting for every window."""
+    not with ``config.time_gap_s``, the planners' time-gap setting for every window.
+    ``scheduler`` (``"tcp://host:port"``): the windows run on that Dask cluster instead of
+    ``workers`` local processes."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
     from safeil_sumo.experiments import window_replays as ra
@@ -167,7 +173,7 @@ def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | P
                if adapt_first_s else f"a {duration_s or ra.rp.PAPER_DURATION_S:g} s window"))
     names = policy_names(policy)
     records = ra.replay_all(rows, wins, names, Path(out), config, workers,
-                            progress=progress, batch=batch)
+                            progress=progress, batch=batch, scheduler=scheduler)
     return ra.write(Path(out), records, manifest or {"source": name, "policies": names,
                                                      "windows_mode": windows},
                     seed=config.seed, title=name)

@@ -256,6 +256,21 @@ def add_plan_rate_option(parser: CommandParser) -> None:
     parser.rename(plan_rate="--plan-rate-hz")
 
 
+def add_scheduler_option(parser: CommandParser) -> None:
+    """``--scheduler``, shared by ``sweep`` and ``replay`` (their tasks on a Dask cluster); check
+    it with :func:`check_scheduler`."""
+    parser.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                        help="Dask scheduler address (tcp://host:port) to run the tasks on")
+
+
+def check_scheduler(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """A usage error for ``--scheduler`` beside ``--workers`` > 1, or not an address."""
+    if args.scheduler is not None and args.workers != 1:
+        parser.error("use either --workers (local processes) or --scheduler (a Dask cluster)")
+    if args.scheduler is not None and "://" not in args.scheduler:
+        parser.error(f"--scheduler needs an address like tcp://host:8786, got {args.scheduler!r}")
+
+
 def add_lane_option(parser: CommandParser) -> None:
     """``--lane``, shared by ``run`` and ``sweep``; check it with :func:`lane_for_net`."""
     parser.add_argument(

@@ -31,6 +31,8 @@ from safeil_sumo.cli_args import (
     add_csv_options,
     add_plan_rate_option,
     add_policy_option,
+    add_scheduler_option,
+    check_scheduler,
     finite_float,
     interruptible,
     nonnegative_int,
@@ -83,6 +85,7 @@ def build_parser() -> CommandParser:
                    help="sliding windows: time between window starts [s] (default 20)")
     p.add_argument("--workers", type=positive_int, default=1,
                    help="with --maneuver all/list: worker processes (default 1)")
+    add_scheduler_option(p)
     p.add_argument("--batch", type=positive_int, default=ra.DEFAULT_BATCH,
                    help="with --maneuver all/list: windows run side by side in one SUMO "
                         f"simulation per worker task (default {ra.DEFAULT_BATCH}; 1: one "
@@ -161,6 +164,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.time_gap_s is not None and args.adapt_first_s:
         p.error("--time-gap-s and --adapt-first-s exclude each other (adapting sets each "
                 "driver's time gap)")
+    check_scheduler(p, args)
+    if args.scheduler is not None and not args.many:
+        p.error("--scheduler needs --maneuver all or a list (one maneuver runs here)")
     if args.held_out_of is not None and args.maneuver != "all":
         p.error("--held-out-of needs --maneuver all")
     if args.animate and args.many:
@@ -175,6 +181,17 @@ def replay_config(args: argparse.Namespace) -> rp.ReplayConfig:
     return replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate_hz,
                                         brake_guard=brake_guard_when(args.brake_guard),
                                         lateral=args.lateral))
+
+
+def many_manifest(args: argparse.Namespace, only: list[str] | None) -> dict:
+    """The manifest of a ``--maneuver all`` / list run: its arguments as used."""
+    return {"source": args.source, "policies": args.policy, "windows_mode": args.windows,
+            "stride_s": args.stride_s,
+            # as used: the window length, or the cap on whole maneuvers (None: none)
+            "duration_s": rp.PAPER_DURATION_S if args.duration_s is None
+            and args.windows != "whole" else args.duration_s or None,
+            "maneuvers": only or "all", "adapt_first_s": args.adapt_first_s,
+            "lateral": args.lateral, "time_gap_s": args.time_gap_s, "batch": args.batch}
 
 
 def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
@@ -193,18 +210,19 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
     for name in args.policy:  # fail fast on a bad policy, before any worker starts
         pol.load_for_replay(name)
     out = args.out or Path("runs") / f"replay_all_{rp.rr.safe_name(Path(args.source).stem)}"
-    table, agg = api.replay(
-        maneuvers, args.policy, out, only or "all", args.windows, args.workers,
-        args.duration_s, args.stride_s, config, progress=True,
-        name=str(args.source), manifest={"source": args.source, "policies": args.policy,
-                  "windows_mode": args.windows, "stride_s": args.stride_s,
-                  # as used: the window length, or the cap on whole maneuvers (None: none)
-                  "duration_s": rp.PAPER_DURATION_S if args.duration_s is None
-                  and args.windows != "whole" else args.duration_s or None,
-                  "maneuvers": only or "all", "adapt_first_s": args.adapt_first_s,
-                  "lateral": args.lateral, "time_gap_s": args.time_gap_s,
-                  "batch": args.batch},
-        batch=args.batch, adapt_first_s=args.adapt_first_s)
+    try:
+        table, agg = api.replay(
+            maneuvers, args.policy, out, only or "all", args.windows, args.workers,
+            args.duration_s, args.stride_s, config, progress=True,
+            name=str(args.source), manifest=many_manifest(args, only),
+            batch=args.batch, adapt_first_s=args.adapt_first_s, scheduler=args.scheduler)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished windows are saved in {out / 'tasks'}; rerun the same "
+              "command to resume", file=sys.stderr)
+        return 130
+    except OSError as exc:  # e.g. the Dask scheduler cannot be reached
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     failed = table.drop_duplicates(["maneuver_id", "start_s"])
     failed = failed[failed["status"] != "ok"]
     n_windows = len(table.drop_duplicates(["maneuver_id", "start_s"]))

@@ -34,6 +34,8 @@ from safeil_sumo.cli_args import (
     CommandParser,
     add_policy_option,
     add_scenario_options,
+    add_scheduler_option,
+    check_scheduler,
     finite_float,
     interruptible,
     positive_int,
@@ -129,8 +131,7 @@ def build_parser() -> CommandParser:
                    help=f"run up to N scenarios side by side in one SUMO simulation per worker "
                         f"(same net, planner and loop settings; traffic drives run alone); "
                         f"1: one simulation per scenario (default {DEFAULT_BATCH})")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="Dask scheduler address (tcp://host:port) to run the tasks on")
+    add_scheduler_option(p)
     p.add_argument("--task-timeout-s", type=finite_float, default=None, metavar="S",
                    help="local workers: kill a task after this many seconds [s]")
     p.rename(task_timeout="--task-timeout-s")
@@ -152,10 +153,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
     if args.scenarios < 1:  # the specs' own rules are reported by main (build_specs)
         p.error("--scenarios must be >= 1")
-    if args.scheduler is not None and args.workers != 1:
-        p.error("use either --workers (local processes) or --scheduler (a Dask cluster)")
-    if args.scheduler is not None and "://" not in args.scheduler:
-        p.error(f"--scheduler needs an address like tcp://host:8786, got {args.scheduler!r}")
+    check_scheduler(p, args)
     if args.task_timeout_s is not None and args.task_timeout_s <= 0:
         p.error("--task-timeout-s must be > 0")
     if args.quick and args.suite is None:

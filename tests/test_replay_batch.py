@@ -18,7 +18,7 @@ import pytest
 from fixtures_data import arc_drive
 
 from safeil_sumo.experiments import window_replays as ra
-from safeil_sumo.experiments.sweep_executor import even_units
+from safeil_sumo.experiments.task_engine import even_units
 
 pytest.importorskip("libsumo")
 

@@ -286,12 +286,13 @@ def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):
 
 
 @pytest.mark.sumo
-def test_killed_worker_loses_only_its_batch(tmp_path):
+def test_killed_worker_loses_only_the_tasks_of_its_batch_not_ended(tmp_path):
+    """Batch (0, 1) on one worker: task 0's record was sent as it ended, task 1 kills it."""
     specs = short_specs(5)
     counter = Counting(tmp_path / "runs.log", kill_id=task_id(specs[1]))
     out = run_sweep(specs, tmp_path / "out", workers=2, task_fn=counter, progress=False, batch=2)
-    assert list(out["status"]) == ["failed", "failed", "ok", "ok", "ok"]
-    assert out.loc[:1, "error"].str.contains("WorkerDied").all()
+    assert list(out["status"]) == ["ok", "failed", "ok", "ok", "ok"]
+    assert "WorkerDied" in out.loc[1, "error"]
 
 
 def test_a_retrained_checkpoint_never_resumes_the_results_of_the_one_before(tmp_path):

@@ -107,9 +107,18 @@ def _clean(value: Any) -> Any:
     return value
 
 
+def json_text(data: Any) -> str:
+    """``data`` as :func:`write_json` writes it (NaN/inf as null, numpy scalars as numbers)."""
+    return json.dumps(_clean(data), indent=2, default=_json_default) + "\n"
+
+
 def write_json(path: Path, data: Any) -> None:
     """Write JSON atomically (temporary file in the same folder, then rename)."""
-    text = json.dumps(_clean(data), indent=2, default=_json_default) + "\n"
+    write_text(path, json_text(data))
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write ``text`` atomically (temporary file in the same folder, then rename)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
 

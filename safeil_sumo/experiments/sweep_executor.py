@@ -4,10 +4,12 @@
   (leader speed, initial gap) come from ``scenario_seed(master_seed, index)`` only, so task i is
   identical alone or in a sweep of any size, sequential or parallel, and across resumes.
 - :func:`run_task` runs one spec and never raises (an exception becomes ``status="failed"``).
-- :func:`run_sweep` runs the tasks in-process (``workers=1``), in local worker processes (one
-  libsumo per process: docs/architecture.md) or on a Dask cluster, and writes every finished result at
-  once and atomically to ``out_dir/tasks/<task_id>.json``. Rerunning a sweep skips tasks that have
-  a result file, so a sweep that stopped (Ctrl-C, crash, killed worker) is resumed by rerunning it.
+- :func:`run_sweep` runs the tasks on the task engine (:mod:`.task_engine`, as :class:`SweepJob`):
+  in-process (``workers=1``), in local worker processes (one libsumo per process:
+  docs/architecture.md) or on a Dask cluster; every result is written atomically to
+  ``out_dir/tasks/<task_id>.json`` as its scenario ends, also inside a batch. Rerunning a sweep
+  skips tasks that have a result file, so a sweep that stopped (Ctrl-C, crash, killed worker) is
+  resumed by rerunning it.
 """
 
 from __future__ import annotations
@@ -15,29 +17,31 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import multiprocessing as mp
 import re
-import signal
-import threading
 import time
 from collections.abc import Callable, Iterable, Sequence
 from contextlib import suppress
-from functools import partial
-from multiprocessing.connection import Connection, wait
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
-from tqdm import tqdm
 
 from safeil_sumo import planner_registry
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import outputs
+from safeil_sumo.experiments.task_engine import (
+    STATUS_FAILED,
+    STATUS_OK,
+    Emit,
+    deferred_interrupt,
+    even_units,
+    execute,
+    read_record,
+)
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_road
 
 TIMING_FIELDS = ("wall_time_s", "steps_per_s", "task_wall_time_s")  # differ run to run
-STATUS_OK = "ok"
-STATUS_FAILED = "failed"
 
 TaskFn = Callable[["ScenarioSpec"], dict]
 
@@ -126,44 +130,66 @@ def run_task(spec: ScenarioSpec,
     return _record(spec, road, scenario, policy, rollout, time.perf_counter() - wall0, added)
 
 
-def run_tasks(specs: Sequence[ScenarioSpec]) -> list[dict[str, Any]]:
+def run_tasks(specs: Sequence[ScenarioSpec], on_record: Emit | None = None
+              ) -> list[dict[str, Any]]:
     """The records of ``specs`` run side by side in ONE SUMO simulation (``sim.batch``), in
-    order; one spec is :func:`run_task`. Never raises: a spec that cannot be built, or a batch
-    that fails, gives failed records. Specs of a batch share their network and loop settings
-    (:func:`batch_key`)."""
-    if len(specs) == 1:
-        return [run_task(specs[0])]
-    wall0 = time.perf_counter()
+    order; one spec is :func:`run_task`. ``on_record(k, record)`` as the k-th spec's record is
+    made (a scenario that ended, or a spec that cannot be built; a Ctrl-C waits for it). Never
+    raises: a spec that cannot be built, or a batch that fails, gives failed records. Specs of a
+    batch share their network and loop settings (:func:`batch_key`)."""
     records: list[dict[str, Any] | None] = [None] * len(specs)
+
+    def give(k: int, record: dict[str, Any]) -> None:
+        records[k] = record
+        if on_record is not None:
+            on_record(k, record)
+
+    if len(specs) == 1:
+        record = run_task(specs[0])
+        give(0, record)
+        return [record]
+    wall0 = time.perf_counter()
     parts = []
     for k, spec in enumerate(specs):
         try:
             parts.append((k, *_task_parts(spec, shared=True)))
         except Exception as exc:  # noqa: BLE001 - a record, never an exception
-            records[k] = failed_record(spec, f"{type(exc).__name__}: {exc}")
+            give(k, failed_record(spec, f"{type(exc).__name__}: {exc}"))
     if parts:
-        from safeil_sumo.sim.batch import run_batch
-        from safeil_sumo.sim.runner import SUMMARY_COLUMNS
-
-        loop = parts[0][4]  # the specs of a batch share their loop settings (batch_key)
-        wall = (time.perf_counter() - wall0) / len(specs)  # building, per task
-
-        def record(i: int, rollout) -> None:  # as each scenario ends: its log is freed then
-            k, road, scenario, policy, _ = parts[i]
-            records[k] = _record(specs[k], road, scenario, policy, rollout,
-                                 wall + rollout.summary["wall_time_s"])
-
-        try:
-            # a record reads the summary columns only: 12 of the log's 46, so batches 4x
-            # larger fit the same memory
-            run_batch([p[2] for p in parts], [p[3] for p in parts], loop, on_done=record,
-                      keep_logs=False, log_columns=SUMMARY_COLUMNS)
-        except Exception as exc:  # noqa: BLE001
-            for k, *_ in parts:
-                records[k] = failed_record(specs[k], f"{type(exc).__name__}: {exc}")
+        _run_parts(specs, parts, time.perf_counter() - wall0, give)
     # run_batch reports every scenario it was given (on_done), so none is left without one
     return [failed_record(specs[k], "NoRecord: the batch ended without this task's record")
             if r is None else r for k, r in enumerate(records)]
+
+
+def _run_parts(specs: Sequence[ScenarioSpec], parts: list, build_s: float,
+               give: Callable[[int, dict[str, Any]], None]) -> None:
+    """The buildable specs' ``parts`` (``(k, road, scenario, policy, loop)``) in one
+    ``run_batch``, ``give(k, record)`` as each ends (a batch that fails: failed records for
+    those left). ``build_s`` [s]: the time building the batch took."""
+    from safeil_sumo.sim.batch import run_batch
+    from safeil_sumo.sim.runner import SUMMARY_COLUMNS
+
+    loop = parts[0][4]  # the specs of a batch share their loop settings (batch_key)
+    wall = build_s / len(specs)  # building, per task
+    given: set[int] = set()
+
+    def record(i: int, rollout) -> None:  # as each scenario ends: its log is freed then
+        k, road, scenario, policy, _ = parts[i]
+        with deferred_interrupt():  # an ended scenario's record is made and given
+            given.add(k)
+            give(k, _record(specs[k], road, scenario, policy, rollout,
+                            wall + rollout.summary["wall_time_s"]))
+
+    try:
+        # a record reads the summary columns only: 12 of the log's 46, so batches 4x
+        # larger fit the same memory
+        run_batch([p[2] for p in parts], [p[3] for p in parts], loop, on_done=record,
+                  keep_logs=False, log_columns=SUMMARY_COLUMNS)
+    except Exception as exc:  # noqa: BLE001
+        for k, *_ in parts:
+            if k not in given:
+                give(k, failed_record(specs[k], f"{type(exc).__name__}: {exc}"))
 
 
 # scenarios per SUMO simulation in sweeps by default (``sweep --batch``): measured on curved500
@@ -194,25 +220,6 @@ def batches(specs: Sequence[ScenarioSpec], size: int, workers: int = 1
         key = batch_key(spec)
         groups.setdefault(key if key is not None else ("alone", k), []).append(spec)
     return [unit for g in groups.values() for unit in even_units(g, size, workers)]
-
-
-def even_units(items: Sequence, size: int, workers: int = 1) -> list[tuple]:
-    """``items`` in order, in units of at most ``size``: as even as can be and, where there are
-    enough, a multiple of ``workers`` many (140 items of size 64 on 2 workers: 4 of 35, not
-    64 + 64 + 12, where one worker would run the 12 alone)."""
-    if size < 1:
-        raise ValueError(f"batch size must be >= 1, got {size}")
-    if not items:
-        return []
-    k = -(-len(items) // size)  # units needed
-    k = min(-(-k // max(workers, 1)) * max(workers, 1), len(items))
-    n, extra = divmod(len(items), k)
-    out, i = [], 0
-    for j in range(k):
-        m = n + (j < extra)
-        out.append(tuple(items[i:i + m]))
-        i += m
-    return out
 
 
 def _task_parts(spec: ScenarioSpec, shared: bool = False):
@@ -267,50 +274,41 @@ def _safe_call(task_fn: TaskFn, spec: ScenarioSpec) -> dict[str, Any]:
         return failed_record(spec, f"{type(exc).__name__}: {exc}")
 
 
-_PROCESS_LOCK = threading.Lock()
+@dataclass(frozen=True)
+class SweepJob:
+    """ScenarioSpec tasks for the task engine (:class:`.task_engine.Job`): a task's record file is
+    ``<task_id>.json``; with ``batch`` > 1 the specs that can share a simulation
+    (:func:`batch_key`) run up to ``batch`` at a time in one (:func:`run_tasks`, for the default
+    ``task_fn``), each record given as its scenario ends; else ``task_fn`` per spec.
+    ``prepare_nets``: build the pending tasks' curved<R> nets once before the workers start."""
 
+    task_fn: TaskFn = run_task
+    batch: int = 1
+    prepare_nets: bool = False
 
-Unit = tuple[ScenarioSpec, ...]  # what a worker runs at once: one task, or a batch of them
+    def task_id(self, spec: ScenarioSpec) -> str:
+        return task_id(spec)
 
+    def units(self, todo: list[ScenarioSpec], workers: int) -> list[tuple[ScenarioSpec, ...]]:
+        if self.prepare_nets:
+            _prepare_nets(todo)
+        return batches(todo, self.batch, workers) if self.batch > 1 else [(s,) for s in todo]
 
-def _run_unit(task_fn: TaskFn, unit: Unit) -> list[dict[str, Any]]:
-    """The records of a unit: a batch in one simulation (:func:`run_tasks`) for the default
-    task function, else ``task_fn`` per spec. Never raises."""
-    if task_fn is run_task and len(unit) > 1:
-        try:
-            return run_tasks(unit)
-        except Exception as exc:  # noqa: BLE001 - any error becomes failed records
-            return [failed_record(s, f"{type(exc).__name__}: {exc}") for s in unit]
-    return [_safe_call(task_fn, s) for s in unit]
+    def run_unit(self, unit: tuple[ScenarioSpec, ...], emit: Emit) -> None:
+        if self.task_fn is run_task and len(unit) > 1:
+            run_tasks(unit, on_record=emit)
+            return
+        for k, spec in enumerate(unit):
+            emit(k, _safe_call(self.task_fn, spec))
 
-
-def _run_exclusive(task_fn: TaskFn, unit: Unit) -> list[dict[str, Any]]:
-    # libsumo holds ONE simulation per process: a Dask worker with several threads must not
-    # run two tasks at once in the same process
-    with _PROCESS_LOCK:
-        return _run_unit(task_fn, unit)
+    def failed(self, spec: ScenarioSpec, error: str) -> dict[str, Any]:
+        return failed_record(spec, error)
 
 
 # -- result files --------------------------------------------------------------------------------
 
 def tasks_dir(out_dir: Path) -> Path:
     return Path(out_dir) / "tasks"
-
-
-def read_record(path: Path) -> dict[str, Any] | None:
-    """A task's result, or None if missing or unreadable (then the task is run again)."""
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) and "status" in data else None
-
-
-def _is_done(path: Path, retry_failed: bool) -> bool:
-    record = read_record(path)
-    if record is None:
-        return False
-    return not (retry_failed and record.get("status") == STATUS_FAILED)
 
 
 # -- the sweep -----------------------------------------------------------------------------------
@@ -335,49 +333,18 @@ def run_sweep(
     replaced. ``scheduler="tcp://host:port"``: tasks go to that Dask cluster. Failed records count
     as done unless ``retry_failed``. ``task_fn`` (default :func:`run_task`) is a seam for tests.
     ``batch`` > 1: tasks that can share a simulation (:func:`batch_key`) run up to ``batch`` at
-    a time in one SUMO simulation (:func:`run_tasks`); a worker that dies costs its batch, and
-    ``task_timeout_s`` is per batch then.
+    a time in one SUMO simulation (:func:`run_tasks`); a worker that dies costs the tasks of its
+    batch that had not ended, and ``task_timeout_s`` is per batch then. The tasks run on the
+    task engine (:func:`.task_engine.execute`, as a :class:`SweepJob`).
 
-    Writes ``tasks/<task_id>.json`` per task as it finishes, then ``summary.csv``,
-    ``summary.json`` and ``manifest.json``.
+    Writes ``tasks/<task_id>.json`` per task as it ends (a Ctrl-C keeps every task that ended,
+    also inside a batch), then ``summary.csv``, ``summary.json`` and ``manifest.json``.
     """
     specs = list(dict.fromkeys(specs))  # a spec listed twice is one task
-    if workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
     out_dir = Path(out_dir)
-    tdir = tasks_dir(out_dir)
-    tdir.mkdir(parents=True, exist_ok=True)
-    ids = [task_id(s) for s in specs]
-    todo = [s for s, i in zip(specs, ids, strict=True) if not _is_done(tdir / f"{i}.json", retry_failed)]
-    if todo and scheduler is None and workers > 1:
-        _prepare_nets(todo)
-
-    units: list[Unit] = batches(todo, batch, workers) if batch > 1 else [(s,) for s in todo]
-    bar = tqdm(total=len(todo), desc="sweep", unit="task", disable=not progress or None,
-               initial=0, dynamic_ncols=True)
-    failed = 0
-
-    def save(unit: Unit, records: list[dict[str, Any]]) -> None:
-        nonlocal failed
-        for spec, record in zip(unit, records, strict=True):
-            outputs.write_json(tdir / f"{task_id(spec)}.json", record)
-            failed += record.get("status") != STATUS_OK
-        bar.update(len(unit))
-        if failed:
-            bar.set_postfix(failed=failed)
-
-    try:
-        if not todo:
-            pass
-        elif scheduler is not None:
-            _run_dask(units, scheduler, task_fn, save)
-        elif workers == 1:
-            for unit in units:
-                save(unit, _run_unit(task_fn, unit))
-        else:
-            _run_local(units, min(workers, len(units)), task_fn, save, task_timeout_s)
-    finally:
-        bar.close()
+    job = SweepJob(task_fn, batch, prepare_nets=scheduler is None and workers > 1)
+    todo = execute(specs, job, tasks_dir(out_dir), workers, scheduler, progress, "sweep",
+                   "task", retry_failed, task_timeout_s)
 
     summary = collect(specs, out_dir)
     with atomic_path(out_dir / "summary.csv") as tmp:  # a Ctrl-C here keeps the old summary
@@ -414,172 +381,6 @@ def _prepare_nets(specs: Sequence[ScenarioSpec]) -> None:
             resolve_net(net)
 
 
-# -- local worker processes ----------------------------------------------------------------------
-
-def _die_with_parent() -> None:
-    """Linux: the kernel sends this process SIGTERM when its parent dies (even by SIGKILL), so a
-    worker never outlives its sweep holding a SUMO instance. Elsewhere: nothing (the worker
-    still ends when its pipe to the parent closes)."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        pr_set_pdeathsig = 1
-        libc.prctl(pr_set_pdeathsig, signal.SIGTERM, 0, 0, 0)
-    except (OSError, AttributeError):
-        pass
-
-
-def _worker_main(conn: Connection, task_fn: TaskFn) -> None:
-    """A worker: receive a unit, run it, send its records back; ``None`` ends the worker."""
-    _die_with_parent()
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-    while True:
-        try:
-            unit = conn.recv()
-        except EOFError:
-            return
-        if unit is None:
-            return
-        conn.send(_run_unit(task_fn, unit))
-
-
-class _Worker:
-    def __init__(self, ctx, task_fn: TaskFn) -> None:
-        self.conn, child = ctx.Pipe()
-        self.process = ctx.Process(target=_worker_main, args=(child, task_fn), daemon=True)
-        self.process.start()
-        child.close()
-        self.unit: Unit | None = None  # the unit it runs
-        self.started = 0.0
-
-    def give(self, unit: Unit) -> None:
-        self.unit, self.started = unit, time.monotonic()
-        self.conn.send(unit)
-
-    def stop(self) -> None:
-        with suppress(OSError):
-            self.conn.send(None)
-
-    def kill(self) -> None:
-        if self.process.is_alive():
-            self.process.kill()
-        self.process.join(timeout=5)
-        self.conn.close()
-
-
-def _mp_context():
-    # 'fork' keeps worker start cheap and works with any task_fn; libsumo is imported (and
-    # started) only inside the workers
-    methods = mp.get_all_start_methods()
-    return mp.get_context("fork" if "fork" in methods else "spawn")
-
-
-def _run_local(
-    todo: list[Unit], workers: int, task_fn: TaskFn,
-    save: Callable[[Unit, list], None], task_timeout_s: float | None,
-) -> None:
-    """Own worker processes, one unit each at a time: the parent always knows which unit a
-    worker runs, so a dead worker costs exactly that unit (recorded failed) and is replaced."""
-    ctx = _mp_context()
-    queue = list(reversed(todo))  # pop() from the end keeps task order
-    pool: list[_Worker] = []
-
-    def assign(w: _Worker) -> None:
-        while queue:
-            unit = queue.pop()
-            try:
-                w.give(unit)
-                return
-            except OSError:  # died while idle: replace it and give it the same task
-                queue.append(unit)
-                pool.remove(w)
-                w.kill()
-                w = _Worker(ctx, task_fn)
-                pool.append(w)
-
-    try:
-        first: list[_Worker] = []
-        for _ in range(workers):
-            first.append(_Worker(ctx, task_fn))
-            pool.append(first[-1])
-        for w in first:  # assign() may replace a worker in pool, so iterate a separate list
-            assign(w)
-        while any(w.unit is not None for w in pool):
-            busy = [(w, w.unit) for w in pool if w.unit is not None]
-            ready = set(wait([w.conn for w, _ in busy] + [w.process.sentinel for w, _ in busy],
-                             timeout=1.0))
-            for w, unit in busy:
-                records = _poll(w, unit, ready, task_timeout_s)
-                if records is None:
-                    continue
-                save(unit, records)
-                w.unit = None
-                if not w.process.is_alive():
-                    pool.remove(w)
-                    w.kill()
-                    if not queue:
-                        continue
-                    w = _Worker(ctx, task_fn)  # replace the dead worker
-                    pool.append(w)
-                assign(w)
-        for w in pool:
-            w.stop()
-        for w in pool:
-            w.process.join(timeout=5)
-    finally:  # Ctrl-C or an error: unfinished tasks are simply not saved
-        for w in pool:
-            w.kill()
-
-
-def _poll(w: _Worker, unit: Unit, ready: set, task_timeout_s: float | None
-          ) -> list[dict[str, Any]] | None:
-    """The records of a busy worker's ``unit`` if it is over (result, death or timeout), else
-    None."""
-    if w.conn in ready or w.process.sentinel in ready:
-        try:
-            if w.conn.poll():
-                return w.conn.recv()
-        except (EOFError, OSError):
-            pass
-        if not w.process.is_alive():
-            return [failed_record(s, f"WorkerDied: worker process died (exit code "
-                                     f"{w.process.exitcode}) while running the task")
-                    for s in unit]
-    if task_timeout_s is not None and time.monotonic() - w.started > task_timeout_s:
-        w.process.kill()
-        w.process.join(timeout=5)
-        return [failed_record(s, f"TaskTimeout: no result after {task_timeout_s:g} s; "
-                                 "worker killed") for s in unit]
-    return None
-
-
-# -- Dask ----------------------------------------------------------------------------------------
-
-def _run_dask(
-    todo: list[Unit], address: str, task_fn: TaskFn,
-    save: Callable[[Unit, list], None],
-) -> None:
-    from dask.distributed import Client, as_completed
-
-    client = Client(address)  # only the address the user gave
-    try:
-        futures = client.map(partial(_run_exclusive, task_fn), todo, pure=False)
-        unit_of = {f.key: u for f, u in zip(futures, todo, strict=True)}
-        try:
-            for future in as_completed(futures):
-                unit = unit_of[future.key]
-                try:
-                    records = future.result()
-                except Exception as exc:  # noqa: BLE001 - e.g. KilledWorker after repeated worker deaths
-                    records = [failed_record(s, f"{type(exc).__name__}: {exc}") for s in unit]
-                save(unit, records)
-        finally:
-            client.cancel([f for f in futures if not f.done()])
-    finally:
-        client.close()
-
-
 def comparable(summary: pd.DataFrame) -> pd.DataFrame:
     """``summary`` without fields that vary between identical runs (timing)."""
     drop = [c for c in TIMING_FIELDS if c in summary.columns]
@@ -600,7 +401,6 @@ __all__ = [
     "batches",
     "collect",
     "comparable",
-    "even_units",
     "load_specs",
     "run_sweep",
     "run_task",

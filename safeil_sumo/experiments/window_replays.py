@@ -7,7 +7,9 @@ time-gap histograms of the human and each policy are written at once and atomica
 run in ``workers`` processes (one libsumo each), up to ``batch`` windows of a worker's unit side
 by side in ONE SUMO simulation (:func:`run_windows`: each window on its own copy of its net,
 every (window, planner) run in one ``run_batch``; the same records as one simulation per run,
-floats to round-off); each window's record is written as its runs end.
+floats to round-off); each window's record is written as its runs end. The windows run on the
+task engine (:mod:`.task_engine`, as a :class:`WindowJob`): in-process, local worker processes
+or a Dask cluster (``scheduler``), resumed and interrupted as sweeps are.
 
 Windows (``mode``):
 - ``paper``: the paper's 11 s from the start of each maneuver;
@@ -30,12 +32,10 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import multiprocessing as mp
 import re
-import signal
 import tempfile
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import matplotlib
@@ -44,13 +44,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
 from safeil_sumo import planner_registry
 from safeil_sumo.atomic import atomic_path
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
-from safeil_sumo.experiments.sweep_executor import even_units
+from safeil_sumo.experiments.task_engine import (
+    Emit,
+    deferred_interrupt,
+    even_units,
+    execute,
+    read_record,
+    record_path,
+)
 from safeil_sumo.policy import Policy
 
 WINDOW_MODES = ("paper", "sliding", "whole")
@@ -308,11 +314,14 @@ def _window_rows(window: Window, maneuvers: pd.DataFrame) -> pd.DataFrame:
     return rp.window(rows, window.start_s, window.duration_s)
 
 
-def _failed(window: Window, exc: Exception) -> dict:
-    """The record of a window that could not be replayed."""
+def _failed(window: Window, error: Exception | str) -> dict:
+    """The record of a window that could not be replayed (``error``: the exception, or its
+    ``"Type: message"``)."""
+    if isinstance(error, Exception):
+        error = f"{type(error).__name__}: {error}"
     return {"task_id": window.task_id, "maneuver_id": window.maneuver_id,
             "driver": driver_id(window.maneuver_id), "start_s": window.start_s,
-            "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+            "status": "failed", "error": error}
 
 
 def _record(window: Window, res: rp.ReplayResult, planners: dict | None = None) -> dict:
@@ -349,26 +358,24 @@ def run_window(window: Window, maneuvers: pd.DataFrame, policies: dict, config: 
 
 
 def run_windows(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
-                config: rp.ReplayConfig, on_record: Callable[[dict], None] | None = None
-                ) -> list[dict]:
+                config: rp.ReplayConfig, on_record: Emit | None = None) -> list[dict]:
     """Replay ``wins`` side by side: every (window, planner) run in ONE SUMO simulation
     (:func:`safeil_sumo.sim.batch.run_batch`, each window on its own copy of its net), the
     kinematic ``recorded`` runs each on ``run_scenario``. The records (window order) are
-    :func:`run_window`'s; ``on_record(record)`` is called as each window's runs have ended. One
-    window is :func:`run_window`. Never raises: a window that cannot be prepared, or a batch
-    that fails, gives failed records.
+    :func:`run_window`'s; ``on_record(k, record)`` is called as the k-th window's runs have
+    ended (a Ctrl-C waits for it). One window is :func:`run_window`. Never raises: a window that
+    cannot be prepared, or a batch that fails, gives failed records.
     """
     if len(wins) == 1:  # today's path: one simulation per run
         records = [run_window(wins[0], maneuvers, policies, config)]
         if on_record is not None:
-            on_record(records[0])
+            on_record(0, records[0])
         return records
     return _run_batched(wins, maneuvers, policies, config, on_record)
 
 
 def _run_batched(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict,
-                 config: rp.ReplayConfig, on_record: Callable[[dict], None] | None
-                 ) -> list[dict]:
+                 config: rp.ReplayConfig, on_record: Emit | None) -> list[dict]:
     """:func:`run_windows` of several windows: their planners' runs in one batch."""
     from safeil_sumo.sim.batch import run_batch
     from safeil_sumo.sim.runner import run_scenario
@@ -381,19 +388,20 @@ def _run_batched(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict
 
     def settle(k: int, rec: dict | None = None) -> None:
         """Window ``k``'s record (``rec``, else its comparison once all its runs ended)."""
-        if rec is None:
-            if len(rollouts[k]) < len(policies):
-                return
-            try:
-                rec = _record(wins[k], rp.compare_replay(
-                    preps[k], {label: rollouts[k][label] for label in policies}, config),
-                    used[k])
-            except Exception as exc:  # noqa: BLE001 - a record: the batch goes on
-                rec = _failed(wins[k], exc)
-        rollouts.pop(k, None)  # its logs are freed
-        records[k] = rec
-        if on_record is not None:
-            on_record(rec)
+        if rec is None and len(rollouts[k]) < len(policies):
+            return
+        with deferred_interrupt():  # a window whose runs ended gets its record
+            if rec is None:
+                try:
+                    rec = _record(wins[k], rp.compare_replay(
+                        preps[k], {label: rollouts[k][label] for label in policies}, config),
+                        used[k])
+                except Exception as exc:  # noqa: BLE001 - a record: the batch goes on
+                    rec = _failed(wins[k], exc)
+            rollouts.pop(k, None)  # its logs are freed
+            records[k] = rec
+            if on_record is not None:
+                on_record(k, rec)
 
     with tempfile.TemporaryDirectory() as tmp:
         for k, w in enumerate(wins):
@@ -432,74 +440,71 @@ def _run_batched(wins: Sequence[Window], maneuvers: pd.DataFrame, policies: dict
             if r is None else r for k, r in enumerate(records)]
 
 
-_STATE: dict = {}
+@dataclass(frozen=True, eq=False)
+class WindowJob:
+    """Window replays for the task engine (:class:`.task_engine.Job`): a window's record file is
+    ``<window task_id>-<tag>.json`` (``tag``: the policies, their weights and the config), up
+    to ``batch`` windows of a unit run side by side in one SUMO simulation
+    (:func:`run_windows`), each record given as the window's runs end."""
+
+    maneuvers: pd.DataFrame
+    policy_names: tuple[str, ...]
+    config: rp.ReplayConfig
+    tag: str
+    batch: int = DEFAULT_BATCH
+    # the planners, loaded by each process that runs windows, once
+    loaded: dict = field(default_factory=dict, repr=False)
+
+    def task_id(self, window: Window) -> str:
+        return f"{window.task_id}-{self.tag}"
+
+    def units(self, todo: list[Window], workers: int) -> list[tuple[Window, ...]]:
+        return even_units(todo, self.batch, workers)
+
+    def run_unit(self, unit: tuple[Window, ...], emit: Emit) -> None:
+        run_windows(unit, self.maneuvers, self.policies(), self.config, emit)
+
+    def failed(self, window: Window, error: str) -> dict:
+        return _failed(window, error)
+
+    def policies(self) -> dict:
+        """The planners by name (with the config's time-gap setting), loaded once per process."""
+        from safeil_sumo import planner_registry as pol
+
+        if not self.loaded:
+            planners = {name: pol.load_for_replay(name) for name in self.policy_names}
+            self.loaded.update(with_setting(planners, self.config.time_gap_s))
+        return self.loaded
 
 
-def _init(maneuvers: pd.DataFrame, policy_names: list[str], config: rp.ReplayConfig,
-          tasks: Path, tag: str) -> None:
-    from safeil_sumo import planner_registry as pol
-    from safeil_sumo.experiments.sweep_executor import _die_with_parent
-
-    _die_with_parent()  # a worker never outlives a killed replay (it holds a SUMO)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
-
-    policies = {name: pol.load_for_replay(name) for name in policy_names}
-    _STATE.update(maneuvers=maneuvers, config=config, tasks=tasks, tag=tag,
-                  policies=with_setting(policies, config.time_gap_s))
-
-
-def _task_path(tasks: Path, task_id: str, tag: str) -> Path:
-    return tasks / f"{task_id}-{tag}.json"
-
-
-def _save(record: dict) -> None:
-    """Write a window's record as soon as it is there (a resumed run skips it)."""
-    outputs.write_json(_task_path(_STATE["tasks"], record["task_id"], _STATE["tag"]), record)
-
-
-def _work(unit: tuple[Window, ...]) -> list[dict]:
-    return run_windows(unit, _STATE["maneuvers"], _STATE["policies"], _STATE["config"], _save)
+def job_tag(policy_names: Sequence[str], config: rp.ReplayConfig, adapted: bool) -> str:
+    """What a window's result depends on besides the window: the policies (with their weights'
+    fingerprints) and the config, and how planners are adapted (``adapted``), so a rerun with
+    other policies, settings or a retrained model never reuses a stale result."""
+    policies = sorted(f"{n}@{planner_registry.fingerprint(n)}" for n in policy_names)
+    key = [policies, repr(config)]
+    if adapted:
+        key.append(ADAPTATION_METHOD)
+    return hashlib.sha256(json.dumps(key).encode()).hexdigest()[:8]
 
 
 def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[str],
                out_dir: Path, config: rp.ReplayConfig | None = None, workers: int = 1,
-               progress: bool = True, batch: int = DEFAULT_BATCH) -> list[dict]:
+               progress: bool = True, batch: int = DEFAULT_BATCH,
+               scheduler: str | None = None) -> list[dict]:
     """Run every window not done yet in ``out_dir/tasks``; return all records (window order).
     ``batch`` > 1: up to ``batch`` windows per worker task run side by side in one SUMO
-    simulation (:func:`run_windows`; the same records); 1: one simulation per run."""
+    simulation (:func:`run_windows`; the same records); 1: one simulation per run. The windows
+    run on the task engine (:func:`.task_engine.execute`, as a :class:`WindowJob`): in this
+    process (``workers=1``), in ``workers`` local processes or on the Dask cluster at
+    ``scheduler``; each window's record is written as its runs end (a Ctrl-C keeps them)."""
     config = config or rp.ReplayConfig()
-    # a window's result holds every policy: its file name carries the policies (with their
-    # weights' fingerprints) and the config, so a rerun with other policies, settings or a
-    # retrained model never reuses a stale result
-    policies = sorted(f"{n}@{planner_registry.fingerprint(n)}" for n in policy_names)
-    key = [policies, repr(config)]
-    if any(w.adapt_s for w in wins):  # adapted results depend on how planners are adapted
-        key.append(ADAPTATION_METHOD)
-    tag = hashlib.sha256(json.dumps(key).encode()).hexdigest()[:8]
+    tag = job_tag(policy_names, config, any(w.adapt_s for w in wins))
+    job = WindowJob(maneuvers, tuple(policy_names), config, tag, batch)
     tasks = Path(out_dir) / "tasks"
-    tasks.mkdir(parents=True, exist_ok=True)
-
-    def path(w: Window) -> Path:
-        return _task_path(tasks, w.task_id, tag)
-
-    todo = [w for w in wins if not path(w).is_file()]
-    todo_units = even_units(todo, batch, workers)
-    bar = tqdm(total=len(todo), desc="replay", unit="window", disable=not progress or None)
-    init_args = (maneuvers, policy_names, config, tasks, tag)
-    try:
-        if workers <= 1 or len(todo_units) <= 1:
-            _init(*init_args)
-            for unit in todo_units:
-                bar.update(len(_work(unit)))
-        else:
-            ctx = mp.get_context("fork")
-            with ctx.Pool(min(workers, len(todo_units)), initializer=_init,
-                          initargs=init_args) as pool:
-                for recs in pool.imap_unordered(_work, todo_units):
-                    bar.update(len(recs))
-    finally:
-        bar.close()
-    return [json.loads(path(w).read_text()) for w in wins if path(w).is_file()]
+    execute(wins, job, tasks, workers, scheduler, progress, "replay", "window")
+    records = (read_record(record_path(tasks, job, w)) for w in wins)
+    return [r for r in records if r is not None]
 
 
 def table(records: list[dict]) -> pd.DataFrame:
