@@ -13,7 +13,8 @@ checks and the command that reproduces it.
    calibrated IDM and the constant-speed follower, the best, median and worst drawn over time;
 5. ``certificate``: the checkpoint's certificate (:mod:`safeil_sumo.learn.certificate`), or a
    budgeted certification; not applicable to a planner that is no network;
-6. ``falsify``: a budgeted cross-entropy search (:mod:`safeil_sumo.experiments.falsify`).
+6. ``falsify``: a budgeted cross-entropy search
+   (:mod:`safeil_sumo.experiments.falsification_search`).
 """
 
 from __future__ import annotations
@@ -377,7 +378,7 @@ def certificate(ctx: EvalContext) -> Section:
 
 def falsify(ctx: EvalContext) -> Section:
     """Section 6: a cross-entropy search for avoidable failures on the budget."""
-    from safeil_sumo.experiments import falsify as fz
+    from safeil_sumo.experiments import falsification_search as fz
 
     s = ctx.settings
     config = fz.SearchConfig(method="cem", budget=s.falsify_budget, batch=s.falsify_batch,
