@@ -46,7 +46,7 @@ RECORD = ROOT / "tools" / "mutation_record.json"
 SAFETY_MODULES = (
     "safeil_sumo.learn.bounds", "safeil_sumo.learn.certify_margins", "safeil_sumo.learn.certify",
     "safeil_sumo.learn.certificate", "safeil_sumo.sim.brake_guard", "safeil_sumo.sim.monitors",
-    "safeil_sumo.experiments.falsification_search", "safeil_sumo.experiments.gap_probe",
+    "safeil_sumo.experiments.falsification_search", "safeil_sumo.experiments.gap_step_responses",
     "safeil_sumo.experiments.suite", "safeil_sumo.safety_filter",
     # the closed-loop reachability of the ARCH-COMP ACC benchmark (issue 41)
     "safeil_sumo.learn.reach",
@@ -59,7 +59,7 @@ SAFETY_SCOPE = (
     "safeil_sumo.sim.brake_guard.*",
     "safeil_sumo.experiments.falsification_search.*",
     # the gap probe but its figure (plot, the series it draws) and the reader of the real data
-    *(f"safeil_sumo.experiments.gap_probe.x_{name}__mutmut_*" for name in (
+    *(f"safeil_sumo.experiments.gap_step_responses.x_{name}__mutmut_*" for name in (
         "initial_gap_m", "probe_spec", "kind_of", "step_time_s", "leader_distance_m",
         "check_fits", "time_gap", "window_mean", "settling_time", "_first_crossing",
         "rise_time", "overshoot", "drift", "response_metrics", "probe_extras", "run_step",
