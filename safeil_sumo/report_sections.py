@@ -334,8 +334,8 @@ def gap_probe(ctx: EvalContext) -> Section:
 
 def certificate(ctx: EvalContext) -> Section:
     """Section 5: the checkpoint's valid certificate, else a certification on the budget."""
+    from safeil_sumo.learn.branch_and_bound import Budget, CertEnvelope, certify
     from safeil_sumo.learn.certificate import load_certificate, write_certificate
-    from safeil_sumo.learn.certify import Budget, CertEnvelope, certify
     from safeil_sumo.learn.inference import MLPPolicy
 
     measures = ("A proof over the operating envelope (lane, offset, heading, curvature, speeds, "
