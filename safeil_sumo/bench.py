@@ -17,9 +17,9 @@ Measures on ``curved500`` (ego + leader, 0.01 s step, monitors on, planner at 10
   wall time, with a scripted leader and among SUMO's default traffic;
 - a curved500 sweep with 1 and 2 workers (wall time, parallel efficiency, worker peak memory),
   one scenario per simulation and batched (``sweep --batch``);
-- the Gymnasium envs (``python -m safeil_sumo.envs.bench`` in a subprocess): transitions/s of
-  the single env, the native vector env at N = 64, Gymnasium's SyncVectorEnv of 64 traci envs
-  and an AsyncVectorEnv of 4, peak memory.
+- the Gymnasium envs (``python -m safeil_sumo.envs.env_benchmark`` in a subprocess):
+  transitions/s of the single env, the native vector env at N = 64, Gymnasium's SyncVectorEnv
+  of 64 traci envs and an AsyncVectorEnv of 4, peak memory.
 Prints a table and writes it as JSON (``--out``). ``--quick`` shortens every measurement (CI).
 It asserts nothing about time: numbers are reported, never tested. A part whose input is
 missing (the NGSIM file) is skipped with a note.
@@ -369,12 +369,12 @@ def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: di
 
 
 def gym_rows(quick: bool, rows: dict) -> None:
-    """The Gymnasium envs (``python -m safeil_sumo.envs.bench`` in a subprocess, each part in
-    a fresh process): transitions/s of the single env, the native vector env and a
+    """The Gymnasium envs (``python -m safeil_sumo.envs.env_benchmark`` in a subprocess, each
+    part in a fresh process): transitions/s of the single env, the native vector env and a
     SyncVectorEnv of traci envs (a SUMO process each) at N = 64 (8 quick), an AsyncVectorEnv of
     4 single envs (a process each), and peak memory."""
     n = 8 if quick else 64
-    out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.bench", "--n", str(n),
+    out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.env_benchmark", "--n", str(n),
                           "--seconds", "3" if quick else "20", "--json"],
                          capture_output=True, text=True, check=True)
     result = json.loads(out.stdout.strip().splitlines()[-1])

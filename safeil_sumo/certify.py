@@ -31,14 +31,14 @@ from safeil_sumo.cli_args import (
     nonnegative_int,
     one_policy,
 )
-from safeil_sumo.learn.certificate import certificate_path, load_certificate, write_certificate
-from safeil_sumo.learn.certify import (
+from safeil_sumo.learn.branch_and_bound import (
     Budget,
     CertEnvelope,
     CertifyError,
     CertifyResult,
     certify,
 )
+from safeil_sumo.learn.certificate import certificate_path, load_certificate, write_certificate
 from safeil_sumo.learn.certify_margins import MARGINS
 from safeil_sumo.learn.inference import MLPPolicy
 

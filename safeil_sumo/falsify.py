@@ -30,7 +30,7 @@ from safeil_sumo.cli_args import (
     interruptible,
     one_policy,
 )
-from safeil_sumo.experiments import falsify as fz
+from safeil_sumo.experiments import falsification_search as fz
 from safeil_sumo.experiments import outputs
 from safeil_sumo.sweep import check_inputs
 

@@ -7,7 +7,7 @@ At each speed (default 15, 25, 35 m/s) and for each step kind (the leader pullin
 +3 m/s, slowing by -3 m/s, the ego starting 100 m behind, starting 10 m closer than a 1 s time
 gap) every policy drives one closed loop on the n74 road; the humans' steady-following time
 gaps per speed band come from the real data (``--data-dir``). Definitions:
-:mod:`safeil_sumo.experiments.gap_probe` and ``docs/gap_probe.md``.
+:mod:`safeil_sumo.experiments.gap_step_responses` and ``docs/gap_probe.md``.
 
 Writes into ``--out``: ``gap_probe.csv`` (one row per policy x speed x step kind, then the
 ``humans`` rows), ``gap_probe.png`` (time gap vs time, a panel per kind and speed),
@@ -33,7 +33,7 @@ from safeil_sumo.cli_args import (
     positive_int,
 )
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
-from safeil_sumo.experiments import gap_probe as gp
+from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.experiments import outputs
 
 if TYPE_CHECKING:

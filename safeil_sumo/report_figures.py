@@ -90,8 +90,8 @@ def plot_replay_traces(panels: Sequence[tuple[str, pd.DataFrame, dict[str, pd.Da
 
 def plot_falsify(evaluations: pd.DataFrame, path: Path, title: str) -> None:
     """A search's lowest min TTC of an avoidable run so far [s] (top, ``best_so_far`` of
-    :func:`safeil_sumo.experiments.falsify.table`) and its failures found (bottom) against the
-    simulations spent."""
+    :func:`safeil_sumo.experiments.falsification_search.table`) and its failures found (bottom)
+    against the simulations spent."""
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
     sims = evaluations["sim"].to_numpy(int)
     best = evaluations["best_so_far"].to_numpy(float)

@@ -8,12 +8,14 @@ checks and the command that reproduces it.
    N-scenario sweep (``safeil-sweep``) with Wilson 95 % intervals on the completion, collision
    and lane-departure rates;
 2. ``suite``: the leader-response suite (:mod:`safeil_sumo.experiments.suite`);
-3. ``gap_probe``: the gap-regulation step responses (:mod:`safeil_sumo.experiments.gap_probe`);
+3. ``gap_probe``: the gap-regulation step responses
+   (:mod:`safeil_sumo.experiments.gap_step_responses`);
 4. ``replay``: held-out maneuvers replayed whole (``safeil-replay --windows whole``) beside the
    calibrated IDM and the constant-speed follower, the best, median and worst drawn over time;
 5. ``certificate``: the checkpoint's certificate (:mod:`safeil_sumo.learn.certificate`), or a
    budgeted certification; not applicable to a planner that is no network;
-6. ``falsify``: a budgeted cross-entropy search (:mod:`safeil_sumo.experiments.falsify`).
+6. ``falsify``: a budgeted cross-entropy search
+   (:mod:`safeil_sumo.experiments.falsification_search`).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from safeil_sumo import planner_registry as pol
 from safeil_sumo import report_figures as figs
 from safeil_sumo.data.by_path import DataSpec
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
-from safeil_sumo.experiments import gap_probe as gp
+from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.experiments import plots
 from safeil_sumo.experiments import suite as st
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
@@ -290,8 +292,8 @@ def gap_probe(ctx: EvalContext) -> Section:
     meets = (runs["target_min_time_gap"].astype(bool) & runs["target_settling"].astype(bool)
              & ~runs["collision"].astype(bool) & ran)
     in_iqr = runs["target_eq_in_human_iqr"].fillna(False).astype(bool)
-    # each response's floor as gap_probe.table states it: max(0.8 s, the humans' p05), or its
-    # own start's when it starts closer (a close start is not blamed for its initial state)
+    # each response's floor as gap_step_responses.table states it: max(0.8 s, the humans' p05),
+    # or its own start's when it starts closer (a close start is not blamed for its initial state)
     floor = np.fmin(np.fmax(gp.TARGET_MIN_TIME_GAP_S, runs["human_p05_s"].to_numpy(float)),
                     runs["time_gap_at_step_s"].to_numpy(float) - gp.START_TOLERANCE_S)
     margin = float(np.nanmin(runs["min_time_gap_s"].to_numpy(float) - floor)) if len(runs) \
@@ -332,8 +334,8 @@ def gap_probe(ctx: EvalContext) -> Section:
 
 def certificate(ctx: EvalContext) -> Section:
     """Section 5: the checkpoint's valid certificate, else a certification on the budget."""
+    from safeil_sumo.learn.branch_and_bound import Budget, CertEnvelope, certify
     from safeil_sumo.learn.certificate import load_certificate, write_certificate
-    from safeil_sumo.learn.certify import Budget, CertEnvelope, certify
     from safeil_sumo.learn.inference import MLPPolicy
 
     measures = ("A proof over the operating envelope (lane, offset, heading, curvature, speeds, "
@@ -377,7 +379,7 @@ def certificate(ctx: EvalContext) -> Section:
 
 def falsify(ctx: EvalContext) -> Section:
     """Section 6: a cross-entropy search for avoidable failures on the budget."""
-    from safeil_sumo.experiments import falsify as fz
+    from safeil_sumo.experiments import falsification_search as fz
 
     s = ctx.settings
     config = fz.SearchConfig(method="cem", budget=s.falsify_budget, batch=s.falsify_batch,

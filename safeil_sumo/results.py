@@ -21,8 +21,9 @@ Sections (``--only`` picks some; every sweep is resumable, its task files live i
 - ``ablation``: ``training/leader_following_ablation.py`` (one lever at a time);
 - ``instrument``: the replay's own error: the ``recorded`` pseudo-planner (the human's path)
   over every whole maneuver of OpenACC, NGSIM and the synthetic drives;
-- ``falsify``: the falsification study (``experiments/falsify.py``): CEM against random
-  sampling at equal budget per planner, the curves and each planner's worst avoidable case;
+- ``falsify``: the falsification study (``experiments/falsification_search.py``): CEM against
+  random sampling at equal budget per planner, the curves and each planner's worst avoidable
+  case;
 - ``card``: the shipped ``safeil``'s report card (``safeil-evaluate safeil``, full budgets);
 - and ``results/README.md`` (the paper's safety test and replay beside ours, then the report
   card) and ``results/studies.md`` (every other section).

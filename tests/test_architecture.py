@@ -176,6 +176,17 @@ def test_imports_run_down_the_layers() -> None:
     assert upward == [], "imports that run up the layers:\n" + "\n".join(sorted(upward))
 
 
+def test_no_module_file_name_is_used_twice() -> None:
+    """A module's file name says which module it is: ``replay.py`` names one module, not a
+    command line and a library module both (``__init__.py`` aside)."""
+    by_name: dict[str, list[str]] = {}
+    for path in PKG.rglob("*.py"):
+        if path.name != "__init__.py":
+            by_name.setdefault(path.name, []).append(path.relative_to(PKG).as_posix())
+    twice = {name: sorted(paths) for name, paths in sorted(by_name.items()) if len(paths) > 1}
+    assert twice == {}, f"rename one of each: {twice}"
+
+
 @pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")), ids=lambda p: str(p.relative_to(PKG)))
 def test_no_function_grows_past_80_lines(path: Path) -> None:
     """Every function and method, nested ones too, from its ``def`` line (decorators not

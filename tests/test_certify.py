@@ -16,10 +16,10 @@ import pytest
 from safeil_sumo import bspline
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.learn import bounds as bnd
-from safeil_sumo.learn import certify as cert
+from safeil_sumo.learn import branch_and_bound as cert
 from safeil_sumo.learn import certify_margins as cm
+from safeil_sumo.learn.branch_and_bound import Budget, CertifyError, certify
 from safeil_sumo.learn.certificate import load_certificate, write_certificate
-from safeil_sumo.learn.certify import Budget, CertifyError, certify
 from safeil_sumo.learn.checkpoint import checkpoint_paths, load_checkpoint
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.inference import MLPPolicy
@@ -434,7 +434,7 @@ def test_margin_bounds_and_scores_are_the_golden_ones(safeil: MLPPolicy) -> None
 
 
 def test_the_box_tree_grows_and_keeps_its_boxes() -> None:
-    from safeil_sumo.learn.certify import _Tree
+    from safeil_sumo.learn.branch_and_bound import _Tree
 
     tree = _Tree(2, cap=4)
     first = tree.add(lo=np.zeros((3, 2)), hi=np.ones((3, 2)), part=0)
@@ -448,7 +448,7 @@ def test_the_box_tree_grows_and_keeps_its_boxes() -> None:
 
 
 def test_the_first_candidate_is_the_corner_minimising_the_linear_bound() -> None:
-    from safeil_sumo.learn.certify import _candidates
+    from safeil_sumo.learn.branch_and_bound import _candidates
 
     env = cm.CertEnvelope()
     lo, hi = env.root_boxes()["free"]
@@ -895,7 +895,7 @@ def test_a_part_without_weight_gets_no_box_and_no_share() -> None:
 
 
 def test_counterexample_candidates_lift_onto_the_recoverable_gap_only_when_closing() -> None:
-    from safeil_sumo.learn.certify import _candidates
+    from safeil_sumo.learn.branch_and_bound import _candidates
 
     env = cm.CertEnvelope()
     lo, hi = (b.copy() for b in env.root_boxes()["leader"])
@@ -916,7 +916,7 @@ def test_counterexample_candidates_lift_onto_the_recoverable_gap_only_when_closi
 
 
 def test_a_point_box_counts_in_the_quarter_holding_it() -> None:
-    from safeil_sumo.learn.certify import _unproven_by_dim
+    from safeil_sumo.learn.branch_and_bound import _unproven_by_dim
 
     env = cm.CertEnvelope()
     lo, hi = env.root_boxes()["leader"]

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from safeil_sumo.experiments import falsify as fz
+from safeil_sumo.experiments import falsification_search as fz
 from safeil_sumo.experiments.suite import braking_avoids
 from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim.leaders import constant, piecewise

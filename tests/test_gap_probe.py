@@ -13,7 +13,7 @@ import pytest
 from scipy.optimize import brentq
 
 from safeil_sumo import idm, planner_registry
-from safeil_sumo.experiments import gap_probe as gp
+from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.gap_probe import main
 
 DT = 0.01  # [s] the closed loop's log step

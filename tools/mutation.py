@@ -44,9 +44,10 @@ RECORD = ROOT / "tools" / "mutation_record.json"
 # and the certificate, the brake guard, falsification, the gap probe, the leader-response suite
 # and the safety filter, the monitors
 SAFETY_MODULES = (
-    "safeil_sumo.learn.bounds", "safeil_sumo.learn.certify_margins", "safeil_sumo.learn.certify",
+    "safeil_sumo.learn.bounds", "safeil_sumo.learn.certify_margins",
+    "safeil_sumo.learn.branch_and_bound",
     "safeil_sumo.learn.certificate", "safeil_sumo.sim.brake_guard", "safeil_sumo.sim.monitors",
-    "safeil_sumo.experiments.falsify", "safeil_sumo.experiments.gap_probe",
+    "safeil_sumo.experiments.falsification_search", "safeil_sumo.experiments.gap_step_responses",
     "safeil_sumo.experiments.suite", "safeil_sumo.safety_filter",
     # the closed-loop reachability of the ARCH-COMP ACC benchmark (issue 41)
     "safeil_sumo.learn.reach",
@@ -54,12 +55,12 @@ SAFETY_MODULES = (
 SAFETY_SCOPE = (
     "safeil_sumo.learn.bounds.*",
     "safeil_sumo.learn.certify_margins.*",
-    "safeil_sumo.learn.certify.*",
+    "safeil_sumo.learn.branch_and_bound.*",
     "safeil_sumo.learn.certificate.*",
     "safeil_sumo.sim.brake_guard.*",
-    "safeil_sumo.experiments.falsify.*",
+    "safeil_sumo.experiments.falsification_search.*",
     # the gap probe but its figure (plot, the series it draws) and the reader of the real data
-    *(f"safeil_sumo.experiments.gap_probe.x_{name}__mutmut_*" for name in (
+    *(f"safeil_sumo.experiments.gap_step_responses.x_{name}__mutmut_*" for name in (
         "initial_gap_m", "probe_spec", "kind_of", "step_time_s", "leader_distance_m",
         "check_fits", "time_gap", "window_mean", "settling_time", "_first_crossing",
         "rise_time", "overshoot", "drift", "response_metrics", "probe_extras", "run_step",
@@ -71,7 +72,7 @@ SAFETY_SCOPE = (
 )
 # the certification modules' tests are the slowest (branch and bound runs): their kill rate is
 # measured on a seeded uniform sample of their mutants (each name in or out by its hash)
-SAMPLE_FRACTION = {"safeil_sumo.learn.bounds": 0.25, "safeil_sumo.learn.certify": 0.25,
+SAMPLE_FRACTION = {"safeil_sumo.learn.bounds": 0.25, "safeil_sumo.learn.branch_and_bound": 0.25,
                    "safeil_sumo.learn.certify_margins": 0.25, "safeil_sumo.learn.reach": 0.25}
 # fnmatch patterns over mutmut's mutant names (module.x_function__mutmut_N,
 # module.xǁClassǁmethod__mutmut_N); the files themselves are listed in setup.cfg

@@ -5,7 +5,7 @@ in each speed band? (issue 42's per-driver instrument)
                                                [--out results/per_driver]
 
 For every driver of OpenACC (Vicolungo), ZalaZone and NGSIM I-80 (``data.sources.driver_of``)
-with steady following (the gap probe's human definition, ``experiments.gap_probe.
+with steady following (the gap probe's human definition, ``experiments.gap_step_responses.
 steady_following``) in at least two of the gap probe's speed bands (15, 25, 35 ± 3 m/s, at
 least :data:`MIN_SAMPLES` samples each):
 
@@ -37,7 +37,7 @@ from safeil_sumo import idm
 from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR, driver_of, load_source
-from safeil_sumo.experiments import gap_probe as gp
+from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.experiments.sweep_executor import run_sweep
 from safeil_sumo.experiments.window_replays import driver_style, idm_style_params
 

@@ -36,7 +36,7 @@ IDS: dict[str, dict] = {
     # num_envs > 1; vectorization_mode="async" runs a process per sub-env)
     "safeil_sumo/N74Traffic-v0": {"task": "n74_traffic"},
     # a recorded maneuver's replay, rewarding closeness to the human: gym.make(...,
-    # source="openacc", maneuver="auto") (the defaults; safeil_sumo/envs/replay.py)
+    # source="openacc", maneuver="auto") (the defaults; safeil_sumo/envs/replay_task.py)
     "safeil_sumo/Replay-v0": {"task": "replay"},
 }
 # ids that read the shared human recordings (../shared/data)

@@ -21,7 +21,7 @@ from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_roa
 from safeil_sumo.sim.loop_types import Scenario
 
 if TYPE_CHECKING:
-    from safeil_sumo.envs.replay import ReplayTask
+    from safeil_sumo.envs.replay_task import ReplayTask
 
 MAX_INDEX = 2**31 - 1  # episode indices drawn in [0, MAX_INDEX)
 # leader-response families: the variant is the index (< 1000: the suite's index encodes the
@@ -41,7 +41,7 @@ class Task:
     spec: ScenarioSpec
     max_index: int = MAX_INDEX  # indices in [0, max_index)
     family: str = ""  # a leader-response family: the index is its variant
-    replay: bool = False  # a recorded maneuver's replay (safeil_sumo.envs.replay.ReplayTask)
+    replay: bool = False  # a recorded maneuver's replay (safeil_sumo.envs.replay_task.ReplayTask)
 
     def scenario(self, index: int) -> Scenario:
         """The loop's scenario of episode ``index``."""
@@ -91,7 +91,7 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
       whichever vehicle SUMO puts ahead of the ego (``python -m safeil_sumo.run --net n74
       --traffic ...``; ``net`` must be n74). N = 1 per SUMO: the native vector env takes
       ``num_envs=1`` only;
-    - ``replay``: a recorded maneuver's replay (:func:`safeil_sumo.envs.replay.replay_task`:
+    - ``replay``: a recorded maneuver's replay (:func:`safeil_sumo.envs.replay_task.replay_task`:
       ``source``, ``maneuver``, ``start_s``, ``duration_s``, ``data_dir``, sensor noise).
 
     ``spec``: any other :class:`ScenarioSpec` field (``initial_gap_m``, ``lane_noise_c0_m``,
@@ -99,10 +99,10 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
     """
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; tasks: {', '.join(TASKS)}")
-    if task == "replay":  # a recorded maneuver: its own options (safeil_sumo.envs.replay)
+    if task == "replay":  # a recorded maneuver: its own options (safeil_sumo.envs.replay_task)
         if net is not None or profile:
             raise ValueError("the replay rebuilds the maneuver's own road: no net or profile")
-        from safeil_sumo.envs.replay import replay_task
+        from safeil_sumo.envs.replay_task import replay_task
 
         return replay_task(master_seed=master_seed, max_time_s=max_time_s, **spec)
     known = set(ScenarioSpec.__dataclass_fields__) - {"index", "master_seed", "net", "policy"}

@@ -20,7 +20,8 @@ Float rounding: the relaxation lines are loosened by :data:`RELAX_SLACK` relativ
 magnitude and the intermediate intervals widened by :data:`INTERVAL_SLACK`, so rounding in their
 own computation cannot make them cut into the function; the remaining float64 error of the
 back-substitution and of the network's own evaluation (``~1e-13`` of the values involved) is left
-to an explicit margin the caller subtracts (:mod:`safeil_sumo.learn.certify` uses 1e-6 m).
+to an explicit margin the caller subtracts (:mod:`safeil_sumo.learn.branch_and_bound` uses
+1e-6 m).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Certificates: what :func:`safeil_sumo.learn.certify.certify` proved, tied to one checkpoint.
+"""Certificates: what :func:`safeil_sumo.learn.branch_and_bound.certify` proved, tied to one
+checkpoint.
 
 A certificate is a JSON file (``<checkpoint name>.certificate.json``) holding the envelope, the
 margins' settings, the bounds method, the budget, per margin the certified share of the
@@ -23,7 +24,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from safeil_sumo.atomic import atomic_path
-from safeil_sumo.learn.certify import CertifyResult
+from safeil_sumo.learn.branch_and_bound import CertifyResult
 from safeil_sumo.learn.certify_margins import DIM_NAMES, FLOAT_MARGIN_M
 from safeil_sumo.learn.checkpoint import CheckpointError, checkpoint_paths, load_checkpoint
 

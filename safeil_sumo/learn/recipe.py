@@ -68,7 +68,7 @@ class Stage:
 
 @dataclass(frozen=True)
 class CertifySpec:
-    """The certificate of the final checkpoint (:func:`safeil_sumo.learn.certify.certify`):
+    """The certificate of the final checkpoint (:func:`safeil_sumo.learn.branch_and_bound.certify`):
     ``time_gap_range_s`` [s] the style settings covered (None: the checkpoint's default),
     ``max_boxes`` the box budget (None: none), ``budget_s`` the wall-time budget [s], ``batch``
     boxes bounded together, ``seed`` of the counterexample search."""

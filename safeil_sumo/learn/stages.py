@@ -396,12 +396,12 @@ def certify_final(recipe: Recipe, final: Path, out: Path, progress: bool, echo: 
     recipe's budget; reused when one with the same weights and budget is there. Its summary:
     certified share per margin, complete or not, seconds."""
     from safeil_sumo import planner_registry
+    from safeil_sumo.learn.branch_and_bound import Budget, certify
     from safeil_sumo.learn.certificate import (
         certificate_path,
         load_certificate,
         write_certificate,
     )
-    from safeil_sumo.learn.certify import Budget, certify
     from safeil_sumo.learn.certify_margins import CertEnvelope
     from safeil_sumo.learn.inference import MLPPolicy
 

@@ -1,7 +1,7 @@
 """The ``falsify`` section of ``python -m safeil_sumo.results``: the falsification study of
-``experiments/falsify.py``, the cross-entropy method against random sampling at equal budget per
-planner. It writes ``falsify.csv``, the curves ``falsify.png`` and each planner's worst
-avoidable case in ``falsify/`` (a scenario file to rerun it), and its part of
+``experiments/falsification_search.py``, the cross-entropy method against random sampling at
+equal budget per planner. It writes ``falsify.csv``, the curves ``falsify.png`` and each
+planner's worst avoidable case in ``falsify/`` (a scenario file to rerun it), and its part of
 ``results/studies.md`` (:func:`falsify_readme`)."""
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ from safeil_sumo.studies.shared import COLORS, LABELS, md_table, save_csv
 
 
 def falsify(out: Path, work: Path) -> dict:
-    """The falsification study (``experiments/falsify.py``'s ``STUDY``): per planner, CEM and
-    random searches at equal budget (resumable in ``work/falsify``); ``falsify.csv``, the
+    """The falsification study (``experiments/falsification_search.py``'s ``STUDY``): per
+    planner, CEM and random searches at equal budget (resumable in ``work/falsify``); ``falsify.csv``, the
     curves ``falsify.png`` and each planner's worst avoidable case in ``falsify/``."""
-    from safeil_sumo.experiments import falsify as fz
+    from safeil_sumo.experiments import falsification_search as fz
 
     runs = [(run.policy, fz.run_or_load(run.policy, cfg,
                                         fz.study_folder(work / "falsify", run.policy, cfg),

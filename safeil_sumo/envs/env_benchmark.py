@@ -1,4 +1,4 @@
-"""``python -m safeil_sumo.envs.bench``: transitions/s and memory of the Gymnasium envs.
+"""``python -m safeil_sumo.envs.env_benchmark``: transitions/s and memory of the Gymnasium envs.
 
 On ``safeil_sumo/Curved500-v0`` (10 Hz decisions, 0.01 s physics, the analytic planner's plans
 as actions, resets included), each part in a fresh process: the single env; the native vector
@@ -82,7 +82,7 @@ def measure(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
 
 def run_part(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
     """One part in a fresh process (its own libsumo, its own peak RSS)."""
-    out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.bench", "--part", part,
+    out = subprocess.run([sys.executable, "-m", "safeil_sumo.envs.env_benchmark", "--part", part,
                           "--n", str(n), "--seconds", str(seconds), "--step-s", str(step_s),
                           "--json"],
                          capture_output=True, text=True, check=True)
