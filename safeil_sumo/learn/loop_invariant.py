@@ -556,7 +556,6 @@ def _window_maxima(rho: np.ndarray) -> np.ndarray:
     ``(p + 1, q + 1, r + 1)`` cells from ``(i, j, k)`` (cut at the grid's end)."""
     lengths = [min(WINDOW_MAX, n) for n in rho.shape]
     out = np.empty((*lengths, *rho.shape), rho.dtype)
-    cur = rho
     per_axis = [rho]
     for axis in range(3):
         stacks = []
@@ -573,7 +572,6 @@ def _window_maxima(rho: np.ndarray) -> np.ndarray:
             stacks.extend(level)
         per_axis = stacks
     out[...] = np.asarray(per_axis).reshape(out.shape)
-    del cur
     return out
 
 
