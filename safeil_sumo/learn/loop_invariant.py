@@ -53,7 +53,7 @@ Interval = tuple[np.ndarray, np.ndarray]
 
 @dataclass(frozen=True)
 class LoopAssumptions:
-    """What the certificate assumes of the world around the planner (SI units)."""
+    """What the bounds assume of the world around the planner (SI units)."""
 
     step_s: float = 0.01  # physics step of the loop [s]
     steps_per_decision: int = 10  # physics steps per decision period (10 Hz planning)
@@ -64,8 +64,8 @@ class LoopAssumptions:
     lane_width_m: tuple[float, float] = (3.3, 3.8)  # a straight lane [m]
     lateral_offset_m: tuple[float, float] = (-0.3, 0.3)  # ego front bumper from lane centre [m]
     heading_error: tuple[float, float] = (-0.01, 0.01)  # lane slope in the ego frame [-]
-    # |F_yf sin(delta) / m - v_y r| of the plant on a straight lane, bounded [m/s^2]; measured by
-    # tests/test_loop_invariant.py in SUMO runs
+    # |F_yf sin(delta) / m - v_y r| of the plant on a straight lane [m/s^2]; the containment test
+    # steps the plant under the tracker's own steering within this lateral band
     lateral_coupling_mps2: float = 0.05
     margin_m: float = 1.0  # safe: bumper gap >= this [m]
 
@@ -80,10 +80,6 @@ class LoopAssumptions:
         for name in ("gap_sensing_m", "speed_sensing_mps", "lateral_coupling_mps2"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"LoopAssumptions.{name} must be >= 0")
-
-    @property
-    def period_s(self) -> float:
-        return self.step_s * self.steps_per_decision
 
 
 @dataclass(frozen=True)
