@@ -215,3 +215,47 @@ def test_gap_floor_by_hand() -> None:
     rho, rounds = li.gap_floor(li.Successors(first, last, fails))
     assert rho[:, 0, 0].tolist() == [2, 1]
     assert rounds == 3
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("guard_on", [True, False])
+def test_sumo_runs_stay_inside_the_period_bound(safeil, guard_on: bool) -> None:
+    """The model against SUMO itself: every decision-to-decision transition of a real libsumo
+    run (straight lane, a leader braking at 5 m/s^2 from 29 to 8 m/s, exact sensing) lies in
+    the bound of its decision state, and the lane stays in the stated lateral band."""
+    from safeil_sumo import api
+    from safeil_sumo.sim.loop_types import LoopConfig
+    from safeil_sumo.sim.vehicle import resistance_force
+
+    sc = api.scenario("straight", 0, 0, leader_kind="braking", leader_speed_range_mps=(28, 30),
+                      brake_time_s=5.0, brake_decel_mps2=5.0, brake_to_mps=8.0,
+                      initial_gap_m=40.0, ego_speed_mps=30.0)
+    guard = grd.BrakeGuard() if guard_on else None
+    log = api.run_scenarios([sc], safeil, LoopConfig(max_time_s=25.0, brake_guard=guard)).log
+    a, params, dt = li.LoopAssumptions(), veh.VehicleParams(), 0.01
+    # a log row is the state after its step: a plan made at plan_t used the row before
+    decided = np.flatnonzero(np.diff(log["plan_t"].to_numpy()) != 0)
+    r = decided[(decided >= 1) & (decided + 10 < len(log))]
+    gap, v, vl = (log[c].to_numpy() for c in ("gap", "v", "leader_v"))
+
+    def force(i: np.ndarray) -> np.ndarray:  # the plant's force per mass from its speed step
+        return (v[i] - v[i - 1]) / dt + resistance_force(v[i - 1], params, ARRAYS) / params.mass_kg
+
+    eps = a.lateral_coupling_mps2 + 1e-9
+    f = force(r)
+    parts = li.LoopParts() if guard_on else li.LoopParts(guard=None)
+    time_gap = safeil.style["time_gap_s"]
+    image, g_min = li.box_image(safeil, (gap[r], gap[r]), (v[r], v[r]), (vl[r], vl[r]),
+                                (f - eps, f + eps), (time_gap, time_gap), a, parts)
+    nxt = r + 10
+    for k, x in enumerate((gap[nxt], v[nxt], vl[nxt])):
+        assert np.all((x >= image[k][0]) & (x <= image[k][1])), f"state {k} left its bound"
+    f_next = force(nxt)
+    assert np.all((f_next >= image[3][0] - eps) & (f_next <= image[3][1] + eps))
+    assert np.all(np.array([gap[i + 1:i + 11].min() for i in r]) >= g_min)
+    assert len(r) > 200 and np.median(image[0][1] - image[0][0]) < 0.2  # not vacuous
+    # the lateral band the bound assumes (offset, heading, lane width)
+    assert log["d"].abs().max() <= a.lateral_offset_m[1]
+    assert log["c1l"].abs().max() <= a.heading_error[1]
+    width = log["c0l"] - log["c0r"]
+    assert a.lane_width_m[0] <= width.min() and width.max() <= a.lane_width_m[1]

@@ -452,47 +452,61 @@ def _cell_boxes(edges: np.ndarray) -> Interval:
     return edges[:-1], edges[1:]
 
 
-def period_image(policy: MLPPolicy, grid: Grid, rows: slice, time_gap: tuple[float, float],
-                 a: LoopAssumptions, parts: LoopParts) -> tuple[list[Interval], np.ndarray]:
-    """Bounds of the state one decision period after each cell of the gap rows ``rows``:
-    ``[g, v, vl, f]`` intervals, each ``(n_rows, n_v, n_l, n_f)``, and the smallest gap bound
-    met at any physics step of the period ``(n_rows, n_v, n_l, n_f)`` [m]."""
+def box_image(policy: MLPPolicy, g: Interval, v: Interval, vl: Interval, f: Interval,
+              time_gap: tuple[float, float], a: LoopAssumptions, parts: LoopParts
+              ) -> tuple[list[Interval], np.ndarray]:
+    """Bounds of the state one decision period after each of N boxes of true decision states:
+    ``g, v, vl`` intervals of arrays ``(N,)``, ``f`` of arrays ``(N,)`` or ``(N, n_f)`` (several
+    force boxes sharing one plan box). Returns ``[g, v, vl, f]`` intervals shaped as ``f`` and
+    the smallest gap bound met at any physics step of the period [m]."""
     if parts.controller.kd != 0.0:
-        raise ValueError("the closed-loop certificate covers a PI tracker (kd = 0)")
-    eg, ev, el, ef = grid.axes()
-    g_c, v_c, l_c = (_cell_boxes(e) for e in (eg[rows.start:rows.stop + 1], ev, el))
-    G, V, L = np.meshgrid(np.arange(len(g_c[0])), np.arange(len(v_c[0])),
-                          np.arange(len(l_c[0])), indexing="ij")
-    cells = [(c[0][i].ravel(), c[1][i].ravel()) for c, i in ((g_c, G), (v_c, V), (l_c, L))]
-    lo, hi = network_input_box(cells[0], cells[1], cells[2], time_gap, a)
+        raise ValueError("the closed-loop bounds cover a PI tracker (kd = 0)")
+    lo, hi = network_input_box(g, v, vl, time_gap, a)
     pb = plan_bounds(policy, lo, hi)
-    shape3 = G.shape
+    shape = (len(g[0]), *np.shape(f[0])[1:])
+    extra = (1,) * (len(shape) - 1)  # per-box values against the force axis, if any
+
+    def per_box(x: np.ndarray) -> np.ndarray:
+        return np.asarray(x).reshape(len(x), *extra)
+
     demand: Interval | None = None
     if parts.guard is not None:
         d_lo, d_hi = guard_bounds((lo[:, 8], hi[:, 8]), (lo[:, 6], hi[:, 6]), (lo[:, 7], hi[:, 7]),
                                   parts.guard)
-        demand = (d_lo.reshape(shape3)[..., None], d_hi.reshape(shape3)[..., None])
-    keep, horizon = policy.lane_keep_m, policy.horizon
-    preview = parts.controller.accel_preview_s
-    state = [(c[0].reshape(shape3)[..., None], c[1].reshape(shape3)[..., None]) for c in cells]
-    f_c = _cell_boxes(ef)
-    state.append((f_c[0][None, None, None, :], f_c[1][None, None, None, :]))
-    full = shape3 + (len(f_c[0]),)
-    state = [(np.broadcast_to(x[0], full).copy(), np.broadcast_to(x[1], full).copy())
-             for x in state]
-    state.append((np.zeros(full), np.zeros(full)))
+        demand = (per_box(d_lo), per_box(d_hi))
+    state = [(np.broadcast_to(per_box(x[0]) if x is not f else x[0], shape).copy(),
+              np.broadcast_to(per_box(x[1]) if x is not f else x[1], shape).copy())
+             for x in (g, v, vl, f)]
+    state.append((np.zeros(shape), np.zeros(shape)))
     g_min = state[0][0].copy()
+    keep, horizon = policy.lane_keep_m, policy.horizon
     for j in range(a.steps_per_decision):
         t = j * a.step_s
         speed = reference_bounds(pb, t + parts.controller.speed_preview_s, horizon, keep, a)
-        acc = reference_bounds(pb, t + preview, horizon, keep, a)
-        ref = Reference(*(x.reshape(shape3)[..., None] for x in (
-            speed.err_lo, speed.err_hi, speed.forwards, speed.backwards, acc.acc_lo,
-            acc.acc_hi)))
+        acc = reference_bounds(pb, t + parts.controller.accel_preview_s, horizon, keep, a)
+        ref = Reference(*(per_box(x) for x in (speed.err_lo, speed.err_hi, speed.forwards,
+                                               speed.backwards, acc.acc_lo, acc.acc_hi)))
         cmd = _command(state[1], state[4], ref, demand, parts)
         state = _physics_step(state, cmd, a, parts)
         g_min = np.minimum(g_min, state[0][0])
     return state[:4], g_min
+
+
+def period_image(policy: MLPPolicy, grid: Grid, rows: slice, time_gap: tuple[float, float],
+                 a: LoopAssumptions, parts: LoopParts) -> tuple[list[Interval], np.ndarray]:
+    """:func:`box_image` of every cell of the gap rows ``rows``: intervals and the smallest
+    gap, each ``(n_rows, n_v, n_l, n_f)``."""
+    eg, ev, el, ef = grid.axes()
+    g_c, v_c, l_c = (_cell_boxes(e) for e in (eg[rows.start:rows.stop + 1], ev, el))
+    index = np.meshgrid(np.arange(len(g_c[0])), np.arange(len(v_c[0])), np.arange(len(l_c[0])),
+                        indexing="ij")
+    g, v, vl = ((c[0][i].ravel(), c[1][i].ravel()) for c, i in zip((g_c, v_c, l_c), index,
+                                                                    strict=True))
+    f_c = _cell_boxes(ef)
+    image, g_min = box_image(policy, g, v, vl, (f_c[0][None, :], f_c[1][None, :]), time_gap, a,
+                             parts)
+    shape = (*index[0].shape, len(f_c[0]))
+    return [(lo.reshape(shape), hi.reshape(shape)) for lo, hi in image], g_min.reshape(shape)
 
 
 # ------------------------------------------------------------------ the invariant set
