@@ -137,7 +137,8 @@ def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | P
            workers: int = 1, duration_s: float | None = None, stride_s: float = 20.0,
            config: ReplayConfig | None = None, progress: bool = False,
            name: str | None = None, manifest: dict | None = None, batch: int = REPLAY_BATCH,
-           adapt_first_s: float = 0.0, scheduler: str | None = None
+           adapt_first_s: float = 0.0, scheduler: str | None = None,
+           retry_failed: bool = False, task_timeout_s: float | None = None
            ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Replay every window of ``maneuvers`` (``"all"`` or ids) of ``source`` (``openacc``,
     ``ngsim``, a drive file, or an already processed maneuvers frame) with each ``policy`` (a
@@ -150,7 +151,8 @@ def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | P
     maneuver's first seconds, which are then not scored (``window_replays.adapt_planners``);
     not with ``config.time_gap_s``, the planners' time-gap setting for every window.
     ``scheduler`` (``"tcp://host:port"``): the windows run on that Dask cluster instead of
-    ``workers`` local processes."""
+    ``workers`` local processes. ``retry_failed``: windows whose record says failed run again;
+    ``task_timeout_s`` [s]: a local worker's task is killed (recorded failed) after that long."""
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
     from safeil_sumo.experiments import window_replays as ra
@@ -173,7 +175,8 @@ def replay(source: str | pd.DataFrame, policy: str | Sequence[str], out: str | P
                if adapt_first_s else f"a {duration_s or ra.rp.PAPER_DURATION_S:g} s window"))
     names = policy_names(policy)
     records = ra.replay_all(rows, wins, names, Path(out), config, workers,
-                            progress=progress, batch=batch, scheduler=scheduler)
+                            progress=progress, batch=batch, scheduler=scheduler,
+                            retry_failed=retry_failed, task_timeout_s=task_timeout_s)
     return ra.write(Path(out), records, manifest or {"source": name, "policies": names,
                                                      "windows_mode": windows},
                     seed=config.seed, title=name)

@@ -271,6 +271,22 @@ def check_scheduler(parser: argparse.ArgumentParser, args: argparse.Namespace) -
         parser.error(f"--scheduler needs an address like tcp://host:8786, got {args.scheduler!r}")
 
 
+def add_task_options(parser: CommandParser) -> None:
+    """``--task-timeout-s`` and ``--retry-failed``, shared by ``sweep`` and ``replay`` (the task
+    engine's); check them with :func:`check_task_options`."""
+    parser.add_argument("--task-timeout-s", type=finite_float, default=None, metavar="S",
+                        help="local workers: kill a task after this many seconds [s]")
+    parser.rename(task_timeout="--task-timeout-s")
+    parser.add_argument("--retry-failed", action="store_true",
+                        help="rerun tasks that failed before")
+
+
+def check_task_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """A usage error for a ``--task-timeout-s`` that is not > 0."""
+    if args.task_timeout_s is not None and args.task_timeout_s <= 0:
+        parser.error("--task-timeout-s must be > 0")
+
+
 def add_lane_option(parser: CommandParser) -> None:
     """``--lane``, shared by ``run`` and ``sweep``; check it with :func:`lane_for_net`."""
     parser.add_argument(

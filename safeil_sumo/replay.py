@@ -32,7 +32,9 @@ from safeil_sumo.cli_args import (
     add_plan_rate_option,
     add_policy_option,
     add_scheduler_option,
+    add_task_options,
     check_scheduler,
+    check_task_options,
     finite_float,
     interruptible,
     nonnegative_int,
@@ -86,6 +88,7 @@ def build_parser() -> CommandParser:
     p.add_argument("--workers", type=positive_int, default=1,
                    help="with --maneuver all/list: worker processes (default 1)")
     add_scheduler_option(p)
+    add_task_options(p)
     p.add_argument("--batch", type=positive_int, default=ra.DEFAULT_BATCH,
                    help="with --maneuver all/list: windows run side by side in one SUMO "
                         f"simulation per worker task (default {ra.DEFAULT_BATCH}; 1: one "
@@ -165,6 +168,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--time-gap-s and --adapt-first-s exclude each other (adapting sets each "
                 "driver's time gap)")
     check_scheduler(p, args)
+    check_task_options(p, args)
     if args.scheduler is not None and not args.many:
         p.error("--scheduler needs --maneuver all or a list (one maneuver runs here)")
     if args.held_out_of is not None and args.maneuver != "all":
@@ -215,7 +219,8 @@ def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
             maneuvers, args.policy, out, only or "all", args.windows, args.workers,
             args.duration_s, args.stride_s, config, progress=True,
             name=str(args.source), manifest=many_manifest(args, only),
-            batch=args.batch, adapt_first_s=args.adapt_first_s, scheduler=args.scheduler)
+            batch=args.batch, adapt_first_s=args.adapt_first_s, scheduler=args.scheduler,
+            retry_failed=args.retry_failed, task_timeout_s=args.task_timeout_s)
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished windows are saved in {out / 'tasks'}; rerun the same "
               "command to resume", file=sys.stderr)

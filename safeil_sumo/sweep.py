@@ -35,8 +35,9 @@ from safeil_sumo.cli_args import (
     add_policy_option,
     add_scenario_options,
     add_scheduler_option,
+    add_task_options,
     check_scheduler,
-    finite_float,
+    check_task_options,
     interruptible,
     positive_int,
     scenario_fields,
@@ -132,12 +133,9 @@ def build_parser() -> CommandParser:
                         f"(same net, planner and loop settings; traffic drives run alone); "
                         f"1: one simulation per scenario (default {DEFAULT_BATCH})")
     add_scheduler_option(p)
-    p.add_argument("--task-timeout-s", type=finite_float, default=None, metavar="S",
-                   help="local workers: kill a task after this many seconds [s]")
-    p.rename(task_timeout="--task-timeout-s")
+    add_task_options(p)
     p.add_argument("--out", type=Path, default=Path("runs/sweep"),
                    help="results folder (default runs/sweep); rerun to resume")
-    p.add_argument("--retry-failed", action="store_true", help="rerun tasks that failed before")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--config", metavar="STUDY.toml",
                    help="options from a TOML sweep file (keys = these long options, e.g. "
@@ -154,8 +152,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.scenarios < 1:  # the specs' own rules are reported by main (build_specs)
         p.error("--scenarios must be >= 1")
     check_scheduler(p, args)
-    if args.task_timeout_s is not None and args.task_timeout_s <= 0:
-        p.error("--task-timeout-s must be > 0")
+    check_task_options(p, args)
     if args.quick and args.suite is None:
         p.error("--quick needs --suite")
     if (args.route or args.from_km is not None or args.to_km is not None

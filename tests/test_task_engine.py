@@ -103,6 +103,33 @@ def test_replays_and_sweeps_run_on_the_one_engine(tmp_path, monkeypatch, units_r
     assert sweep_executor.execute is ra.execute is task_engine.execute
 
 
+def test_a_replay_reruns_its_failed_windows_only_when_asked(tmp_path, monkeypatch, units_run):
+    monkeypatch.setattr(ra.planner_registry, "fingerprint", lambda name: "w")
+    monkeypatch.setattr(ra, "run_windows", _fake_windows(tmp_path / "windows.log"))
+    maneuvers = _maneuvers()
+    wins = ra.windows(maneuvers, "sliding", duration_s=10.0, stride_s=10.0)
+    ra.replay_all(maneuvers, wins, ["analytic"], tmp_path / "r", batch=4, progress=False)
+    job = units_run[0][0]
+    failed = tmp_path / "r" / "tasks" / f"{job.task_id(wins[2])}.json"
+    failed.write_text('{"status": "failed", "error": "RuntimeError: boom"}')
+    ra.replay_all(maneuvers, wins, ["analytic"], tmp_path / "r", batch=4, progress=False)
+    assert len(_runs(tmp_path / "windows.log")) == 6  # a failed record counts as done
+    records = ra.replay_all(maneuvers, wins, ["analytic"], tmp_path / "r", batch=4,
+                            progress=False, retry_failed=True)
+    assert _runs(tmp_path / "windows.log")[6:] == [f"{wins[2].maneuver_id}@{wins[2].start_s:g}"]
+    assert [r["status"] for r in records] == ["ok"] * 6
+
+
+def test_replay_and_sweep_share_the_task_options() -> None:
+    from safeil_sumo import replay, sweep
+
+    for parser in (replay.build_parser(), sweep.build_parser()):
+        flags = {a for action in parser._actions for a in action.option_strings}
+        assert {"--task-timeout-s", "--retry-failed", "--scheduler"} <= flags
+    with pytest.raises(SystemExit):
+        replay.parse_args(["--source", "openacc", "--maneuver", "all", "--task-timeout-s", "0"])
+
+
 def _fake_task(spec: ScenarioSpec) -> dict:
     return {"task_id": task_id(spec), "status": "ok", "index": spec.index}
 

@@ -491,18 +491,22 @@ def job_tag(policy_names: Sequence[str], config: rp.ReplayConfig, adapted: bool)
 def replay_all(maneuvers: pd.DataFrame, wins: list[Window], policy_names: list[str],
                out_dir: Path, config: rp.ReplayConfig | None = None, workers: int = 1,
                progress: bool = True, batch: int = DEFAULT_BATCH,
-               scheduler: str | None = None) -> list[dict]:
+               scheduler: str | None = None, retry_failed: bool = False,
+               task_timeout_s: float | None = None) -> list[dict]:
     """Run every window not done yet in ``out_dir/tasks``; return all records (window order).
     ``batch`` > 1: up to ``batch`` windows per worker task run side by side in one SUMO
     simulation (:func:`run_windows`; the same records); 1: one simulation per run. The windows
     run on the task engine (:func:`.task_engine.execute`, as a :class:`WindowJob`): in this
     process (``workers=1``), in ``workers`` local processes or on the Dask cluster at
-    ``scheduler``; each window's record is written as its runs end (a Ctrl-C keeps them)."""
+    ``scheduler``; each window's record is written as its runs end (a Ctrl-C keeps them).
+    ``retry_failed``: windows recorded failed run again; ``task_timeout_s`` [s]: a local worker
+    running longer is killed and its windows without a record are recorded failed."""
     config = config or rp.ReplayConfig()
     tag = job_tag(policy_names, config, any(w.adapt_s for w in wins))
     job = WindowJob(maneuvers, tuple(policy_names), config, tag, batch)
     tasks = Path(out_dir) / "tasks"
-    execute(wins, job, tasks, workers, scheduler, progress, "replay", "window")
+    execute(wins, job, tasks, workers, scheduler, progress, "replay", "window", retry_failed,
+            task_timeout_s)
     records = (read_record(record_path(tasks, job, w)) for w in wins)
     return [r for r in records if r is not None]
 
