@@ -4,7 +4,8 @@ The scenario layer of every closed-loop engine (one run, a sweep, the suite, the
 spec names the net, the policy, the leader and the sensors; :func:`resolve_road` loads its road
 (cached per process), :func:`build_scenario` draws the rest from the scenario seed
 (``scenario_seed(master_seed, index)``), so a task is identical alone or in a sweep of any size.
-Running specs (processes, Dask, resume) is :mod:`safeil_sumo.experiments.sweep_executor`'s.
+Running specs (processes, Dask, resume) is :mod:`safeil_sumo.experiments.sweep_executor`'s, on the task
+engine (:mod:`safeil_sumo.experiments.task_engine`).
 """
 
 from __future__ import annotations
