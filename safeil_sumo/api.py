@@ -7,7 +7,7 @@
     result.log              # the per-step log of every scenario (column ``scenario``)
 
 ``policy`` is a shipped name (``safeil``, ``safeil_paper``, ``bc``, ``analytic``, ``idm``), a
-checkpoint or IDM model path, or ANY object with the :class:`~safeil_sumo.policy.Policy` protocol
+checkpoint or IDM model path, or ANY object with the :class:`~safeil_sumo.core.policy.Policy` protocol
 (``name``, ``horizon`` [s], ``plan(features (..., 9)) -> (..., 3, 2)``), so your own planner plugs
 in. Scenarios are those of ``python -m safeil_sumo.run`` / ``sweep`` (the same seeds give the same
 runs); :func:`sweep` and :func:`replay` wrap the sweep engine and the replay of many windows.
@@ -23,14 +23,15 @@ from typing import Any
 import pandas as pd
 from tqdm import tqdm
 
-from safeil_sumo import planner_registry
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.experiments.maneuver_replay import ReplayConfig
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.experiments.window_replays import DEFAULT_BATCH as REPLAY_BATCH
-from safeil_sumo.policy import Policy
-from safeil_sumo.scenarios.road import Road
+from safeil_sumo.planners import registry as planner_registry
+from safeil_sumo.roads.road import Road
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
-from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.runner import run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
 
 
@@ -57,9 +58,9 @@ def road(net: str = "curved500", route: Sequence[str] = (), from_km: float | Non
          to_km: float | None = None, lane: str | int | None = None) -> Road:
     """The road of a catalogue name (``curved500``, ``straight``, ``curved<R>``) or a
     ``.net.xml`` path, read once per process; on a multi-edge net, along ``route`` (SUMO edge
-    ids in driving order, see :func:`safeil_sumo.scenarios.route.load_route`); ``n74``: the
+    ids in driving order, see :func:`safeil_sumo.roads.route.load_route`); ``n74``: the
     stretch of direction A between the kilometre posts ``from_km`` and ``to_km`` (default: all
-    of it, see :func:`safeil_sumo.scenarios.n74.stretch_road`). ``lane``: the ego's lane,
+    of it, see :func:`safeil_sumo.roads.n74.stretch_road`). ``lane``: the ego's lane,
     ``right``/``left`` on n74, a SUMO lane index of the first edge on a ``.net.xml`` (default:
     the middle lane)."""
     from safeil_sumo.scenarios.spec import resolve_road

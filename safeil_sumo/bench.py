@@ -36,21 +36,21 @@ import tempfile
 import time
 from pathlib import Path
 
-from safeil_sumo import planner_registry
-from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import CommandParser, add_policy_option, interruptible, one_policy
-from safeil_sumo.features import planner_features
-from safeil_sumo.scenarios.catalogue import resolve_net
-from safeil_sumo.scenarios.road import load_road
+from safeil_sumo.core.atomic import atomic_path
+from safeil_sumo.core.features import planner_features
+from safeil_sumo.planners import registry as planner_registry
+from safeil_sumo.roads.catalogue import resolve_net
+from safeil_sumo.roads.road import load_road
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim import sumo_api
-from safeil_sumo.sim.runner import (
+from safeil_sumo.sim.loop_types import LoopConfig
+from safeil_sumo.sim.runner import run_scenario
+from safeil_sumo.sim.sumo_setup import (
     EGO_ID,
     LEADER_ID,
     ROUTE_ID,
-    LoopConfig,
     _configure,
-    run_scenario,
     sumo_args,
     sumo_lane_position,
 )
@@ -101,8 +101,8 @@ def sumo_share_us_per_step(net: str, sim_s: float) -> tuple[float, float]:
     """The closed loop's libsumo calls alone, replayed along a recorded run: ``(us per step,
     of which placing the ego)``, placed as the loop does (``moveTo`` on its lane while inside
     it, else ``moveToXY``). The rest of a closed-loop step is our Python."""
-    from safeil_sumo.analytic import AnalyticPlanner
-    from safeil_sumo.geometry import yaw_to_sumo_angle
+    from safeil_sumo.core.geometry import yaw_to_sumo_angle
+    from safeil_sumo.planners.analytic import AnalyticPlanner
 
     road = load_road(net)
     sc = safety_scenario(road, 0)
@@ -235,9 +235,9 @@ def peak_kb():
 
 _PEAK_SCRIPT = _PEAK_KB + """
 import sys
-from safeil_sumo import planner_registry
-from safeil_sumo.scenarios.catalogue import resolve_net
-from safeil_sumo.scenarios.road import load_road
+from safeil_sumo.planners import registry as planner_registry
+from safeil_sumo.roads.catalogue import resolve_net
+from safeil_sumo.roads.road import load_road
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.runner import LoopConfig, run_scenario
 road = load_road(resolve_net("curved500"))
@@ -338,7 +338,8 @@ def batched_rows(net: str, policy_name: str, sim_s: float, quick: bool, rows: di
     ``run_scenario`` (today's defaults) one scenario after another on the same scenarios, SUMO
     start included in both; the batch's time per ego-step per stage (StageClock)."""
     from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH
-    from safeil_sumo.sim.batch import StageClock, run_batch
+    from safeil_sumo.sim.batch import run_batch
+    from safeil_sumo.sim.stepper import StageClock
 
     road = load_road(net)
     policy = planner_registry.load(policy_name)

@@ -22,7 +22,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import (
     CommandParser,
     add_policy_option,
@@ -41,6 +40,7 @@ from safeil_sumo.learn.branch_and_bound import (
 from safeil_sumo.learn.certificate import certificate_path, load_certificate, write_certificate
 from safeil_sumo.learn.certify_margins import MARGINS
 from safeil_sumo.learn.inference import MLPPolicy
+from safeil_sumo.planners import registry as pol
 
 
 def build_parser() -> CommandParser:

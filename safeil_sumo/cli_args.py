@@ -19,9 +19,6 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-# checked by the scenario layer, re-exported for the CLIs
-from safeil_sumo.scenarios.spec import N74_LANES, lane_for_net  # noqa: F401
-
 if TYPE_CHECKING:
     from safeil_sumo.data.by_path import DataSpec
 

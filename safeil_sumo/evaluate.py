@@ -6,7 +6,7 @@
 
 MODEL is a planner of the registry (``safeil``, ``safeil_paper``, ``bc``, ``analytic``,
 ``idm``, ...) or a checkpoint / IDM model path, as ``--policy`` takes it. Runs six sections
-(:mod:`safeil_sumo.report_sections`, :mod:`safeil_sumo.report_replay`): the paper's safety test
+(:mod:`safeil_sumo.report.sections`, :mod:`safeil_sumo.report.held_out_replays`): the paper's safety test
 and an N-scenario sweep, the leader-response suite, the gap probe, whole-maneuver replays of
 held-out maneuvers, the certificate, and a budgeted falsification. Writes into ``--out``
 (default ``runs/evaluate_<model>[_quick]``): ``report.md`` (a verdict table, then each section
@@ -29,10 +29,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from safeil_sumo import planner_registry as pol
-from safeil_sumo import report_card as rc
-from safeil_sumo import report_replay
-from safeil_sumo import report_sections as rs
 from safeil_sumo.cli_args import (
     CommandParser,
     add_data_options,
@@ -43,6 +39,10 @@ from safeil_sumo.cli_args import (
     positive_int,
 )
 from safeil_sumo.experiments import outputs
+from safeil_sumo.planners import registry as pol
+from safeil_sumo.report import card as rc
+from safeil_sumo.report import held_out_replays as report_replay
+from safeil_sumo.report import sections as rs
 
 # (key, title, section function), in the report's order
 SECTIONS: tuple[tuple[str, str, rs.SectionFn], ...] = (
@@ -120,7 +120,7 @@ def placeholder(key: str, title: str, status: str, error: str = "") -> rc.Sectio
 
 def write_report(out: Path, header: dict, sections: list[rc.Section]) -> None:
     """report.md and report.json, from the same sections (atomically, each)."""
-    from safeil_sumo.atomic import atomic_path
+    from safeil_sumo.core.atomic import atomic_path
 
     with atomic_path(out / "report.md") as tmp:
         tmp.write_text(rc.render_markdown(header, sections))

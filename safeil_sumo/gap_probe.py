@@ -23,7 +23,6 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
     CommandParser,
     add_policy_option,
@@ -32,6 +31,7 @@ from safeil_sumo.cli_args import (
     nonnegative_int,
     positive_int,
 )
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.experiments import outputs
@@ -94,8 +94,8 @@ def format_table(table: pd.DataFrame) -> str:
 @interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from safeil_sumo import planner_registry
     from safeil_sumo.experiments.sweep_executor import run_sweep
+    from safeil_sumo.planners import registry as planner_registry
     from safeil_sumo.scenarios.spec import resolve_road
 
     try:

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import CommandParser, add_policy_option, interruptible
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.leader_probe import probe
+from safeil_sumo.planners import registry as pol
 
 
 def build_parser() -> CommandParser:

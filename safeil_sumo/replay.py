@@ -24,7 +24,6 @@ from pathlib import Path
 import pandas as pd
 
 from safeil_sumo import api
-from safeil_sumo import planner_registry as pol
 from safeil_sumo.cli_args import (
     CommandParser,
     add_brake_guard_option,
@@ -42,22 +41,16 @@ from safeil_sumo.cli_args import (
 )
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import SchemaError
-
-# re-exported: these were defined here before
-from safeil_sumo.data.sources import (  # noqa: F401
+from safeil_sumo.data.sources import (
     DEFAULT_DATA_DIR,
-    NGSIM_FILE,
-    OPENACC_GLOB,
-    ZALAZONE_GLOB,
-    ZALAZONE_MAX_CURVATURE,
-    driver_of,
     load_source,
 )
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
-from safeil_sumo.scenarios.road import NetworkError
+from safeil_sumo.planners import registry as pol
+from safeil_sumo.roads.road import NetworkError
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.loop_types import LATERAL_MODES
@@ -291,12 +284,12 @@ def main(argv: list[str] | None = None) -> int:
     for _, row in failed.iterrows():
         print(f"policy {row['policy']} failed: {row['error']}", file=sys.stderr)
     if args.animate:  # from the written results folder, as the animate CLI does
-        from safeil_sumo import animate
+        from safeil_sumo.experiments import animation
 
         for name in result.rollouts:
             try:
-                print(f"animation: {animate.animate(out, policy=name)}")
-            except animate.AnimateError as exc:
+                print(f"animation: {animation.animate(out, policy=name)}")
+            except animation.AnimateError as exc:
                 print(f"error: {exc}", file=sys.stderr)
                 return 1
     print(f"results: {out}")

@@ -5,7 +5,7 @@ policy, prints a summary table and writes a results folder:
 ``steps.parquet`` (per-step log), ``summary.csv`` / ``summary.json`` (per scenario),
 ``manifest.json`` (config, seeds, git commit, versions), PNG plots (on n74 also
 ``flag_map.png``: the stretch with the flag locations), and with ``--animate``
-``animation_<scenario>.mp4`` (or ``.gif``, see :mod:`safeil_sumo.animate`).
+``animation_<scenario>.mp4`` (or ``.gif``, see :mod:`safeil_sumo.experiments.animation`).
 """
 
 from __future__ import annotations
@@ -19,22 +19,23 @@ from pathlib import Path
 import pandas as pd
 from tqdm import tqdm
 
-from safeil_sumo import animate, api, planner_registry
+from safeil_sumo import api
 from safeil_sumo.cli_args import (
     CommandParser,
     add_policy_option,
     add_scenario_options,
     check_scenario_options,
     interruptible,
-    lane_for_net,
     one_policy,
     scenario_fields,
 )
-from safeil_sumo.experiments import outputs, plots
-from safeil_sumo.scenarios.road import NetworkError, Road
+from safeil_sumo.experiments import animation, outputs, plots
+from safeil_sumo.planners import registry as planner_registry
+from safeil_sumo.roads.road import NetworkError, Road
+from safeil_sumo.scenarios.spec import lane_for_net
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
-from safeil_sumo.sim.runner import LoopConfig, Scenario
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
 from safeil_sumo.sim.sumo_api import SumoError, has_display
 from safeil_sumo.sim.vehicle import VehicleParams
 
@@ -201,8 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     # just written, as the animate CLI does
     for name in tqdm(animated, desc="animating", unit="scenario", disable=None):
         try:
-            print(f"animation: {animate.animate(out, scenario=name)}")
-        except animate.AnimateError as exc:
+            print(f"animation: {animation.animate(out, scenario=name)}")
+        except animation.AnimateError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
     print(f"results: {out}")

@@ -29,7 +29,6 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from safeil_sumo.atomic import atomic_path
 from safeil_sumo.cli_args import (
     CommandParser,
     add_policy_option,
@@ -42,6 +41,7 @@ from safeil_sumo.cli_args import (
     positive_int,
     scenario_fields,
 )
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.scenarios.spec import ScenarioSpec
@@ -194,7 +194,7 @@ def check_inputs(nets: list[str], policies: list[str], profiles: Sequence[str] =
 
     for profile in dict.fromkeys(profiles):
         recorded_leaders.library(profile)
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
     from safeil_sumo.scenarios.spec import resolve_road
 
     for net in dict.fromkeys(nets):

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from safeil_sumo.analytic import AnalyticPlanner
+from safeil_sumo.planners.analytic import AnalyticPlanner
 
 
 class DriftLeft:

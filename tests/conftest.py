@@ -21,8 +21,8 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "seeded"))
 
 from fixtures_sumo import FakeSumoFactory
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios.road import Lane, Road
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.roads.road import Lane, Road
 from safeil_sumo.sim import sumo_api
 
 # ------------------------------------------------------------------------- the sumo marker
@@ -79,8 +79,8 @@ def straight_road() -> Road:
 
 @pytest.fixture(scope="session")
 def curved500():
-    from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.roads.catalogue import resolve_net
+    from safeil_sumo.roads.road import load_road
 
     return load_road(resolve_net("curved500"))
 

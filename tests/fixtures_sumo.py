@@ -3,7 +3,7 @@ loop's logic. The ``fake_sumo`` fixture (tests/conftest.py) gives a :class:`Fake
 
 from __future__ import annotations
 
-from safeil_sumo.sim.runner import LEADER_ID
+from safeil_sumo.sim.sumo_setup import LEADER_ID
 
 
 # FakeSumo's route, vehicle and simulation domains: each changes the state of its FakeSumo

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from safeil_sumo import bspline
+from safeil_sumo.core import bspline
+from safeil_sumo.core.features import planner_features
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.features import planner_features
 from safeil_sumo.learn.checkpoint import save_checkpoint
 from safeil_sumo.learn.model import PlannerMLP, split_towers, with_style_input
 from safeil_sumo.learn.trainer import TrainConfig

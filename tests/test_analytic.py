@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from safeil_sumo import bspline
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.features import planner_features
-from safeil_sumo.policy import Policy
+from safeil_sumo.core import bspline
+from safeil_sumo.core.features import planner_features
+from safeil_sumo.core.policy import Policy
+from safeil_sumo.planners.analytic import AnalyticPlanner
 
 
 def test_is_a_policy_and_free_road_cruise():

@@ -1,4 +1,4 @@
-"""Animations (safeil_sumo.animate): frames of a fixture log, the plan in world coordinates, the
+"""Animations (safeil_sumo.experiments.animation, safeil-animate): frames of a fixture log, the plan in world coordinates, the
 ego-following view, writers, and the CLIs' one-line errors."""
 
 from __future__ import annotations
@@ -11,10 +11,11 @@ import pandas as pd
 import pytest
 from PIL import Image
 
-from safeil_sumo import animate as an
-from safeil_sumo.scenarios.catalogue import resolve_net
-from safeil_sumo.scenarios.road import load_road
-from safeil_sumo.sim.runner import _Log
+from safeil_sumo import animate as animate_cli
+from safeil_sumo.experiments import animation as an
+from safeil_sumo.roads.catalogue import resolve_net
+from safeil_sumo.roads.road import load_road
+from safeil_sumo.sim.rollout_log import _Log
 
 DURATION_S = 3.0
 GAP_M = 40.0
@@ -138,7 +139,7 @@ def test_gif_has_one_frame_per_tenth_of_a_second(run_dir, tmp_path, monkeypatch)
 
 def test_cli_speed_fps_and_out(run_dir, tmp_path, capsys):
     out = tmp_path / "fast.gif"
-    assert an.main([str(run_dir), "--fps", "5", "--speedup", "2", "--out", str(out)]) == 0
+    assert animate_cli.main([str(run_dir), "--fps", "5", "--speedup", "2", "--out", str(out)]) == 0
     assert f"animation: {out}" in capsys.readouterr().out
     with Image.open(out) as im:  # a frame every 0.4 s of the 3 s of s0000: 0.0 .. 2.8 s
         assert im.n_frames == 8 and im.info["duration"] == 200
@@ -161,19 +162,19 @@ def test_mp4_frames(run_dir, tmp_path):
 def test_cli_bad_input_one_line(run_dir, tmp_path, capsys, monkeypatch, args, message):
     monkeypatch.setattr(an, "find_ffmpeg", lambda: None)
     args = [str(tmp_path / a) if a.startswith("x.") else a for a in args]
-    assert an.main([str(run_dir), *args]) == 2
+    assert animate_cli.main([str(run_dir), *args]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and message in err
     assert not list(tmp_path.iterdir())
 
 
 def test_cli_missing_folder_and_bad_fps(tmp_path, capsys):
-    assert an.main([str(tmp_path / "nope")]) == 2
+    assert animate_cli.main([str(tmp_path / "nope")]) == 2
     assert capsys.readouterr().err == f"error: results folder not found: {tmp_path / 'nope'}\n"
-    assert an.main([str(tmp_path)]) == 2
+    assert animate_cli.main([str(tmp_path)]) == 2
     assert "no steps.parquet" in capsys.readouterr().err
     with pytest.raises(SystemExit) as exc:
-        an.main([str(tmp_path), "--fps", "0"])
+        animate_cli.main([str(tmp_path), "--fps", "0"])
     assert exc.value.code == 2
 
 
@@ -198,7 +199,7 @@ def test_run_animate_names_and_errors(tmp_path, capsys, monkeypatch):
         calls.append(scenario)
         return run_dir / f"animation_{scenario}.gif"
 
-    monkeypatch.setattr(run.animate, "animate", fake)
+    monkeypatch.setattr(run.animation, "animate", fake)
     assert run.main(["--net", "straight", "--policy", "analytic", "--scenarios", "1",
                      "--no-plots", "--out", str(out), "--animate"]) == 0
     assert calls == ["s0000"]
@@ -225,5 +226,5 @@ def test_replay_animate_each_policy(tmp_path, capsys, monkeypatch):
     # the recorded pseudo-planner drives the human's own path
     assert np.hypot(ep.log["front_x"].iloc[-1] - ep.human["x"].iloc[-1],
                     ep.log["front_y"].iloc[-1] - ep.human["y"].iloc[-1]) < 0.5
-    assert an.main([str(out), "--scenario", "s0000"]) == 2
+    assert animate_cli.main([str(out), "--scenario", "s0000"]) == 2
     assert "replay folder: choose with --policy" in capsys.readouterr().err

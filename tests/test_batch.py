@@ -15,9 +15,9 @@ import pandas as pd
 import pytest
 from bad_policies import DriftLeft, blind_cruise
 
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.scenarios.catalogue import resolve_net
-from safeil_sumo.scenarios.road import load_road
+from safeil_sumo.planners.analytic import AnalyticPlanner
+from safeil_sumo.roads.catalogue import resolve_net
+from safeil_sumo.roads.road import load_road
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.batch import run_batch
 from safeil_sumo.sim.batch_net import (
@@ -28,7 +28,8 @@ from safeil_sumo.sim.batch_net import (
     mixed_copies_xml,
 )
 from safeil_sumo.sim.leaders import constant, piecewise
-from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.runner import run_scenario
 
 pytest.importorskip("libsumo")
 
@@ -125,7 +126,7 @@ def test_summary_columns_give_the_same_summaries(road):
     """A batch that logs only SUMMARY_COLUMNS (the sweeps') summarises exactly as a full log,
     and a sweep's record (the leader-response metrics) reads nothing else."""
     from safeil_sumo.experiments.suite import response_metrics
-    from safeil_sumo.sim.runner import SUMMARY_COLUMNS
+    from safeil_sumo.sim.rollout_log import SUMMARY_COLUMNS
 
     cases = _mixed(road)
     loop = LoopConfig(max_time_s=10.0, ego_placement="lane")
@@ -171,7 +172,7 @@ def test_placements_agree_on_the_paper_scenarios(road):
     scenarios of BC (it leaves its lane: the off-lane steps fall back to moveToXY) and blind
     cruises into slower leaders (SUMO's collision check at the same step: moveTo's position is
     where the step starts, so the step's own advance is taken off)."""
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     cases = [safety_scenario(road, i) for i in range(10)]
     policy = planner_registry.load("bc")

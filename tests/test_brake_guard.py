@@ -241,8 +241,8 @@ def test_guard_brakes_as_hard_as_the_car_can():
 
 @pytest.mark.sumo
 def test_guard_is_logged_and_off_means_the_papers_loop():
-    from safeil_sumo import planner_registry
     from safeil_sumo.experiments.sweep_executor import _task_parts
+    from safeil_sumo.planners import registry as planner_registry
     from safeil_sumo.sim.runner import run_scenario
 
     _, scenario, policy, loop = _task_parts(GENTLE_BRAKING)
@@ -260,10 +260,10 @@ def test_guard_is_logged_and_off_means_the_papers_loop():
 def test_guard_stays_out_of_ordinary_following(curved500):
     """The paper's safety test (leader at a constant 25-32 m/s): the guard never acts, so the
     runs are the planner's own (same logs as without it)."""
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
     from safeil_sumo.scenarios.safety import safety_scenario
     from safeil_sumo.sim.batch import run_batch
-    from safeil_sumo.sim.runner import LoopConfig
+    from safeil_sumo.sim.loop_types import LoopConfig
 
     scenarios = [safety_scenario(curved500, i, master_seed=0) for i in range(4)]
     policy = planner_registry.load("safeil")

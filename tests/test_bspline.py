@@ -11,7 +11,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.interpolate import BSpline
 from scipy.optimize import linprog
 
-from safeil_sumo import bspline
+from safeil_sumo.core import bspline
 from safeil_sumo.learn import spline as tspline
 
 TAU = np.linspace(0.0, 1.0, 41)

@@ -13,8 +13,7 @@ import shutil
 import numpy as np
 import pytest
 
-from safeil_sumo import bspline
-from safeil_sumo import planner_registry as pol
+from safeil_sumo.core import bspline
 from safeil_sumo.learn import bounds as bnd
 from safeil_sumo.learn import branch_and_bound as cert
 from safeil_sumo.learn import certify_margins as cm
@@ -23,6 +22,7 @@ from safeil_sumo.learn.certificate import load_certificate, write_certificate
 from safeil_sumo.learn.checkpoint import checkpoint_paths, load_checkpoint
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.inference import MLPPolicy
+from safeil_sumo.planners import registry as pol
 
 TOL = 1e-9  # float slack when comparing sampled outputs with sound bounds [same units]
 
@@ -366,7 +366,7 @@ def test_the_margins_linear_enclosure_holds_at_every_plan_in_the_intervals() -> 
     """``property_objective`` alone: for feature and plan intervals (no network), the linear
     lower bound ``C [plan; features] + const`` is below the exact margins (Bernstein
     coefficients from bspline, leader margin) at corners and random points of the intervals."""
-    from safeil_sumo.bspline import lateral_margin_bernstein
+    from safeil_sumo.core.bspline import lateral_margin_bernstein
 
     rng = np.random.default_rng(8)
     props = cm.Properties(horizon_s=5.0, track_m=1.76, gap_min_m=2.0, time_gap_margin_s=0.5)

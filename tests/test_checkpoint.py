@@ -12,6 +12,7 @@ import pytest
 import torch
 from fixtures_training import make_tuples
 
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import (
     CheckpointError,
@@ -24,7 +25,6 @@ from safeil_sumo.learn.checkpoint import (
 from safeil_sumo.learn.inference import MLPPolicy, load_policy
 from safeil_sumo.learn.model import PlannerMLP
 from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
-from safeil_sumo.policy import Policy
 
 
 @pytest.fixture(scope="module")

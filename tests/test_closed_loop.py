@@ -9,11 +9,12 @@ import pandas as pd
 import pytest
 from bad_policies import DriftLeft, blind_cruise
 
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.geometry import rectangle_corners
+from safeil_sumo.core.geometry import rectangle_corners
+from safeil_sumo.planners.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.leaders import constant
-from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.runner import run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
 
 # every test here runs SUMO (tests/conftest.py: the sumo marker)

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from safeil_sumo import bspline
+from safeil_sumo.core import bspline
 from safeil_sumo.sim.controller import (
     ControllerParams,
     ControllerState,

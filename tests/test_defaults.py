@@ -1,5 +1,5 @@
 """Each default declared once (issue 39): the plan rate, the plan horizon and the planner's time
-gap are each defined by one named constant in ``safeil_sumo/policy.py``, and no other module of
+gap are each defined by one named constant in ``safeil_sumo/core/policy.py``, and no other module of
 the package writes the literal value as a default of a parameter, field, option or key of that
 name; they refer to the constant instead, so changing it changes every command, environment
 and planner at once.
@@ -140,7 +140,7 @@ def test_each_default_is_defined_in_one_place(constant: str) -> None:
 @pytest.mark.parametrize("constant", DEFAULTS)
 def test_no_module_repeats_the_default_as_a_literal(constant: str) -> None:
     value, names = DEFAULTS[constant]
-    repeated = [f"{rel}:{line}: {name} = {value} (use {constant} from safeil_sumo.policy)"
+    repeated = [f"{rel}:{line}: {name} = {value} (use {constant} from safeil_sumo.core.policy)"
                 for rel, src in sources().items()
                 for line, name in literal_defaults(src, names, value)
                 if (rel, name) not in ALLOWED]
@@ -152,11 +152,11 @@ def test_the_defaults_reach_every_consumer() -> None:
     command lines all default to the constants."""
     import inspect
 
-    from safeil_sumo import policy
-    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.core import policy
     from safeil_sumo.envs.base import loop_config
     from safeil_sumo.envs.single import SafeILEnv
     from safeil_sumo.envs.vector import SafeILVectorEnv
+    from safeil_sumo.planners.analytic import AnalyticPlanner
     from safeil_sumo.run import build_parser
     from safeil_sumo.scenarios.spec import ScenarioSpec
     from safeil_sumo.sim.loop_types import LoopConfig

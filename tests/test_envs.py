@@ -22,8 +22,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 from gymnasium.utils.passive_env_checker import env_render_passive_checker
 
-from safeil_sumo import api, envs, planner_registry
+from safeil_sumo import api, envs
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
+from safeil_sumo.planners import registry as planner_registry
 
 pytest.importorskip("libsumo")
 psutil = pytest.importorskip("psutil")
@@ -104,7 +105,7 @@ def test_reset_with_a_seed_gives_the_same_episode():
 def test_brake_guard_option():
     """The loop's brake guard is on by default under plan actions and ``brake_guard=False``
     turns it off: a plan that ignores a braking leader is braked by the guard only."""
-    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.planners.analytic import AnalyticPlanner
 
     logs = {}
     for guard in (True, False):

@@ -16,12 +16,12 @@ import pandas as pd
 import pytest
 
 from safeil_sumo import evaluate as ev
-from safeil_sumo import idm
-from safeil_sumo import report_card as rc
-from safeil_sumo import report_replay as rr
-from safeil_sumo import report_sections as rs
 from safeil_sumo.data.by_path import DataSpec
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR, NGSIM_FILE
+from safeil_sumo.planners import idm
+from safeil_sumo.report import card as rc
+from safeil_sumo.report import held_out_replays as rr
+from safeil_sumo.report import sections as rs
 
 # ------------------------------------------------------------------- the rules, by hand
 

@@ -551,7 +551,7 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
     failures). The planted objective stands in for SUMO: the point is the cache."""
     import shutil
 
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     weights = tmp_path / "m.safetensors"
     shutil.copy(planner_registry.policy_file("bc"), weights)

@@ -20,7 +20,7 @@ from safeil_sumo.data.pipeline import PipelineConfig, run_pipeline
 from safeil_sumo.data.schema import SchemaError, load_drive, validate_drive
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
-from safeil_sumo.planner_registry import MODELS_DIR
+from safeil_sumo.planners.registry import MODELS_DIR
 from safeil_sumo.sim.leaders import ProfileError, SpeedProfile, from_file
 
 FAST = settings(max_examples=60, deadline=2000, derandomize=True,

@@ -12,9 +12,10 @@ import pandas as pd
 import pytest
 from scipy.optimize import brentq
 
-from safeil_sumo import idm, planner_registry
 from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.gap_probe import main
+from safeil_sumo.planners import idm
+from safeil_sumo.planners import registry as planner_registry
 
 DT = 0.01  # [s] the closed loop's log step
 

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safeil_sumo.geometry import (
+from safeil_sumo.core.geometry import (
     Polyline,
     cumulative_length,
     ego_to_world,
@@ -134,7 +134,7 @@ def test_project_near_many_equals_project_near(seed, spread):
 def test_polyline_stack_equals_each_polyline(seed, spread):
     """Points on different polylines walked at once (the batch on several roads) give each
     polyline's own project_near_many exactly, NaN points (no leader) included."""
-    from safeil_sumo.geometry import PolylineStack
+    from safeil_sumo.core.geometry import PolylineStack
 
     rng = np.random.default_rng(seed)
     arc = np.linspace(0.0, 1.0, 54)

@@ -35,10 +35,11 @@ import pytest
 from bad_policies import DriftLeft, blind_cruise
 from fixtures_golden import GOLDEN_COLUMNS, GOLDEN_DIR, compare_with_reference, log_hash
 
-from safeil_sumo.analytic import AnalyticPlanner
+from safeil_sumo.planners.analytic import AnalyticPlanner
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim.leaders import constant, piecewise
-from safeil_sumo.sim.runner import LoopConfig, Scenario, run_scenario
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.runner import run_scenario
 
 
 def _noisy_analytic(road):
@@ -156,8 +157,8 @@ def test_same_run_twice_is_bit_identical(curved500):
 
 
 if __name__ == "__main__":  # --write: rewrite the references; --hashes: print the log hashes
-    from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.roads.catalogue import resolve_net
+    from safeil_sumo.roads.road import load_road
 
     road = load_road(resolve_net("curved500"))
     if "--hashes" in sys.argv:

@@ -127,7 +127,7 @@ def _env_episode(**kwargs):
     import gymnasium as gym
 
     import safeil_sumo.envs  # noqa: F401 - registers the ids
-    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.planners.analytic import AnalyticPlanner
 
     planner = AnalyticPlanner()
     env = gym.make("safeil_sumo/Curved500-v0", max_time_s=1.0, **kwargs)

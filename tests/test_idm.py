@@ -9,8 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from safeil_sumo import idm, planner_registry
 from safeil_sumo.experiments.leader_probe import probe, straight_lane_features
+from safeil_sumo.planners import idm
+from safeil_sumo.planners import registry as planner_registry
 
 P = idm.IDMParams(v0_mps=30.0, time_gap_s=1.2, s0_m=2.0, a_max_mps2=1.5, b_mps2=2.0)
 
@@ -121,10 +122,11 @@ def test_shipped_idm_loads() -> None:
 
 @pytest.mark.sumo
 def test_idm_completes_curved500_in_libsumo() -> None:
-    from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.roads.catalogue import resolve_net
+    from safeil_sumo.roads.road import load_road
     from safeil_sumo.scenarios.safety import safety_scenario
-    from safeil_sumo.sim.runner import LoopConfig, run_scenario
+    from safeil_sumo.sim.loop_types import LoopConfig
+    from safeil_sumo.sim.runner import run_scenario
 
     road = load_road(resolve_net("curved500"))
     rollout = run_scenario(safety_scenario(road, 0), planner_registry.load("idm"), LoopConfig())

@@ -10,10 +10,9 @@ import pandas as pd
 import pytest
 
 from safeil_sumo import api
-from safeil_sumo.cli_args import lane_for_net
 from safeil_sumo.experiments.sweep_executor import task_id
-from safeil_sumo.scenarios.n74 import LANE_WIDTH_M, n74_dir
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.roads.n74 import LANE_WIDTH_M, n74_dir
+from safeil_sumo.scenarios.spec import ScenarioSpec, lane_for_net
 
 N74_NET = str(n74_dir() / "n74.net.xml")
 

@@ -17,10 +17,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.scenarios.network import build_network
-from safeil_sumo.scenarios.road import load_road
-from safeil_sumo.scenarios.track import TrackSpec
+from safeil_sumo.planners.analytic import AnalyticPlanner
+from safeil_sumo.roads.network import build_network
+from safeil_sumo.roads.road import load_road
+from safeil_sumo.roads.track import TrackSpec
 from safeil_sumo.sim.batch import run_batch
 from safeil_sumo.sim.leaders import piecewise
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario

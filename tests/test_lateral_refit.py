@@ -149,7 +149,7 @@ def test_a_lane_mode_refit_keeps_x_follows_the_lane_at_start_and_fits(tmp_path):
     """lateral_mode 'lane': the y outputs become offsets from the lane centre; a fresh tower
     starts on the centre (z = 0), x is kept bit for bit, the mode and the head's width are
     stored, and the refit fits its targets."""
-    from safeil_sumo import bspline
+    from safeil_sumo.core import bspline
     from safeil_sumo.data.tuples import Tuples
 
     data = towers_checkpoint(tmp_path)

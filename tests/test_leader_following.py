@@ -10,7 +10,6 @@ import pytest
 import torch
 from fixtures_training import make_tuples
 
-from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.experiments.leader_probe import (
     ProbeGrid,
@@ -30,6 +29,7 @@ from safeil_sumo.learn.trainer import (
     split_by_maneuver,
     train,
 )
+from safeil_sumo.planners.analytic import AnalyticPlanner
 
 SMALL = TrainConfig(max_epochs=3, patience=3, batch_size=64)
 

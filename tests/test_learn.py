@@ -16,7 +16,7 @@ import torch
 from fixtures_training import make_tuples
 from scripts import load_training_script
 
-from safeil_sumo import bspline
+from safeil_sumo.core import bspline
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.losses import (
     BarrierConfig,
@@ -30,7 +30,7 @@ from safeil_sumo.learn.losses import (
 from safeil_sumo.learn.model import PlannerMLP
 from safeil_sumo.learn.open_loop_metrics import open_loop_metrics, plan_metrics
 from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
-from safeil_sumo.safety_filter import SafeSet, plan_margins
+from safeil_sumo.planners.safety_filter import SafeSet, plan_margins
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from safeil_sumo.learn import loop_invariant as li
 from safeil_sumo.learn.inference import load_policy
-from safeil_sumo.planner_registry import shipped_checkpoint
+from safeil_sumo.planners.registry import shipped_checkpoint
 from safeil_sumo.sim import brake_guard as grd
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import vehicle as veh

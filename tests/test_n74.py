@@ -9,8 +9,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios import n74
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.roads import n74
 
 NET = n74.n74_dir() / "n74.net.xml"
 

@@ -7,9 +7,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from safeil_sumo.roads import n74
+from safeil_sumo.roads.road import NetworkError
 from safeil_sumo.run import main
-from safeil_sumo.scenarios import n74
-from safeil_sumo.scenarios.road import NetworkError
 
 
 def test_stretch_maps_kilometres_to_the_edges_and_the_ego_lane():

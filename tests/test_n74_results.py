@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from scipy.stats import ks_2samp, poisson
 
 from safeil_sumo.experiments import n74_drives as nd
-from safeil_sumo.sim.runner import drive_stats
+from safeil_sumo.sim.rollout_log import drive_stats
 
 REPO = Path(__file__).resolve().parents[1]
 

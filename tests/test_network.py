@@ -12,15 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from safeil_sumo.scenarios import network
-from safeil_sumo.scenarios.catalogue import (
+from safeil_sumo.roads import network
+from safeil_sumo.roads.catalogue import (
     COMMITTED_DIR,
     default_cache_dir,
     resolve_net,
     spec_for,
 )
-from safeil_sumo.scenarios.network import TrackSpec, build_network
-from safeil_sumo.scenarios.road import NetworkError, Road, _parse_shape, load_road
+from safeil_sumo.roads.network import build_network
+from safeil_sumo.roads.road import NetworkError, Road, _parse_shape, load_road
+from safeil_sumo.roads.track import TrackSpec
 
 
 def fit_circle(points: np.ndarray) -> tuple[np.ndarray, float]:
@@ -75,7 +76,7 @@ def test_curved500_geometry(curved500: Road):
     assert r_sumo == pytest.approx(500.0, abs=0.01)
     seg = np.diff(pts, axis=0)
     assert np.max(np.linalg.norm(seg, axis=1)) ** 2 / (8 * 500.0) < 0.021
-    # the run-out is long enough for the leader (see network.DEFAULT_RUN_OUT_M)
+    # the run-out is long enough for the leader (see track.DEFAULT_RUN_OUT_M)
     assert road.lane(1).centre.length - road.path_end_s >= 600.0
 
 

@@ -19,6 +19,7 @@ from fixtures_data import (
     straight_drive,
 )
 
+from safeil_sumo.core.features import FEATURE_NAMES
 from safeil_sumo.data.importers import import_ngsim_pairs, import_openacc_files
 from safeil_sumo.data.pipeline import (
     PipelineConfig,
@@ -38,7 +39,6 @@ from safeil_sumo.data.pipeline import (
 from safeil_sumo.data.report import plot_maneuver, write_report
 from safeil_sumo.data.schema import validate_drive
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.features import FEATURE_NAMES
 
 CFG = PipelineConfig()
 

@@ -19,7 +19,6 @@ from fixtures_data import (
     straight_drive,
 )
 
-from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.importers import (
     NGSIM_LANE_WIDTH,
     import_ngsim_pairs,
@@ -33,8 +32,9 @@ from safeil_sumo.data.pipeline import (
     remove_lane_changes,
 )
 from safeil_sumo.experiments import maneuver_replay as rp
+from safeil_sumo.planners import registry as pol
+from safeil_sumo.roads import recorded_road as rr
 from safeil_sumo.run import main as run_main
-from safeil_sumo.scenarios import recorded_road as rr
 from safeil_sumo.sim.recorded_ego import RecordedPath, RecordedPathError
 
 # ------------------------------------------------------------------------------------- pure

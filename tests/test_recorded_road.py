@@ -23,6 +23,7 @@ from fixtures_data import OPENACC_DIR, SHARED, require_file
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from safeil_sumo.core.geometry import Polyline
 from safeil_sumo.data.importers import (
     import_openacc,
     openacc_vehicle_names,
@@ -32,9 +33,8 @@ from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import validate_drive
 from safeil_sumo.data.sources import ZALAZONE_MAX_CURVATURE, driver_of, load_source
 from safeil_sumo.experiments import maneuver_replay as rp
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios import network
-from safeil_sumo.scenarios import recorded_road as rr
+from safeil_sumo.roads import network
+from safeil_sumo.roads import recorded_road as rr
 from safeil_sumo.sim.recorded_ego import RecordedPath
 
 ZALAZONE_DIR = SHARED / "openacc_zalazone"

@@ -25,20 +25,22 @@ import pyarrow.parquet as pq
 import pytest
 from fixtures_data import straight_drive
 
-from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data import importers
 from safeil_sumo.data.schema import SchemaError, load_drive, save_drive
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.sweep_executor import run_sweep, task_id
 from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
-from safeil_sumo.planner_registry import MODELS_DIR, PolicyError
-from safeil_sumo.planner_registry import load as load_policy
-from safeil_sumo.scenarios.recorded_road import safe_name
+from safeil_sumo.planners.analytic import AnalyticPlanner
+from safeil_sumo.planners.registry import MODELS_DIR, PolicyError
+from safeil_sumo.planners.registry import load as load_policy
+from safeil_sumo.roads.recorded_road import safe_name
 from safeil_sumo.scenarios.spec import ScenarioSpec
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim.leaders import ProfileError, constant, from_file
-from safeil_sumo.sim.runner import EGO_ID, LEADER_ID, LoopConfig, Scenario, run_scenario
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.runner import run_scenario
+from safeil_sumo.sim.sumo_setup import EGO_ID, LEADER_ID
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN = REPO / "training" / "train.py"
@@ -523,8 +525,8 @@ def _boom(api):
 
 
 def _run_with_fault(action, at_step=100):
-    from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.roads.catalogue import resolve_net
+    from safeil_sumo.roads.road import load_road
 
     road = load_road(resolve_net("straight"))
     sc = Scenario("fault", road, constant(28.0), 30.0, 50.0, seed=1, max_time_s=3.0)

@@ -15,10 +15,10 @@ from fixtures_data import ARC_R as R
 from fixtures_data import ARC_V as V
 from fixtures_data import NGSIM_PAIRS, OPENACC_DIR, arc_drive, require_file
 
-from safeil_sumo.analytic import AnalyticPlanner
 from safeil_sumo.data.schema import save_drive
 from safeil_sumo.experiments import maneuver_replay as rp
-from safeil_sumo.scenarios import recorded_road as rr
+from safeil_sumo.planners.analytic import AnalyticPlanner
+from safeil_sumo.roads import recorded_road as rr
 
 # ------------------------------------------------------------------------------ pure geometry
 
@@ -44,7 +44,7 @@ def test_decimate_keeps_points_within_tolerance():
     assert len(lean) < 40
     assert np.allclose(lean[[0, -1]], pts[[0, -1]])
     # chord sagitta for R and tolerance: every original point within 5 cm of the lean polyline
-    from safeil_sumo.geometry import Polyline
+    from safeil_sumo.core.geometry import Polyline
     _, d = Polyline(lean).project(pts)
     assert np.max(np.abs(d)) <= 0.05 + 1e-9
     straight = rr.decimate(np.stack([np.linspace(0, 100, 50), np.zeros(50)], axis=1), 0.05)

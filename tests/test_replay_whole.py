@@ -14,12 +14,12 @@ import pandas as pd
 import pytest
 from fixtures_data import arc_drive
 
-from safeil_sumo import planner_registry as pol
+from safeil_sumo.core.geometry import Polyline
 from safeil_sumo.data.schema import validate_drive
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import metrics as hm
 from safeil_sumo.experiments import window_replays as ra
-from safeil_sumo.geometry import Polyline
+from safeil_sumo.planners import registry as pol
 from safeil_sumo.sim.constant_speed_ego import ConstantSpeedPath
 from safeil_sumo.sim.recorded_ego import RecordedPathError
 

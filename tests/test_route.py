@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from safeil_sumo.scenarios.road import NetworkError, load_road
-from safeil_sumo.scenarios.route import load_route
-from safeil_sumo.sim.runner import _depart
+from safeil_sumo.roads.road import NetworkError, load_road
+from safeil_sumo.roads.route import load_route
 from safeil_sumo.sim.sensors import current_lane_index
+from safeil_sumo.sim.sumo_setup import _depart
 
 # A (2 lanes) -> junction J (internal lanes) -> B (3 lanes: a lane gained on the RIGHT, so
 # SUMO's indices shift by one) -> C (1 lane, no internal lane; only B_2 continues). C_0's SUMO
@@ -155,7 +155,7 @@ ARC_M = 500.0
 @pytest.fixture(scope="module")
 def two_edge_net(tmp_path_factory):
     """A straight edge, a junction, and a curved edge (3 lanes x 3.5 m) built by netconvert."""
-    from safeil_sumo.scenarios.network import run_netconvert
+    from safeil_sumo.roads.network import run_netconvert
 
     work = tmp_path_factory.mktemp("two_edge")
     theta = np.linspace(0.0, ARC_M / RADIUS_M, 26)
@@ -175,7 +175,7 @@ def two_edge_net(tmp_path_factory):
 
 def _scenario(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
     from safeil_sumo.sim.leaders import constant
-    from safeil_sumo.sim.runner import Scenario
+    from safeil_sumo.sim.loop_types import Scenario
 
     road = load_route(net, ["E0", "E1"], lane)
     return Scenario("route", road, constant(leader_speed), ego_speed_mps=30.0,
@@ -183,7 +183,7 @@ def _scenario(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
 
 
 def _run(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
-    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.planners.analytic import AnalyticPlanner
     from safeil_sumo.sim.runner import run_scenario
 
     scenario = _scenario(net, lane, gap, leader_speed)
@@ -194,7 +194,7 @@ def _run(net, lane: int, gap: float = 50.0, leader_speed: float = 27.0):
 def test_a_batch_drives_the_route_to_its_end_like_run_scenario(two_edge_net) -> None:
     """Across the junction and up to the route's end, where SUMO would let an ego that its
     own step carries past the end arrive: both loops place it with moveToXY there."""
-    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.planners.analytic import AnalyticPlanner
     from safeil_sumo.sim.batch import run_batch
 
     _, scalar = _run(two_edge_net, lane=1)

@@ -14,13 +14,14 @@ import numpy as np
 import pytest
 import torch
 
-from safeil_sumo import bspline, idm
+from safeil_sumo.core import bspline
 from safeil_sumo.experiments import suite
 from safeil_sumo.experiments.leader_probe import straight_lane_features
 from safeil_sumo.experiments.window_replays import bootstrap_ci
 from safeil_sumo.learn.envelope import EnvelopeConfig, sample_states
 from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms
-from safeil_sumo.scenarios import recorded_road as rr
+from safeil_sumo.planners import idm
+from safeil_sumo.roads import recorded_road as rr
 
 # ------------------------------------------------------------- 1. recorded_road: drift low-pass
 
@@ -187,7 +188,7 @@ def fan_out_net(tmp_path_factory):
     connections: A_0 -> B_0; A_1 -> B_0 and B_1; B_0 -> C_0 and C_1; B_1 -> C_2 and C_3.
     (Slight bends give every junction lane a length: netconvert writes a straight-through
     junction lane as two equal points.)"""
-    from safeil_sumo.scenarios.network import run_netconvert
+    from safeil_sumo.roads.network import run_netconvert
 
     work = tmp_path_factory.mktemp("fan_out")
     (work / "t.nod.xml").write_text(
@@ -215,8 +216,8 @@ def test_route_picks_the_continuing_lane_of_a_fan_out(fan_out_net) -> None:
     - B_0 -> {C_0, C_1}: C_0 keeps index 0.
     Mutants killed: the first connection taken; the keep-index clause dropped; leftmost
     instead of rightmost. (No shipped or test net had a fan-out before.)"""
-    from safeil_sumo.scenarios.road import _parse_shape, read_net
-    from safeil_sumo.scenarios.route import load_route
+    from safeil_sumo.roads.road import _parse_shape, read_net
+    from safeil_sumo.roads.route import load_route
 
     road = load_route(fan_out_net, ["A", "B", "C"], ego_lane=1)
     edge_lanes = [p.lane_id for p in road.ego_pieces if not p.internal]

@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 from fixtures_sumo import FakeSumoFactory
 
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.geometry import yaw_to_sumo_angle
+from safeil_sumo.core.geometry import yaw_to_sumo_angle
+from safeil_sumo.planners.analytic import AnalyticPlanner
 from safeil_sumo.sim.leaders import constant
-from safeil_sumo.sim.runner import EGO_ID, LEADER_ID, LoopConfig, Scenario, run_scenario
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.runner import run_scenario
+from safeil_sumo.sim.sumo_setup import EGO_ID, LEADER_ID
 
 
 def run_fake(road, factory: FakeSumoFactory, placement="xy"):
@@ -66,7 +68,7 @@ def test_an_error_before_the_loop_ends_the_run_with_its_reason(straight_road, fa
 def test_lane_placeable_on_floats_and_arrays():
     """Inside the lane (``|d| <= half width``, the boundary included, NaN outside) and the step
     short of the route's end: a Python bool at N = 1, the same flags on arrays."""
-    from safeil_sumo.sim.runner import lane_placeable
+    from safeil_sumo.sim.sumo_setup import lane_placeable
 
     half, end, advance = 1.75, 100.0, 1.0
     cases = [(0.0, 50.0, True), (1.75, 50.0, True), (-1.75, 50.0, True), (1.76, 50.0, False),

@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safeil_sumo import bspline
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.features import planner_features
-from safeil_sumo.policy import Policy
-from safeil_sumo.safety_filter import (
+from safeil_sumo.core import bspline
+from safeil_sumo.core.features import planner_features
+from safeil_sumo.core.policy import Policy
+from safeil_sumo.planners.analytic import AnalyticPlanner
+from safeil_sumo.planners.safety_filter import (
     SafeSet,
     SafetyFiltered,
     bernstein_margins,
@@ -308,8 +308,8 @@ def test_wrapper_default_is_the_bernstein_mode() -> None:
 @pytest.mark.sumo
 def test_analytic_planner_with_the_filter_completes_curved500() -> None:
     """Before the Bernstein mode, the control-point clip made this 0/10 (lane departure)."""
-    from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import load_road
+    from safeil_sumo.roads.catalogue import resolve_net
+    from safeil_sumo.roads.road import load_road
     from safeil_sumo.scenarios.safety import safety_scenario
     from safeil_sumo.sim.runner import run_scenario
 

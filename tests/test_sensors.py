@@ -76,7 +76,7 @@ def test_bad_sensor_config():
 def test_batched_camera_fit_equals_the_scalar_one():
     """polyfit3_batch (a stacked QR) equals polyfit3 (LAPACK's SVD solver) to round-off, and
     ego_points_many equals the camera's points of each car, on seeded random lane views."""
-    from safeil_sumo.geometry import Polyline
+    from safeil_sumo.core.geometry import Polyline
     from safeil_sumo.sim.sensors import _ego_points, ego_points_many, polyfit3, polyfit3_batch
 
     rng = np.random.default_rng(3)
@@ -116,7 +116,7 @@ def test_polyfit3_rows_equals_polyfit3_bit_for_bit():
 
 
 def test_planner_features_of_one_car_equal_the_stacked_ones():
-    from safeil_sumo.features import planner_features
+    from safeil_sumo.core.features import planner_features
 
     rng = np.random.default_rng(4)
     left, right = rng.normal(size=4), rng.normal(size=4)
@@ -130,7 +130,7 @@ def test_planner_features_of_one_car_equal_the_stacked_ones():
 
 def _circle(radius: float, length: float = 200.0, chord: float = 0.5):
     """A left-turning circle of ``radius`` [m] from the origin heading +x, as a Polyline."""
-    from safeil_sumo.geometry import Polyline
+    from safeil_sumo.core.geometry import Polyline
 
     arc = np.arange(0.0, length + chord, chord) / radius
     return Polyline(np.column_stack([radius * np.sin(arc), radius * (1.0 - np.cos(arc))]))
@@ -193,7 +193,7 @@ def test_lane_camera_equals_the_reference_in_a_tight_bend():
     shortened (3 lanes on concentric circles, the ego lane R = 50 m)."""
     from pathlib import Path
 
-    from safeil_sumo.scenarios.road import Lane, Road
+    from safeil_sumo.roads.road import Lane, Road
 
     lanes = []
     for i in range(3):
@@ -220,7 +220,7 @@ def test_the_view_check_is_skipped_only_where_no_chord_can_turn_too_much():
     a chord the view check computes (random wavy lines, random stations and poses), and where
     it is below the threshold the camera skips the check with the same lines: the view is
     whole, as the check would have kept it (curved500's lines turn 0.12 rad over 60 m)."""
-    from safeil_sumo.geometry import Polyline
+    from safeil_sumo.core.geometry import Polyline
     from safeil_sumo.sim.sensors import _may_turn_too_much, _view_offsets
 
     rng = np.random.default_rng(11)

@@ -18,10 +18,11 @@ import pytest
 from bad_policies import DriftLeft, blind_cruise
 from fixtures_golden import GOLDEN_COLUMNS, compare_with_reference
 
-from safeil_sumo import api, planner_registry
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.scenarios.catalogue import resolve_net
-from safeil_sumo.scenarios.road import load_road
+from safeil_sumo import api
+from safeil_sumo.planners import registry as planner_registry
+from safeil_sumo.planners.analytic import AnalyticPlanner
+from safeil_sumo.roads.catalogue import resolve_net
+from safeil_sumo.roads.road import load_road
 from safeil_sumo.scenarios.safety import safety_scenario
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim.batch import run_batch

@@ -147,8 +147,8 @@ def test_checkpoint_with_a_style_input_count_mismatch_is_refused(tmp_path):
 
 
 def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
-    from safeil_sumo import planner_registry
-    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.planners import registry as planner_registry
+    from safeil_sumo.planners.analytic import AnalyticPlanner
 
     styled = with_style_input(_style_model(), 1.5, 0.5)
     save_checkpoint(tmp_path / "m", styled, name="m", horizon=5.0)
@@ -220,9 +220,9 @@ def test_adapt_planners_sets_every_planner_from_one_style_estimate(tmp_path):
     through its own equilibrium), the IDM's v0, a, b, delta kept."""
     from fixtures_data import ARC_V as V
 
-    from safeil_sumo import idm
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import window_replays as ra
+    from safeil_sumo.planners import idm
+    from safeil_sumo.planners import registry as pol
 
     save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
                     horizon=5.0)
@@ -252,9 +252,9 @@ def test_adapt_planners_named_variants_refit5_and_median(tmp_path):
     median of gap / speed (style.adapted_time_gap)."""
     from fixtures_data import ARC_V as V
 
-    from safeil_sumo import idm
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import window_replays as ra
+    from safeil_sumo.planners import idm
+    from safeil_sumo.planners import registry as pol
 
     save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
                     horizon=5.0)
@@ -303,7 +303,7 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
     # the IDM ran with the (s0, T) estimated on the first 10 s, not the shipped ones
     from dataclasses import asdict
 
-    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.planners import registry as pol
 
     assert set(rec["adapted"]) == {"idm", "recorded"} and rec["adapted"]["recorded"] == {}
     assert rec["adapted"]["idm"] != asdict(pol.load("idm").params)
@@ -316,8 +316,8 @@ def test_an_adapted_whole_replay_in_sumo(tmp_path):
 
 
 def test_with_setting_sets_only_the_planners_that_have_one(tmp_path):
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import window_replays as ra
+    from safeil_sumo.planners import registry as pol
 
     save_checkpoint(tmp_path / "m", with_style_input(_style_model(), 1.5, 0.5), name="m",
                     horizon=5.0)

@@ -17,7 +17,8 @@ from safeil_sumo.scenarios import recorded_leaders as rl
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
 from safeil_sumo.scenarios.spec import resolve_road as _road
 from safeil_sumo.sim.leaders import ProfileError
-from safeil_sumo.sim.runner import LoopConfig, run_scenario
+from safeil_sumo.sim.loop_types import LoopConfig
+from safeil_sumo.sim.runner import run_scenario
 
 
 def _profile(path, times, speeds) -> str:
@@ -193,7 +194,7 @@ def test_recorded_profile_is_driven_in_sumo_within_5_cm_per_s(stop_and_go) -> No
     spec = ScenarioSpec(net="straight", index=0, leader_kind="recorded",
                         leader_profile=stop_and_go, max_time_s=30.0, policy="analytic")
     sc = build_scenario(spec, _road("straight"))
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     log = run_scenario(sc, planner_registry.load("analytic"), LoopConfig()).log
     # the logged leader speed is SUMO's (read back each step) after the step it was set for

@@ -301,7 +301,7 @@ def test_a_retrained_checkpoint_never_resumes_the_results_of_the_one_before(tmp_
     import json
     import shutil
 
-    from safeil_sumo import planner_registry as reg
+    from safeil_sumo.planners import registry as reg
 
     ckpt = tmp_path / "m.safetensors"
     for name in ("safetensors", "json"):

@@ -142,7 +142,7 @@ def test_recorder_kinematic_step_by_hand():
     the reference line stretched by 1 / (1 - kappa d) for an offset lane, the new offset from
     the right lane's centre and the yaw = road heading + the angle of the lateral move."""
     from safeil_sumo.data.recorder import kinematic_step
-    from safeil_sumo.scenarios.n74 import lane_centre_offset
+    from safeil_sumo.roads.n74 import lane_centre_offset
 
     right = lane_centre_offset(0)
     s, d, v, yaw = kinematic_step(_ArcRoad(0.0), 100.0, right, 20.0, 1.0, 0.5, DT)

@@ -8,7 +8,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safeil_sumo import bspline
+from safeil_sumo.core import bspline
 from safeil_sumo.learn.checkpoint import CheckpointError, load_model, save_checkpoint
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.model import PlannerMLP, split_towers, with_style_input

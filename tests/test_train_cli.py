@@ -25,13 +25,13 @@ from fixtures_data import (
 )
 from scripts import load_training_script
 
-from safeil_sumo import planner_registry
 from safeil_sumo.data.by_path import DataSpec, parse_data_option
 from safeil_sumo.learn.certificate import load_certificate
 from safeil_sumo.learn.inference import MLPPolicy
 from safeil_sumo.learn.recipe import load_recipe
 from safeil_sumo.learn.stages import prepare
 from safeil_sumo.learn.torch_required import TORCH_MISSING
+from safeil_sumo.planners import registry as planner_registry
 from safeil_sumo.train import main
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,7 +13,7 @@ import psutil
 import pytest
 
 from safeil_sumo import run as run_cli
-from safeil_sumo.scenarios.road import NetworkError, load_road
+from safeil_sumo.roads.road import NetworkError, load_road
 from safeil_sumo.sim import sumo_api
 
 

@@ -65,8 +65,8 @@ import sys
 
 import numpy as np
 
-from safeil_sumo import planner_registry as reg
-from safeil_sumo.features import planner_features
+from safeil_sumo.planners import registry as reg
+from safeil_sumo.core.features import planner_features
 
 f = planner_features([1.75, 0.0, 1e-3], [-1.75, 0.0, 1e-3], 30.0, 27.0, 45.0)
 for name in reg.NAMES:
@@ -81,7 +81,7 @@ print("torch imported:", "torch" in sys.modules)
 
 
 def test_every_shipped_planner_loads_and_plans_without_torch(no_torch):
-    from safeil_sumo.planner_registry import NAMES, SHIPPED
+    from safeil_sumo.planners.registry import NAMES, SHIPPED
 
     out = _ok(_python(no_torch, "-c", PLAN_EVERY_PLANNER))
     assert [line.split()[0] for line in out.splitlines()[:-1]] == list(NAMES)

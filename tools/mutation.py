@@ -3,7 +3,7 @@
     pip install mutmut==3.8.1                  # once, into the project's venv
     python tools/mutation.py run               # ~50 min on one core; mutants/ holds the results
     python tools/mutation.py report            # counts, kill rate, the survivors left to judge
-    python tools/mutation.py run "safeil_sumo.idm.*"   # re-run a part (fnmatch on mutant names)
+    python tools/mutation.py run "safeil_sumo.planners.idm.*"   # re-run a part (fnmatch on mutant names)
     python tools/mutation.py run --safety --workers 2  # the safety-critical modules
     python tools/mutation.py judge NAME... --why "..."  # survivors judged equivalent
     python tools/mutation.py record            # the safety modules' kill rates and code digests
@@ -48,7 +48,7 @@ SAFETY_MODULES = (
     "safeil_sumo.learn.branch_and_bound",
     "safeil_sumo.learn.certificate", "safeil_sumo.sim.brake_guard", "safeil_sumo.sim.monitors",
     "safeil_sumo.experiments.falsification_search", "safeil_sumo.experiments.gap_step_responses",
-    "safeil_sumo.experiments.suite", "safeil_sumo.safety_filter",
+    "safeil_sumo.experiments.suite", "safeil_sumo.planners.safety_filter",
     # the closed-loop reachability of the ARCH-COMP ACC benchmark (issue 41)
     "safeil_sumo.learn.reach",
 )
@@ -66,7 +66,7 @@ SAFETY_SCOPE = (
         "rise_time", "overshoot", "drift", "response_metrics", "probe_extras", "run_step",
         "probe_specs", "steady_following", "human_time_gap_bands", "table")),
     "safeil_sumo.experiments.suite.*",
-    "safeil_sumo.safety_filter.*",
+    "safeil_sumo.planners.safety_filter.*",
     "safeil_sumo.sim.monitors.*",
     "safeil_sumo.learn.reach.*",
 )
@@ -77,9 +77,9 @@ SAMPLE_FRACTION = {"safeil_sumo.learn.bounds": 0.25, "safeil_sumo.learn.branch_a
 # fnmatch patterns over mutmut's mutant names (module.x_function__mutmut_N,
 # module.xǁClassǁmethod__mutmut_N); the files themselves are listed in setup.cfg
 SCOPE = (
-    "safeil_sumo.geometry.*",
-    "safeil_sumo.bspline.*",
-    "safeil_sumo.idm.*",
+    "safeil_sumo.core.geometry.*",
+    "safeil_sumo.core.bspline.*",
+    "safeil_sumo.planners.idm.*",
     "safeil_sumo.learn.losses.*",
     "safeil_sumo.learn.envelope.*",
     "safeil_sumo.sim.monitors.*",
@@ -91,9 +91,9 @@ SCOPE = (
     "safeil_sumo.experiments.window_replays.x__nan_stat__mutmut_*",
     "safeil_sumo.experiments.window_replays.x__headway_hist__mutmut_*",
     # the recorded leader's speed and its drift filter
-    "safeil_sumo.scenarios.recorded_road.x_drift_corrected_speed__mutmut_*",
-    "safeil_sumo.scenarios.recorded_road.x_leader_speed__mutmut_*",
-    "safeil_sumo.scenarios.recorded_road.x_recorded_leader_travel__mutmut_*",
+    "safeil_sumo.roads.recorded_road.x_drift_corrected_speed__mutmut_*",
+    "safeil_sumo.roads.recorded_road.x_leader_speed__mutmut_*",
+    "safeil_sumo.roads.recorded_road.x_recorded_leader_travel__mutmut_*",
 ) + SAFETY_SCOPE
 
 # mutmut's exit codes per mutant (mutmut/__main__.py: status_by_exit_code)
@@ -104,7 +104,7 @@ NO_TESTS = {5, 33}  # no selected test executes the function: counted as survive
 
 
 def function_of(mutant: str) -> str:
-    """``safeil_sumo.idm.x_fit_idm__mutmut_3`` -> ``safeil_sumo.idm.x_fit_idm``."""
+    """``safeil_sumo.planners.idm.x_fit_idm__mutmut_3`` -> ``safeil_sumo.planners.idm.x_fit_idm``."""
     return mutant.rsplit("__mutmut_", 1)[0]
 
 

@@ -167,7 +167,7 @@ def adaptation_curve(rows: pd.DataFrame, settings: pd.DataFrame, defaults: dict[
 
 def fold_defaults(settings: pd.DataFrame) -> dict[str, float]:
     """Each maneuver's ``safeil`` default setting [s] (its checkpoint's style)."""
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     default = {k: planner_registry.load(str(planner_of(k))).style["time_gap_s"]
                for k in settings["fold"].unique()}

@@ -11,8 +11,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from safeil_sumo.scenarios.catalogue import CATALOGUE, COMMITTED_DIR, spec_for
-from safeil_sumo.scenarios.network import build_network
+from safeil_sumo.roads.catalogue import CATALOGUE, COMMITTED_DIR, spec_for
+from safeil_sumo.roads.network import build_network
 
 
 def main(argv: list[str] | None = None) -> None:

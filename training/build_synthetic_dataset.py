@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.data.pipeline import PipelineConfig, run_pipeline
 from safeil_sumo.data.report import plot_maneuver, write_report
 from safeil_sumo.data.schema import load_drive, save_drive

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import differential_evolution
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.data.importers import import_ngsim_pairs, import_openacc_files
 from safeil_sumo.data.synthetic import (
     DESIRED_SPEED_MEAN_MPS,

@@ -8,7 +8,7 @@ and per driver where the data identify drivers (OpenACC: the platoon position ``
 campaign day, the same car and driver in every part; NGSIM: the follower's vehicle id), the 5 IDM
 parameters are fitted by closed-trajectory simulation behind the recorded leader over whole
 maneuvers (the processing pipeline's, at 10 Hz), minimising the spacing RMSE
-(:func:`safeil_sumo.idm.fit_idm`). The maneuvers a checkpoint held out (``--exclude-from``: its
+(:func:`safeil_sumo.planners.idm.fit_idm`). The maneuvers a checkpoint held out (``--exclude-from``: its
 ``metrics.val_maneuvers``; default: the shipped ``safeil``) are left out of the fit and the fit is
 also scored on them. ``--policy idm`` uses the OpenACC fit: motorway driving like the paper's.
 """
@@ -22,11 +22,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from safeil_sumo import idm
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.schema import load_drive
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR, driver_of, load_source
 from safeil_sumo.learn.checkpoint import held_out_maneuvers
+from safeil_sumo.planners import idm
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = REPO / "safeil_sumo" / "models" / "idm.json"

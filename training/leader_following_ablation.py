@@ -116,10 +116,10 @@ def imitation_by_source(prefix: Path, va) -> dict[str, float]:
 
 def replay_windows(checkpoints: dict[str, str], held_out: list[str], work: Path) -> pd.DataFrame:
     """Gap RMSE of every policy on every 11 s window of the held-out OpenACC maneuvers."""
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.data.pipeline import PipelineConfig, process_drive
     from safeil_sumo.data.sources import load_source
     from safeil_sumo.experiments import maneuver_replay as rp
+    from safeil_sumo.planners import registry as pol
 
     maneuvers, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
     policies = {name: pol.load(path) for name, path in checkpoints.items()}
@@ -161,9 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: missing datasets {missing}: run training/build_real_datasets.py and "
               "training/build_synthetic_dataset.py", file=sys.stderr)
         return 2
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments.leader_probe import probe
     from safeil_sumo.experiments.selection import evaluate
+    from safeil_sumo.planners import registry as pol
 
     args.cache.mkdir(parents=True, exist_ok=True)
     prefixes = {name: train_variant(name, srcs, kw, args.cache)

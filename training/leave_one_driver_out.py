@@ -50,7 +50,7 @@ import train_shipped_models as shipped  # the shipped recipe, one source of trut
 from safeil_sumo.data.sources import driver_of
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.torch_required import training_imports
-from safeil_sumo.planner_registry import fingerprint
+from safeil_sumo.planners.registry import fingerprint
 
 with training_imports():  # without torch: one line that says what to install, no traceback
     import torch

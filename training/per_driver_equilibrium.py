@@ -33,13 +33,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from safeil_sumo import idm
-from safeil_sumo import planner_registry as pol
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR, driver_of, load_source
 from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.experiments.sweep_executor import run_sweep
 from safeil_sumo.experiments.window_replays import driver_style, idm_style_params
+from safeil_sumo.planners import idm
+from safeil_sumo.planners import registry as pol
 
 SOURCES = ("openacc", "zalazone", "ngsim")
 MIN_SAMPLES = 100  # [-] steady samples (10 s at 10 Hz) for a driver's band median

@@ -37,12 +37,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "training"))
 import leave_one_driver_out as lodo  # the folds' models and data, one source of truth
 
-from safeil_sumo import idm
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import load_source
 from safeil_sumo.data.tuples import Tuples
 from safeil_sumo.learn.checkpoint import load_model
 from safeil_sumo.learn.closed_loop import episodes_from_tuples, rollout
+from safeil_sumo.planners import idm
 
 SETTINGS_S = tuple(np.round(np.arange(0.8, 2.41, 0.1), 1))  # [s] the style input's settings
 IDM_T_S = tuple(np.round(np.arange(0.4, 2.41, 0.1), 1))  # [s] the IDM's time gaps

@@ -169,7 +169,7 @@ def main() -> int:
         p = replace(prior, forget_tau_s=tau)
         print(f"  tau {tau:>6g} s: training {prediction_error(training, p):.3f}  "
               f"zalazone {prediction_error(zz, p):.3f}")
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     default_s = planner_registry.load(str(SHIPPED)).style["time_gap_s"]
     for source in ("openacc", "zalazone"):

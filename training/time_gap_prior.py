@@ -103,8 +103,8 @@ def prediction_errors(rows: pd.DataFrame, default_s: float) -> pd.DataFrame:
 
 
 def main() -> int:
-    from safeil_sumo import planner_registry
     from safeil_sumo.learn.checkpoint import held_out_maneuvers
+    from safeil_sumo.planners import registry as planner_registry
 
     held = set(held_out_maneuvers(SHIPPED))
     rows = {s: source_rows(s) for s in ("ngsim", "openacc", "zalazone")}

@@ -154,10 +154,10 @@ def _ship(prefix: Path, name: str) -> None:
 
 def _certify(checkpoint: Path) -> None:
     """Certify a shipped checkpoint and write its certificate next to it."""
-    from safeil_sumo import planner_registry
     from safeil_sumo.learn.branch_and_bound import Budget, certify
     from safeil_sumo.learn.certificate import write_certificate
     from safeil_sumo.learn.certify_margins import CertEnvelope
+    from safeil_sumo.planners import registry as planner_registry
 
     result = certify(planner_registry.load(str(checkpoint)),
                      CertEnvelope(time_gap_s=CERTIFY_TIME_GAP_S),

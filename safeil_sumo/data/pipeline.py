@@ -30,7 +30,7 @@ median step: removing rows splits segments, and derivatives never reach across a
 6. :func:`resample` — each maneuver is linearly interpolated to ``rate_hz`` from its first sample
    (``yaw`` unwrapped first).
 7. :func:`build_tuples` — at every sample with ``horizon_samples`` samples ahead in the same
-   maneuver: the 9 features (:func:`safeil_sumo.features.planner_features`, ``d_lead = lead_x``),
+   maneuver: the 9 features (:func:`safeil_sumo.core.features.planner_features`, ``d_lead = lead_x``),
    the future front-bumper positions in the ego frame at t, and their least-squares B-spline
    control points (``tau = k / H``, origin fixed).
 8. :func:`leave_one_maneuver_out` / :func:`kfold_by_maneuver` — train/test splits by whole
@@ -47,10 +47,10 @@ import numpy as np
 import pandas as pd
 from scipy.signal import savgol_filter
 
-from safeil_sumo.bspline import fit_control_points
+from safeil_sumo.core.bspline import fit_control_points
+from safeil_sumo.core.features import planner_features
+from safeil_sumo.core.geometry import world_to_ego
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.features import planner_features
-from safeil_sumo.geometry import world_to_ego
 from safeil_sumo.sim.vehicle import VehicleParams
 
 

@@ -6,7 +6,7 @@ on-ramps and slow trucks happen for real). Every ``step_s`` (0.1 s = the 10 Hz l
 
 1. read the vehicles around the ego (a libsumo context subscription, ``view_m`` around it);
 2. log the sensors at the ego's current pose through the SAME code as the closed loop:
-   :func:`safeil_sumo.sim.sensors.camera_lane_lines` on a :class:`~safeil_sumo.scenarios.road.Road`
+   :func:`safeil_sumo.sim.sensors.camera_lane_lines` on a :class:`~safeil_sumo.roads.road.Road`
    window of the main road (see below) and :func:`~safeil_sumo.sim.sensors.radar_leader` tried
    on the candidates ahead, nearest first (leader = nearest vehicle ahead inside the lane
    corridor, within radar range; NaN when none);
@@ -19,7 +19,7 @@ on-ramps and slow trucks happen for real). Every ``step_s`` (0.1 s = the 10 Hz l
 
 Why kinematic: for RECORDING a plant adds nothing the paper's data would show at 4-10 Hz; the
 closed loop uses :mod:`safeil_sumo.sim.vehicle`. Why our own road geometry: n74 has several
-edges (ramps), so :func:`~safeil_sumo.scenarios.road.load_road` (one edge) does not apply; we
+edges (ramps), so :func:`~safeil_sumo.roads.road.load_road` (one edge) does not apply; we
 build a 2-lane ``Road`` over a window of the dense analytic reference line (5 m points; SUMO's
 lane shapes are chords of the same curve within 3 cm) and reuse ``camera_lane_lines`` unchanged.
 ``lane_index`` is the main-road lane (0 right, 1 left), consistent across the merge edges.
@@ -37,11 +37,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.core.geometry import Polyline, sumo_angle_to_yaw, yaw_to_sumo_angle
 from safeil_sumo.data.schema import validate_drive
 from safeil_sumo.data.synthetic import DriverParams, LaneGaps, Observation, SyntheticDriver
-from safeil_sumo.geometry import Polyline, sumo_angle_to_yaw, yaw_to_sumo_angle
-from safeil_sumo.scenarios import n74
-from safeil_sumo.scenarios.road import Lane, Road
+from safeil_sumo.roads import n74
+from safeil_sumo.roads.road import Lane, Road
 from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import sumo_api
 

@@ -12,11 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from safeil_sumo.atomic import atomic_path
-from safeil_sumo.bspline import evaluate
+from safeil_sumo.core.atomic import atomic_path
+from safeil_sumo.core.bspline import evaluate
+from safeil_sumo.core.features import FEATURE_NAMES
 from safeil_sumo.data.pipeline import PipelineReport
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.features import FEATURE_NAMES
 
 
 def _atomic_write(path: Path, text: str) -> None:

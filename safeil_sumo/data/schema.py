@@ -41,7 +41,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 
 LINE_COLUMNS = tuple(f"{side}_c{i}" for side in ("left", "right") for i in range(4))
 REQUIRED_COLUMNS = (

@@ -2,7 +2,7 @@
 
 Stored as one Parquet table, one row per tuple, plain numeric columns (no pickle):
 ``maneuver_id`` (str), ``source`` (str), ``t`` [s] time of the state in its recording,
-``f_<name>`` the 9 planner features (:data:`safeil_sumo.features.FEATURE_NAMES`),
+``f_<name>`` the 9 planner features (:data:`safeil_sumo.core.features.FEATURE_NAMES`),
 ``cp_x1, cp_y1, .., cp_x3, cp_y3`` [m] least-squares B-spline control points of the future,
 ``fx_k, fy_k`` [m] the future trajectory (k = 1..H) in the ego frame at ``t``.
 The horizon [s] and sample rate [Hz] are stored in the Parquet schema metadata.
@@ -20,8 +20,8 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from safeil_sumo.atomic import atomic_path
-from safeil_sumo.features import FEATURE_NAMES, N_FEATURES
+from safeil_sumo.core.atomic import atomic_path
+from safeil_sumo.core.features import FEATURE_NAMES, N_FEATURES
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import weakref
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.policy import PLAN_RATE_HZ
+from safeil_sumo.core.policy import PLAN_RATE_HZ
 from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.loop_types import LoopConfig
 from safeil_sumo.sim.vehicle import VehicleParams
@@ -83,10 +83,10 @@ def check_index(index: object, max_index: int) -> int:
 
 def rgb_frame(log: pd.DataFrame, obs, i: int, road, vehicle: VehicleParams, name: str
               ) -> np.ndarray:
-    """The animation's frame (``safeil_sumo.animate.FrameDrawer``) at the latest row of
+    """The animation's frame (``safeil_sumo.experiments.animation.FrameDrawer``) at the latest row of
     scenario ``i``: ``(H, W, 3)`` uint8. Before the first step, a row made of the reset's
     observation (no leader box, no plan)."""
-    from safeil_sumo.animate import Episode, FrameDrawer
+    from safeil_sumo.experiments.animation import Episode, FrameDrawer
 
     if log.empty:
         d = vehicle.cog_to_front_bumper_m

@@ -42,7 +42,7 @@ def measure(part: str, n: int, seconds: float, step_s: float = 0.01) -> dict:
     """Transitions/s of one part over ``seconds`` of stepping (after a warm-up reset), at the
     physics step ``step_s`` [s] (0.01: 10 physics steps per 10 Hz decision; 0.1: one)."""
     import safeil_sumo.envs  # noqa: F401 - registers the ids
-    from safeil_sumo.analytic import AnalyticPlanner
+    from safeil_sumo.planners.analytic import AnalyticPlanner
 
     planner = AnalyticPlanner()
     if part == "single":

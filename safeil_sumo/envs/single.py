@@ -8,10 +8,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from safeil_sumo.core.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
 from safeil_sumo.envs import base
 from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
-from safeil_sumo.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
 from safeil_sumo.sim.loop_types import Rollout
 from safeil_sumo.sim.stepper import LIMIT_REASONS, TERMINAL_REASONS, ClosedLoop, Observation
 from safeil_sumo.sim.sumo_api import has_display

@@ -1,6 +1,6 @@
 """The envs' spaces, reward and ``info``, on arrays over N scenarios (one env is N = 1).
 
-Observation: the planner's 9 features (:mod:`safeil_sumo.features`, ego frame, SI units), as
+Observation: the planner's 9 features (:mod:`safeil_sumo.core.features`, ego frame, SI units), as
 ``float32``, clipped to :data:`OBS_LOW` / :data:`OBS_HIGH` (the unclipped ``float64`` features are
 ``info["features"]``).
 
@@ -24,7 +24,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 from gymnasium import spaces
 
-from safeil_sumo.features import FEATURE_NAMES
+from safeil_sumo.core.features import FEATURE_NAMES
 from safeil_sumo.sim.controller import ControllerParams
 from safeil_sumo.sim.vehicle import VehicleParams
 

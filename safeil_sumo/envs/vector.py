@@ -21,11 +21,11 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
+from safeil_sumo.core.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
 from safeil_sumo.envs import base
 from safeil_sumo.envs import spaces as sp
 from safeil_sumo.envs.tasks import make_task
-from safeil_sumo.policy import PLAN_HORIZON_S, PLAN_RATE_HZ
-from safeil_sumo.sim.runner import SUMMARY_COLUMNS
+from safeil_sumo.sim.rollout_log import SUMMARY_COLUMNS
 from safeil_sumo.sim.stepper import ClosedLoop, Observation
 from safeil_sumo.sim.vehicle import VehicleParams
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.experiments.suite import BRAKE_AVOID_MPS2, TTC_FLAG_S, braking_avoids
 from safeil_sumo.scenarios.spec import ScenarioSpec
 
@@ -415,7 +415,7 @@ def run_or_load(policy: str, config: SearchConfig, folder: Path, progress: bool 
     config and the same policy weights finished there, else run (in SUMO) and saved:
     ``evaluations.csv``, ``config.json`` (with the policy's fingerprint, so a retrained model
     never reads the searches of the model before)."""
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     done = folder / "evaluations.csv"
     cfg = {"policy": policy, "policy_fingerprint": planner_registry.fingerprint(policy),

@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from safeil_sumo import bspline
-from safeil_sumo.policy import Policy
+from safeil_sumo.core import bspline
+from safeil_sumo.core.policy import Policy
 
 LANE_WIDTH_M = 3.5
 

@@ -1,11 +1,11 @@
 """Human-likeness replay (paper IV-C/D): a recorded maneuver rebuilt in SUMO and driven closed-loop.
 
 The digital twin of a maneuver left out of training:
-- the road: the recorded ego lane (:mod:`safeil_sumo.scenarios.recorded_road`);
+- the road: the recorded ego lane (:mod:`safeil_sumo.roads.recorded_road`);
 - the leader: driven by the RECORDED leader speed (``v_lead`` of the pipeline, else ``lead_v``,
   else ``v_x + d(lead_x)/dt``), placed at the recorded initial bumper gap on the ego lane, with
   the speed's slow drift from the recorded positions removed (``leader_drift_window_s``, see
-  :func:`safeil_sumo.scenarios.recorded_road.drift_corrected_speed`): over a long maneuver the
+  :func:`safeil_sumo.roads.recorded_road.drift_corrected_speed`): over a long maneuver the
   leader stays where it was recorded, not metres off;
 - the ego: starts exactly at the recorded front-bumper position and speed, with the recorded
   heading relative to its lane (from the lane lines, :func:`recorded_heading`; the lateral
@@ -37,17 +37,18 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.data.importers import MIN_GAP
 from safeil_sumo.data.pipeline import body_outside_lines
 from safeil_sumo.experiments import metrics as hm
-from safeil_sumo.policy import Policy
-from safeil_sumo.scenarios import recorded_road as rr
-from safeil_sumo.scenarios.road import Road
+from safeil_sumo.roads import recorded_road as rr
+from safeil_sumo.roads.road import Road
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim.constant_speed_ego import ConstantSpeedPath
 from safeil_sumo.sim.leaders import SpeedProfile
+from safeil_sumo.sim.loop_types import LoopConfig, Rollout, Scenario
 from safeil_sumo.sim.recorded_ego import RecordedPath
-from safeil_sumo.sim.runner import LoopConfig, Rollout, Scenario, run_scenario
+from safeil_sumo.sim.runner import run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
 
 PAPER_SPEED_MPS = 115.0 / 3.6  # the paper's left-out maneuver: 10 s at 115 km/h
@@ -522,7 +523,7 @@ def write_replay(result: ReplayResult, folder: Path, manifest_extra: dict | None
     ``human.parquet``, ``compared.parquet`` (policies at the human timestamps), ``replay.png``,
     ``manifest.json`` into ``folder`` (the net is already in ``folder/net`` when the replay ran
     there)."""
-    from safeil_sumo.atomic import atomic_path
+    from safeil_sumo.core.atomic import atomic_path
     from safeil_sumo.experiments import outputs
 
     folder = Path(folder)

@@ -21,7 +21,7 @@ from typing import Any
 
 import pandas as pd
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 
 
 def git_commit(repo: Path | None = None) -> str:

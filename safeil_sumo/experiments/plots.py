@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.axes import Axes
 
-from safeil_sumo.scenarios.road import Road
+from safeil_sumo.roads.road import Road
 
 TTC_CLIP_S = 20.0  # TTC axis upper limit [s] (inf when not closing)
 

@@ -27,8 +27,7 @@ from typing import Any
 
 import pandas as pd
 
-from safeil_sumo import planner_registry
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.task_engine import (
     STATUS_FAILED,
@@ -39,6 +38,7 @@ from safeil_sumo.experiments.task_engine import (
     execute,
     read_record,
 )
+from safeil_sumo.planners import registry as planner_registry
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_road
 
 TIMING_FIELDS = ("wall_time_s", "steps_per_s", "task_wall_time_s")  # differ run to run
@@ -80,7 +80,7 @@ _SHARED_POLICIES: dict[tuple, Any] = {}
 
 
 def _load_policy(spec: ScenarioSpec, shared: bool = False):
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     # loaded fresh for every task: no state (e.g. filter counters) leaks between tasks; a
     # batch shares the (stateless) planner itself
@@ -97,7 +97,7 @@ def _load_policy(spec: ScenarioSpec, shared: bool = False):
     else:
         policy = load()
     if spec.safety_filter:
-        from safeil_sumo.safety_filter import SafetyFiltered  # lazily: optional component
+        from safeil_sumo.planners.safety_filter import SafetyFiltered  # lazily: optional component
 
         policy = SafetyFiltered(policy)
     return policy
@@ -168,7 +168,7 @@ def _run_parts(specs: Sequence[ScenarioSpec], parts: list, build_s: float,
     ``run_batch``, ``give(k, record)`` as each ends (a batch that fails: failed records for
     those left). ``build_s`` [s]: the time building the batch took."""
     from safeil_sumo.sim.batch import run_batch
-    from safeil_sumo.sim.runner import SUMMARY_COLUMNS
+    from safeil_sumo.sim.rollout_log import SUMMARY_COLUMNS
 
     loop = parts[0][4]  # the specs of a batch share their loop settings (batch_key)
     wall = build_s / len(specs)  # building, per task
@@ -226,7 +226,7 @@ def _task_parts(spec: ScenarioSpec, shared: bool = False):
     """``(road, scenario, policy, loop)`` of a task. ``shared``: planners of the same name are
     one object (batched plan calls; a safety filter still gets its own wrapper per task)."""
     from safeil_sumo.sim.brake_guard import when as brake_guard_when
-    from safeil_sumo.sim.runner import LoopConfig
+    from safeil_sumo.sim.loop_types import LoopConfig
 
     road = resolve_road(spec.net, spec.route, spec.from_km, spec.to_km, spec.lane)
     scenario = build_scenario(spec, road)
@@ -374,7 +374,7 @@ def collect(specs: Sequence[ScenarioSpec], out_dir: str | Path) -> pd.DataFrame:
 def _prepare_nets(specs: Sequence[ScenarioSpec]) -> None:
     # build curved<R> networks once here (netconvert, no libsumo) instead of racing in workers;
     # a net that fails is left to its tasks, which record the error
-    from safeil_sumo.scenarios.catalogue import resolve_net
+    from safeil_sumo.roads.catalogue import resolve_net
 
     for net in dict.fromkeys(s.net for s in specs):
         with suppress(Exception):  # the tasks of this net record the error

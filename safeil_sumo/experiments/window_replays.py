@@ -45,8 +45,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from safeil_sumo import planner_registry
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import outputs
 from safeil_sumo.experiments.task_engine import (
@@ -57,7 +57,7 @@ from safeil_sumo.experiments.task_engine import (
     read_record,
     record_path,
 )
-from safeil_sumo.policy import Policy
+from safeil_sumo.planners import registry as planner_registry
 
 WINDOW_MODES = ("paper", "sliding", "whole")
 HEADWAY_BINS = np.linspace(0.0, 5.0, 51)  # [s] time-gap histogram bins
@@ -198,10 +198,10 @@ def driver_setting(first_rows: pd.DataFrame, default_s: float, prior=None) -> fl
 
 
 def idm_style_params(params, est):
-    """The IDM's parameters ``params`` (:class:`safeil_sumo.idm.IDMParams`) with a driver's
+    """The IDM's parameters ``params`` (:class:`safeil_sumo.planners.idm.IDMParams`) with a driver's
     style ``est`` (:class:`~safeil_sumo.learn.style_estimator.StyleEstimate`): s0 inside the
     IDM's calibration bounds, and T such that the IDM's own steady gap
-    (:func:`safeil_sumo.idm.equilibrium_gap`, ``(s0 + v T) / sqrt(1 - (v / v0)^delta)``) equals
+    (:func:`safeil_sumo.planners.idm.equilibrium_gap`, ``(s0 + v T) / sqrt(1 - (v / v0)^delta)``) equals
     the estimated line's at the mean speed of the steady samples seen (the IDM's free-road term
     lengthens its gap near v0: at 30 m/s and the shipped v0 of 41 m/s by 18 %, so setting the
     line's T alone would set it farther back than the driver); v0, a, b and delta as calibrated.
@@ -209,8 +209,8 @@ def idm_style_params(params, est):
     (:func:`~safeil_sumo.learn.style_estimator.bounded_style`)."""
     from dataclasses import replace
 
-    from safeil_sumo import idm
     from safeil_sumo.learn.style_estimator import bounded_style
+    from safeil_sumo.planners import idm
 
     k0, kt = idm.FIT_FIELDS.index("s0_m"), idm.FIT_FIELDS.index("time_gap_s")
     t_range = (idm.LOWER[kt], idm.UPPER[kt])
@@ -226,7 +226,7 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
                    prior=None) -> dict:
     """The planners adapted to the driver of ``first_rows`` (a maneuver's first seconds, which
     the score then leaves out), each by its label's way
-    (:func:`safeil_sumo.planner_registry.adaptation_of`):
+    (:func:`safeil_sumo.planners.registry.adaptation_of`):
 
     - by default, one estimate for all: the driver's (s0, T) from the steady-following samples
       of those seconds (:func:`driver_style`, the population ``prior``). Each planner is set so
@@ -235,7 +235,7 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
       checkpoint the line's time gap at that speed (:func:`driver_setting`, its default
       setting without a steady sample);
     - ``idm_refit5``: the IDM's five parameters fitted on those seconds
-      (:func:`safeil_sumo.idm.fit_idm`, the same calibration as the shipped fit);
+      (:func:`safeil_sumo.planners.idm.fit_idm`, the same calibration as the shipped fit);
     - ``safeil_median``: the checkpoint set to today's shrunk median of gap / speed
       (:func:`driver_time_gap`);
     - ``*_unadapted``, and planners without a setting: as they are.
@@ -244,8 +244,8 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
     import copy
     from dataclasses import replace
 
-    from safeil_sumo import idm
-    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.planners import idm
+    from safeil_sumo.planners import registry as pol
 
     est = None
     out = {}
@@ -272,12 +272,12 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
 
 def with_setting(policies: dict, time_gap_s: float | None) -> dict:
     """``policies`` with the planners that have a time-gap setting (style-conditioned
-    checkpoints, the IDM) set to ``time_gap_s`` [s] (:func:`safeil_sumo.planner_registry.
+    checkpoints, the IDM) set to ``time_gap_s`` [s] (:func:`safeil_sumo.planners.registry.
     with_time_gap`); the others as they are. None: ``policies`` itself. Copies: ``policies`` is
     unchanged."""
     import copy
 
-    from safeil_sumo import planner_registry as pol
+    from safeil_sumo.planners import registry as pol
 
     if time_gap_s is None:
         return policies
@@ -290,7 +290,7 @@ def adaptation(planners: dict) -> dict:
     a style-conditioned checkpoint, the IDM's parameters; ``{}`` for the others."""
     from dataclasses import asdict
 
-    from safeil_sumo import idm
+    from safeil_sumo.planners import idm
 
     return {label: asdict(p.params) if isinstance(p, idm.IDMPlanner)
             else dict(getattr(p, "style", None) or {}) for label, p in planners.items()}
@@ -469,7 +469,7 @@ class WindowJob:
 
     def policies(self) -> dict:
         """The planners by name (with the config's time-gap setting), loaded once per process."""
-        from safeil_sumo import planner_registry as pol
+        from safeil_sumo.planners import registry as pol
 
         if not self.loaded:
             planners = {name: pol.load_for_replay(name) for name in self.policy_names}

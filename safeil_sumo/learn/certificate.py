@@ -23,7 +23,7 @@ import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.learn.branch_and_bound import CertifyResult
 from safeil_sumo.learn.certify_margins import DIM_NAMES, FLOAT_MARGIN_M
 from safeil_sumo.learn.checkpoint import CheckpointError, checkpoint_paths, load_checkpoint

@@ -10,7 +10,7 @@ the network outputs there (one plan, open loop, exact features):
   whole spline stays behind the predicted leader), the bracket as in training
   (:func:`safeil_sumo.learn.losses.envelope_barrier_terms`: only where braking can reach it);
 - the **lane margin**: the 2 x 6 degree-6 Bernstein coefficients k = 1..6 of the left and right
-  lateral margins along the spline (:func:`safeil_sumo.bspline.lateral_margin_bernstein`, vehicle
+  lateral margins along the spline (:func:`safeil_sumo.core.bspline.lateral_margin_bernstein`, vehicle
   track T from the checkpoint's training config) are >= 0, so the whole planned path is inside the
   lane (k = 0, the car itself, does not depend on the plan; the envelope keeps it >= 0.17 m).
 
@@ -37,14 +37,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo.bspline import (
+from safeil_sumo.core.bspline import (
     ELEVATE_3_TO_6,
     LANE_FIT_RESIDUAL,
     LANE_FIT_WEIGHT,
     PRODUCT_WEIGHTS,
     lateral_margin_bernstein,
 )
-from safeil_sumo.features import N_FEATURES
+from safeil_sumo.core.features import N_FEATURES
 from safeil_sumo.learn import bounds as bnd
 from safeil_sumo.learn.envelope import EnvelopeConfig
 from safeil_sumo.learn.inference import MLPPolicy
@@ -432,7 +432,7 @@ def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
                          residual: tuple[np.ndarray, np.ndarray] | None = None,
                          terms: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Sound lower bounds ``(N, 12)`` of the lane rows (``left_b1..6, right_b1..6``) of a
-    lane-following head (:func:`safeil_sumo.bspline.lane_following_y`, ``props.lane_keep_m``)
+    lane-following head (:func:`safeil_sumo.core.bspline.lane_following_y`, ``props.lane_keep_m``)
     over envelope boxes ``[lo, hi] (N, n_z)`` whose x control points lie in ``[x_lo, x_hi]
     (N, 3)``, whatever the network's offsets. ``residual``: bounds ``(N, 7)`` x2 of ``R_k(x)``
     known otherwise (e.g. :func:`_residual_from_linear_x`), intersected with the box's own.
@@ -443,7 +443,7 @@ def lane_head_lane_lower(props: Properties, lo: np.ndarray, hi: np.ndarray,
     left row ``k`` is ``E_k0 (w/2 - off - T/2) + sum_i E_ki (w/2 - h t_i) - (1 - E_k0) T/2 +
     c2 R_k(x)`` (the right one with ``+off`` and ``-c2 R_k``), ``|t_i| < 1``. Where the offsets'
     room ``h = w/2 - keep - |c2| A(x)`` is positive, the allowance ``A`` covers the residual
-    (:func:`safeil_sumo.bspline.lane_fit_allowance`) and the row is at least ``E_k0 (w/2 - |off|
+    (:func:`safeil_sumo.core.bspline.lane_fit_allowance`) and the row is at least ``E_k0 (w/2 - |off|
     - T/2) + (1 - E_k0) (keep - T/2)``, whatever x; where it may be clipped at 0 (a residual
     larger than the lane's room somewhere in the box), ``h = 0`` leaves ``(1 - E_k0) (w/2 -
     T/2) - |c2| |R_k|``, and the smaller of the two holds."""

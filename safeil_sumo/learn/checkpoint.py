@@ -23,8 +23,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from safeil_sumo.atomic import atomic_path
-from safeil_sumo.features import FEATURE_NAMES, N_FEATURES
+from safeil_sumo.core.atomic import atomic_path
+from safeil_sumo.core.features import FEATURE_NAMES, N_FEATURES
 from safeil_sumo.learn.towers import weight_across_towers
 
 if TYPE_CHECKING:

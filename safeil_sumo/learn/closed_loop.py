@@ -29,11 +29,11 @@ import numpy.typing as npt
 import torch
 import torch.nn.functional as F
 
+from safeil_sumo.core.features import FEATURE_NAMES
+from safeil_sumo.core.policy import PLAN_HORIZON_S
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.features import FEATURE_NAMES
 from safeil_sumo.learn.losses import BarrierConfig, envelope_barrier_terms
 from safeil_sumo.learn.style import STANDSTILL_GAP_M
-from safeil_sumo.policy import PLAN_HORIZON_S
 
 V_X, V_LEAD, D_LEAD = (FEATURE_NAMES.index(n) for n in ("v_x", "v_lead", "d_lead"))
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo.features import N_FEATURES
+from safeil_sumo.core.features import N_FEATURES
 
 
 @dataclass(frozen=True)

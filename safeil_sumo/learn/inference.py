@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from safeil_sumo.bspline import lane_following_y
-from safeil_sumo.features import N_FEATURES
+from safeil_sumo.core.bspline import lane_following_y
+from safeil_sumo.core.features import N_FEATURES
+from safeil_sumo.core.policy import DEFAULT_TIME_GAP_S
 from safeil_sumo.learn.checkpoint import CheckpointError, load_checkpoint
-from safeil_sumo.policy import DEFAULT_TIME_GAP_S
 
 _ONE = (N_FEATURES,)
 _F64 = np.dtype(np.float64)

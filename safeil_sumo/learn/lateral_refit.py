@@ -33,7 +33,7 @@ Where the plans are equally long (slow, or the fine-tune did not change x) on a 
 the target is the reference's y exactly, so low-speed lane keeping is kept.
 
 With ``lateral_mode="lane"`` (the shipped recipe) the tower no longer outputs y: it outputs the
-offsets of :func:`safeil_sumo.bspline.lane_following_y`, which builds the centre part of the
+offsets of :func:`safeil_sumo.core.bspline.lane_following_y`, which builds the centre part of the
 target in closed form from the lane lines and the plan's own x, and bounds the offsets by the
 room the lane leaves; the refit fits the same targets through it.
 """
@@ -49,8 +49,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from safeil_sumo.core.features import N_FEATURES
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.features import N_FEATURES
 from safeil_sumo.learn import spline
 from safeil_sumo.learn.checkpoint import load_model, save_checkpoint
 from safeil_sumo.learn.closed_loop import envelope_terms

@@ -297,7 +297,7 @@ def reference_bounds(pb: PlanBounds, t: float, horizon: float, keep_m: float,
     decision, for every plan of the bounded outputs (:class:`Reference`).
 
     The plan is the Bezier curve of control points ``P0 = 0, P1..P3``; ``x_k = o_xk + v_s t_k``
-    and ``y_k = c0m + c1m x_k + h tanh(z_k)`` (:func:`safeil_sumo.bspline.lane_following_y` on a
+    and ``y_k = c0m + c1m x_k + h tanh(z_k)`` (:func:`safeil_sumo.core.bspline.lane_following_y` on a
     straight lane: centre ``c0m = -offset``, slope ``c1m``, half width less the keep ``h``).
     The constant-speed part ``v_s t_k`` adds exactly ``v_s`` to x' and nothing to x''.
     """

@@ -12,7 +12,7 @@ extra points sampled along the spline are options beyond the paper, OFF by defau
 
 ``BarrierConfig(lateral="bernstein")`` (beyond the paper) replaces the lane terms at the control
 points by ``K sum_k softplus(-b_k)`` over the exact degree-6 Bernstein coefficients ``b_k`` of the
-margin along the spline (:func:`safeil_sumo.bspline.lateral_margin_bernstein`), k = 1..6: all
+margin along the spline (:func:`safeil_sumo.core.bspline.lateral_margin_bernstein`), k = 1..6: all
 ``b_k >= 0`` keeps the whole trajectory inside, on curves too, where the control points of a
 lane-following plan sit outside the lane centre. k = 0 is the margin at the plan's origin (the car
 itself): it does not depend on the plan, so it is skipped, as the paper skips the origin. The leader
@@ -32,10 +32,10 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from safeil_sumo.bspline import GREVILLE
+from safeil_sumo.core.bspline import GREVILLE
 from safeil_sumo.learn import spline
 
-# Column indices of the features (safeil_sumo.features.FEATURE_NAMES).
+# Column indices of the features (safeil_sumo.core.features.FEATURE_NAMES).
 C0L, C1L, C2L, C0R, C1R, C2R, V_X, V_LEAD, D_LEAD = range(9)
 LATERAL_MODES = ("control_points", "bernstein")
 

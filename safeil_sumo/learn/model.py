@@ -34,11 +34,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from safeil_sumo.features import N_FEATURES
+from safeil_sumo.core.features import N_FEATURES
+from safeil_sumo.core.policy import PLAN_HORIZON_S
 from safeil_sumo.learn import spline
 from safeil_sumo.learn.style import STYLE_NAMES
 from safeil_sumo.learn.towers import N_OUTPUTS, tower_masks, tower_rows
-from safeil_sumo.policy import PLAN_HORIZON_S
 
 ACTIVATIONS = ("tanh", "relu")
 OUTPUT_MODES = ("absolute", "residual")

@@ -3,13 +3,13 @@
 Accuracy: control-point RMSE vs the fitted targets, ADE/FDE of the planned spline vs the
 demonstrated future at its sample times (``tau = t_k / T_h``), and the same ADE/FDE of the target
 control points (the spline's own fitting error: a floor for any planner).
-Safety: margins (>= 0 safe, see :mod:`safeil_sumo.safety_filter`) of every plan at its control
+Safety: margins (>= 0 safe, see :mod:`safeil_sumo.planners.safety_filter`) of every plan at its control
 points (``_cp``) and at points sampled along the spline (``_spline``), per constraint (``left``,
 ``right``, ``lead``): the worst margin over all plans, the mean of each plan's worst margin, and
 the fraction of plans violating. ``hull_gap_rate`` is the fraction of plans whose control points
 are safe while some spline point is not — where the convex-hull argument fails (curves).
 ``_bern``: the same stats of the lane margins' exact degree-6 Bernstein coefficients k = 1..6
-(:func:`safeil_sumo.safety_filter.bernstein_margins`; k = 0 is the car itself, skipped as the
+(:func:`safeil_sumo.planners.safety_filter.bernstein_margins`; k = 0 is the car itself, skipped as the
 origin is skipped everywhere else): a lower bound of the margin along the whole spline, exact on
 curves. ``target_violation_rate_{lateral,any}_{cp,bern,spline}``: the fraction of DEMONSTRATED
 targets that each formulation rejects (``lateral`` = left or right line; ``any`` adds the leader at
@@ -21,10 +21,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from safeil_sumo import bspline
+from safeil_sumo.core import bspline
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.data.tuples import Tuples
-from safeil_sumo.policy import Policy
-from safeil_sumo.safety_filter import DEFAULT_SAFE_SET, SafeSet, bernstein_margins, plan_margins
+from safeil_sumo.planners.safety_filter import (
+    DEFAULT_SAFE_SET,
+    SafeSet,
+    bernstein_margins,
+    plan_margins,
+)
 
 CONSTRAINTS = ("left", "right", "lead")
 LATERAL = ("left", "right")

@@ -1,4 +1,4 @@
-"""Torch version of the clamped cubic B-spline in :mod:`safeil_sumo.bspline` (the numpy reference).
+"""Torch version of the clamped cubic B-spline in :mod:`safeil_sumo.core.bspline` (the numpy reference).
 
 Same conventions: knots ``[0, 0, 0, 0, 1, 1, 1, 1]``, the first coefficient is the ego-frame origin,
 a plan is the three free control points ``(..., 3, 2)`` [m], ``tau = t / T_h``. Differentiable, so
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from safeil_sumo.bspline import (
+from safeil_sumo.core.bspline import (
     ELEVATE_3_TO_6,
     LANE_FIT,
     LANE_FIT_RESIDUAL,
@@ -52,7 +52,7 @@ def evaluate(control_points: torch.Tensor, tau: torch.Tensor, derivative: int = 
 def lateral_margin_bernstein(
     control_points: torch.Tensor, line: torch.Tensor, offset: float | torch.Tensor = 0.0
 ) -> torch.Tensor:
-    """Torch twin of :func:`safeil_sumo.bspline.lateral_margin_bernstein`: exact degree-6 Bernstein
+    """Torch twin of :func:`safeil_sumo.core.bspline.lateral_margin_bernstein`: exact degree-6 Bernstein
     coefficients ``(..., 7)`` [m] of ``line(x(tau)) + offset - y(tau)`` for plans ``(..., 3, 2)``
     and lines ``(..., 3)`` = ``[c0, c1, c2]``. Left margin: ``offset = -T/2``; right margin: the
     negation with ``offset = +T/2``."""
@@ -68,7 +68,7 @@ def lateral_margin_bernstein(
 
 def lane_following_y(lines: torch.Tensor, x: torch.Tensor, z: torch.Tensor,
                      keep_m: float) -> torch.Tensor:
-    """Torch twin of :func:`safeil_sumo.bspline.lane_following_y`: y control points ``(..., 3)``
+    """Torch twin of :func:`safeil_sumo.core.bspline.lane_following_y`: y control points ``(..., 3)``
     [m] following the lane of ``lines (..., 6)``, offset from its centre by ``h_i tanh(z_i)``."""
     free = torch.as_tensor(LANE_FREE, dtype=x.dtype)
     fit = torch.as_tensor(LANE_FIT, dtype=x.dtype)

@@ -4,7 +4,7 @@
 and a ``<stage>.done.json`` marker), the final checkpoint ``<name>.safetensors`` + ``.json``, its
 certificate ``<name>.certificate.json``, the IDM calibrated on the same training maneuvers
 ``<name>.idm.json`` (the report card's baseline) and ``summary.json`` / ``summary.md``. Every
-file is written atomically (:mod:`safeil_sumo.atomic`), a stage's marker last: a stage whose marker
+file is written atomically (:mod:`safeil_sumo.core.atomic`), a stage's marker last: a stage whose marker
 holds the same digest (the recipe's data, split and every stage up to it) and whose checkpoint
 still has the weights it recorded is not run again, so a rerun after an interrupt resumes at
 the first unfinished stage. Deterministic for the recipe's seeds: the stages' own functions
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.data.by_path import DataError, DataSpec, load_data, process, spec_digest
 from safeil_sumo.data.sources import driver_of
 from safeil_sumo.data.tuples import Tuples
@@ -300,7 +300,7 @@ def _run_one(stage: Stage, recipe: Recipe, paths: list[Path], starts: tuple[Path
 
 def _init_checkpoint(recipe: Recipe) -> Path:
     """The checkpoint the closed loop starts from when the open loop is off."""
-    from safeil_sumo import planner_registry
+    from safeil_sumo.planners import registry as planner_registry
 
     if recipe.init is None:
         raise RecipeError(f"{recipe.path}: the openloop stage is off: set init = a checkpoint "
@@ -395,7 +395,6 @@ def certify_final(recipe: Recipe, final: Path, out: Path, progress: bool, echo: 
     """The final checkpoint's certificate (as ``safeil-certify`` writes it, beside it), on the
     recipe's budget; reused when one with the same weights and budget is there. Its summary:
     certified share per margin, complete or not, seconds."""
-    from safeil_sumo import planner_registry
     from safeil_sumo.learn.branch_and_bound import Budget, certify
     from safeil_sumo.learn.certificate import (
         certificate_path,
@@ -404,6 +403,7 @@ def certify_final(recipe: Recipe, final: Path, out: Path, progress: bool, echo: 
     )
     from safeil_sumo.learn.certify_margins import CertEnvelope
     from safeil_sumo.learn.inference import MLPPolicy
+    from safeil_sumo.planners import registry as planner_registry
 
     spec = recipe.certify
     path = certificate_path(final)
@@ -435,12 +435,12 @@ def certify_final(recipe: Recipe, final: Path, out: Path, progress: bool, echo: 
 def fit_idm_baseline(prepared: Prepared, final: Path, out: Path, seed: int, echo: Echo
                      ) -> dict[str, Any]:
     """The IDM the report card compares the model with (``safeil-evaluate``): its five
-    parameters calibrated (:func:`safeil_sumo.idm.fit_idm`) on the model's training maneuvers,
+    parameters calibrated (:func:`safeil_sumo.planners.idm.fit_idm`) on the model's training maneuvers,
     every source pooled, the held-out maneuvers left out of the fit and scored; written beside
-    the checkpoint (:func:`safeil_sumo.idm.baseline_path`, ``held_out_from`` naming its
+    the checkpoint (:func:`safeil_sumo.planners.idm.baseline_path`, ``held_out_from`` naming its
     sidecar). Reused when
     its marker holds the same data digest. Its summary: path, parameters, RMSEs, seconds."""
-    from safeil_sumo import idm
+    from safeil_sumo.planners import idm
 
     path, marker = idm.baseline_path(final), out / "stages" / "idm.done.json"
     digest = _sha({"idm": prepared.digest, "seed": seed})

@@ -37,7 +37,7 @@ from safeil_sumo.learn.losses import (
 )
 from safeil_sumo.learn.model import ACTIVATIONS, OUTPUT_MODES, PlannerMLP
 from safeil_sumo.learn.open_loop_metrics import open_loop_metrics
-from safeil_sumo.safety_filter import SafeSet
+from safeil_sumo.planners.safety_filter import SafeSet
 
 METHODS = ("safeil", "bc")
 TERMS = ("imitation", "barrier_left", "barrier_right", "barrier_lead", "total")

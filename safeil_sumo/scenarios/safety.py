@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from safeil_sumo.scenarios.road import Road
+from safeil_sumo.roads.road import Road
 from safeil_sumo.sim.leaders import constant
 from safeil_sumo.sim.loop_types import Scenario
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from safeil_sumo.policy import PLAN_RATE_HZ
+from safeil_sumo.core.policy import PLAN_RATE_HZ
 
 if TYPE_CHECKING:
     from safeil_sumo.sim.leaders import SpeedProfile
@@ -55,7 +55,7 @@ class ScenarioSpec:
     net: str = "curved500"  # catalogue name (curved500, straight, curved<R>) or .net.xml path
     index: int = 0  # scenario index within the master seed [-]
     master_seed: int = 0  # with ``index`` gives the scenario seed (SUMO, sensors, draws) [-]
-    # a name of safeil_sumo.planner_registry.NAMES or a checkpoint/IDM path
+    # a name of safeil_sumo.planners.registry.NAMES or a checkpoint/IDM path
     policy: str = "analytic"
     safety_filter: bool = False  # wrap the policy in the inference-time safety filter
     # collision-avoidance braking under the planner (safeil_sumo.sim.brake_guard); False: the
@@ -85,7 +85,7 @@ class ScenarioSpec:
     # route`); () = the net's one edge. Left out of the JSON when empty, like leader_profile
     route: tuple[str, ...] = ()
     # ``net="n74"``: the stretch of direction A between these kilometre posts (None: its start /
-    # end; :func:`safeil_sumo.scenarios.n74.stretch_road`); left out of the JSON when None
+    # end; :func:`safeil_sumo.roads.n74.stretch_road`); left out of the JSON when None
     from_km: float | None = None
     to_km: float | None = None
     # background traffic of the net's route files: "" (none) or a density of
@@ -97,7 +97,7 @@ class ScenarioSpec:
     # of the JSON when ""
     lane: str = ""
     # the planner's preferred time gap [s] (an ACC's distance setting,
-    # :func:`safeil_sumo.planner_registry.with_time_gap`); None: its default; left out of the
+    # :func:`safeil_sumo.planners.registry.with_time_gap`); None: its default; left out of the
     # JSON then
     time_gap_s: float | None = None
 
@@ -252,9 +252,9 @@ def resolve_road(net: str, route: tuple[str, ...] = (), from_km: float | None = 
     ``n74`` without a route: its stretch ``from_km``-``to_km`` (default the whole carriageway).
     ``lane`` (see :attr:`ScenarioSpec.lane`): ``right``/``left`` on n74, a SUMO lane index of
     the first edge on a ``.net.xml``."""
-    from safeil_sumo.scenarios.catalogue import resolve_net
-    from safeil_sumo.scenarios.road import NetworkError, load_road
-    from safeil_sumo.scenarios.route import load_route
+    from safeil_sumo.roads.catalogue import resolve_net
+    from safeil_sumo.roads.road import NetworkError, load_road
+    from safeil_sumo.roads.route import load_route
 
     key = (net, tuple(route), from_km, to_km, lane or "")
     if key not in _ROADS:
@@ -264,7 +264,7 @@ def resolve_road(net: str, route: tuple[str, ...] = (), from_km: float | None = 
             except ValueError as exc:
                 raise NetworkError(str(exc)) from None
         if net == "n74" and not route:
-            from safeil_sumo.scenarios.n74 import stretch_road
+            from safeil_sumo.roads.n74 import stretch_road
 
             _ROADS[key] = stretch_road(from_km or 0.0, to_km, lane=lane or "right")
         elif from_km is not None or to_km is not None:

@@ -26,13 +26,11 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from safeil_sumo.policy import Policy
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import LoopConfig, Rollout, Scenario
-
-# re-exported: they were defined here before the stepper
-from safeil_sumo.sim.stepper import SPACING_M, ClosedLoop, StageClock  # noqa: F401
+from safeil_sumo.sim.stepper import ClosedLoop, StageClock
 from safeil_sumo.sim.sumo_setup import ApiFactory
 
 

@@ -22,7 +22,7 @@ import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
 
-from safeil_sumo.atomic import atomic_path
+from safeil_sumo.core.atomic import atomic_path
 
 # elements of a .net.xml that belong to one copy of the track (the rest, e.g. <location> and
 # <type>, appears once)

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.policy import PLAN_HORIZON_S
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.core.policy import PLAN_HORIZON_S
 from safeil_sumo.sim.recorded_ego import RecordedPathError
 
 CONSTANT_SPEED_NAME = "constant_speed"

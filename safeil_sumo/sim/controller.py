@@ -5,7 +5,7 @@ and a PID for the longitudinal dynamics; the acceleration command is then conver
 brake (:func:`safeil_sumo.sim.vehicle.pedals_from_accel`).
 
 A plan is three control points ``(3, 2)`` [m] in the ego frame at plan time (origin = front-bumper
-centre, x forward, y left), over a horizon ``T_h`` [s] (see :mod:`safeil_sumo.bspline`). At plan time
+centre, x forward, y left), over a horizon ``T_h`` [s] (see :mod:`safeil_sumo.core.bspline`). At plan time
 :func:`make_target` precomputes everything the per-step :func:`track` needs: dense path samples in
 the plan frame (extended backwards along the initial tangent and forwards along the final tangent,
 so a lookahead past either end still finds a point; a plan that curls back at its end, a stop,
@@ -28,7 +28,7 @@ from typing import cast
 
 import numpy as np
 
-from safeil_sumo import bspline
+from safeil_sumo.core import bspline
 from safeil_sumo.sim.vehicle import (
     VehicleParams,
     VehicleState,

@@ -14,8 +14,8 @@ from typing import Any
 
 import pandas as pd
 
-from safeil_sumo.policy import PLAN_RATE_HZ
-from safeil_sumo.scenarios.road import Road
+from safeil_sumo.core.policy import PLAN_RATE_HZ
+from safeil_sumo.roads.road import Road
 from safeil_sumo.sim import monitors as mon
 from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import traffic as trf

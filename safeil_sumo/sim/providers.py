@@ -25,7 +25,7 @@ from typing import TypeAlias
 
 import numpy as np
 
-from safeil_sumo.geometry import sumo_angle_to_yaw
+from safeil_sumo.core.geometry import sumo_angle_to_yaw
 from safeil_sumo.sim import traffic as trf
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import Scenario

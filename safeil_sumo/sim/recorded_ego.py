@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.policy import PLAN_HORIZON_S
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.core.policy import PLAN_HORIZON_S
 
 RECORDED_NAME = "recorded"
 

@@ -9,57 +9,21 @@ recorded pose), the ego is moved in SUMO (``moveTo`` on its lane while the front
 inside it, else ``moveToXY(keepRoute=2)``: ``LoopConfig.ego_placement``) + ``setSpeed``, the
 leader gets its profile speed (or SUMO's traffic drives), SUMO steps, and the monitors log TTC,
 lane departure and collisions. At ``plan_rate_hz`` the camera and radar are read and the policy
-re-plans. SUMO comes through :mod:`.sumo_api` (libsumo, traci, sumo-gui or a fake).
-
-The loop's setup and log were defined here before; their names are re-exported.
+re-plans. SUMO comes through :mod:`.sumo_api` (libsumo, traci, sumo-gui or a fake). The loop's
+types are :mod:`.loop_types`', its SUMO setup :mod:`.sumo_setup`'s and its log
+:mod:`.rollout_log`'s.
 """
 
 from __future__ import annotations
 
 import time
 
-from safeil_sumo.policy import Policy
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import vehicle as veh
-
-# the loop's types and parts, re-exported: they were defined here before
-from safeil_sumo.sim.loop_types import (  # noqa: F401
-    EGO_PLACEMENTS,
-    GUI_SCREENSHOT_AT_S,
-    LoopConfig,
-    Rollout,
-    Scenario,
-)
-from safeil_sumo.sim.rollout_log import (  # noqa: F401
-    SUMMARY_COLUMNS,
-    _Log,
-    drive_stats,
-    finish,
-    summarize,
-)
+from safeil_sumo.sim.loop_types import LoopConfig, Rollout, Scenario
 from safeil_sumo.sim.stepper import ClosedLoop
-from safeil_sumo.sim.sumo_setup import (  # noqa: F401
-    EGO_ID,
-    GUI_VIEW_WIDTH_M,
-    LEADER_ID,
-    LEADER_ROUTE_ID,
-    ROUTE_ID,
-    SAME_STATION_M,
-    ApiFactory,
-    _configure,
-    _depart,
-    footprints_overlap,
-    initial_state,
-    insert_vehicles,
-    lane_placeable,
-    leader_speeds,
-    max_steps,
-    place_ego,
-    start_positions,
-    sumo_args,
-    sumo_lane_position,
-    xy_placement_is_unambiguous,
-)
+from safeil_sumo.sim.sumo_setup import ApiFactory
 
 
 def run_scenario(

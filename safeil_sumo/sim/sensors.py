@@ -20,8 +20,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios.road import Lane, Road
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.roads.road import Lane, Road
 
 
 @dataclass(frozen=True)

@@ -59,9 +59,9 @@ from typing import Any, Self, TypeAlias, TypeVar
 
 import numpy as np
 
-from safeil_sumo.features import planner_features
-from safeil_sumo.geometry import Polyline, PolylineStack, yaw_to_sumo_angle
-from safeil_sumo.policy import Policy
+from safeil_sumo.core.features import planner_features
+from safeil_sumo.core.geometry import Polyline, PolylineStack, yaw_to_sumo_angle
+from safeil_sumo.core.policy import Policy
 from safeil_sumo.sim import brake_guard as grd
 from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import monitors as mon
@@ -160,7 +160,7 @@ class Observation:
     state). Positions are the original track's (a copy's shift taken off)."""
 
     t: np.ndarray  # (N,) simulation time of the row's state [s]
-    features: np.ndarray  # (N, 9) the planner's features (safeil_sumo.features) for the next plan
+    features: np.ndarray  # (N, 9) the planner's features (safeil_sumo.core.features) for the next plan
     x: np.ndarray  # (N,) ego centre of gravity [m]
     y: np.ndarray  # (N,) [m]
     yaw: np.ndarray  # (N,) ego heading [rad]

@@ -2,9 +2,8 @@
 depart, how the ego is placed (``moveToXY`` or ``moveTo`` on its lane), the run's length and the
 leader's speed commands, and the footprint overlap the monitors check.
 
-Shared by every driver of the loop (:class:`.stepper.ClosedLoop`); names and functions are
-re-exported by :mod:`.runner`, where they were defined before. The leader is read back by its
-provider (:mod:`.providers`).
+Shared by every driver of the loop (:class:`.stepper.ClosedLoop`). The leader is read back by
+its provider (:mod:`.providers`).
 """
 
 from __future__ import annotations
@@ -14,12 +13,12 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from safeil_sumo.geometry import (
+from safeil_sumo.core.geometry import (
     rectangle_corners,
     rectangles_overlap,
     yaw_to_sumo_angle,
 )
-from safeil_sumo.scenarios.road import Road
+from safeil_sumo.roads.road import Road
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario

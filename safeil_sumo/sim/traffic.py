@@ -63,7 +63,7 @@ class Traffic:
 def n74_traffic(density: str = "default", net_dir: Path | None = None) -> Traffic:
     """Direction-A traffic of ``sumo_scenarios/n74/n74.rou.xml`` (main flow + ramps; the
     opposite direction's file is not loaded: the ego never sees it)."""
-    from safeil_sumo.scenarios import n74
+    from safeil_sumo.roads import n74
 
     if density not in DENSITIES:
         raise ValueError(f"traffic density must be one of none, {', '.join(DENSITIES)}, got "

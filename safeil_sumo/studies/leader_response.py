@@ -19,9 +19,9 @@ from safeil_sumo.studies.shared import COLORS, LABELS, POLICIES, md_table, save_
 
 def leader(out: Path, work: Path, workers: int, seed: int, variants: int) -> dict:
     """The static probe and the leader-response suite, every planner."""
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import suite
     from safeil_sumo.experiments.leader_probe import probe
+    from safeil_sumo.planners import registry as pol
 
     probes = []
     for p in POLICIES:

@@ -44,8 +44,8 @@ def paper_like_window(source: str, maneuver: str | list[str] = "auto"
 
 
 def replay(out: Path, work: Path, seed: int) -> pd.DataFrame:
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import maneuver_replay as rp
+    from safeil_sumo.planners import registry as pol
 
     sources: dict[str, tuple[str, str | list[str]]] = {"openacc": ("openacc", "auto"),
                                                         "ngsim": ("ngsim", "auto")}

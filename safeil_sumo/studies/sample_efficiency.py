@@ -85,8 +85,8 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
 
 def _efficiency_replay(checkpoints: list[str], work: Path) -> list[float]:
     """d_lead RMSE vs the human on the OpenACC paper-like maneuver (NaN without the data)."""
-    from safeil_sumo import planner_registry as pol
     from safeil_sumo.experiments import maneuver_replay as rp
+    from safeil_sumo.planners import registry as pol
 
     try:
         mid, _, rows = paper_like_window("openacc")

@@ -16,7 +16,7 @@ def card(out: Path, work: Path, workers: int, seed: int) -> dict:
     (resumable in ``work/report_card``), its report, figures and tables copied into
     ``out/report_card``. Facts: its overall verdict and wall time."""
     from safeil_sumo import evaluate
-    from safeil_sumo.report_sections import shown_path
+    from safeil_sumo.report.sections import shown_path
 
     folder = work / CARD
     evaluate.main(["safeil", "--workers", str(workers), "--seed", str(seed), "--out",

@@ -2,7 +2,7 @@
 
 The closed loop never asks SUMO for geometry per step: sensors and monitors use this object.
 A road is one SUMO edge (a closed test track is one edge: docs/architecture.md), or a route of edges
-whose lanes are concatenated across the junctions (:mod:`safeil_sumo.scenarios.route`). Lane
+whose lanes are concatenated across the junctions (:mod:`safeil_sumo.roads.route`). Lane
 index 0 is the rightmost lane, as in SUMO. A sidecar ``<net stem>.track.json`` written by the network generator
 marks the test path (where the measured part of the scenario starts and ends on the ego lane).
 """
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios import track
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.roads import track
 
 
 class NetworkError(ValueError):
@@ -156,7 +156,7 @@ def load_road(
     """Read the lanes of ONE edge, ``edge_id`` (default: the net's only non-internal edge).
 
     ``ego_lane``: SUMO lane index of the ego (default: the sidecar's, else the middle lane).
-    For a route over several edges use :func:`safeil_sumo.scenarios.route.load_route` (CLI:
+    For a route over several edges use :func:`safeil_sumo.roads.route.load_route` (CLI:
     ``--route EDGE [EDGE ...]``).
 
     Raises :class:`NetworkError` with a one-line reason for a missing file, malformed XML, an

@@ -4,7 +4,7 @@ Names:
 - ``curved500``: the paper's safety track: a left-turning arc of radius 500 m (ego lane centre)
   and 1 km length, 3 lanes x 3.5 m, ego in the middle lane.
 - ``straight``: a 2 km straight 3-lane road. Its test path is what is left of the 2 km after the
-  run-in (ego insertion) and the run-out the leader needs (see ``network.DEFAULT_RUN_OUT_M``):
+  run-in (ego insertion) and the run-out the leader needs (see ``track.DEFAULT_RUN_OUT_M``):
   2000 - 30 - 800 = 1170 m.
 - ``curved<R>`` (``curved300``, ``curved1000``, ...): ``curved500`` with ego lane radius R [m].
 
@@ -23,14 +23,9 @@ import re
 from dataclasses import asdict
 from pathlib import Path
 
-from safeil_sumo.scenarios.network import (
-    DEFAULT_RUN_IN_M,
-    DEFAULT_RUN_OUT_M,
-    GENERATOR_VERSION,
-    TrackSpec,
-    build_network,
-)
-from safeil_sumo.scenarios.road import NetworkError
+from safeil_sumo.roads.network import GENERATOR_VERSION, build_network
+from safeil_sumo.roads.road import NetworkError
+from safeil_sumo.roads.track import DEFAULT_RUN_IN_M, DEFAULT_RUN_OUT_M, TrackSpec
 
 PAPER_RADIUS_M = 500.0  # ego lane centre radius of the paper's safety track [m]
 PAPER_ARC_LENGTH_M = 1000.0  # length of the paper's safety track [m]

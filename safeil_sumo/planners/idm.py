@@ -7,7 +7,7 @@ car-following baseline: what every car-following paper compares a data-driven mo
   2021, "Calibration of car-following models with single- and multi-step approaches").
 - :func:`fit_idm`: bounded least squares of the simulated spacing against the recorded one over
   whole maneuvers, from several seeded starts.
-- :class:`IDMPlanner`: the :class:`~safeil_sumo.policy.Policy` — the IDM simulated over the
+- :class:`IDMPlanner`: the :class:`~safeil_sumo.core.policy.Policy` — the IDM simulated over the
   horizon with the leader at its current speed, fitted to the same cubic B-spline as every planner,
   lateral as the analytic planner (lane centre).
 - A JSON model file (``format: safeil-idm-1``, no pickle): fits per source and per driver, and
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
-from safeil_sumo.analytic import lane_following_plan
+from safeil_sumo.planners.analytic import lane_following_plan
 
 FORMAT = "safeil-idm-1"
 MIN_GAP_M = 0.1  # [m] the gap in the interaction term is floored here (the model diverges at 0)
@@ -129,7 +129,7 @@ def maneuvers_from_tuples(tuples) -> list[Maneuver]:
     """:class:`Maneuver` list from training tuples (:class:`safeil_sumo.data.tuples.Tuples`;
     ``features`` ``v_x, v_lead, d_lead`` and ``t`` per sample), in maneuver-id order. A tuple needs a horizon of future, so each maneuver ends one
     horizon before the recording's rows do."""
-    from safeil_sumo.features import FEATURE_NAMES
+    from safeil_sumo.core.features import FEATURE_NAMES
 
     iv, il, ig = (FEATURE_NAMES.index(k) for k in ("v_x", "v_lead", "d_lead"))
     ids = np.asarray(tuples.maneuver_id).astype(str)
@@ -233,7 +233,7 @@ def fit_idm(maneuvers: list[Maneuver], seed: int = 0, starts: int = 4) -> IDMFit
 
 @dataclass(frozen=True)
 class IDMPlanner:
-    """Implements :class:`safeil_sumo.policy.Policy`: the IDM over the horizon, leader at its
+    """Implements :class:`safeil_sumo.core.policy.Policy`: the IDM over the horizon, leader at its
     current speed, fitted to the cubic B-spline; lateral: the analytic planner's lane following."""
 
     params: IDMParams = IDMParams()
@@ -274,7 +274,7 @@ class IDMPlanner:
 def save_model(path: str | Path, fits: dict[str, IDMFit], default: str,
                per_driver: dict[str, IDMFit] | None = None, extra: dict | None = None) -> None:
     """Write an IDM model file (JSON, atomically)."""
-    from safeil_sumo.atomic import atomic_path
+    from safeil_sumo.core.atomic import atomic_path
 
     if default not in fits:
         raise IDMError(f"default fit {default!r} not among {sorted(fits)}")

@@ -16,8 +16,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Protocol, cast
 
-from safeil_sumo.analytic import AnalyticPlanner
-from safeil_sumo.policy import Policy
+from safeil_sumo.core.policy import Policy
+from safeil_sumo.planners.analytic import AnalyticPlanner
 from safeil_sumo.sim.constant_speed_ego import CONSTANT_SPEED_NAME, ConstantSpeedPath
 from safeil_sumo.sim.recorded_ego import RECORDED_NAME, RecordedPath
 
@@ -93,7 +93,7 @@ def default_policy_name() -> str:
 def load(name_or_path: str) -> Policy:
     """Resolve ``analytic``, ``idm``, a shipped model (``safeil``, ``safeil_paper``, ``bc``), a
     path to a ``.safetensors`` checkpoint or to an IDM model file."""
-    from safeil_sumo import idm
+    from safeil_sumo.planners import idm
 
     if name_or_path == RECORDED_NAME:
         raise PolicyError("the 'recorded' pseudo-planner drives a recorded maneuver's own path: "
@@ -150,7 +150,7 @@ def load_for_replay(name_or_path: str) -> Policy:
     if name_or_path in ADAPTATION_VARIANTS:
         from dataclasses import replace
 
-        from safeil_sumo import idm
+        from safeil_sumo.planners import idm
 
         policy = load(ADAPTATION_VARIANTS[name_or_path][0])
         return replace(policy, name=name_or_path) if isinstance(policy, idm.IDMPlanner) else policy
@@ -166,7 +166,7 @@ def adaptation_of(label: str) -> str:
 def has_time_gap(policy: Policy) -> bool:
     """Whether ``policy`` has a time-gap setting (:func:`with_time_gap`): a style-conditioned
     checkpoint or the IDM."""
-    from safeil_sumo import idm
+    from safeil_sumo.planners import idm
 
     styled = "time_gap_s" in getattr(policy, "style_names", ())
     return styled or isinstance(policy, idm.IDMPlanner)
@@ -186,7 +186,7 @@ def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:
     :class:`PolicyError`."""
     from dataclasses import replace
 
-    from safeil_sumo import idm
+    from safeil_sumo.planners import idm
 
     if not (time_gap_s > 0):
         raise PolicyError(f"a time gap must be > 0 s, got {time_gap_s}")

@@ -43,10 +43,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from safeil_sumo.scenarios.road import Road
+    from safeil_sumo.roads.road import Road
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios.network import run_netconvert
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.roads.network import run_netconvert
 
 NAME = "n74"
 COMMITTED_DIR = Path(__file__).resolve().parents[2] / "sumo_scenarios" / NAME  # a checkout's
@@ -394,7 +394,7 @@ def build_n74(out_dir: Path, seed: int = DEFAULT_SEED) -> Path:
         (tmp / names[0]).write_text(nodes_xml(geo))
         (tmp / names[1]).write_text(edges_xml(geo))
         (tmp / names[2]).write_text(connections_xml(geo))
-        version = run_netconvert(NAME, tmp, "safeil_sumo.scenarios.n74",
+        version = run_netconvert(NAME, tmp, "safeil_sumo.roads.n74",
                                  ("--connection-files", f"{NAME}.con.xml"))
         (tmp / names[4]).write_text(routes_xml(geo))
         (tmp / names[5]).write_text(opposite_routes_xml(geo))
@@ -418,7 +418,7 @@ def stretch_edges(from_m: float, to_m: float, net_dir: Path | None = None
     """Direction-A edges covering reference arc lengths ``[from_m, to_m]`` [m] in driving
     order, with each edge's ``(s_start, s_end)`` [m]. Raises :class:`NetworkError` (one line) for
     a stretch outside the road or an empty one."""
-    from safeil_sumo.scenarios.road import NetworkError
+    from safeil_sumo.roads.road import NetworkError
 
     edges = layout(net_dir)["edges"]
     total = edges[-1]["s_end"]
@@ -438,19 +438,19 @@ def stretch_edges(from_m: float, to_m: float, net_dir: Path | None = None
 
 def stretch_road(from_km: float = 0.0, to_km: float | None = None, lane: str = "right",
                  net_dir: Path | None = None) -> Road:
-    """The :class:`~safeil_sumo.scenarios.road.Road` of direction A between two kilometre
+    """The :class:`~safeil_sumo.roads.road.Road` of direction A between two kilometre
     posts (reference-line chainage, the ``s_start``/``s_end`` of ``n74.json``; default: the
     whole carriageway), ego in the ``right`` (default) or ``left`` main lane.
 
-    The route is the edges covering the stretch (:func:`~safeil_sumo.scenarios.route.
+    The route is the edges covering the stretch (:func:`~safeil_sumo.roads.route.
     load_route`); the test path starts and ends at the kilometre posts, mapped onto the ego
     lane linearly within each edge (lanes of a curve are slightly longer or shorter than the
     reference line: < 0.3 % on n74), so the ego departs at ``from_km`` on the right edge.
     """
     from dataclasses import replace
 
-    from safeil_sumo.scenarios.road import NetworkError
-    from safeil_sumo.scenarios.route import load_route
+    from safeil_sumo.roads.road import NetworkError
+    from safeil_sumo.roads.route import load_route
 
     net_dir = net_dir or n74_dir()
     if lane not in ("right", "left"):
@@ -476,10 +476,10 @@ def stretch_road(from_km: float = 0.0, to_km: float | None = None, lane: str = "
 def n74_dir() -> Path:
     """The n74 files: the committed ``sumo_scenarios/n74`` of a checkout; an installed package
     (which holds no ``sumo_scenarios/``) builds them once into the network cache
-    (:func:`safeil_sumo.scenarios.catalogue.default_cache_dir`), from the same code."""
+    (:func:`safeil_sumo.roads.catalogue.default_cache_dir`), from the same code."""
     if (COMMITTED_DIR / f"{NAME}.json").is_file():
         return COMMITTED_DIR
-    from safeil_sumo.scenarios.catalogue import default_cache_dir
+    from safeil_sumo.roads.catalogue import default_cache_dir
 
     folder = default_cache_dir() / NAME
     if not (folder / f"{NAME}.json").is_file():

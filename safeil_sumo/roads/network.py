@@ -12,8 +12,8 @@ of the EGO lane centre, so the road centre line is drawn at ``radius_m + ego_lef
 Files written by :func:`build_network` into ``out_dir`` (all named after ``spec.name``):
 ``.nod.xml``, ``.edg.xml`` (inputs), ``.net.xml`` (netconvert), ``.rou.xml`` (route ``r0`` and
 vTypes ``ego`` / ``leader``, no vehicles), ``.sumocfg`` (opens in ``sumo-gui``) and the sidecar
-``.track.json`` read by :func:`safeil_sumo.scenarios.road.load_road`. The geometry itself
-(:class:`TrackSpec`, :func:`road_centre_line`) is :mod:`safeil_sumo.scenarios.track`'s.
+``.track.json`` read by :func:`safeil_sumo.roads.road.load_road`. The geometry itself
+(:class:`TrackSpec`, :func:`road_centre_line`) is :mod:`safeil_sumo.roads.track`'s.
 """
 
 from __future__ import annotations
@@ -30,14 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from safeil_sumo.scenarios.road import NetworkError, load_road
-
-# the track geometry, re-exported: callers use network.TrackSpec, network.road_centre_line, ...
-from safeil_sumo.scenarios.track import (  # noqa: F401
-    DEFAULT_RUN_IN_M,
-    DEFAULT_RUN_OUT_M,
-    GEOMETRY_SAGITTA_M,
-    MAX_SAGITTA_M,
+from safeil_sumo.roads.road import NetworkError, load_road
+from safeil_sumo.roads.track import (
     TrackSpec,
     ego_path_ends,
     road_centre_line,
@@ -261,7 +255,7 @@ def build_network(spec: TrackSpec, out_dir: Path) -> Path:
         (tmp / f"{name}.nod.xml").write_text(nodes_xml(shape))
         (tmp / f"{name}.edg.xml").write_text(
             edges_xml(shape, spec.lanes, spec.lane_width_m, spec.speed_limit_mps))
-        version = run_netconvert(name, tmp, "safeil_sumo.scenarios.network")
+        version = run_netconvert(name, tmp, "safeil_sumo.roads.network")
         (tmp / f"{name}.rou.xml").write_text(routes_xml())
         (tmp / f"{name}.sumocfg").write_text(sumocfg_xml(name))
         meta = _track_meta(spec, tmp / f"{name}.net.xml", version)

@@ -33,7 +33,7 @@ recorded path's stations are walked along the road from the start (:func:`record
 The sidecar ``<name>.track.json`` holds ``ego_lane``, ``path_start_s`` (the station of the
 recorded start on the SUMO ego lane) and ``path_end_s`` (the recorded end's plus
 ``path_end_margin_m``: a policy faster than the human is not stopped by the runner's "completed"
-check; the replay ends on time), read by :func:`safeil_sumo.scenarios.road.load_road`. It has no
+check; the replay ends on time), read by :func:`safeil_sumo.roads.road.load_road`. It has no
 ``generator_version`` key on purpose: that key makes ``load_road`` rebuild a TrackSpec arc; a
 replay's SUMO lane (5 cm chords) is its own exact geometry.
 """
@@ -53,9 +53,9 @@ import pandas as pd
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
 from scipy.signal import savgol_filter
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios import network
-from safeil_sumo.scenarios.road import NetworkError, Road, load_road
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.roads import network
+from safeil_sumo.roads.road import NetworkError, Road, load_road
 
 EDGE_ID = network.EDGE_ID
 ROUTE_ID = network.ROUTE_ID
@@ -541,7 +541,7 @@ def build_replay_net(rows: pd.DataFrame, out_dir: Path, name: str,
         (tmp / f"{name}.nod.xml").write_text(network.nodes_xml(geo.shape, NODE_SHAPE_M))
         (tmp / f"{name}.edg.xml").write_text(network.edges_xml(
             geo.shape, config.lanes, geo.lane_width_m, config.speed_limit_mps))
-        version = network.run_netconvert(name, tmp, "safeil_sumo.scenarios.recorded_road")
+        version = network.run_netconvert(name, tmp, "safeil_sumo.roads.recorded_road")
         (tmp / f"{name}.rou.xml").write_text(network.routes_xml())
         (tmp / f"{name}.sumocfg").write_text(network.sumocfg_xml(name))
         net = tmp / f"{name}.net.xml"

@@ -1,7 +1,7 @@
 """The sections of ``safeil-evaluate`` (:mod:`safeil_sumo.evaluate`): each runs the library
 functions an existing command calls (no engine of its own), writes its tables into
 ``<out>/data``, its figures into ``<out>/figures``, keeps the engines' resumable task files in
-``<out>/work`` and returns a :class:`~safeil_sumo.report_card.Section` with its numbers, its
+``<out>/work`` and returns a :class:`~safeil_sumo.report.card.Section` with its numbers, its
 checks and the command that reproduces it.
 
 1. ``safety``: the paper's safety test (``safeil-run --net curved500``: 10 scenarios) and an
@@ -33,15 +33,15 @@ import numpy as np
 import pandas as pd
 
 from safeil_sumo import api
-from safeil_sumo import planner_registry as pol
-from safeil_sumo import report_figures as figs
 from safeil_sumo.data.by_path import DataSpec
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR
 from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.experiments import plots
 from safeil_sumo.experiments import suite as st
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
-from safeil_sumo.report_card import (
+from safeil_sumo.planners import registry as pol
+from safeil_sumo.report import figures as figs
+from safeil_sumo.report.card import (
     Check,
     Section,
     all_completed,

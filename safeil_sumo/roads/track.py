@@ -1,7 +1,7 @@
 """The geometry of the generated test tracks: :class:`TrackSpec` and its centre line.
 
-Pure numpy, no SUMO: :mod:`safeil_sumo.scenarios.network` writes a spec's SUMO files, and
-:mod:`safeil_sumo.scenarios.road` rebuilds a generated track's exact lanes from the spec stored
+Pure numpy, no SUMO: :mod:`safeil_sumo.roads.network` writes a spec's SUMO files, and
+:mod:`safeil_sumo.roads.road` rebuilds a generated track's exact lanes from the spec stored
 beside its net (the net itself holds a coarser polygon). Both import it from here.
 
 A track is a straight run-in, a circular arc turning LEFT (counter-clockwise), and a straight

@@ -16,16 +16,16 @@ from pathlib import Path
 
 import pandas as pd
 
-from safeil_sumo import idm
-from safeil_sumo import planner_registry as pol
-from safeil_sumo import report_figures as figs
 from safeil_sumo.data.by_path import DataSpec, load_data
 from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import load_source
 from safeil_sumo.experiments import maneuver_replay as rp
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.learn.checkpoint import CheckpointError, held_out_maneuvers
-from safeil_sumo.report_card import (
+from safeil_sumo.planners import idm
+from safeil_sumo.planners import registry as pol
+from safeil_sumo.report import figures as figs
+from safeil_sumo.report.card import (
     Check,
     Number,
     Section,
@@ -34,7 +34,7 @@ from safeil_sumo.report_card import (
     command_line,
     none_of,
 )
-from safeil_sumo.report_sections import (
+from safeil_sumo.report.sections import (
     REPLAY_BASELINES,
     REPLAY_SOURCES,
     SHIPPED_SIDECAR,
@@ -76,7 +76,7 @@ def held_out_sidecar(model: str) -> Path:
 
 def baseline_idm(model: str) -> str:
     """The calibrated IDM the model is compared with: the one ``safeil-train`` calibrated on a
-    checkpoint's training maneuvers beside it (:func:`safeil_sumo.idm.baseline_path`), else the
+    checkpoint's training maneuvers beside it (:func:`safeil_sumo.planners.idm.baseline_path`), else the
     shipped ``idm`` (calibrated on the shipped SafeIL's training data)."""
     path = pol.policy_file(model)
     own = idm.baseline_path(path) if path.suffix == ".safetensors" else None

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo import bspline
-from safeil_sumo.policy import Policy
+from safeil_sumo.core import bspline
+from safeil_sumo.core.policy import Policy
 
 C0L, C0R, V_X, V_LEAD, D_LEAD = 0, 3, 6, 7, 8
 

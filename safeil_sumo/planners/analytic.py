@@ -9,13 +9,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from safeil_sumo import bspline
-from safeil_sumo.policy import DEFAULT_TIME_GAP_S, PLAN_HORIZON_S
+from safeil_sumo.core import bspline
+from safeil_sumo.core.policy import DEFAULT_TIME_GAP_S, PLAN_HORIZON_S
 
 
 @dataclass(frozen=True)
 class AnalyticPlanner:
-    """Implements :class:`safeil_sumo.policy.Policy`.
+    """Implements :class:`safeil_sumo.core.policy.Policy`.
 
     Longitudinal: ``a = k_gap (d - d*) + k_speed (v_lead - v)`` with ``d* = gap_min + time_gap v``,
     capped to reach ``v_desired`` on a free road; simulated over the horizon with the leader at

@@ -1,6 +1,6 @@
 """The planner seam: one Policy protocol for SafeIL, BC and analytic planners.
 
-A policy maps the 9 planner features (see :mod:`safeil_sumo.features`) to the three free control
+A policy maps the 9 planner features (see :mod:`safeil_sumo.core.features`) to the three free control
 points ``(3, 2)`` [m, ego frame] of the cubic B-spline plan over the horizon ``horizon`` [s].
 """
 

@@ -1,4 +1,4 @@
-"""The figures of the report card (:mod:`safeil_sumo.report_sections`) that no existing command
+"""The figures of the report card (:mod:`safeil_sumo.report.sections`) that no existing command
 draws: rates with their Wilson intervals, the leader-response suite per family, the human's and
 each planner's gap and speed over whole replayed maneuvers, and a falsification search's curve.
 Each takes plain tables and writes one PNG."""

@@ -1,4 +1,4 @@
-"""A route of SUMO edges as one :class:`~safeil_sumo.scenarios.road.Road`: the ego's lane is
+"""A route of SUMO edges as one :class:`~safeil_sumo.roads.road.Road`: the ego's lane is
 followed across each junction through SUMO's ``<connection>`` (its ``via`` internal lane bridges
 the junction), and each lane of the road is ONE polyline: edge lane + internal lane + next edge
 lane + ... . Sensors, monitors and ``path completed`` then work on it as on a single edge.
@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from safeil_sumo.geometry import Polyline
-from safeil_sumo.scenarios.road import (
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.roads.road import (
     Lane,
     NetworkError,
     Road,
@@ -148,7 +148,7 @@ def load_route(net_path: str | Path, edges: Sequence[str], ego_lane: int | None 
     """The road along ``edges`` (SUMO edge ids in driving order), ego in lane ``ego_lane`` of the
     first edge (SUMO index; default: the middle lane).
 
-    One edge gives exactly :func:`~safeil_sumo.scenarios.road.load_road`. Raises
+    One edge gives exactly :func:`~safeil_sumo.roads.road.load_road`. Raises
     :class:`NetworkError` (one line) for an unknown edge, consecutive edges that SUMO does not
     connect, or an ego lane that does not continue across a junction: a route ends where the
     ego's lane ends.

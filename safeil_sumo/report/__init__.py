@@ -1,0 +1,2 @@
+"""The report card of ``safeil-evaluate``: its sections over the engines, their figures and
+verdicts."""
