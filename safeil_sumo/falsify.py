@@ -6,13 +6,16 @@
 Searches leader braking (onset, deceleration, duration), cut-ins (gap, speed), recorded NGSIM
 leader windows, the track's radius and sensor noise for the lowest min TTC among scenarios that
 braking at 6 m/s^2 could still avoid (docs/falsification.md), in batches of ``--batch``
-scenarios per SUMO simulation, with the cross-entropy method or uniform random sampling.
+scenarios per SUMO simulation, with the cross-entropy method or uniform random sampling. A
+batch runs on the task engine: in this process, split over ``--workers`` local processes, or on
+a Dask cluster (``--scheduler``).
 
 Writes into ``--out`` (default ``runs/falsify_<policy>_<method>_s<seed>``): ``evaluations.csv``
 (every simulation: its parameters, min TTC, flag, avoidability, score and spec),
 ``summary.json``, and the worst avoidable case as ``worst.json`` (its ScenarioSpec) and
 ``worst.toml``, which ``python -m safeil_sumo.sweep --config worst.toml`` reruns. A finished
-search with the same options in ``--out`` is read back, not rerun.
+search with the same options in ``--out`` is read back, not rerun; an interrupted one
+(Ctrl-C) keeps every finished simulation in ``--out/tasks`` and the same command resumes it.
 """
 
 from __future__ import annotations
@@ -26,9 +29,12 @@ from safeil_sumo.cli_args import (
     CommandParser,
     add_dataclass_options,
     add_policy_option,
+    add_scheduler_option,
+    check_scheduler,
     dataclass_from_args,
     interruptible,
     one_policy,
+    positive_int,
 )
 from safeil_sumo.experiments import falsification_search as fz
 from safeil_sumo.experiments import outputs
@@ -58,6 +64,10 @@ def build_parser() -> CommandParser:
                           names={"budget": "--budget-sims"})
     p.add_argument("--out", type=Path, default=None,
                    help="results folder (default runs/falsify_<policy>_<method>_s<seed>)")
+    p.add_argument("--workers", type=positive_int, default=1,
+                   help="local worker processes a batch is split over (default 1: one "
+                        "simulation in this process)")
+    add_scheduler_option(p)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -66,6 +76,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = build_parser()
     args = p.parse_args(argv)
     args.policy = one_policy(p, args, "search each planner in turn")
+    check_scheduler(p, args)
     try:
         args.config = dataclass_from_args(fz.SearchConfig, args)
     except ValueError as exc:
@@ -102,9 +113,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         result = fz.run_or_load(args.policy, args.config, args.out,
-                                progress=not args.no_progress)
+                                progress=not args.no_progress, workers=args.workers,
+                                scheduler=args.scheduler)
     except KeyboardInterrupt:
-        print("\ninterrupted: nothing saved (a search is saved when it ends)", file=sys.stderr)
+        print(f"\ninterrupted: the finished simulations are kept in {args.out / 'tasks'}; the "
+              "same command resumes the search", file=sys.stderr)
         return 130
     s = fz.summary(result, args.policy)
     toml = fz.write_worst(result, args.policy, args.out)

@@ -131,27 +131,72 @@ def test_failure_counts_and_first_failure_skip_unavoidable_flags() -> None:
     assert fz.first_at_or_below(result, 0.5) == 3
 
 
-def test_the_closed_loop_objective_runs_the_decoded_points_in_order(monkeypatch) -> None:
-    """The glue between the search and the sweep engine: each point decoded with the policy,
-    time limit and guard setting, all run as one batch, each record scored against its own
-    spec. The engine is replaced by a recorder here: the libsumo run is the CLI test's."""
+def _planted_record(spec) -> dict:
+    """A stand-in for a SUMO run's record: a TTC flag below 20 m/s of leader speed."""
+    slow = spec.leader_speed_range_mps[0] < 20.0
+    return {"status": "ok", "sim_time_s": spec.max_time_s, "flag": "ttc" if slow else "",
+            "min_ttc_s": 0.5 if slow else 3.0}
+
+
+def test_the_closed_loop_objective_runs_the_decoded_points_in_order(monkeypatch, tmp_path
+                                                                    ) -> None:
+    """The glue between the search and the task engine: each point decoded with the policy,
+    time limit and guard setting, all run as one batch (one simulation), each record scored
+    against its own spec; a batch already recorded in the tasks folder is read, not run. The
+    simulation is replaced by a recorder here: the libsumo run is the CLI test's."""
     from safeil_sumo.experiments import sweep_executor
 
     batches = []
 
-    def run_tasks(specs):
+    def run_tasks(specs, on_record=None):
         batches.append(list(specs))
-        return [{"status": "ok", "sim_time_s": s.max_time_s, "flag": "ttc" if k else "",
-                 "min_ttc_s": 0.5 if k else 3.0} for k, s in enumerate(specs)]
+        for k, s in enumerate(specs):
+            on_record(k, _planted_record(s))
 
     monkeypatch.setattr(sweep_executor, "run_tasks", run_tasks)
     u = np.random.default_rng(2).random((3, fz.DIM))
     outcomes = fz.closed_loop_objective("bc", max_time_s=12.0, brake_guard=False)(u)
     assert batches == [[fz.decode(x, "bc", 12.0, False) for x in u]]
-    assert outcomes == [fz.outcome_of(s, r) for s, r in zip(batches[0], run_tasks(batches[0]),
-                                                              strict=True)]
-    fz.closed_loop_objective("idm")(u[:1])
-    assert batches[-1] == [fz.decode(u[0], "idm", 30.0, True)]
+    assert outcomes == [fz.outcome_of(s, _planted_record(s)) for s in batches[0]]
+    objective = fz.closed_loop_objective("idm", tasks_dir=tmp_path)
+    objective(u[:2])
+    assert batches[-1] == [fz.decode(x, "idm", 30.0, True) for x in u[:2]]
+    assert len(list(tmp_path.glob("*.json"))) == 2
+    assert objective(u[:2]) == [fz.outcome_of(fz.decode(x, "idm", 30.0, True),
+                                              _planted_record(fz.decode(x, "idm", 30.0, True)))
+                                for x in u[:2]]
+    assert len(batches) == 2  # read back from the records
+
+
+def test_an_interrupted_search_resumes_from_its_finished_runs(monkeypatch, tmp_path) -> None:
+    """Ctrl-C in the middle of a batch keeps the runs that ended; the same search started again
+    simulates only the rest and ends with the table of a search never interrupted."""
+    from safeil_sumo.experiments import sweep_executor
+
+    ran, stop_after = [], [7]
+
+    def run_tasks(specs, on_record=None):
+        for k, s in enumerate(specs):
+            if len(ran) == stop_after[0]:
+                raise KeyboardInterrupt
+            ran.append(s)
+            on_record(k, _planted_record(s))
+
+    monkeypatch.setattr(sweep_executor, "run_tasks", run_tasks)
+    cfg = fz.SearchConfig(method="cem", budget=12, batch=4, seed=1, max_time_s=12.0)
+    folder = tmp_path / "search"
+    with pytest.raises(KeyboardInterrupt):
+        fz.run_or_load("bc", cfg, folder)
+    assert not (folder / "evaluations.csv").exists()
+    assert len(list((folder / "tasks").glob("*.json"))) == 7  # 4 of batch 1, 3 of batch 2
+    stop_after[0] = 10**6
+    resumed = fz.run_or_load("bc", cfg, folder)
+    assert len(ran) == 12  # 7 before, the 5 left now
+    assert not (folder / "tasks").exists()  # every record is in evaluations.csv
+    ran.clear()
+    fresh = fz.run_or_load("bc", cfg, tmp_path / "fresh")
+    assert len(ran) == 12
+    pd.testing.assert_frame_equal(fz.table(resumed, "bc"), fz.table(fresh, "bc"))
 
 
 def test_avoidability_is_judged_on_the_physics_grid_from_0_to_the_horizon() -> None:
@@ -506,8 +551,8 @@ def test_every_outcome_field_round_trips_and_the_table_says_what_ran(tmp_path) -
 
 @pytest.mark.sumo
 def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
-    """A tiny CEM search of the analytic planner in SUMO, twice: the same scenarios and
-    outcomes; its worst case is written as a spec and a sweep file; a rerun reads it back."""
+    """A tiny CEM search of the analytic planner in SUMO, twice, its batches in one simulation
+    and split over two workers: the same scenarios and outcomes; its worst case is written as a spec and a sweep file; a rerun reads it back."""
     pytest.importorskip("libsumo")
     from fixtures_data import NGSIM_PAIRS, require_file
 
@@ -517,8 +562,8 @@ def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
     args = ["--policy", "analytic", "--method", "cem", "--budget-sims", "6", "--batch", "3",
             "--seed", "2", "--max-time-s", "4", "--no-progress"]
     tables = []
-    for name in ("a", "b"):
-        assert falsify.main([*args, "--out", str(tmp_path / name)]) == 0
+    for name, workers in (("a", "1"), ("b", "2")):  # one simulation per batch, or two
+        assert falsify.main([*args, "--out", str(tmp_path / name), "--workers", workers]) == 0
         tables.append(pd.read_csv(tmp_path / name / "evaluations.csv"))
     out = capsys.readouterr().out
     assert "first failure at simulation" in out and "rerun it: python -m safeil_sumo.sweep" in out
@@ -539,7 +584,8 @@ def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
 def test_cli_refuses_bad_options(capsys) -> None:
     from safeil_sumo import falsify
 
-    for bad in (["--method", "bayes"], ["--budget-sims", "0"], ["--batch", "-1"]):
+    for bad in (["--method", "bayes"], ["--budget-sims", "0"], ["--batch", "-1"],
+                ["--workers", "0"], ["--workers", "2", "--scheduler", "tcp://h:1"]):
         with pytest.raises(SystemExit) as exit_:
             falsify.parse_args(bad)
         assert exit_.value.code == 2
@@ -563,8 +609,8 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
         calls.append((config, objective))
         return real_search(config, objective, on_batch)
 
-    def objective(*args):
-        made.append(args)
+    def objective(*args, **kwargs):
+        made.append((args, kwargs))
         return planted
 
     monkeypatch.setattr(fz, "search", counted)
@@ -574,7 +620,9 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
     folder = tmp_path / "studies" / "m"  # made with its parents
     first = fz.run_or_load(str(weights), cfg, folder)
     # searched with the planner's objective at the config's time limit and guard setting
-    assert made == [(str(weights), 12.0, False)] and calls == [(cfg, planted)]
+    assert made == [((str(weights), 12.0, False), {"tasks_dir": folder / "tasks", "workers": 1,
+                                                    "scheduler": None})]
+    assert calls == [(cfg, planted)]
     assert sorted(p.name for p in folder.iterdir()) == ["config.json", "evaluations.csv"]
     # the table as written: no index column, each row's spec names the planner searched
     written = pd.read_csv(folder / "evaluations.csv")

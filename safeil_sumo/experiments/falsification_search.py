@@ -21,7 +21,10 @@ planner is not blamed for physics. A *failure* is a flagged avoidable run.
 Methods (:func:`search`), each from one explicit seed: ``random`` (uniform in the box) and
 ``cem`` (the cross-entropy method: the first batch uniform, then a Gaussian per coordinate
 refit to the batch's elite fraction, smoothed, clipped to the box: :func:`cem_update`). A
-batch is ONE SUMO simulation (:func:`.sweep.run_tasks`, the batched closed loop).
+batch runs on the task engine (:func:`.task_engine.execute`) as sweep tasks: one SUMO
+simulation (the batched closed loop) in this process, or split over local workers or a Dask
+cluster; each run's record is kept as it ends, so an interrupted search started again reads
+the runs it had (the same seed draws the same points) and simulates only the rest.
 """
 
 from __future__ import annotations
@@ -29,7 +32,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
+import tempfile
 from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -292,15 +298,25 @@ def outcome_of(spec: ScenarioSpec, record: dict) -> Outcome:
     return Outcome(score(min_ttc, flag, ok), ok and bool(flag), min_ttc, flag, ok)
 
 
-def closed_loop_objective(policy: str, max_time_s: float = 30.0,
-                          brake_guard: bool = True) -> Objective:
+def closed_loop_objective(policy: str, max_time_s: float = 30.0, brake_guard: bool = True,
+                          tasks_dir: Path | None = None, workers: int = 1,
+                          scheduler: str | None = None) -> Objective:
     """The objective of planner ``policy`` in SUMO: a batch of points decoded into specs and run
-    side by side in ONE simulation (:func:`.sweep.run_tasks` drives ``sim.batch.run_batch``)."""
-    from safeil_sumo.experiments.sweep_executor import run_tasks
+    on the task engine as one unit, i.e. side by side in ONE simulation (``workers=1``), or
+    split over ``workers`` local processes or a Dask ``scheduler``. Each run's record is kept in
+    ``tasks_dir`` (None: a temporary folder) as it ends; a run already recorded there is read,
+    not simulated again."""
+    from safeil_sumo.experiments.sweep_executor import SweepJob
+    from safeil_sumo.experiments.task_engine import execute, read_record, record_path
 
     def evaluate(u: np.ndarray) -> list[Outcome]:
         specs = [decode(x, policy, max_time_s, brake_guard) for x in u]
-        return [outcome_of(s, r) for s, r in zip(specs, run_tasks(specs), strict=True)]
+        job = SweepJob(batch=len(specs), mixed_nets=True)
+        with ExitStack() as stack:
+            folder = tasks_dir or Path(stack.enter_context(tempfile.TemporaryDirectory()))
+            execute(specs, job, folder, workers, scheduler, progress=False)
+            records = [read_record(record_path(folder, job, s)) or {} for s in specs]
+        return [outcome_of(s, r) for s, r in zip(specs, records, strict=True)]
 
     return evaluate
 
@@ -409,33 +425,41 @@ def write_worst(result: SearchResult, policy: str, folder: Path, stem: str = "wo
     return toml
 
 
-def run_or_load(policy: str, config: SearchConfig, folder: Path, progress: bool = False
-                ) -> SearchResult:
+def run_or_load(policy: str, config: SearchConfig, folder: Path, progress: bool = False,
+                workers: int = 1, scheduler: str | None = None) -> SearchResult:
     """The search of ``policy`` under ``config``, read from ``folder`` if a run with the same
-    config and the same policy weights finished there, else run (in SUMO) and saved:
-    ``evaluations.csv``, ``config.json`` (with the policy's fingerprint, so a retrained model
-    never reads the searches of the model before)."""
+    config and the same policy weights finished there, else run (in SUMO, on ``workers`` local
+    processes or a Dask ``scheduler``) and saved: ``evaluations.csv``, ``config.json`` (with the
+    policy's fingerprint, so a retrained model never reads the searches of the model before).
+    While it runs, ``tasks/`` keeps each simulation's record: an interrupted search resumes
+    from them (only with the same weights: the folder is cleared for others)."""
     from safeil_sumo.planners import registry as planner_registry
 
-    done = folder / "evaluations.csv"
+    done, tasks = folder / "evaluations.csv", folder / "tasks"
     cfg = {"policy": policy, "policy_fingerprint": planner_registry.fingerprint(policy),
            **asdict(config)}
-    if done.is_file() and (folder / "config.json").is_file() and json.loads(
-            (folder / "config.json").read_text()) == cfg:
-        return read_table(done, config)
+    saved = folder / "config.json"
+    if saved.is_file() and json.loads(saved.read_text()) == cfg:
+        if done.is_file():
+            return read_table(done, config)
+    else:  # another search's (or another model's) records: not this search's
+        shutil.rmtree(tasks, ignore_errors=True)
+        done.unlink(missing_ok=True)
+    folder.mkdir(parents=True, exist_ok=True)
+    saved.write_text(json.dumps(cfg, indent=1) + "\n")
     from tqdm import tqdm
 
     bar = tqdm(total=config.budget, desc=f"{policy} {config.method} s{config.seed}",
                unit="sim", disable=not progress or None)
     try:
-        result = search(config, closed_loop_objective(policy, config.max_time_s,
-                                                            config.brake_guard), bar.update)
+        result = search(config, closed_loop_objective(
+            policy, config.max_time_s, config.brake_guard, tasks_dir=tasks, workers=workers,
+            scheduler=scheduler), bar.update)
     finally:
         bar.close()
-    folder.mkdir(parents=True, exist_ok=True)
     with atomic_path(done) as tmp:
         table(result, policy).to_csv(tmp, index=False)
-    (folder / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
+    shutil.rmtree(tasks, ignore_errors=True)  # every record is in evaluations.csv now
     return result
 
 

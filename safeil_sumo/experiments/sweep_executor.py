@@ -280,11 +280,15 @@ class SweepJob:
     ``<task_id>.json``; with ``batch`` > 1 the specs that can share a simulation
     (:func:`batch_key`) run up to ``batch`` at a time in one (:func:`run_tasks`, for the default
     ``task_fn``), each record given as its scenario ends; else ``task_fn`` per spec.
-    ``prepare_nets``: build the pending tasks' curved<R> nets once before the workers start."""
+    ``prepare_nets``: build the pending tasks' curved<R> nets once before the workers start.
+    ``mixed_nets``: the tasks share their planner and loop settings by construction (a
+    falsification batch), so units are even slices of them in order, their nets mixed in one
+    simulation (``sim.batch.run_batch`` lays each on its own copy of its net)."""
 
     task_fn: TaskFn = run_task
     batch: int = 1
     prepare_nets: bool = False
+    mixed_nets: bool = False
 
     def task_id(self, spec: ScenarioSpec) -> str:
         return task_id(spec)
@@ -292,10 +296,14 @@ class SweepJob:
     def units(self, todo: list[ScenarioSpec], workers: int) -> list[tuple[ScenarioSpec, ...]]:
         if self.prepare_nets:
             _prepare_nets(todo)
-        return batches(todo, self.batch, workers) if self.batch > 1 else [(s,) for s in todo]
+        if self.batch == 1:
+            return [(s,) for s in todo]
+        if self.mixed_nets:
+            return even_units(todo, self.batch, workers)
+        return batches(todo, self.batch, workers)
 
     def run_unit(self, unit: tuple[ScenarioSpec, ...], emit: Emit) -> None:
-        if self.task_fn is run_task and len(unit) > 1:
+        if self.task_fn is run_task:  # one simulation for the unit (one spec: run_task)
             run_tasks(unit, on_record=emit)
             return
         for k, spec in enumerate(unit):
