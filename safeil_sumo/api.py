@@ -28,8 +28,9 @@ from safeil_sumo.experiments.maneuver_replay import ReplayConfig
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.experiments.window_replays import DEFAULT_BATCH as REPLAY_BATCH
 from safeil_sumo.planners import registry as planner_registry
+from safeil_sumo.planners.registry import PlannerRef
 from safeil_sumo.roads.road import Road
-from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task, build_scenario
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario
 from safeil_sumo.sim.runner import run_scenario
 from safeil_sumo.sim.vehicle import VehicleParams
@@ -121,15 +122,21 @@ def policy_names(policy: str | Sequence[str]) -> list[str]:
 def sweep(policy: str | Sequence[str], out: str | Path, scenarios: int = 10,
           nets: Sequence[str] = ("curved500",), seed: int = 0, workers: int = 1,
           batch: int = DEFAULT_BATCH, scheduler: str | None = None,
-          **spec: Any) -> pd.DataFrame:
-    """A resumable sweep (nets x policies x scenarios; ``spec``: ScenarioSpec fields) written to
-    ``out``; returns its summary (one row per task). ``policy``: a name or path, or several
-    (they travel to worker processes); up to ``batch`` scenarios share one SUMO simulation
-    (1: one each). ``scheduler`` (``"tcp://host:port"``): the tasks run on that Dask cluster
-    instead of ``workers`` local processes."""
-    specs = [ScenarioSpec(net=n, index=i, master_seed=seed, policy=p, **spec)
+          loop: LoopConfig | None = None, safety_filter: bool = False,
+          time_gap_s: float | None = None, **spec: Any) -> pd.DataFrame:
+    """A resumable sweep (nets x policies x scenarios) written to ``out``; returns its summary
+    (one row per task). Each task is a :class:`~safeil_sumo.scenarios.spec.Task`: its scenario
+    takes ``spec`` (any ScenarioSpec field), its planner ``policy`` (a name or path, or several:
+    they travel to worker processes) with ``safety_filter`` and ``time_gap_s``, its loop
+    ``loop`` (the plan rate, stop on flag and the brake guard; default: as shipped). Up to
+    ``batch`` scenarios share one SUMO simulation (1: one each). ``scheduler``
+    (``"tcp://host:port"``): the tasks run on that Dask cluster instead of ``workers`` local
+    processes."""
+    loop = loop or LoopConfig()
+    tasks = [Task(ScenarioSpec(net=n, index=i, master_seed=seed, **spec),
+                  PlannerRef(p, safety_filter, time_gap_s), loop)
              for n in nets for p in policy_names(policy) for i in range(scenarios)]
-    return run_sweep(specs, out, workers=workers, scheduler=scheduler, progress=False,
+    return run_sweep(tasks, out, workers=workers, scheduler=scheduler, progress=False,
                      batch=batch)
 
 

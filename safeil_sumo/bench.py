@@ -257,11 +257,13 @@ def closed_loop_peak_rss_mb(policy_name: str, sim_s: float) -> float:
 _SWEEP_SCRIPT = _PEAK_KB + """
 import json, sys, time
 from safeil_sumo.experiments.sweep_executor import run_sweep
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 n, workers, out, max_time = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4]
 batch, policy = int(sys.argv[5]), sys.argv[6]
-specs = [ScenarioSpec(net="curved500", index=i, policy=policy,
-                      max_time_s=None if max_time == "none" else float(max_time))
+specs = [Task(ScenarioSpec(net="curved500", index=i,
+                           max_time_s=None if max_time == "none" else float(max_time)),
+              PlannerRef(policy))
          for i in range(n)]
 t0 = time.perf_counter()
 summary = run_sweep(specs, out, workers=workers, progress=False, batch=batch)
@@ -307,11 +309,12 @@ def multi_edge_rows(policy: str, quick: bool, rows: dict) -> None:
     (task start included) with a scripted 30 m/s leader and, full runs only, among SUMO's
     default traffic."""
     from safeil_sumo.experiments.sweep_executor import run_task
-    from safeil_sumo.scenarios.spec import ScenarioSpec
+    from safeil_sumo.planners.registry import PlannerRef
+    from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 
     def task(**kw) -> tuple[float, dict]:
         t0 = time.perf_counter()
-        record = run_task(ScenarioSpec(policy=policy, **kw))
+        record = run_task(Task(ScenarioSpec(**kw), PlannerRef(policy)))
         if record["status"] != "ok":
             raise RuntimeError(f"bench drive {kw} failed: {record.get('error')}")
         return time.perf_counter() - t0, record

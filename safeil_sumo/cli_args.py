@@ -17,10 +17,12 @@ import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 if TYPE_CHECKING:
     from safeil_sumo.data.by_path import DataSpec
+    from safeil_sumo.scenarios.spec import Task
+    from safeil_sumo.sim.loop_types import LoopConfig
 
 INTERRUPTED = 130  # exit code of a command ended by Ctrl-C (128 + SIGINT), as shells report it
 
@@ -170,32 +172,6 @@ def nonnegative_int(text: str) -> int:
     return _int_at_least(text, 0)
 
 
-def add_leader_options(parser: CommandParser, kinds: tuple[str, ...],
-                       change: str) -> None:
-    """``--leader`` and ``--leader-profile``, shared by ``run`` and ``sweep``; ``change`` says
-    how a braking/accelerating leader changes its speed in that command."""
-    parser.add_argument(
-        "--leader", choices=kinds, default="constant",
-        help=f"constant speed (the paper); braking or accelerating ({change}); or recorded (a "
-             "human leader's speed profile, the ego starting as the recorded follower did, or "
-             "behind a profile file at the leader's speed) (default constant)")
-    parser.add_argument(
-        "--leader-profile", default=None,
-        help="with --leader recorded: ngsim (default) or openacc (from ../shared/data), or a "
-             "CSV/Parquet file with columns time [s] and speed [m/s], or a folder of them")
-
-
-def add_ego_speed_option(parser: CommandParser) -> None:
-    """``--ego-speed-mps``, shared by ``run`` and ``sweep``: default None, resolved per scenario
-    by :class:`safeil_sumo.scenarios.spec.ScenarioSpec` (30 m/s, or a recorded leader's
-    start)."""
-    parser.add_argument(
-        "--ego-speed-mps", type=finite_float, default=None, metavar="MPS",
-        help="ego initial speed [m/s] (default 30; with --leader recorded: as the recorded "
-             "follower started (ngsim, openacc), or the profile's speed where the scenario "
-             "starts in it (a file); a speed given here wins)")
-
-
 def add_time_gap_option(parser: CommandParser) -> None:
     """``--time-gap-s``, shared by ``run`` and ``sweep``: the planner's preferred time gap."""
     parser.rename(time_gap="--time-gap-s")
@@ -214,33 +190,6 @@ def add_brake_guard_option(parser: CommandParser) -> None:
              "keeping 2 m behind a leader that keeps braking to a stop needs >= 3 m/s^2 "
              "(default on; --no-brake-guard: the planner and tracker alone, the paper's loop; "
              "docs/brake_guard.md)")
-
-
-def add_route_option(parser: CommandParser) -> None:
-    """``--route EDGE [EDGE ...]``, shared by ``run`` and ``sweep``."""
-    parser.add_argument(
-        "--route", nargs="+", default=[], metavar="EDGE",
-        help="SUMO edges the ego drives, in driving order, on a multi-edge .net.xml (its lane is "
-             "followed across the junctions; the route must end where that lane ends); "
-             "default: the net's one edge")
-
-
-def add_n74_options(parser: CommandParser) -> None:
-    """``--from-km/--to-km/--traffic`` for ``--net n74``, shared by ``run`` and ``sweep``."""
-    from safeil_sumo.sim.traffic import DENSITIES
-
-    parser.add_argument("--from-km", type=finite_float, default=None, metavar="KM",
-                        help="with --net n74: start of the stretch driven, kilometre post of "
-                             "direction A (default 0)")
-    parser.add_argument("--to-km", type=finite_float, default=None, metavar="KM",
-                        help="with --net n74: end of the stretch (default 29.2, the whole "
-                             "carriageway)")
-    parser.add_argument("--traffic", choices=("none", *DENSITIES), default="none",
-                        help="with --net n74: SUMO's own traffic from "
-                             "sumo_scenarios/n74/n74.rou.xml (main road + on-ramps), flows "
-                             "scaled x0.5 light, x1 default, x2 dense, seeded by the scenario "
-                             "seed; the ego's leader is whichever vehicle is ahead in its lane "
-                             "(no scripted leader). Default none")
 
 
 def add_plan_rate_option(parser: CommandParser) -> None:
@@ -284,96 +233,128 @@ def check_task_options(parser: argparse.ArgumentParser, args: argparse.Namespace
         parser.error("--task-timeout-s must be > 0")
 
 
-def add_lane_option(parser: CommandParser) -> None:
-    """``--lane``, shared by ``run`` and ``sweep``; check it with :func:`lane_for_net`."""
-    parser.add_argument(
-        "--lane", default=None, metavar="LANE",
-        help="the ego's lane: with --net n74 the main lane, right (default) or left; with a "
-             ".net.xml path the SUMO lane index (0 = rightmost) on the first edge of --route "
-             "(or of the net's one edge); default: the middle lane")
+def _flag(f: dataclasses.Field) -> str:
+    return f.metadata.get("flag") or "--" + f.name.replace("_", "-")
+
+
+def _dest(f: dataclasses.Field) -> str:
+    return _flag(f)[2:].replace("-", "_")
+
+
+def _shown(default: Any) -> str:
+    """A default as the help shows it: ``25 32`` for a pair, nothing for None or ``""``."""
+    if default in (None, "", ()):
+        return ""
+    if isinstance(default, tuple):
+        return " (default " + " ".join(f"{v:g}" for v in default) + ")"
+    return f" (default {default:g})" if isinstance(default, float) else f" (default {default})"
+
+
+def _scenario_option_fields() -> list[dataclasses.Field]:
+    """The :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` fields that are options: every
+    field with a help (not the net, which each command takes its way, nor the index)."""
+    from safeil_sumo.scenarios.spec import ScenarioSpec
+
+    return [f for f in dataclasses.fields(ScenarioSpec) if "help" in f.metadata]
+
+
+def _add_field_option(parser: CommandParser, f: dataclasses.Field) -> None:
+    """One option of a ScenarioSpec field: its flag, help and default from the field, its type
+    from the field's annotation."""
+    kw: dict[str, Any] = {"dest": _dest(f), "default": f.default, "choices":
+                          f.metadata.get("choices"), "metavar": f.metadata.get("metavar")}
+    kw["help"] = f.metadata["help"] + _shown(f.default)
+    if f.type == "int":
+        kw["type"] = nonnegative_int
+    elif f.type == "tuple[float, float]":
+        kw.update(type=finite_float, nargs=2)
+    elif f.type == "tuple[str, ...]":
+        kw.update(nargs="+", default=[])
+    elif "float" in str(f.type):
+        kw["type"] = finite_float
+        kw["metavar"] = kw["metavar"] or _dest(f).rpartition("_")[2].upper()
+    elif f.default == "":
+        kw["default"] = None  # not given: the field's "" (checked with the net: lane_for_net)
+    parser.add_argument(_flag(f), **kw)
 
 
 def add_scenario_options(parser: CommandParser) -> None:
-    """The scenario options of ``run`` and ``sweep``, declared once: how many scenarios, the
-    leader, the ego's start, the sensors, the loop and the road's stretch. Each sets a
-    :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` field (:func:`scenario_fields`), whose
-    ``__post_init__`` holds the rules (:func:`check_scenario_options` reports them as usage
-    errors)."""
-    from safeil_sumo.scenarios.safety import PAPER_LEADER_SPEED_MPS
-    from safeil_sumo.scenarios.spec import LEADER_KINDS
+    """The scenario options of ``run`` and ``sweep``: how many scenarios, then one option per
+    :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` field (:func:`_scenario_option_fields`:
+    the flag, help and default are the field's, so each default is written once), the
+    planner's time gap and the loop's settings (their defaults :class:`PlannerRef`'s and
+    :class:`LoopConfig`'s). The dataclasses' ``__post_init__`` hold the rules
+    (:func:`check_scenario_options` reports them as usage errors)."""
+    from safeil_sumo.sim.loop_types import LoopConfig
 
     p = parser
     p.add_argument("--scenarios", type=int, default=10,
                    help="scenarios (per net and policy in a sweep) (default 10)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, help="master seed (default 0)")
-    add_leader_options(p, LEADER_KINDS,
-                       "to --brake-to-mps at --brake-decel-mps2 after --brake-time-s")
-    p.add_argument("--leader-speed-range-mps", type=finite_float, nargs=2,
-                   default=PAPER_LEADER_SPEED_MPS, metavar=("LOW", "HIGH"),
-                   help="leader (initial) speed range [m/s], drawn per scenario (default 25 32, "
-                        "the paper's)")
-    p.add_argument("--brake-time-s", type=finite_float, default=5.0,
-                   help="braking/accelerating leader: the change starts at [s] (default 5)")
-    p.add_argument("--brake-decel-mps2", type=finite_float, default=3.0,
-                   help="braking/accelerating leader: rate of the change [m/s^2] (default 3)")
-    p.add_argument("--brake-to-mps", type=finite_float, default=15.0,
-                   help="braking/accelerating leader: final speed [m/s] (default 15)")
-    add_ego_speed_option(p)
+    for f in _scenario_option_fields():
+        if f.name == "initial_gap_m":  # a fixed gap or a range: two exclusive options
+            gap = p.add_mutually_exclusive_group()
+            _add_field_option(gap, f)  # type: ignore[arg-type]
+            gap.add_argument("--gap-range-m", type=finite_float, nargs=2, default=None,
+                             metavar=("LOW", "HIGH"), help="initial gap drawn per scenario [m]")
+        else:
+            _add_field_option(p, f)
     add_time_gap_option(p)
-    gap = p.add_mutually_exclusive_group()
-    gap.add_argument("--gap-m", type=finite_float, default=None,
-                     help="initial bumper gap [m] (default 50)")
-    gap.add_argument("--gap-range-m", type=finite_float, nargs=2, default=None,
-                     metavar=("LOW", "HIGH"), help="initial gap drawn per scenario [m]")
-    p.add_argument("--lane-noise-m", type=finite_float, default=0.0,
-                   help="camera lane-offset (c0) noise std [m] (default 0)")
-    p.add_argument("--radar-noise-m", type=finite_float, default=0.0,
-                   help="radar range noise std [m] (default 0)")
     add_plan_rate_option(p)
-    p.add_argument("--max-time-s", type=finite_float, default=None,
-                   help="scenario duration [s] (default: 2x the path at the ego speed + 10 s)")
-    p.add_argument("--stop-on-flag", action="store_true", help="end a scenario at its first flag")
+    p.add_argument("--stop-on-flag", action="store_true", default=LoopConfig.stop_on_flag,
+                   help="end a scenario at its first flag")
     p.rename(leader_speed="--leader-speed-range-mps", brake_time="--brake-time-s",
              brake_decel="--brake-decel-mps2", brake_to="--brake-to-mps",
              ego_speed="--ego-speed-mps", gap="--gap-m", gap_range="--gap-range-m",
              lane_noise="--lane-noise-m", radar_noise="--radar-noise-m",
-             max_time="--max-time-s")
+             max_time="--max-time-s", time_gap="--time-gap-s")
     add_brake_guard_option(p)
-    add_route_option(p)
-    add_n74_options(p)
-    add_lane_option(p)
 
 
-def scenario_fields(args: argparse.Namespace) -> dict:
+def scenario_fields(args: argparse.Namespace) -> dict[str, Any]:
     """The :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` fields of
-    :func:`add_scenario_options`' options (all but the net, policy and scenario index)."""
-    gap = (tuple(args.gap_range_m) if args.gap_range_m
-           else (args.gap_m if args.gap_m is not None else 50.0))
-    return {
-        "master_seed": args.seed, "leader_kind": args.leader,
-        "leader_speed_range_mps": tuple(args.leader_speed_range_mps),
-        "brake_time_s": args.brake_time_s, "brake_decel_mps2": args.brake_decel_mps2,
-        "brake_to_mps": args.brake_to_mps, "ego_speed_mps": args.ego_speed_mps,
-        "initial_gap_m": gap, "lane_noise_c0_m": args.lane_noise_m,
-        "radar_noise_m": args.radar_noise_m, "plan_rate_hz": args.plan_rate_hz,
-        "max_time_s": args.max_time_s, "stop_on_flag": args.stop_on_flag,
-        "leader_profile": args.leader_profile or "", "route": tuple(args.route),
-        "from_km": args.from_km, "to_km": args.to_km,
-        "traffic": "" if args.traffic == "none" else args.traffic, "lane": args.lane or "",
-        "time_gap_s": args.time_gap_s, "brake_guard": args.brake_guard,
-    }
+    :func:`add_scenario_options`' options (all but the net and the scenario index)."""
+    out = {}
+    for f in _scenario_option_fields():
+        value = getattr(args, _dest(f))
+        if f.type.startswith("tuple"):
+            value = tuple(value)
+        elif f.default == "" and value in (None, "none"):  # not given, or --traffic none
+            value = ""
+        out[f.name] = value
+    if args.gap_range_m:
+        out["initial_gap_m"] = tuple(args.gap_range_m)
+    return out
+
+
+def loop_config(args: argparse.Namespace, **how: Any) -> LoopConfig:
+    """The :class:`LoopConfig` of :func:`add_scenario_options`' loop options; ``how``: the
+    command's own loop settings (a backend, sumo-gui)."""
+    from safeil_sumo.sim.brake_guard import when as brake_guard_when
+    from safeil_sumo.sim.loop_types import LoopConfig
+
+    return LoopConfig(plan_rate_hz=args.plan_rate_hz, stop_on_flag=args.stop_on_flag,
+                      brake_guard=brake_guard_when(args.brake_guard), **how)
+
+
+def task(args: argparse.Namespace, net: str, index: int, policy: str,
+         safety_filter: bool = False) -> Task:
+    """The :class:`~safeil_sumo.scenarios.spec.Task` of scenario ``index`` on ``net`` driven
+    by ``policy``, with the scenario options of ``args``."""
+    from safeil_sumo.planners.registry import PlannerRef
+    from safeil_sumo.scenarios.spec import ScenarioSpec, Task
+
+    return Task(ScenarioSpec(net=net, index=index, **scenario_fields(args)),
+                PlannerRef(policy, safety_filter, args.time_gap_s), loop_config(args))
 
 
 def check_scenario_options(parser: argparse.ArgumentParser, args: argparse.Namespace,
                            nets: list[str]) -> None:
-    """The scenario options' rules, as usage errors: ``ScenarioSpec``'s, on each of ``nets``."""
-    from safeil_sumo.scenarios.spec import ScenarioSpec
-
+    """The scenario options' rules, as usage errors: the task's, on each of ``nets``."""
     if args.scenarios < 1:
         parser.error("--scenarios must be >= 1")
     try:
         for net in nets:
-            ScenarioSpec(net=net, **scenario_fields(args))
+            task(args, net, 0, "analytic")
     except ValueError as exc:
         parser.error(str(exc))
 

@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for name in dict.fromkeys(args.policy):  # fail fast, before any run
             planner_registry.load(name)
-        specs = gp.probe_specs(args.policy, args.speeds_mps, args.kinds, args.seed)
+        tasks = gp.probe_tasks(args.policy, args.speeds_mps, args.kinds, args.seed)
         resolve_road(gp.NET, (), *gp.STRETCH_KM)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -125,9 +125,9 @@ def main(argv: list[str] | None = None) -> int:
                   "band_mps": gp.HUMAN_BAND_MPS, "max_accel_mps2": gp.HUMAN_MAX_ACCEL_MPS2,
                   "max_dv_mps": gp.HUMAN_MAX_DV_MPS}}
     try:
-        records = run_sweep(specs, args.out / "runs", workers=args.workers,
+        records = run_sweep(tasks, args.out / "runs", workers=args.workers,
                             progress=not args.no_progress, retry_failed=args.retry_failed,
-                            task_fn=gp.probe_task, manifest_extra={"gap_probe": config})
+                            task_fn=gp.run_probe_task, manifest_extra={"gap_probe": config})
     except KeyboardInterrupt:
         print(f"\ninterrupted: finished runs are saved in {args.out / 'runs'}; rerun the same "
               "command to resume", file=sys.stderr)
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     from safeil_sumo.scenarios.safety import scenario_seed
 
     outputs.write_json(args.out / "manifest.json", outputs.manifest(
-        config, [scenario_seed(s.master_seed, s.index) for s in specs]))
+        config, [scenario_seed(t.scenario.master_seed, t.scenario.index) for t in tasks]))
     print(format_table(table))
     failed = records[records["status"] != "ok"]
     for _, row in failed.iterrows():

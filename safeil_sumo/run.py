@@ -26,14 +26,15 @@ from safeil_sumo.cli_args import (
     add_scenario_options,
     check_scenario_options,
     interruptible,
+    loop_config,
     one_policy,
     scenario_fields,
 )
 from safeil_sumo.experiments import animation, outputs, plots
 from safeil_sumo.planners import registry as planner_registry
+from safeil_sumo.planners.registry import PlannerRef
 from safeil_sumo.roads.road import NetworkError, Road
 from safeil_sumo.scenarios.spec import lane_for_net
-from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario
 from safeil_sumo.sim.sumo_api import SumoError, has_display
@@ -109,7 +110,7 @@ def manifest_config(args: argparse.Namespace, road: Road, scenarios: list[Scenar
         "leader": args.leader, "leader_profile": args.leader_profile,
         "leaders": [sc.leader.label if sc.leader is not None else "traffic"
                     for sc in scenarios],
-        "traffic": args.traffic,
+        "traffic": args.traffic or "none",
         # as given (None: the default, or a recorded leader's start), and as each scenario began
         "ego_speed_mps": args.ego_speed_mps,
         "ego_speeds_mps": [sc.ego_speed_mps for sc in scenarios],
@@ -144,9 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         road = api.road(args.net, args.route, args.from_km, args.to_km, args.lane)
-        policy = planner_registry.load(args.policy)
-        if args.time_gap_s is not None:
-            policy = planner_registry.with_time_gap(policy, args.time_gap_s)
+        policy = PlannerRef(args.policy, time_gap_s=args.time_gap_s).load()
     except (NetworkError, planner_registry.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -154,12 +153,10 @@ def main(argv: list[str] | None = None) -> int:
     # the policy name comes from a checkpoint's sidecar: keep it one plain folder name
     default_name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{net_name}_{policy.name}_seed{args.seed}")
     out = args.out or Path("runs") / default_name
-    loop = LoopConfig(plan_rate_hz=args.plan_rate_hz, stop_on_flag=args.stop_on_flag,
-                      backend=args.backend, gui=args.gui, gui_screenshot=args.gui_screenshot,
-                      brake_guard=brake_guard_when(args.brake_guard))
+    loop = loop_config(args, backend=args.backend, gui=args.gui,
+                       gui_screenshot=args.gui_screenshot)
     fields = scenario_fields(args)
-    fields = {k: v for k, v in fields.items() if k not in ("master_seed", "plan_rate_hz",
-                                                           "stop_on_flag", "brake_guard")}
+    del fields["master_seed"]
     vehicle = VehicleParams()
     try:
         scenarios = api.build_scenarios(args.net, args.scenarios, args.seed, **fields)

@@ -38,13 +38,14 @@ from safeil_sumo.cli_args import (
     check_scheduler,
     check_task_options,
     interruptible,
+    loop_config,
     positive_int,
-    scenario_fields,
+    task,
 )
 from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.experiments.stats import breakdown, format_breakdown
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.scenarios.spec import Task
 
 FILTER_OPTIONS = {"off": (False,), "on": (True,), "both": (False, True)}
 
@@ -149,14 +150,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     args.resolved_argv = argv
 
-    if args.scenarios < 1:  # the specs' own rules are reported by main (build_specs)
+    if args.scenarios < 1:  # the tasks' own rules are reported by main (build_tasks)
         p.error("--scenarios must be >= 1")
     check_scheduler(p, args)
     check_task_options(p, args)
     if args.quick and args.suite is None:
         p.error("--quick needs --suite")
     if (args.route or args.from_km is not None or args.to_km is not None
-            or args.traffic != "none" or args.lane is not None) and args.suite is not None:
+            or args.traffic not in (None, "none") or args.lane is not None) and args.suite is not None:
         p.error("--route, --from-km/--to-km, --traffic and --lane do not apply to --suite (the "
                 "suite has its own nets)")
     if args.out.exists() and not args.out.is_dir():
@@ -164,19 +165,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def build_specs(args: argparse.Namespace) -> list[ScenarioSpec]:
+def build_tasks(args: argparse.Namespace) -> list[Task]:
     """The grid: nets x policies x filter options x scenario indices (ValueError if invalid)."""
-    fields = scenario_fields(args)
     if args.suite == "leader-response":
-        from safeil_sumo.experiments.suite import suite_specs
+        from safeil_sumo.experiments.suite import suite_tasks
 
-        return [replace(s, brake_guard=fields["brake_guard"])
-                for s in suite_specs(args.policy, args.seed, variants=1 if args.quick else 3)]
-    return [
-        ScenarioSpec(net=net, index=index, policy=policy, safety_filter=filt, **fields)
-        for net, policy, filt, index in itertools.product(
-            args.net, args.policy, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))
-    ]
+        return [replace(t, loop=loop_config(args))
+                for t in suite_tasks(args.policy, args.seed, variants=1 if args.quick else 3)]
+    return [task(args, net, index, policy, filt)
+            for net, policy, filt, index in itertools.product(
+                args.net, args.policy, FILTER_OPTIONS[args.safety_filter], range(args.scenarios))]
 
 
 def check_inputs(nets: list[str], policies: list[str], profiles: Sequence[str] = (),
@@ -209,16 +207,17 @@ def check_inputs(nets: list[str], policies: list[str], profiles: Sequence[str] =
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        specs = build_specs(args)
-        check_inputs(sorted({s.net for s in specs}), args.policy,
-                     sorted({s.leader_profile for s in specs if s.leader_profile}),
+        tasks = build_tasks(args)
+        check_inputs(sorted({t.scenario.net for t in tasks}), args.policy,
+                     sorted({t.scenario.leader_profile for t in tasks
+                             if t.scenario.leader_profile}),
                      tuple(args.route), args.from_km, args.to_km, args.lane or "",
                      args.time_gap_s)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     try:
-        summary = run_sweep(specs, args.out, workers=args.workers, scheduler=args.scheduler,
+        summary = run_sweep(tasks, args.out, workers=args.workers, scheduler=args.scheduler,
                             progress=not args.no_progress, retry_failed=args.retry_failed,
                             task_timeout_s=args.task_timeout_s, batch=args.batch,
                             manifest_extra={"arguments": args.resolved_argv})

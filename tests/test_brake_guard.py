@@ -11,7 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import Task
 from safeil_sumo.sim.brake_guard import (
     BrakeGuard,
     guard_decel,
@@ -20,6 +21,7 @@ from safeil_sumo.sim.brake_guard import (
     required_decel,
     when,
 )
+from safeil_sumo.sim.loop_types import LoopConfig
 from safeil_sumo.sim.xp import ARRAYS, FLOATS
 
 GUARD = BrakeGuard()
@@ -185,17 +187,18 @@ def test_no_history_is_zero_and_nans_per_scenario():
 
 
 def test_spec_json_keeps_old_task_ids():
-    """brake_guard=False specs are the specs of earlier versions (same JSON, same task ids);
-    the default, True, is a new task."""
-    off = ScenarioSpec(brake_guard=False)
-    assert "brake_guard" not in off.to_json()
-    assert ScenarioSpec().to_json()["brake_guard"] is True
-    assert ScenarioSpec.from_json(off.to_json()) == replace(off, brake_guard=True)
+    """Guard-off tasks are the tasks of earlier versions (same JSON, same task ids); the
+    default, on, is a new task. A JSON without the key reads back as off."""
+    off = Task.of(brake_guard=False)
+    assert "brake_guard" not in off.to_json() and off.loop.brake_guard is None
+    assert Task.of().to_json()["brake_guard"] is True
+    assert Task.from_json(off.to_json()) == off
+    assert Task.from_json(Task.of().to_json()) == Task.of()
 
 
 # -- in SUMO ------------------------------------------------------------------------------------
 
-GENTLE_BRAKING = ScenarioSpec(
+GENTLE_BRAKING = Task.of(
     net="straight", policy="safeil", leader_kind="braking", leader_speed_range_mps=(22.66, 22.66),
     initial_gap_m=27.57, max_time_s=20.0, brake_time_s=1.09, brake_decel_mps2=2.79,
     brake_to_mps=0.0, ego_speed_mps=30.0, master_seed=572)
@@ -211,8 +214,8 @@ def test_guard_prevents_the_avoidable_collision(policy):
     flagged; before its towers it collided), against 2.19 s and 2.3 m with the guard."""
     from safeil_sumo.experiments.sweep_executor import run_task
 
-    spec = replace(GENTLE_BRAKING, policy=policy)
-    off = run_task(replace(spec, brake_guard=False))
+    spec = replace(GENTLE_BRAKING, planner=PlannerRef(policy))
+    off = run_task(replace(spec, loop=LoopConfig(brake_guard=None)))
     on = run_task(spec)
     assert off["status"] == on["status"] == "ok"
     assert on["flag"] == "" and on["min_ttc_s"] > 1.0 and on["min_gap_m"] > 0.5
@@ -230,7 +233,7 @@ def test_guard_brakes_as_hard_as_the_car_can():
     collision (it collided at 8)."""
     from safeil_sumo.experiments.sweep_executor import run_task
 
-    spec = ScenarioSpec(net="curved1000", policy="safeil", leader_kind="braking",
+    spec = Task.of(net="curved1000", policy="safeil", leader_kind="braking",
                         leader_speed_range_mps=(15.76, 15.76), initial_gap_m=24.81,
                         lane_noise_c0_m=0.1259, radar_noise_m=1.242, max_time_s=12.0,
                         brake_time_s=2.48, brake_decel_mps2=7.83, brake_to_mps=0.0,
@@ -263,7 +266,6 @@ def test_guard_stays_out_of_ordinary_following(curved500):
     from safeil_sumo.planners import registry as planner_registry
     from safeil_sumo.scenarios.safety import safety_scenario
     from safeil_sumo.sim.batch import run_batch
-    from safeil_sumo.sim.loop_types import LoopConfig
 
     scenarios = [safety_scenario(curved500, i, master_seed=0) for i in range(4)]
     policy = planner_registry.load("safeil")

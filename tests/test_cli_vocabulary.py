@@ -132,11 +132,11 @@ def test_brake_guard_on_off_names_the_switch(command, value, new, capsys) -> Non
     assert err.count("\n") == 1 and f"use {new}" in err and "--no-brake-guard" in err
 
 
-def test_brake_guard_switch_sets_the_spec() -> None:
+def test_brake_guard_switch_sets_the_loop() -> None:
     from safeil_sumo.run import parse_args
 
-    assert cli_args.scenario_fields(parse_args([]))["brake_guard"] is True
-    assert cli_args.scenario_fields(parse_args(["--no-brake-guard"]))["brake_guard"] is False
+    assert cli_args.loop_config(parse_args([])).brake_guard is not None
+    assert cli_args.loop_config(parse_args(["--no-brake-guard"])).brake_guard is None
 
 
 def test_one_planner_commands_refuse_several_in_one_line(capsys) -> None:
@@ -256,8 +256,9 @@ def test_a_toml_switch_is_a_boolean(tmp_path) -> None:
 
     study = tmp_path / "study.toml"
     study.write_text('policy = "idm"\nbrake_guard = false\nmax_time_s = 5\n')
-    specs = sweep.build_specs(sweep.parse_args(["--config", str(study), "--scenarios", "1"]))
-    assert [(s.policy, s.brake_guard, s.max_time_s) for s in specs] == [("idm", False, 5.0)]
+    specs = sweep.build_tasks(sweep.parse_args(["--config", str(study), "--scenarios", "1"]))
+    assert [(s.planner.policy, s.brake_guard, s.scenario.max_time_s) for s in specs] == [
+        ("idm", False, 5.0)]
 
 
 def test_the_shipped_toml_files_use_the_current_keys() -> None:
@@ -268,7 +269,7 @@ def test_the_shipped_toml_files_use_the_current_keys() -> None:
              *(REPO / "results" / "falsify").glob("*.toml"), *(REPO / "docs").glob("*.toml")]
     assert len(files) >= 8
     for f in files:
-        assert sweep.build_specs(sweep.parse_args(["--config", str(f)])), f
+        assert sweep.build_tasks(sweep.parse_args(["--config", str(f)])), f
 
 
 # ----------------------------------------------------------------------------- interrupts

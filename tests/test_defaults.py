@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "safeil_sumo"
-HOME = "policy.py"
+HOME = "core/policy.py"
 # constant: (its value, the names whose default it is: parameters, fields, options, keys)
 DEFAULTS: dict[str, tuple[float, frozenset[str]]] = {
     "PLAN_RATE_HZ": (10.0, frozenset({"plan_rate_hz", "plan_rate"})),
@@ -22,9 +22,9 @@ DEFAULTS: dict[str, tuple[float, frozenset[str]]] = {
 }
 # literal defaults left, each with its reason (remove an entry once it refers to the constant)
 ALLOWED: dict[tuple[str, str], str] = {
-    ("idm.py", "horizon"): "idm.py is being edited on another branch; PLAN_HORIZON_S once merged",
-    ("idm.py", "horizon_s"): "idm.py is being edited on another branch (its JSON's horizon_s)",
-    ("idm.py", "time_gap_s"): "idm.py is being edited on another branch; the IDM's T parameter",
+    ("planners/idm.py", "horizon"): "idm.py is being edited on another branch; PLAN_HORIZON_S once merged",
+    ("planners/idm.py", "horizon_s"): "idm.py is being edited on another branch (its JSON's horizon_s)",
+    ("planners/idm.py", "time_gap_s"): "idm.py is being edited on another branch; the IDM's T parameter",
 }
 
 
@@ -158,10 +158,10 @@ def test_the_defaults_reach_every_consumer() -> None:
     from safeil_sumo.envs.vector import SafeILVectorEnv
     from safeil_sumo.planners.analytic import AnalyticPlanner
     from safeil_sumo.run import build_parser
-    from safeil_sumo.scenarios.spec import ScenarioSpec
+    from safeil_sumo.scenarios.spec import Task
     from safeil_sumo.sim.loop_types import LoopConfig
 
-    assert LoopConfig().plan_rate_hz == ScenarioSpec().plan_rate_hz == policy.PLAN_RATE_HZ
+    assert LoopConfig().plan_rate_hz == Task().loop.plan_rate_hz == policy.PLAN_RATE_HZ
     assert loop_config().plan_rate_hz == policy.PLAN_RATE_HZ
     assert build_parser().parse_args([]).plan_rate_hz == policy.PLAN_RATE_HZ
     for env in (SafeILEnv, SafeILVectorEnv):

@@ -14,7 +14,8 @@ import pytest
 
 from safeil_sumo.experiments import falsification_search as fz
 from safeil_sumo.experiments.suite import braking_avoids
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 from safeil_sumo.sim.leaders import constant, piecewise
 
 # ------------------------------------------------------------------------- the CEM's update
@@ -84,7 +85,7 @@ def test_avoidability_filter() -> None:
 
 def _braking_spec(gap_m: float) -> ScenarioSpec:
     """A leader 10 m/s slower than the ego (30 m/s), braking at 9 m/s^2 to a stop after 1 s."""
-    return ScenarioSpec(net="straight", policy="safeil", leader_kind="braking",
+    return ScenarioSpec(net="straight", leader_kind="braking",
                         leader_speed_range_mps=(20.0, 20.0), initial_gap_m=gap_m,
                         ego_speed_mps=30.0, brake_time_s=1.0, brake_decel_mps2=9.0,
                         brake_to_mps=0.0, max_time_s=20.0)
@@ -131,11 +132,12 @@ def test_failure_counts_and_first_failure_skip_unavoidable_flags() -> None:
     assert fz.first_at_or_below(result, 0.5) == 3
 
 
-def _planted_record(spec) -> dict:
+def _planted_record(task) -> dict:
     """A stand-in for a SUMO run's record: a TTC flag below 20 m/s of leader speed."""
+    spec = task.scenario
     slow = spec.leader_speed_range_mps[0] < 20.0
     return {"status": "ok", "sim_time_s": spec.max_time_s, "flag": "ttc" if slow else "",
-            "min_ttc_s": 0.5 if slow else 3.0}
+            "min_ttc_s": 0.5 if slow else math.inf}  # inf: never closing (null in a file)
 
 
 def test_the_closed_loop_objective_runs_the_decoded_points_in_order(monkeypatch, tmp_path
@@ -157,12 +159,12 @@ def test_the_closed_loop_objective_runs_the_decoded_points_in_order(monkeypatch,
     u = np.random.default_rng(2).random((3, fz.DIM))
     outcomes = fz.closed_loop_objective("bc", max_time_s=12.0, brake_guard=False)(u)
     assert batches == [[fz.decode(x, "bc", 12.0, False) for x in u]]
-    assert outcomes == [fz.outcome_of(s, _planted_record(s)) for s in batches[0]]
+    assert outcomes == [fz.outcome_of(s.scenario, _planted_record(s)) for s in batches[0]]
     objective = fz.closed_loop_objective("idm", tasks_dir=tmp_path)
     objective(u[:2])
     assert batches[-1] == [fz.decode(x, "idm", 30.0, True) for x in u[:2]]
     assert len(list(tmp_path.glob("*.json"))) == 2
-    assert objective(u[:2]) == [fz.outcome_of(fz.decode(x, "idm", 30.0, True),
+    assert objective(u[:2]) == [fz.outcome_of(fz.decode_scenario(x, 30.0),
                                               _planted_record(fz.decode(x, "idm", 30.0, True)))
                                 for x in u[:2]]
     assert len(batches) == 2  # read back from the records
@@ -223,8 +225,11 @@ def test_avoidability_is_judged_on_the_physics_grid_from_0_to_the_horizon() -> N
 def test_decode_maps_the_box_onto_valid_specs() -> None:
     rng = np.random.default_rng(0)
     for u in [np.zeros(fz.DIM), np.ones(fz.DIM), *rng.random((200, fz.DIM))]:
-        spec = fz.decode(u, "bc")
-        assert isinstance(spec, ScenarioSpec) and spec.index == 0 and spec.policy == "bc"
+        task = fz.decode(u, "bc")
+        assert task.planner == PlannerRef("bc") and task.brake_guard
+        assert not fz.decode(u, "bc", brake_guard=False).brake_guard
+        spec = task.scenario
+        assert spec == fz.decode_scenario(u) and spec.index == 0 and spec.max_time_s == 30.0
         assert spec.net in fz.NETS and 0 <= spec.master_seed < fz.SCENARIO_SEEDS
         assert 0 <= spec.radar_noise_m <= 1.5 and 0 <= spec.lane_noise_c0_m <= 0.2
         if spec.leader_kind == "braking":
@@ -236,9 +241,9 @@ def test_decode_maps_the_box_onto_valid_specs() -> None:
     u = np.full(fz.DIM, 0.5)
     v = fz.values(u)
     assert v["gap_m"] == pytest.approx(42.5) and v["brake_onset_s"] == pytest.approx(7.5)
-    assert fz.decode(u, "bc").net == fz.NETS[2]  # 0.5 of 5 tracks: the middle one
+    assert fz.decode_scenario(u).net == fz.NETS[2]  # 0.5 of 5 tracks: the middle one
     u[0] = fz.RECORDED_FROM
-    assert fz.decode(u, "bc").leader_kind == "recorded"
+    assert fz.decode_scenario(u).leader_kind == "recorded"
     with pytest.raises(ValueError, match="coordinates"):
         fz.values(np.zeros(3))
 
@@ -253,10 +258,10 @@ def test_the_worst_case_reruns_from_its_sweep_file(tmp_path, source: float, guar
     u[0] = source
     spec = fz.decode(u, "safeil", 25.0, guard)
     assert ("brake_guard = false\n" in fz.sweep_toml(spec)) is not guard
-    assert fz.sweep_toml(spec).startswith(f'net = ["{spec.net}"]\n')  # no comment: no head
+    assert fz.sweep_toml(spec).startswith(f'net = ["{spec.scenario.net}"]\n')  # no comment: no head
     path = tmp_path / "worst.toml"
     path.write_text(fz.sweep_toml(spec, "a comment\non two lines"))
-    assert sweep.build_specs(sweep.parse_args(["--config", str(path)])) == [spec]
+    assert sweep.build_tasks(sweep.parse_args(["--config", str(path)])) == [spec]
 
 
 def _result(policy_seed: int, outcomes: list, **config) -> fz.SearchResult:
@@ -307,8 +312,7 @@ def test_the_study_by_hand(tmp_path, monkeypatch) -> None:
     toml = fz.write_worst(a, "safeil", tmp_path / "x" / "y", stem="w")
     assert toml == tmp_path / "x" / "y" / "w.toml"
     spec = fz.decode(a.u[2], "safeil", 30.0, True)
-    assert ScenarioSpec.from_json(json.loads((tmp_path / "x" / "y" / "w.json").read_text())
-                                  ) == spec
+    assert Task.from_json(json.loads((tmp_path / "x" / "y" / "w.json").read_text())) == spec
     assert toml.read_text() == fz.sweep_toml(spec, (
         "safeil: worst avoidable case of a cem search (seed 0, simulation 3 of 3): min TTC "
         "0.000 s, collision\nrerun: python -m safeil_sumo.sweep --config x/y/w.toml "
@@ -358,7 +362,7 @@ def test_the_box_draws_and_the_cem_update_by_hand() -> None:
     rng = np.random.default_rng(8)
     for u in rng.random((50, fz.DIM)):
         u[0] = 0.1  # a scripted leader
-        v, spec = fz.values(u), fz.decode(u, "bc")
+        v, spec = fz.values(u), fz.decode_scenario(u)
         assert spec.radar_noise_m == round(v["radar_noise_m"], 3)
         assert spec.lane_noise_c0_m == round(v["lane_noise_m"], 4)
         lo, hi = spec.leader_speed_range_mps
@@ -499,7 +503,7 @@ def test_table_round_trips(tmp_path) -> None:
     back = fz.read_table(tmp_path / "e.csv", res.config)
     assert np.allclose(back.u, res.u, rtol=0, atol=1e-15)
     assert [o.score for o in back.outcomes] == [o.score for o in res.outcomes]
-    assert ScenarioSpec.from_json(json.loads(df["spec"].iloc[0])) == fz.decode(res.u[0], "bc")
+    assert Task.from_json(json.loads(df["spec"].iloc[0])) == fz.decode(res.u[0], "bc")
     assert list(df["spec"]) == [json.dumps(fz.decode(x, "bc").to_json(), sort_keys=True)
                                 for x in res.u]
 
@@ -527,8 +531,8 @@ def test_every_outcome_field_round_trips_and_the_table_says_what_ran(tmp_path) -
     df = fz.table(res, "bc")
     specs = [fz.decode(x, "bc", 12.0, False) for x in u]
     assert list(df["sim"]) == [1, 2, 3, 4, 5] and list(df.columns[:3]) == ["sim", "u0", "u1"]
-    assert list(df["net"]) == [s.net for s in specs]
-    assert list(df["leader_kind"]) == [s.leader_kind for s in specs]
+    assert list(df["net"]) == [s.scenario.net for s in specs]
+    assert list(df["leader_kind"]) == [s.scenario.leader_kind for s in specs]
     assert list(df["spec"]) == [json.dumps(s.to_json(), sort_keys=True) for s in specs]
     assert list(df["best_so_far"]) == [0.5] * 5
     df.to_csv(tmp_path / "e.csv", index=False)
@@ -573,8 +577,8 @@ def test_cli_smoke_in_libsumo_is_deterministic(tmp_path, capsys) -> None:
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
     assert summary["simulations"] == 6 and summary["avoidable"] == a["avoidable"].sum()
     if summary.get("best_spec"):
-        spec = ScenarioSpec.from_json(json.loads((tmp_path / "a" / "worst.json").read_text()))
-        assert spec == ScenarioSpec.from_json(summary["best_spec"])
+        spec = Task.from_json(json.loads((tmp_path / "a" / "worst.json").read_text()))
+        assert spec == Task.from_json(summary["best_spec"])
         assert (tmp_path / "a" / "worst.toml").is_file()
     before = (tmp_path / "a" / "evaluations.csv").stat().st_mtime_ns
     assert falsify.main([*args, "--out", str(tmp_path / "a")]) == 0  # read back, not rerun

@@ -180,7 +180,7 @@ def test_probe_extras_of_a_hand_built_log() -> None:
     (every 5th sample of a 0.1 s log, the 5th first), rounded to mm."""
     from types import SimpleNamespace
 
-    spec = gp.probe_spec("idm", "pull_away", 15.0, settle_s=60.0, after_s=90.0)
+    spec = gp.probe_task("idm", "pull_away", 15.0, settle_s=60.0, after_s=90.0)
     t = np.round(np.arange(0.1, 150.0 + 0.05, 0.1), 10)
     gap = first_order(t, 60.0, 15.0, 30.0, 5.0) + 0.0004
     log = pd.DataFrame({"t": t, "gap": gap, "v": np.full_like(t, 15.0),
@@ -253,23 +253,25 @@ def test_run_step_runs_its_probe_spec_once_checked(monkeypatch) -> None:
     """The glue of one step response: the probe's spec, checked to fit the stretch, run as a
     probe task (the engine replaced by a recorder; the libsumo run is the IDM test's)."""
     ran = []
-    monkeypatch.setattr(gp, "probe_task", lambda spec: ran.append(spec) or {"status": "ok"})
+    monkeypatch.setattr(gp, "run_probe_task", lambda task: ran.append(task) or {"status": "ok"})
     assert gp.run_step("idm", "slow_down", 20.0, seed=4, settle_s=30.0, after_s=50.0) == {
         "status": "ok"}
-    assert ran == [gp.probe_spec("idm", "slow_down", 20.0, 4, 30.0, 50.0)]
+    assert ran == [gp.probe_task("idm", "slow_down", 20.0, 4, 30.0, 50.0)]
     gp.run_step("bc", "far", 15.0)
-    assert ran[-1] == gp.probe_spec("bc", "far", 15.0, 0, gp.SETTLE_S, gp.AFTER_STEP_S)
+    assert ran[-1] == gp.probe_task("bc", "far", 15.0, 0, gp.SETTLE_S, gp.AFTER_STEP_S)
+    assert ran[-1].scenario == gp.probe_scenario("far", 15.0) and ran[-1].brake_guard
     with pytest.raises(ValueError):  # 2 hours at 35 m/s do not fit the stretch
         gp.run_step("idm", "pull_away", 35.0, after_s=7200.0)
     assert len(ran) == 2
 
 
-def test_probe_specs_are_every_policy_speed_and_kind() -> None:
-    got = gp.probe_specs(["idm", "safeil"], speeds=(15.0, 25.0), kinds=("far", "close"), seed=3)
-    want = [gp.probe_spec(p, k, v, 3) for p in ("idm", "safeil") for v in (15.0, 25.0)
+def test_probe_tasks_are_every_policy_speed_and_kind() -> None:
+    got = gp.probe_tasks(["idm", "safeil"], speeds=(15.0, 25.0), kinds=("far", "close"), seed=3)
+    want = [gp.probe_task(p, k, v, 3) for p in ("idm", "safeil") for v in (15.0, 25.0)
             for k in ("far", "close")]
-    assert got == want and got[0].master_seed == 3
-    assert gp.probe_specs(["idm"], speeds=(15.0,), kinds=("far",))[0].master_seed == 0
+    assert got == want and got[0].scenario.master_seed == 3
+    assert [t.planner.policy for t in got] == ["idm"] * 4 + ["safeil"] * 4
+    assert gp.probe_tasks(["idm"], speeds=(15.0,), kinds=("far",))[0].scenario.master_seed == 0
 
 
 def test_not_settled_drift_and_time_gap_edges() -> None:
@@ -355,25 +357,25 @@ def test_step_specs() -> None:
     assert gp.initial_gap_m("far", 25) == 100.0 and gp.initial_gap_m("pull_away", 20) == 30.0
     with pytest.raises(ValueError, match="unknown step kind"):
         gp.initial_gap_m("sideways", 25)
-    pull = gp.probe_spec("idm", "pull_away", 25.0)
+    pull = gp.probe_scenario("pull_away", 25.0)
     from safeil_sumo.scenarios.spec import leader_profile
 
     prof = leader_profile(pull, 25.0)
     assert prof.speed_at(59.9) == 25.0 and prof.speed_at(61.5) == pytest.approx(26.5)
     assert prof.speed_at(63.0) == 28.0 and prof.speed_at(149.0) == 28.0
     assert pull.max_time_s == gp.SETTLE_S + gp.AFTER_STEP_S and gp.step_time_s(pull) == 60.0
-    slow = gp.probe_spec("idm", "slow_down", 15.0)
+    slow = gp.probe_scenario("slow_down", 15.0)
     assert leader_profile(slow, 15.0).speed_at(100.0) == 12.0
-    far = gp.probe_spec("idm", "far", 35.0)
+    far = gp.probe_scenario("far", 35.0)
     assert gp.step_time_s(far) == 0.0 and far.max_time_s == gp.AFTER_STEP_S
     assert leader_profile(far, 35.0).speed_at(80.0) == 35.0
-    assert [gp.kind_of(gp.probe_spec("idm", k, 25.0).index) for k in gp.KINDS] == list(gp.KINDS)
+    assert [gp.kind_of(gp.probe_scenario(k, 25.0).index) for k in gp.KINDS] == list(gp.KINDS)
     # the leader's distance: gap + car + 60 s at 25 + the 3 s ramp at 26.5 + 87 s at 28
     assert gp.leader_distance_m(pull) == pytest.approx(37.5 + 4.54 + 1500 + 79.5 + 2436,
                                                        abs=0.5)
-    gp.check_fits(gp.probe_spec("idm", "pull_away", 40.0))
+    gp.check_fits(gp.probe_scenario("pull_away", 40.0))
     with pytest.raises(ValueError, match="beyond the probe's"):
-        gp.check_fits(gp.probe_spec("idm", "pull_away", 55.0))
+        gp.check_fits(gp.probe_scenario("pull_away", 55.0))
 
 
 def test_step_spec_edges_by_hand() -> None:
@@ -387,21 +389,21 @@ def test_step_spec_edges_by_hand() -> None:
     car = VehicleParams.length_m
     for bad in (0.0, 100.0, -1.0):
         with pytest.raises(ValueError, match=rf"probe speed must be in \(0, 100\) m/s, got {bad}"):
-            gp.probe_spec("idm", "far", bad)
-    low = gp.probe_spec("idm", "far", 0.5)
+            gp.probe_scenario("far", bad)
+    low = gp.probe_scenario("far", 0.5)
     assert (low.from_km, low.to_km, low.net, low.master_seed) == (1.0, 8.0, "n74", 0)
-    assert gp.probe_spec("idm", "close", 15.25).index == 40_000 + 1525
-    assert gp.probe_spec("idm", "slow_down", 3.0).brake_to_mps == 0.0
+    assert gp.probe_scenario("close", 15.25).index == 40_000 + 1525
+    assert gp.probe_scenario("slow_down", 3.0).brake_to_mps == 0.0
     with pytest.raises(ValueError, match="slow_down at 2.9 m/s would need a negative leader "
                                          "speed: use speeds above 3 m/s"):
-        gp.probe_spec("idm", "slow_down", 2.9)
+        gp.probe_scenario("slow_down", 2.9)
     with pytest.raises(ValueError, match="kinds: pull_away, slow_down, far, close"):
         gp.initial_gap_m("sideways", 25)
-    assert gp.step_time_s(gp.probe_spec("idm", "slow_down", 15.0)) == 60.0
-    pull = gp.probe_spec("idm", "pull_away", 25.0)
+    assert gp.step_time_s(gp.probe_scenario("slow_down", 15.0)) == 60.0
+    pull = gp.probe_scenario("pull_away", 25.0)
     # 37.5 m + a car + 60 s at 25 + the 3 s ramp at 26.5 on average + 87 s at 28
     assert gp.leader_distance_m(pull) == pytest.approx(37.5 + car + 4015.5, abs=1e-6)
-    far = gp.probe_spec("idm", "far", 25.0)
+    far = gp.probe_scenario("far", 25.0)
     assert gp.leader_distance_m(replace(far, max_time_s=None)) == 100.0 + car
     wide = replace(far, leader_speed_range_mps=(20.0, 30.0), max_time_s=10.0)
     assert gp.leader_distance_m(wide) == pytest.approx(100.0 + car + 200.0, abs=1e-9)

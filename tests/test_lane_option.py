@@ -12,7 +12,7 @@ import pytest
 from safeil_sumo import api
 from safeil_sumo.experiments.sweep_executor import task_id
 from safeil_sumo.roads.n74 import LANE_WIDTH_M, n74_dir
-from safeil_sumo.scenarios.spec import ScenarioSpec, lane_for_net
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task, lane_for_net
 
 N74_NET = str(n74_dir() / "n74.net.xml")
 
@@ -30,10 +30,10 @@ def test_lane_for_net():
 
 
 def test_spec_lane_is_validated_and_left_out_of_the_task_id_when_default():
-    plain = ScenarioSpec(net="n74", from_km=1.0, to_km=2.0)
+    plain = Task.of(net="n74", from_km=1.0, to_km=2.0)
     assert "lane" not in plain.to_json()
-    assert task_id(plain) == task_id(ScenarioSpec(net="n74", from_km=1.0, to_km=2.0, lane=""))
-    left = ScenarioSpec(net="n74", from_km=1.0, to_km=2.0, lane="left")
+    assert task_id(plain) == task_id(Task.of(net="n74", from_km=1.0, to_km=2.0, lane=""))
+    left = Task.of(net="n74", from_km=1.0, to_km=2.0, lane="left")
     assert left.to_json()["lane"] == "left" and task_id(left) != task_id(plain)
     with pytest.raises(ValueError, match="right or left"):
         ScenarioSpec(net="n74", lane="centre")

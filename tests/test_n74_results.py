@@ -199,34 +199,37 @@ def test_draw_settings_is_seeded_and_ignores_the_estimates_order():
 
 
 def test_population_drives_share_the_other_rows_seeds_then_new_ones():
-    # 3 stretches x 6 drives, the first 2 per stretch those of drive_specs (indexes j * 2 + i)
+    # 3 stretches x 6 drives, the first 2 per stretch those of drive_tasks (indexes j * 2 + i)
     idx = [[nd.population_index(j, i, 3, 6, 2) for i in range(6)] for j in range(3)]
     assert idx == [[0, 1, 6, 7, 8, 9], [2, 3, 10, 11, 12, 13], [4, 5, 14, 15, 16, 17]]
-    base = {(s.index, s.from_km) for s in nd.drive_specs(("idm",), 0, nd.STRETCHES_KM, 2)}
-    pop = {(s.index, s.from_km) for s in nd.population_specs(ESTIMATES, ("idm",), 0)}
+    base = {(t.scenario.index, t.scenario.from_km)
+            for t in nd.drive_tasks(("idm",), 0, nd.STRETCHES_KM, 2)}
+    pop = {(t.scenario.index, t.scenario.from_km)
+           for t in nd.population_tasks(ESTIMATES, ("idm",), 0)}
     assert base < pop and len(pop) == 18
     with pytest.raises(ValueError):
         nd.population_index(0, 6, 3, 6, 2)
 
 
-def test_population_specs_carry_their_setting():
+def test_population_tasks_carry_their_setting():
     from safeil_sumo.experiments.sweep_executor import task_id
-    from safeil_sumo.scenarios.spec import ScenarioSpec
+    from safeil_sumo.scenarios.spec import Task
 
     stretches = ((1.0, 2.0), (3.0, 4.0))
-    specs = nd.population_specs(ESTIMATES, ("safeil", "idm"), 0, stretches, per=4, base=2)
+    specs = nd.population_tasks(ESTIMATES, ("safeil", "idm"), 0, stretches, per=4, base=2)
     assert len(specs) == 16
     settings_ = nd.draw_settings(ESTIMATES, 0, 8)
     assert sorted(settings_) == [0.8, 0.8, 1.5, 1.5, 2.5, 2.5, 3.5, 3.5]
     by = {}
-    for s in specs:
-        assert s.time_gap_s == settings_[s.index] and s.traffic == nd.TRAFFIC
-        assert ScenarioSpec.from_json(s.to_json()).time_gap_s == s.time_gap_s  # a task file
-        by.setdefault(s.policy, []).append((s.index, s.from_km, s.to_km, s.time_gap_s))
+    for task in specs:
+        s, gap = task.scenario, task.planner.time_gap_s
+        assert gap == settings_[s.index] and s.traffic == nd.TRAFFIC
+        assert Task.from_json(task.to_json()) == task  # a task file
+        by.setdefault(task.planner.policy, []).append((s.index, s.from_km, s.to_km, gap))
     assert by["safeil"] == by["idm"]  # the same drivers on the same traffic
     assert sorted(i for i, *_ in by["idm"]) == list(range(8))
-    default = nd.drive_specs(("idm",), 0, stretches, 2)[0]
-    assert (default.index, default.from_km) == (specs[8].index, specs[8].from_km)
+    default = nd.drive_tasks(("idm",), 0, stretches, 2)[0]
+    assert default.scenario == specs[8].scenario
     assert task_id(default) != task_id(specs[8])  # its own task, never the default row's cache
     assert nd.row_name("idm", None) == "idm" and nd.row_name("idm", math.nan) == "idm"
     assert nd.row_name("safeil", 1.2) == "safeil_population"
@@ -268,12 +271,13 @@ def test_training_settings_are_the_shipped_safeils_training_estimates(tmp_path):
 # ------------------------------------------------------------------ real drives (libsumo)
 
 
-def test_drive_specs_share_seeds_across_planners():
-    specs = nd.drive_specs(("safeil", "idm"), 0, ((1.0, 2.0), (3.0, 4.0)), 2)
-    assert len(specs) == 8
+def test_drive_tasks_share_seeds_across_planners():
+    tasks = nd.drive_tasks(("safeil", "idm"), 0, ((1.0, 2.0), (3.0, 4.0)), 2)
+    assert len(tasks) == 8
     by = {}
-    for s in specs:
-        by.setdefault(s.policy, []).append((s.index, s.from_km, s.to_km, s.traffic))
+    for t in tasks:
+        s = t.scenario
+        by.setdefault(t.planner.policy, []).append((s.index, s.from_km, s.to_km, s.traffic))
     assert by["safeil"] == by["idm"]
     assert by["idm"] == [(0, 1.0, 2.0, "default"), (1, 1.0, 2.0, "default"),
                          (2, 3.0, 4.0, "default"), (3, 3.0, 4.0, "default")]
@@ -282,7 +286,7 @@ def test_drive_specs_share_seeds_across_planners():
 @pytest.mark.sumo
 def test_drive_task_keeps_time_gaps_and_flags_of_a_traffic_drive():
     """Real libsumo: half a kilometre among dense traffic, the sweep's task record."""
-    spec = nd.drive_specs(("analytic",), 0, ((4.0, 4.5),), 1, traffic="dense")[0]
+    spec = nd.drive_tasks(("analytic",), 0, ((4.0, 4.5),), 1, traffic="dense")[0]
     record = nd.drive_task(spec)
     assert record["status"] == "ok", record.get("error")
     assert record["leader_label"] == "traffic" and math.isnan(record["leader_speed0_mps"])

@@ -35,7 +35,7 @@ from safeil_sumo.planners.analytic import AnalyticPlanner
 from safeil_sumo.planners.registry import MODELS_DIR, PolicyError
 from safeil_sumo.planners.registry import load as load_policy
 from safeil_sumo.roads.recorded_road import safe_name
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.scenarios.spec import Task
 from safeil_sumo.sim import sumo_api
 from safeil_sumo.sim.leaders import ProfileError, constant, from_file
 from safeil_sumo.sim.loop_types import LoopConfig, Scenario
@@ -695,7 +695,7 @@ def test_crash_mid_write_leaves_old_files_intact(tmp_path, monkeypatch):
 
 @pytest.mark.sumo
 def test_crash_while_writing_sweep_summary_keeps_task_files(tmp_path, monkeypatch):
-    specs = [ScenarioSpec(net="straight", policy="analytic", max_time_s=1.0, index=i)
+    specs = [Task.of(net="straight", policy="analytic", max_time_s=1.0, index=i)
              for i in range(2)]
     run_sweep(specs, tmp_path, progress=False)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
@@ -769,7 +769,7 @@ def test_no_pickle_anywhere_in_the_code():
 
 @pytest.mark.parametrize("name", ["../../etc/passwd", "..", "a/../../b", "/abs/path", "x\\..\\y"])
 def test_names_from_config_cannot_leave_the_results_folder(name, tmp_path):
-    tid = task_id(ScenarioSpec(net=name + ".net.xml", policy=name))
+    tid = task_id(Task.of(net=name + ".net.xml", policy=name))
     assert "/" not in tid and "\\" not in tid and not tid.startswith(".")
     assert (tmp_path / "tasks" / f"{tid}.json").resolve().parent == (tmp_path / "tasks")
     stem = safe_name(name)

@@ -134,13 +134,13 @@ def test_departures_are_placed_on_the_right_edge(tiny_net) -> None:
 
 def test_a_sweep_spec_without_a_route_keeps_its_json_and_task_id() -> None:
     from safeil_sumo.experiments.sweep_executor import spec_fields, task_id
-    from safeil_sumo.scenarios.spec import ScenarioSpec
+    from safeil_sumo.scenarios.spec import Task
 
-    plain = ScenarioSpec(net="x.net.xml")
+    plain = Task.of(net="x.net.xml")
     assert "route" not in plain.to_json()  # task ids of earlier sweeps are unchanged
-    routed = ScenarioSpec(net="x.net.xml", route=["E0", "E1"])
-    assert routed.route == ("E0", "E1") and routed.to_json()["route"] == ["E0", "E1"]
-    assert ScenarioSpec.from_json(routed.to_json()) == routed
+    routed = Task.of(net="x.net.xml", route=["E0", "E1"])
+    assert routed.scenario.route == ("E0", "E1") and routed.to_json()["route"] == ["E0", "E1"]
+    assert Task.from_json(routed.to_json()) == routed
     assert task_id(routed) != task_id(plain)
     assert spec_fields(routed)["route"] == "E0 E1"
 

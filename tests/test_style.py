@@ -378,16 +378,16 @@ def test_replay_time_gap_is_refused_with_adaptation_or_out_of_range(capsys, tmp_
 
 def test_sweep_specs_carry_the_time_gap():
     from safeil_sumo.experiments.sweep_executor import batch_key, task_id
-    from safeil_sumo.scenarios.spec import ScenarioSpec
+    from safeil_sumo.scenarios.spec import Task
 
-    plain = ScenarioSpec(policy="idm")
-    set_ = ScenarioSpec(policy="idm", time_gap_s=2)
+    plain = Task.of(policy="idm")
+    set_ = Task.of(policy="idm", time_gap_s=2)
     assert "time_gap_s" not in plain.to_json()  # earlier task ids are unchanged
     assert set_.to_json()["time_gap_s"] == 2.0
-    assert ScenarioSpec.from_json(set_.to_json()) == set_
+    assert Task.from_json(set_.to_json()) == set_
     assert task_id(plain) != task_id(set_) and batch_key(plain) != batch_key(set_)
     with pytest.raises(ValueError, match="time gap"):
-        ScenarioSpec(policy="idm", time_gap_s=0.0)
+        Task.of(policy="idm", time_gap_s=0.0)
 
 
 @pytest.mark.sumo

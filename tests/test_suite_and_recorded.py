@@ -13,8 +13,9 @@ from safeil_sumo import run as run_cli
 from safeil_sumo import sweep as sweep_cli
 from safeil_sumo.experiments import suite
 from safeil_sumo.experiments.sweep_executor import run_sweep, task_id
+from safeil_sumo.planners.registry import PlannerRef
 from safeil_sumo.scenarios import recorded_leaders as rl
-from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task, build_scenario
 from safeil_sumo.scenarios.spec import resolve_road as _road
 from safeil_sumo.sim.leaders import ProfileError
 from safeil_sumo.sim.loop_types import LoopConfig
@@ -185,14 +186,14 @@ def test_recorded_draw_is_seeded_and_the_spec_id_is_stable(stop_and_go) -> None:
     assert a.max_time_s <= 60.0
     # specs without a profile keep the JSON (and task id) of earlier versions
     assert "leader_profile" not in ScenarioSpec().to_json()
-    assert ScenarioSpec.from_json(spec.to_json()) == spec
-    assert task_id(spec) != task_id(ScenarioSpec(net="straight", index=3))
+    assert ScenarioSpec(**spec.to_json()) == spec
+    assert task_id(Task(spec)) != task_id(Task(ScenarioSpec(net="straight", index=3)))
 
 
 @pytest.mark.sumo
 def test_recorded_profile_is_driven_in_sumo_within_5_cm_per_s(stop_and_go) -> None:
     spec = ScenarioSpec(net="straight", index=0, leader_kind="recorded",
-                        leader_profile=stop_and_go, max_time_s=30.0, policy="analytic")
+                        leader_profile=stop_and_go, max_time_s=30.0)
     sc = build_scenario(spec, _road("straight"))
     from safeil_sumo.planners import registry as planner_registry
 
@@ -253,12 +254,12 @@ def test_the_suite_families_by_hand() -> None:
     def want(family: str, net: str, variant: int, **fields) -> ScenarioSpec:
         index = {"approach": 10_000, "braking": 20_000, "cut_in": 30_000, "stop_and_go": 40_000,
                  "accelerating": 50_000}[family] + {"straight": 0, "curved500": 1000}[net]
-        return ScenarioSpec(net=net, index=index + variant, master_seed=7, policy="idm",
-                            max_time_s=40.0, **fields)
+        return ScenarioSpec(net=net, index=index + variant, master_seed=7, max_time_s=40.0,
+                            **fields)
 
     for net in ("straight", "curved500"):
         for v in range(4):
-            got = {f: suite.family_specs(f, net, v, "idm", 7) for f in suite.FAMILIES}
+            got = {f: suite.family_scenario(f, net, v, 7) for f in suite.FAMILIES}
             assert got["approach"] == want("approach", net, v, initial_gap_m=145.0,
                                            leader_speed_range_mps=(15.0, 25.0))
             assert got["braking"] == want("braking", net, v, leader_kind="braking",
@@ -274,25 +275,27 @@ def test_the_suite_families_by_hand() -> None:
                 brake_to_mps=32.0, ego_speed_mps=20.0, initial_gap_m=30.0)
             for family, spec in got.items():
                 assert suite.family_of(spec.index) == family
-    assert suite.family_specs("approach", "straight", 0, "idm", 7, max_time_s=12.0
-                              ).max_time_s == 12.0
+    assert suite.family_scenario("approach", "straight", 0, 7, max_time_s=12.0
+                                 ).max_time_s == 12.0
     with pytest.raises(ValueError, match="unknown family 'merge'; families: approach, braking, "
                                          "cut_in, stop_and_go, accelerating"):
-        suite.family_specs("merge", "straight", 0, "idm", 0)
+        suite.family_scenario("merge", "straight", 0, 0)
 
 
-def test_suite_specs_are_every_policy_family_net_and_variant() -> None:
-    got = suite.suite_specs(["idm", "bc"], seed=5, variants=2)
+def test_suite_tasks_are_every_policy_family_net_and_variant() -> None:
+    got = suite.suite_tasks(["idm", "bc"], seed=5, variants=2)
     assert len(got) == 2 * 5 * 2 * 2
-    assert got == [suite.family_specs(f, n, v, p, 5) for p in ("idm", "bc")
+    assert got == [Task(suite.family_scenario(f, n, v, 5), PlannerRef(p)) for p in ("idm", "bc")
                    for f in suite.FAMILIES for n in suite.NETS for v in range(2)]
-    assert suite.suite_specs(["idm"], families=("braking",), nets=("straight",)) == [
-        suite.family_specs("braking", "straight", v, "idm", 0) for v in range(3)]
+    assert suite.suite_tasks(["idm"], families=("braking",), nets=("straight",)) == [
+        Task(suite.family_scenario("braking", "straight", v, 0), PlannerRef("idm"))
+        for v in range(3)]
+    assert all(t.brake_guard for t in got)  # the loop as shipped
 
 
 @pytest.mark.sumo
 def test_quick_suite_runs_every_family_in_libsumo(tmp_path) -> None:
-    specs = suite.suite_specs(["analytic"], seed=0, variants=1)
+    specs = suite.suite_tasks(["analytic"], seed=0, variants=1)
     assert len(specs) == len(suite.FAMILIES) * len(suite.NETS)
     summary = run_sweep(specs, tmp_path, workers=1, progress=False)
     assert (summary["status"] == "ok").all(), summary["error"].tolist()

@@ -20,14 +20,14 @@ from safeil_sumo.experiments.sweep_executor import (
     task_id,
 )
 from safeil_sumo.scenarios.safety import safety_scenario
-from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, leader_profile
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task, build_scenario, leader_profile
 from safeil_sumo.sweep import main as sweep_main
 
 SHORT = {"net": "straight", "policy": "analytic", "max_time_s": 2.0}
 
 
-def short_specs(n: int = 4, **kw) -> list[ScenarioSpec]:
-    return [ScenarioSpec(index=i, **(SHORT | kw)) for i in range(n)]
+def short_specs(n: int = 4, **kw) -> list[Task]:
+    return [Task.of(index=i, **(SHORT | kw)) for i in range(n)]
 
 
 class Counting:
@@ -36,7 +36,7 @@ class Counting:
     def __init__(self, log: Path, kill_id: str | None = None, sleep_id: str | None = None):
         self.log, self.kill_id, self.sleep_id = log, kill_id, sleep_id
 
-    def __call__(self, spec: ScenarioSpec) -> dict:
+    def __call__(self, spec: Task) -> dict:
         tid = task_id(spec)
         with open(self.log, "a") as f:  # one short O_APPEND write per task
             f.write(tid + "\n")
@@ -67,14 +67,17 @@ def test_spec_draws_depend_only_on_master_seed_and_index(curved500):
 
 
 def test_task_id_is_stable_normalised_and_path_safe():
-    a = ScenarioSpec(leader_speed_range_mps=[25, 32], ego_speed_mps=30)
-    b = ScenarioSpec(leader_speed_range_mps=(25.0, 32.0), ego_speed_mps=30.0)
+    a = Task.of(leader_speed_range_mps=[25, 32], ego_speed_mps=30)
+    b = Task.of(leader_speed_range_mps=(25.0, 32.0), ego_speed_mps=30.0)
     assert task_id(a) == task_id(b)
-    assert task_id(a) != task_id(ScenarioSpec(index=1))
-    assert task_id(a) != task_id(ScenarioSpec(safety_filter=True))
-    evil = task_id(ScenarioSpec(net="../../etc/x y.net.xml", policy="/tmp/../a.safetensors"))
+    assert task_id(a) != task_id(Task.of(index=1))
+    assert task_id(a) != task_id(Task.of(safety_filter=True))
+    evil = task_id(Task.of(net="../../etc/x y.net.xml", policy="/tmp/../a.safetensors"))
     assert "/" not in evil and ".." not in evil and " " not in evil
-    assert ScenarioSpec.from_json(a.to_json()) == a
+    assert Task.from_json(a.to_json()) == a
+    guard_off = Task.of(brake_guard=False, time_gap_s=1.2, plan_rate_hz=5)
+    assert Task.from_json(guard_off.to_json()) == guard_off  # no brake_guard key: off
+    assert "brake_guard" not in guard_off.to_json() and a.to_json()["brake_guard"] is True
 
 
 def test_spec_rejects_bad_values():
@@ -165,10 +168,10 @@ def test_sequential_equals_parallel_and_same_seed_twice(tmp_path):
 @pytest.mark.sumo
 def test_failures_are_recorded_and_others_complete(tmp_path):
     specs = [
-        ScenarioSpec(index=0, **SHORT),
-        ScenarioSpec(index=1, **(SHORT | {"policy": str(tmp_path / "nope.safetensors")})),
-        ScenarioSpec(index=2, **(SHORT | {"net": "no_such_track"})),
-        ScenarioSpec(index=3, **SHORT),
+        Task.of(index=0, **SHORT),
+        Task.of(index=1, **(SHORT | {"policy": str(tmp_path / "nope.safetensors")})),
+        Task.of(index=2, **(SHORT | {"net": "no_such_track"})),
+        Task.of(index=3, **SHORT),
     ]
     out = run_sweep(specs, tmp_path / "out", workers=2, progress=False)
     assert list(out["status"]) == ["ok", "failed", "failed", "ok"]
@@ -258,7 +261,7 @@ def test_batches_group_shareable_specs_in_order():
     from safeil_sumo.experiments.sweep_executor import batch_key, batches
 
     specs = (short_specs(5) + short_specs(2, policy="bc")
-             + [ScenarioSpec(index=9, net="n74", from_km=0.0, to_km=1.0, traffic="light")])
+             + [Task.of(index=9, net="n74", from_km=0.0, to_km=1.0, traffic="light")])
     units = batches(specs, 2)
     assert [len(u) for u in units] == [2, 2, 1, 2, 1]
     assert [s for u in units for s in u] == specs  # every spec once, grouped in order
@@ -275,7 +278,7 @@ def test_batched_sweep_equals_one_simulation_per_scenario(tmp_path):
     """The same records with --batch 3 on 2 workers as one scenario per simulation, a spec
     that cannot be built failing alone inside its batch."""
     specs = short_specs(7, initial_gap_m=(30, 80), radar_noise_m=0.5)
-    specs[2] = ScenarioSpec(index=2, **(SHORT | {"policy": str(tmp_path / "nope.safetensors")}))
+    specs[2] = Task.of(index=2, **(SHORT | {"policy": str(tmp_path / "nope.safetensors")}))
     one = run_sweep(specs, tmp_path / "one", workers=1, progress=False)
     batched = run_sweep(specs, tmp_path / "batched", workers=2, progress=False, batch=3)
     assert list(batched["status"]) == ["ok", "ok", "failed"] + ["ok"] * 4
@@ -306,7 +309,7 @@ def test_a_retrained_checkpoint_never_resumes_the_results_of_the_one_before(tmp_
     ckpt = tmp_path / "m.safetensors"
     for name in ("safetensors", "json"):
         shutil.copyfile(reg.MODELS_DIR / f"bc.{name}", tmp_path / f"m.{name}")
-    spec = ScenarioSpec(net="curved500", policy=str(ckpt))
+    spec = Task.of(net="curved500", policy=str(ckpt))
     before = task_id(spec)
     assert task_id(spec) == before
     assert reg.fingerprint(str(ckpt)) == reg.fingerprint("bc")

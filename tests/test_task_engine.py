@@ -22,7 +22,7 @@ from safeil_sumo.experiments import sweep_executor, task_engine
 from safeil_sumo.experiments import window_replays as ra
 from safeil_sumo.experiments.sweep_executor import SweepJob, run_sweep, task_id
 from safeil_sumo.experiments.window_replays import WindowJob
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.scenarios.spec import Task
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -96,7 +96,7 @@ def test_replays_and_sweeps_run_on_the_one_engine(tmp_path, monkeypatch, units_r
     assert units_run[-1][1] == (wins[4],)
 
     # a sweep: the same engine entry, its own job
-    specs = [ScenarioSpec(index=i, net="straight", policy="analytic") for i in range(3)]
+    specs = [Task.of(index=i, net="straight", policy="analytic") for i in range(3)]
     out = run_sweep(specs, tmp_path / "s", progress=False, task_fn=_fake_task)
     assert list(out["status"]) == ["ok"] * 3
     assert [type(job) for job, _ in units_run[3:]] == [SweepJob] * 3
@@ -130,8 +130,8 @@ def test_replay_and_sweep_share_the_task_options() -> None:
         replay.parse_args(["--source", "openacc", "--maneuver", "all", "--task-timeout-s", "0"])
 
 
-def _fake_task(spec: ScenarioSpec) -> dict:
-    return {"task_id": task_id(spec), "status": "ok", "index": spec.index}
+def _fake_task(task: Task) -> dict:
+    return {"task_id": task_id(task), "status": "ok", "index": task.scenario.index}
 
 
 def test_replays_run_in_local_workers_and_on_dask(tmp_path, monkeypatch):
@@ -327,10 +327,10 @@ def test_ctrl_c_while_a_record_is_made_keeps_it(tmp_path, workers):
 SWEEP = """
 import sys
 from safeil_sumo.experiments.sweep_executor import run_sweep
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.scenarios.spec import Task
 
 out, workers, ends = sys.argv[1], int(sys.argv[2]), sys.argv[3].split(",")
-specs = [ScenarioSpec(index=i, net="straight", policy="analytic", max_time_s=float(t))
+specs = [Task.of(index=i, net="straight", policy="analytic", max_time_s=float(t))
          for i, t in enumerate(ends)]
 try:
     run_sweep(specs, out, workers=workers, progress=False, batch=64)
@@ -359,7 +359,7 @@ def test_ctrl_c_mid_batch_keeps_the_tasks_that_ended_and_a_rerun_runs_the_rest(t
     done = _interrupted(SWEEP, [str(out), str(workers), ",".join(map(str, ENDS))],
                         lambda: len(_records(tasks)) >= len(SHORT))
     assert done.returncode == 130, done.stderr
-    specs = [ScenarioSpec(index=i, net="straight", policy="analytic", max_time_s=t)
+    specs = [Task.of(index=i, net="straight", policy="analytic", max_time_s=t)
              for i, t in enumerate(ENDS)]
     saved = {i for i, s in enumerate(specs) if (tasks / f"{task_id(s)}.json").is_file()}
     assert set(SHORT) <= saved < set(range(len(ENDS))), saved  # ended ones kept, mid-batch

@@ -195,9 +195,9 @@ def test_shipped_safeil_stops_behind_a_braking_leader_on_the_curve():
     `safeil` (lateral tower refitted to its plan length, learn/lateral_refit.py, tracked with
     curled-back stop plans extended ahead) stops behind it in its lane."""
     from safeil_sumo.experiments.sweep_executor import run_task
-    from safeil_sumo.scenarios.spec import ScenarioSpec
+    from safeil_sumo.scenarios.spec import Task
 
-    spec = ScenarioSpec(net="curved500", index=21001, master_seed=6, policy="safeil",
+    spec = Task.of(net="curved500", index=21001, master_seed=6, policy="safeil",
                         leader_kind="braking", brake_time_s=5.0, brake_decel_mps2=4.0,
                         brake_to_mps=0.0, ego_speed_mps=30.0, max_time_s=40.0,
                         stop_on_flag=False, initial_gap_m=50.0)

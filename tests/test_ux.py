@@ -71,18 +71,18 @@ def test_a_toml_sweep_equals_the_same_sweep_from_flags(tmp_path, capsys) -> None
                      'seed = 4\nleader = "braking"\ngap_range_m = [20, 60]\nstop_on_flag = true\n')
     flags = ["--net", "straight", "curved500", "--policy", "analytic", "--scenarios", "3",
              "--seed", "4", "--leader", "braking", "--gap-range-m", "20", "60", "--stop-on-flag"]
-    a = cli.build_specs(cli.parse_args(["--config", str(study)]))
-    b = cli.build_specs(cli.parse_args(flags))
+    a = cli.build_tasks(cli.parse_args(["--config", str(study)]))
+    b = cli.build_tasks(cli.parse_args(flags))
     assert a == b and len(a) == 6
     # flags on the command line override the file
-    c = cli.build_specs(cli.parse_args(["--config", str(study), "--scenarios", "1"]))
+    c = cli.build_tasks(cli.parse_args(["--config", str(study), "--scenarios", "1"]))
     assert len(c) == 2
     # the shipped study files parse
     from pathlib import Path
 
     for f in sorted((Path(__file__).resolve().parents[1] / "sumo_scenarios" / "studies")
                     .glob("*.toml")):
-        assert cli.build_specs(cli.parse_args(["--config", str(f)]))
+        assert cli.build_tasks(cli.parse_args(["--config", str(f)]))
     # a bad file: one error line, exit 2
     bad = tmp_path / "bad.toml"
     bad.write_text("scenarios = \n")

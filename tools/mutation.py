@@ -61,10 +61,10 @@ SAFETY_SCOPE = (
     "safeil_sumo.experiments.falsification_search.*",
     # the gap probe but its figure (plot, the series it draws) and the reader of the real data
     *(f"safeil_sumo.experiments.gap_step_responses.x_{name}__mutmut_*" for name in (
-        "initial_gap_m", "probe_spec", "kind_of", "step_time_s", "leader_distance_m",
+        "initial_gap_m", "probe_scenario", "probe_task", "kind_of", "step_time_s", "leader_distance_m",
         "check_fits", "time_gap", "window_mean", "settling_time", "_first_crossing",
         "rise_time", "overshoot", "drift", "response_metrics", "probe_extras", "run_step",
-        "probe_specs", "steady_following", "human_time_gap_bands", "table")),
+        "probe_tasks", "steady_following", "human_time_gap_bands", "table")),
     "safeil_sumo.experiments.suite.*",
     "safeil_sumo.planners.safety_filter.*",
     "safeil_sumo.sim.monitors.*",
@@ -219,12 +219,17 @@ def report(patterns: tuple[str, ...]) -> int:
 
 
 def source_digest(path: Path) -> str:
-    """sha256 of a module's code: its lines without comments, blank lines and docstrings, so
-    that a change of documentation needs no new mutation run and any change of code does (by
-    lines, not tokens: Python 3.12 tokenizes f-strings differently)."""
+    """sha256 of a module's code: its lines without comments, blank lines, docstrings and
+    import statements, so that a change of documentation, or a module moved to another folder
+    (mutmut never mutates an import: its mutants are the same), needs no new mutation run and
+    any other change of code does (by lines, not tokens: Python 3.12 tokenizes f-strings
+    differently)."""
     text = path.read_text()
     lines = text.splitlines()
     for node in ast.walk(ast.parse(text)):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            for k in range(node.lineno - 1, node.end_lineno or node.lineno):
+                lines[k] = ""
         body = getattr(node, "body", None)
         if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
                 and body and isinstance(body[0], ast.Expr)

@@ -40,6 +40,8 @@ from safeil_sumo.experiments.sweep_executor import run_sweep
 from safeil_sumo.experiments.window_replays import driver_style, idm_style_params
 from safeil_sumo.planners import idm
 from safeil_sumo.planners import registry as pol
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import Task
 
 SOURCES = ("openacc", "zalazone", "ngsim")
 MIN_SAMPLES = 100  # [-] steady samples (10 s at 10 Hz) for a driver's band median
@@ -102,11 +104,11 @@ def safeil_equilibria(pairs: pd.DataFrame, out: Path, workers: int) -> pd.Series
     ``setting_s``, NaN: its default setting): the gap probe's final-window time gap."""
     specs = []
     for k, r in enumerate(pairs.itertuples()):
-        spec = gp.probe_spec("safeil", KIND, float(r.speed_mps))
         setting = None if np.isnan(r.setting_s) else float(r.setting_s)
-        specs.append(dataclasses.replace(spec, time_gap_s=setting, master_seed=k))
+        specs.append(Task(gp.probe_scenario(KIND, float(r.speed_mps), seed=k),
+                          PlannerRef("safeil", time_gap_s=setting)))
     records = run_sweep(specs, out / "runs", workers=workers, progress=True,
-                        task_fn=gp.probe_task)
+                        task_fn=gp.run_probe_task)
     table = gp.table(records)
     return pd.Series(table["eq_time_gap_s"].to_numpy(float), index=pairs.index)
 

@@ -53,7 +53,7 @@ def _maneuvers(source: str, data_dir: str, rate_hz: float) -> pd.DataFrame:
 
 @dataclass(frozen=True)
 class ReplayTask:
-    """Episodes of one recorded maneuver's replay (the :class:`~.tasks.Task` interface).
+    """Episodes of one recorded maneuver's replay (the :class:`~.tasks.EnvTask` interface).
 
     ``scenario``: the replay's closed-loop scenario (seed 0); ``human_t`` [s from the window's
     start] and ``human_gap`` [m, bumper to bumper along the lane]: the recorded human's gap at

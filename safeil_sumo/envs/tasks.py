@@ -1,4 +1,4 @@
-"""What an env's episodes are: a :class:`Task` draws the loop's :class:`Scenario` of an episode.
+"""What an env's episodes are: an :class:`EnvTask` draws the loop's :class:`Scenario` of an episode.
 
 A task is a :class:`~safeil_sumo.scenarios.spec.ScenarioSpec` template on one road; episode
 ``index`` is the spec's scenario ``index`` (every draw from ``scenario_seed(master_seed,
@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from safeil_sumo.experiments.suite import FAMILIES, NETS, family_specs
+from safeil_sumo.experiments.suite import FAMILIES, NETS, family_scenario
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_road
 from safeil_sumo.sim.loop_types import Scenario
 
@@ -34,7 +34,7 @@ TRAFFIC_DENSITIES = ("light", "default", "dense")
 
 
 @dataclass(frozen=True)
-class Task:
+class EnvTask:
     """Episodes of one kind: ``spec`` with its ``index`` replaced per episode."""
 
     name: str
@@ -53,8 +53,8 @@ class Task:
 
     def spec_of(self, index: int) -> ScenarioSpec:
         if self.family:
-            return family_specs(self.family, self.spec.net, index, self.spec.policy,
-                                self.spec.master_seed, self.spec.max_time_s or 40.0)
+            return family_scenario(self.family, self.spec.net, index, self.spec.master_seed,
+                                   self.spec.max_time_s or 40.0)
         return replace(self.spec, index=int(index))
 
     @property
@@ -77,7 +77,7 @@ class Task:
 
 
 def make_task(task: str = "curved500", net: str | None = None, master_seed: int = 0,
-              max_time_s: float | None = None, profile: str = "", **spec: Any) -> Task | ReplayTask:
+              max_time_s: float | None = None, profile: str = "", **spec: Any) -> EnvTask | ReplayTask:
     """The task ``task`` (one of :data:`TASKS`):
 
     - ``curved500``: the paper's safety test (a leader at a constant random speed in [25, 32]
@@ -105,7 +105,7 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
         from safeil_sumo.envs.replay_task import replay_task
 
         return replay_task(master_seed=master_seed, max_time_s=max_time_s, **spec)
-    known = set(ScenarioSpec.__dataclass_fields__) - {"index", "master_seed", "net", "policy"}
+    known = set(ScenarioSpec.__dataclass_fields__) - {"index", "master_seed", "net"}
     unknown = sorted(set(spec) - known)
     if unknown:
         raise ValueError(f"unknown scenario option(s) {unknown}; options: {sorted(known)}")
@@ -115,7 +115,7 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
         net = net or "curved500"
         if net not in NETS:
             raise ValueError(f"the leader-response families run on {NETS}, got {net!r}")
-        return Task(task, ScenarioSpec(net=net, master_seed=master_seed,
+        return EnvTask(task, ScenarioSpec(net=net, master_seed=master_seed,
                                        max_time_s=max_time_s or 40.0), FAMILY_VARIANTS, task)
     if task == "n74_traffic":
         if net not in (None, "n74"):
@@ -131,6 +131,6 @@ def make_task(task: str = "curved500", net: str | None = None, master_seed: int 
         raise ValueError("profile (a recorded leader) needs task='recorded'")
     sc = ScenarioSpec(net=net or "curved500", master_seed=master_seed, max_time_s=max_time_s,
                       **spec)
-    task_ = Task(task, sc)
+    task_ = EnvTask(task, sc)
     task_.scenario(0)  # a bad net or profile fails here, before any SUMO starts
     return task_

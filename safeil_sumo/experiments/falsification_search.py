@@ -3,7 +3,7 @@
     python -m safeil_sumo.falsify --policy bc --method cem --budget-sims 2000 --batch 50 --seed 0
 
 What is searched: a point ``u`` of the unit box ``[0, 1]^D``, decoded (:func:`decode`) into a
-:class:`ScenarioSpec` of the leader-response suite's kinds (:mod:`.suite`): a scripted leader
+task whose scenario is of the leader-response suite's kinds (:mod:`.suite`): a scripted leader
 at ``gap_m`` ahead and ``leader_speed_mps`` (a small gap and a slower leader is the suite's
 cut-in, modelled as its end state), which brakes at ``brake_decel_mps2`` from
 ``brake_onset_s`` for ``brake_duration_s``; or a recorded NGSIM leader window
@@ -44,7 +44,10 @@ import pandas as pd
 
 from safeil_sumo.core.atomic import atomic_path
 from safeil_sumo.experiments.suite import BRAKE_AVOID_MPS2, TTC_FLAG_S, braking_avoids
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
+from safeil_sumo.sim.brake_guard import when as brake_guard_when
+from safeil_sumo.sim.loop_types import LoopConfig
 
 TTC_CAP_S = 10.0  # [s] a min TTC above this (or inf: never closing) scores this
 AVOID_STEP_S = 0.01  # [s] step of the braking reference (the loop's physics step)
@@ -197,13 +200,19 @@ def values(u: np.ndarray) -> dict[str, float]:
 
 
 def decode(u: np.ndarray, policy: str, max_time_s: float = 30.0,
-           brake_guard: bool = True) -> ScenarioSpec:
-    """The :class:`ScenarioSpec` at ``u (D,)``. Always ``index = 0``: the spec's draws come from
-    ``master_seed`` (the ``scenario_seed`` coordinate), so ``sweep --seed`` reruns it."""
+           brake_guard: bool = True) -> Task:
+    """The :class:`Task` at ``u (D,)``: its scenario driven by ``policy``, with the brake guard
+    or without. Always ``index = 0``: the scenario's draws come from ``master_seed`` (the
+    ``scenario_seed`` coordinate), so ``sweep --seed`` reruns it."""
+    return Task(decode_scenario(u, max_time_s), PlannerRef(policy),
+                LoopConfig(brake_guard=brake_guard_when(brake_guard)))
+
+
+def decode_scenario(u: np.ndarray, max_time_s: float = 30.0) -> ScenarioSpec:
+    """The :class:`ScenarioSpec` at ``u (D,)`` (index 0)."""
     v = values(u)
     common = {"net": NETS[int(v["track"])], "index": 0, "master_seed": int(v["scenario_seed"]),
-              "policy": policy, "max_time_s": max_time_s, "brake_guard": brake_guard,
-              "radar_noise_m": round(v["radar_noise_m"], 3),
+              "max_time_s": max_time_s, "radar_noise_m": round(v["radar_noise_m"], 3),
               "lane_noise_c0_m": round(v["lane_noise_m"], 4)}
     if v["leader_source"] >= RECORDED_FROM:
         return ScenarioSpec(leader_kind="recorded", leader_profile="ngsim", **common)
@@ -285,7 +294,7 @@ def search(config: SearchConfig, objective: Objective,
 
 def outcome_of(spec: ScenarioSpec, record: dict) -> Outcome:
     """A run's :class:`Outcome` from its sweep record (:func:`.sweep.run_tasks`); the leader's
-    profile is rebuilt from the spec (same seed: the same leader) for :func:`avoidable`."""
+    profile is rebuilt from the scenario (same seed: the same leader) for :func:`avoidable`."""
     from safeil_sumo.scenarios.spec import build_scenario, resolve_road
 
     if record.get("status") != "ok":
@@ -294,7 +303,9 @@ def outcome_of(spec: ScenarioSpec, record: dict) -> Outcome:
     ok = avoidable(scenario.leader.speed_at, scenario.initial_gap_m, scenario.ego_speed_mps,
                    float(record["sim_time_s"]))
     flag = str(record.get("flag") or "")
-    min_ttc = float(record["min_ttc_s"])
+    # a run that never closed in has TTC inf, which a record file's JSON writes as null
+    ttc = record.get("min_ttc_s")
+    min_ttc = math.inf if ttc is None else float(ttc)
     return Outcome(score(min_ttc, flag, ok), ok and bool(flag), min_ttc, flag, ok)
 
 
@@ -310,22 +321,23 @@ def closed_loop_objective(policy: str, max_time_s: float = 30.0, brake_guard: bo
     from safeil_sumo.experiments.task_engine import execute, read_record, record_path
 
     def evaluate(u: np.ndarray) -> list[Outcome]:
-        specs = [decode(x, policy, max_time_s, brake_guard) for x in u]
-        job = SweepJob(batch=len(specs), mixed_nets=True)
+        tasks = [decode(x, policy, max_time_s, brake_guard) for x in u]
+        job = SweepJob(batch=len(tasks), mixed_nets=True)
         with ExitStack() as stack:
             folder = tasks_dir or Path(stack.enter_context(tempfile.TemporaryDirectory()))
-            execute(specs, job, folder, workers, scheduler, progress=False)
-            records = [read_record(record_path(folder, job, s)) or {} for s in specs]
-        return [outcome_of(s, r) for s, r in zip(specs, records, strict=True)]
+            execute(tasks, job, folder, workers, scheduler, progress=False)
+            records = [read_record(record_path(folder, job, t)) or {} for t in tasks]
+        return [outcome_of(t.scenario, r) for t, r in zip(tasks, records, strict=True)]
 
     return evaluate
 
 
-def sweep_toml(spec: ScenarioSpec, comment: str = "") -> str:
+def sweep_toml(task: Task, comment: str = "") -> str:
     """A sweep file (``python -m safeil_sumo.sweep --config FILE``) that reruns exactly
-    ``spec`` (a spec of :func:`decode`: index 0, no ranges drawn but the recorded window)."""
+    ``task`` (a task of :func:`decode`: index 0, no ranges drawn but the recorded window)."""
+    spec = task.scenario
     lo, hi = spec.leader_speed_range_mps
-    keys: dict = {"net": [spec.net], "policy": [spec.policy], "scenarios": 1,
+    keys: dict = {"net": [spec.net], "policy": [task.planner.policy], "scenarios": 1,
                   "seed": spec.master_seed, "leader": spec.leader_kind,
                   "leader_speed_range_mps": [lo, hi], "gap_m": spec.initial_gap_m,
                   "lane_noise_m": spec.lane_noise_c0_m, "radar_noise_m": spec.radar_noise_m,
@@ -335,7 +347,7 @@ def sweep_toml(spec: ScenarioSpec, comment: str = "") -> str:
     else:
         keys |= {"brake_time_s": spec.brake_time_s, "brake_decel_mps2": spec.brake_decel_mps2,
                  "brake_to_mps": spec.brake_to_mps, "ego_speed_mps": spec.ego_speed_mps}
-    if not spec.brake_guard:
+    if not task.brake_guard:
         keys["brake_guard"] = False
 
     def fmt(v) -> str:
@@ -357,12 +369,13 @@ def table(result: SearchResult, policy: str) -> pd.DataFrame:
     lowest score so far and the spec (JSON)."""
     rows = []
     for k, (u, o) in enumerate(zip(result.u, result.outcomes, strict=True)):
-        spec = decode(u, policy, result.config.max_time_s, result.config.brake_guard)
+        task = decode(u, policy, result.config.max_time_s, result.config.brake_guard)
         rows.append({"sim": k + 1, **{f"u{j}": float(x) for j, x in enumerate(u)},
-                     **values(u), "net": spec.net, "leader_kind": spec.leader_kind,
+                     **values(u), "net": task.scenario.net,
+                     "leader_kind": task.scenario.leader_kind,
                      "score": o.score, "failure": o.failure, "min_ttc_s": o.min_ttc_s,
                      "flag": o.flag, "avoidable": o.avoidable, "error": o.error,
-                     "spec": json.dumps(spec.to_json(), sort_keys=True)})
+                     "spec": json.dumps(task.to_json(), sort_keys=True)})
     df = pd.DataFrame(rows)
     if len(df):
         df["best_so_far"] = result.best_so_far
@@ -406,18 +419,18 @@ def summary(result: SearchResult, policy: str) -> dict:
 
 def write_worst(result: SearchResult, policy: str, folder: Path, stem: str = "worst"
                 ) -> Path | None:
-    """The worst avoidable case as ``<stem>.json`` (its :class:`ScenarioSpec`) and
-    ``<stem>.toml`` (a sweep file that reruns it); the TOML's path (None: nothing avoidable)."""
+    """The worst avoidable case as ``<stem>.json`` (its :class:`Task`) and ``<stem>.toml`` (a
+    sweep file that reruns it); the TOML's path (None: nothing avoidable)."""
     s = summary(result, policy)
     if "best_spec" not in s:
         return None
-    spec = ScenarioSpec.from_json(s["best_spec"])
+    task = Task.from_json(s["best_spec"])
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / f"{stem}.json").write_text(json.dumps(spec.to_json(), indent=1) + "\n")
+    (folder / f"{stem}.json").write_text(json.dumps(task.to_json(), indent=1) + "\n")
     toml = folder / f"{stem}.toml"
     flag = s["best_flag"] or "no flag"
     shown = Path(os.path.relpath(toml)).as_posix()  # from where the command runs
-    toml.write_text(sweep_toml(spec, (
+    toml.write_text(sweep_toml(task, (
         f"{policy}: worst avoidable case of a {s['method']} search (seed {s['seed']}, "
         f"simulation {s['best_sim']} of {s['simulations']}): min TTC {s['best_min_ttc_s']:.3f} s, "
         f"{flag}\nrerun: python -m safeil_sumo.sweep --config {shown} "

@@ -52,7 +52,8 @@ import pandas as pd
 
 from safeil_sumo.experiments.suite import MIN_SPEED_TIME_GAP
 from safeil_sumo.experiments.sweep_executor import run_task
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 from safeil_sumo.sim.sensors import SensorConfig
 
 KINDS = ("pull_away", "slow_down", "far", "close")
@@ -107,13 +108,13 @@ def initial_gap_m(kind: str, speed_mps: float) -> float:
     raise ValueError(f"unknown step kind {kind!r}; kinds: {', '.join(KINDS)}")
 
 
-def probe_spec(policy: str, kind: str, speed_mps: float, seed: int = 0,
-               settle_s: float = SETTLE_S, after_s: float = AFTER_STEP_S) -> ScenarioSpec:
-    """The sweep task of one step response (the task index encodes kind and speed)."""
+def probe_scenario(kind: str, speed_mps: float, seed: int = 0, settle_s: float = SETTLE_S,
+                   after_s: float = AFTER_STEP_S) -> ScenarioSpec:
+    """The scenario of one step response (its index encodes kind and speed)."""
     gap = initial_gap_m(kind, speed_mps)
     if not 0 < speed_mps < 100:
         raise ValueError(f"probe speed must be in (0, 100) m/s, got {speed_mps}")
-    common = {"net": NET, "from_km": STRETCH_KM[0], "to_km": STRETCH_KM[1], "policy": policy,
+    common = {"net": NET, "from_km": STRETCH_KM[0], "to_km": STRETCH_KM[1],
               "index": KIND_BASE[kind] + round(100 * speed_mps), "master_seed": seed,
               "leader_speed_range_mps": (speed_mps, speed_mps), "ego_speed_mps": speed_mps,
               "initial_gap_m": gap}
@@ -126,6 +127,13 @@ def probe_spec(policy: str, kind: str, speed_mps: float, seed: int = 0,
                             brake_time_s=settle_s, brake_decel_mps2=LEADER_RATE_MPS2,
                             brake_to_mps=target, max_time_s=settle_s + after_s, **common)
     return ScenarioSpec(max_time_s=after_s, **common)
+
+
+def probe_task(policy: str, kind: str, speed_mps: float, seed: int = 0,
+               settle_s: float = SETTLE_S, after_s: float = AFTER_STEP_S) -> Task:
+    """The sweep task of one step response: its scenario driven by ``policy``, the loop as
+    shipped."""
+    return Task(probe_scenario(kind, speed_mps, seed, settle_s, after_s), PlannerRef(policy))
 
 
 def kind_of(index: int) -> str:
@@ -282,14 +290,14 @@ def response_metrics(t: np.ndarray, gap: np.ndarray, v: np.ndarray, t_step: floa
 # ------------------------------------------------------------------------------- the runs
 
 
-def probe_extras(spec: ScenarioSpec, rollout) -> dict:
+def probe_extras(task: Task, rollout) -> dict:
     """What a probe task keeps of its log: the response metrics and the series at
     :data:`SERIES_RATE_HZ` (``series_t``, ``series_gap``, ``series_v``, ``series_leader_v``)."""
     log = rollout.log
     if len(log) < 2:
-        return {"kind": kind_of(spec.index)}
+        return {"kind": kind_of(task.scenario.index)}
     t, gap, v = (log[c].to_numpy(float) for c in ("t", "gap", "v"))
-    metrics = response_metrics(t, gap, v, step_time_s(spec))
+    metrics = response_metrics(t, gap, v, step_time_s(task.scenario))
     # a run that ended early (collision, off the road) did not settle, whatever its tail did
     ran_out = rollout.summary.get("end_reason") == "timeout"
     metrics["settled"] = bool(metrics["settled"] and ran_out)
@@ -298,28 +306,28 @@ def probe_extras(spec: ScenarioSpec, rollout) -> dict:
     series = {f"series_{name}": np.round(rows[col].to_numpy(float), 3).tolist()
               for name, col in (("t", "t"), ("gap", "gap"), ("v", "v"),
                                 ("leader_v", "leader_v"))}
-    return {"kind": kind_of(spec.index), **metrics, **series}
+    return {"kind": kind_of(task.scenario.index), **metrics, **series}
 
 
-probe_task = partial(run_task, extras=probe_extras)
+run_probe_task = partial(run_task, extras=probe_extras)
 
 
 def run_step(policy: str, kind: str, speed_mps: float, seed: int = 0,
              settle_s: float = SETTLE_S, after_s: float = AFTER_STEP_S) -> dict:
     """One step response closed loop in libsumo: the sweep record (summary, ``status``) with the
     response metrics and series of :func:`probe_extras`."""
-    spec = probe_spec(policy, kind, speed_mps, seed, settle_s, after_s)
-    check_fits(spec)
-    return probe_task(spec)
+    task = probe_task(policy, kind, speed_mps, seed, settle_s, after_s)
+    check_fits(task.scenario)
+    return run_probe_task(task)
 
 
-def probe_specs(policies: Sequence[str], speeds: Sequence[float] = SPEEDS_MPS,
-                kinds: Sequence[str] = KINDS, seed: int = 0) -> list[ScenarioSpec]:
+def probe_tasks(policies: Sequence[str], speeds: Sequence[float] = SPEEDS_MPS,
+                kinds: Sequence[str] = KINDS, seed: int = 0) -> list[Task]:
     """Every policy x speed x kind (checked to fit the stretch)."""
-    specs = [probe_spec(p, k, s, seed) for p in policies for s in speeds for k in kinds]
-    for spec in specs:
-        check_fits(spec)
-    return specs
+    tasks = [probe_task(p, k, s, seed) for p in policies for s in speeds for k in kinds]
+    for task in tasks:
+        check_fits(task.scenario)
+    return tasks
 
 
 # ------------------------------------------------------------------------------- the humans

@@ -4,9 +4,9 @@ synthetic humans of the same road, and where their flags happened.
 
 Pure functions (:func:`garwood_interval`, :func:`time_gaps`, :func:`flag_events`,
 :func:`human_time_gaps`, :func:`compare_time_gaps`) do the maths on logs and tables; the sweep
-(:func:`drive_specs`, :func:`drive_task`) runs the drives with the sweep engine and keeps, per
+(:func:`drive_tasks`, :func:`drive_task`) runs the drives with the sweep engine and keeps, per
 drive, only the time-gap samples and the flag events of its per-step log. A population of
-drivers (:func:`population_specs`) drives the planners that have a time-gap setting at one
+drivers (:func:`population_tasks`) drives the planners that have a time-gap setting at one
 setting per drive, drawn from the real training maneuvers' preferred time gaps
 (:func:`training_settings`, :func:`draw_settings`).
 
@@ -32,7 +32,8 @@ import numpy as np
 import pandas as pd
 
 from safeil_sumo.experiments.sweep_executor import run_task
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 from safeil_sumo.sim.loop_types import Rollout
 from safeil_sumo.sim.monitors import event_starts
 
@@ -52,7 +53,7 @@ TIME_GAP_QUANTILES = (0.05, 0.1, 0.25, 0.5, 0.75, 0.9, 0.95)
 HUMANS = "synthetic humans"
 # a population of drivers: the planners with a time-gap setting drive each stretch
 # POPULATION_SEEDS_PER_STRETCH times, each drive at a setting drawn from the preferred time gaps
-# of the real training maneuvers (:func:`population_specs`)
+# of the real training maneuvers (:func:`population_tasks`)
 POPULATION_PLANNERS = ("safeil", "idm")
 POPULATION_SEEDS_PER_STRETCH = 6  # 18 drives; the first 2 per stretch on the other rows' seeds
 POPULATION = "population"
@@ -211,14 +212,15 @@ def rates(drives: pd.DataFrame, confidence: float = 0.95) -> pd.DataFrame:
 # ------------------------------------------------------------------------------- the drives
 
 
-def drive_specs(planners: Sequence[str] = PLANNERS, master_seed: int = 0,
+def drive_tasks(planners: Sequence[str] = PLANNERS, master_seed: int = 0,
                 stretches: Sequence[tuple[float, float]] = STRETCHES_KM,
                 seeds_per_stretch: int = SEEDS_PER_STRETCH, traffic: str = TRAFFIC
-                ) -> list[ScenarioSpec]:
+                ) -> list[Task]:
     """Every planner drives every stretch with the same ``seeds_per_stretch`` traffic seeds
     (task index ``j * seeds_per_stretch + i`` = stretch ``j``, seed ``i``)."""
-    return [ScenarioSpec(net="n74", index=j * seeds_per_stretch + i, master_seed=master_seed,
-                         policy=p, from_km=a, to_km=b, traffic=traffic)
+    return [Task(ScenarioSpec(net="n74", index=j * seeds_per_stretch + i,
+                              master_seed=master_seed, from_km=a, to_km=b, traffic=traffic),
+                 PlannerRef(p))
             for p in planners for j, (a, b) in enumerate(stretches)
             for i in range(seeds_per_stretch)]
 
@@ -270,7 +272,7 @@ def draw_settings(estimates: dict[str, float], master_seed: int, n: int) -> list
 def population_index(stretch: int, seed: int, n_stretches: int, per: int,
                      base: int = SEEDS_PER_STRETCH) -> int:
     """The task index (traffic seed) of stretch ``stretch``'s ``seed``-th population drive: the
-    first ``base`` of each stretch are the other rows' (:func:`drive_specs`: common random
+    first ``base`` of each stretch are the other rows' (:func:`drive_tasks`: common random
     numbers); the further ones are numbered after all of theirs."""
     if not (0 <= stretch < n_stretches and 0 <= seed < per):
         raise ValueError(f"stretch {stretch} / seed {seed} outside {n_stretches} x {per}")
@@ -279,20 +281,20 @@ def population_index(stretch: int, seed: int, n_stretches: int, per: int,
     return n_stretches * base + stretch * (per - base) + (seed - base)
 
 
-def population_specs(estimates: dict[str, float],
+def population_tasks(estimates: dict[str, float],
                      planners: Sequence[str] = POPULATION_PLANNERS, master_seed: int = 0,
                      stretches: Sequence[tuple[float, float]] = STRETCHES_KM,
                      per: int = POPULATION_SEEDS_PER_STRETCH, base: int = SEEDS_PER_STRETCH,
-                     traffic: str = TRAFFIC) -> list[ScenarioSpec]:
+                     traffic: str = TRAFFIC) -> list[Task]:
     """A population of drivers: every stretch driven ``per`` times, each drive at its own
-    setting (:func:`draw_settings`; drive ``index`` gets setting ``index``, recorded in its spec
-    as ``time_gap_s``); every planner gets the same drives (index, stretch, setting)."""
+    setting (:func:`draw_settings`; drive ``index`` gets setting ``index``, recorded in its
+    planner's ``time_gap_s``); every planner gets the same drives (index, stretch, setting)."""
     n = len(stretches)
     drives = [(population_index(j, i, n, per, min(base, per)), a, b)
               for j, (a, b) in enumerate(stretches) for i in range(per)]
     settings = draw_settings(estimates, master_seed, len(drives))  # indexes 0 .. n * per - 1
-    return [ScenarioSpec(net="n74", index=k, master_seed=master_seed, policy=p, from_km=a,
-                         to_km=b, traffic=traffic, time_gap_s=settings[k])
+    return [Task(ScenarioSpec(net="n74", index=k, master_seed=master_seed, from_km=a, to_km=b,
+                              traffic=traffic), PlannerRef(p, time_gap_s=settings[k]))
             for p in planners for k, a, b in drives]
 
 
@@ -304,7 +306,7 @@ def row_name(policy: str, time_gap_s: float | None) -> str:
     return f"{policy}_{POPULATION}"
 
 
-def drive_extras(spec: ScenarioSpec, rollout: Rollout) -> dict:
+def drive_extras(task: Task, rollout: Rollout) -> dict:
     """What the section keeps of a drive's log: time gaps (3 decimals) and flag events."""
     log = rollout.log
     if len(log) < 2:

@@ -24,18 +24,19 @@ from typing import Any
 import pandas as pd
 
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 
 VALIDATION_SEED = 7919  # master seed of the battery (the reported tests use 0)
 FAMILIES = ("paper", "approach", "braking", "cut_in")
 
 
-def battery(policy: str, per_family: int = 3, seed: int = VALIDATION_SEED) -> list[ScenarioSpec]:
-    """The validation specs of one policy (``per_family`` seeded scenarios per family)."""
-    specs: list[ScenarioSpec] = []
-    common: dict[str, Any] = {"policy": policy, "master_seed": seed, "max_time_s": 40.0}
+def battery(policy: str, per_family: int = 3, seed: int = VALIDATION_SEED) -> list[Task]:
+    """The validation tasks of one policy (``per_family`` seeded scenarios per family)."""
+    scenarios: list[ScenarioSpec] = []
+    common: dict[str, Any] = {"master_seed": seed, "max_time_s": 40.0}
     for i in range(per_family):
-        specs += [
+        scenarios += [
             ScenarioSpec(net="curved500", index=1000 + i, **common),
             ScenarioSpec(net="straight", index=2000 + i, leader_speed_range_mps=(15.0, 25.0),
                          initial_gap_m=140.0, **common),
@@ -44,7 +45,7 @@ def battery(policy: str, per_family: int = 3, seed: int = VALIDATION_SEED) -> li
             ScenarioSpec(net="straight", index=4000 + i, leader_speed_range_mps=(22.0, 27.0),
                          initial_gap_m=(12.0, 25.0), **common),
         ]
-    return specs
+    return [Task(s, PlannerRef(policy)) for s in scenarios]
 
 
 def family_of(index: int) -> str:

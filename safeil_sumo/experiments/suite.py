@@ -29,7 +29,8 @@ import math
 import numpy as np
 import pandas as pd
 
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 
 FAMILIES = ("approach", "braking", "cut_in", "stop_and_go", "accelerating")
 NETS = ("straight", "curved500")
@@ -39,14 +40,13 @@ MIN_SPEED_TIME_GAP = 1.0  # [m/s] below, the time gap gap/v is not defined
 FAMILY_BASE = {name: 10_000 * (k + 1) for k, name in enumerate(FAMILIES)}
 
 
-def family_specs(family: str, net: str, variant: int, policy: str, seed: int,
-                 max_time_s: float = 40.0) -> ScenarioSpec:
+def family_scenario(family: str, net: str, variant: int, seed: int,
+                    max_time_s: float = 40.0) -> ScenarioSpec:
     """One scenario of ``family`` on ``net``; the index encodes the family and net."""
     if family not in FAMILY_BASE:
         raise ValueError(f"unknown family {family!r}; families: {', '.join(FAMILIES)}")
     index = FAMILY_BASE[family] + 1000 * NETS.index(net) + variant
-    common = {"net": net, "index": index, "master_seed": seed, "policy": policy,
-              "max_time_s": max_time_s}
+    common = {"net": net, "index": index, "master_seed": seed, "max_time_s": max_time_s}
     if family == "approach":
         return ScenarioSpec(leader_speed_range_mps=(15.0, 25.0), initial_gap_m=145.0, **common)
     if family == "braking":
@@ -63,12 +63,12 @@ def family_specs(family: str, net: str, variant: int, policy: str, seed: int,
                         ego_speed_mps=20.0, initial_gap_m=30.0, **common)
 
 
-def suite_specs(policies: list[str], seed: int = 0, variants: int = 3,
+def suite_tasks(policies: list[str], seed: int = 0, variants: int = 3,
                 families: tuple[str, ...] = FAMILIES, nets: tuple[str, ...] = NETS
-                ) -> list[ScenarioSpec]:
-    """Every family x net x variant x policy."""
-    return [family_specs(f, n, v, p, seed) for p in policies for f in families for n in nets
-            for v in range(variants)]
+                ) -> list[Task]:
+    """Every family x net x variant x policy, the loop as shipped."""
+    return [Task(family_scenario(f, n, v, seed), PlannerRef(p)) for p in policies
+            for f in families for n in nets for v in range(variants)]
 
 
 def family_of(index: int) -> str:

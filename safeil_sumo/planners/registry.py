@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
+from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Protocol, cast
@@ -41,6 +43,53 @@ ADAPTATION_VARIANTS = {
 
 class PolicyError(ValueError):
     """A policy name or checkpoint that cannot be loaded."""
+
+
+@dataclass(frozen=True)
+class PlannerRef:
+    """A planner by reference, JSON-able: the planner part of a closed-loop task
+    (:class:`safeil_sumo.scenarios.spec.Task`)."""
+
+    policy: str = "analytic"  # a name of NAMES or a checkpoint/IDM path
+    safety_filter: bool = False  # wrapped in the inference-time safety filter
+    # the planner's preferred time gap [s] (an ACC's distance setting, :func:`with_time_gap`);
+    # None: its default
+    time_gap_s: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "policy", str(self.policy))
+        object.__setattr__(self, "safety_filter", bool(self.safety_filter))
+        if self.time_gap_s is not None:
+            object.__setattr__(self, "time_gap_s", float(self.time_gap_s))
+            if not (math.isfinite(self.time_gap_s) and 0 < self.time_gap_s <= 10):
+                raise ValueError(f"time gap must be in (0, 10] s, got {self.time_gap_s}")
+
+    def load(self) -> Policy:
+        """The planner: loaded fresh (no state shared with another load), set to the time gap,
+        wrapped in the safety filter."""
+        return self.wrap(self.load_unfiltered())
+
+    def load_unfiltered(self) -> Policy:
+        """The planner set to the time gap, without the safety filter (stateless: a batch of
+        tasks may share it)."""
+        policy = load(self.policy)
+        return policy if self.time_gap_s is None else with_time_gap(policy, self.time_gap_s)
+
+    def wrap(self, policy: Policy) -> Policy:
+        """``policy`` in the safety filter if this reference asks for it (a new wrapper: its
+        intervention counters are this task's)."""
+        if not self.safety_filter:
+            return policy
+        from safeil_sumo.planners.safety_filter import SafetyFiltered
+
+        return SafetyFiltered(policy)
+
+    def to_json(self) -> dict[str, object]:
+        """The fields, ``time_gap_s`` only when set."""
+        out = asdict(self)
+        if out["time_gap_s"] is None:
+            del out["time_gap_s"]
+        return out
 
 
 def shipped_checkpoint(name: str) -> Path:

@@ -40,6 +40,7 @@ from safeil_sumo.experiments import plots
 from safeil_sumo.experiments import suite as st
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
 from safeil_sumo.planners import registry as pol
+from safeil_sumo.planners.registry import PlannerRef
 from safeil_sumo.report import figures as figs
 from safeil_sumo.report.card import (
     Check,
@@ -51,7 +52,7 @@ from safeil_sumo.report.card import (
     rate_numbers,
     rate_text,
 )
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 
 SAFETY_NET = "curved500"
 SAFETY_SCENARIOS = 10  # [-] the paper's safety test
@@ -181,7 +182,7 @@ def _sweep_rates(ctx: EvalContext) -> tuple[dict, Check, str, str]:
     Wilson 95 % intervals; (numbers, check, figure, command)."""
     s = ctx.settings
     n, seed = s.sweep_scenarios, s.seed + 1
-    specs = [ScenarioSpec(net=SAFETY_NET, index=i, master_seed=seed, policy=ctx.model)
+    specs = [Task(ScenarioSpec(net=SAFETY_NET, index=i, master_seed=seed), PlannerRef(ctx.model))
              for i in range(n)]
     summary = run_sweep(specs, ctx.work / "sweep", workers=s.workers, progress=False,
                         batch=DEFAULT_BATCH)
@@ -232,7 +233,7 @@ def safety(ctx: EvalContext) -> Section:
 def suite(ctx: EvalContext) -> Section:
     """Section 2: the leader-response suite (``--quick``: one variant per family and net)."""
     s = ctx.settings
-    specs = st.suite_specs([ctx.model], s.seed, variants=1 if s.quick else 3)
+    specs = st.suite_tasks([ctx.model], s.seed, variants=1 if s.quick else 3)
     records = run_sweep(specs, ctx.work / "suite", workers=s.workers, progress=False,
                         batch=DEFAULT_BATCH)
     ok = records[records["status"] == "ok"]
@@ -275,9 +276,9 @@ def gap_probe(ctx: EvalContext) -> Section:
     """Section 3: the gap probe's step responses at ``settings.gap_speeds_mps``."""
     s = ctx.settings
     speeds = list(s.gap_speeds_mps)
-    specs = gp.probe_specs([ctx.model], speeds, gp.KINDS, s.seed)
+    specs = gp.probe_tasks([ctx.model], speeds, gp.KINDS, s.seed)
     records = run_sweep(specs, ctx.work / "gap_probe" / "runs", workers=s.workers,
-                        progress=False, task_fn=gp.probe_task)
+                        progress=False, task_fn=gp.run_probe_task)
     notes: tuple[str, ...] = ()
     try:
         humans = gp.human_time_gap_bands(gp.load_human_rows(s.data_dir), speeds)

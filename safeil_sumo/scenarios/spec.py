@@ -1,10 +1,14 @@
-"""Scenarios as data: a JSON-able :class:`ScenarioSpec`, its road and its built :class:`Scenario`.
+"""Closed-loop tasks as data: a :class:`Task` is a :class:`ScenarioSpec` (the road, the leader,
+the ego's start, the sensors), a :class:`~safeil_sumo.planners.registry.PlannerRef` (which
+planner) and a :class:`~safeil_sumo.sim.loop_types.LoopConfig` (how the loop runs), each a
+frozen dataclass, the three JSON-able as one flat object.
 
-The scenario layer of every closed-loop engine (one run, a sweep, the suite, the gap probe): a
-spec names the net, the policy, the leader and the sensors; :func:`resolve_road` loads its road
-(cached per process), :func:`build_scenario` draws the rest from the scenario seed
-(``scenario_seed(master_seed, index)``), so a task is identical alone or in a sweep of any size.
-Running specs (processes, Dask, resume) is :mod:`safeil_sumo.experiments.sweep_executor`'s, on the task
+The scenario layer of every closed-loop engine (one run, a sweep, the suite, the gap probe,
+falsification): :func:`resolve_road` loads a scenario's road (cached per process),
+:func:`build_scenario` draws the rest from the scenario seed (``scenario_seed(master_seed,
+index)``), so a task is identical alone or in a sweep of any size. The command-line options of
+a scenario are made from its fields (:func:`safeil_sumo.cli_args.add_scenario_options`). Running
+tasks (processes, Dask, resume) is :mod:`safeil_sumo.experiments.sweep_executor`'s, on the task
 engine (:mod:`safeil_sumo.experiments.task_engine`).
 """
 
@@ -12,12 +16,16 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from safeil_sumo.core.policy import PLAN_RATE_HZ
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.sim.brake_guard import BrakeGuard
+from safeil_sumo.sim.brake_guard import when as brake_guard_when
+from safeil_sumo.sim.loop_types import LoopConfig
+from safeil_sumo.sim.traffic import DENSITIES
 
 if TYPE_CHECKING:
     from safeil_sumo.sim.leaders import SpeedProfile
@@ -48,71 +56,93 @@ def lane_for_net(net: str, lane: str | None) -> str:
     return str(int(lane))
 
 
+def _opt(help_: str, flag: str | None = None, **kw: Any) -> dict[str, Any]:
+    """A field's command-line metadata: its help, and its flag when not ``--<field-name>``
+    (:func:`safeil_sumo.cli_args.add_scenario_options` makes the options from these)."""
+    return {"help": help_, "flag": flag, **kw}
+
+
 @dataclass(frozen=True)
 class ScenarioSpec:
-    """One closed-loop task, JSON-able. Ranges are ``(low, high)``; draws are uniform."""
+    """One closed-loop scenario, JSON-able: the road, the leader, the ego's start, the sensors
+    and the duration; which planner drives it and how the loop runs are the :class:`Task`'s
+    other parts. Ranges are ``(low, high)``; draws are uniform."""
 
     net: str = "curved500"  # catalogue name (curved500, straight, curved<R>) or .net.xml path
     index: int = 0  # scenario index within the master seed [-]
-    master_seed: int = 0  # with ``index`` gives the scenario seed (SUMO, sensors, draws) [-]
-    # a name of safeil_sumo.planners.registry.NAMES or a checkpoint/IDM path
-    policy: str = "analytic"
-    safety_filter: bool = False  # wrap the policy in the inference-time safety filter
-    # collision-avoidance braking under the planner (safeil_sumo.sim.brake_guard); False: the
-    # planner and tracker alone, the paper's loop. In the JSON only when True: specs of earlier
-    # versions, which ran without it, keep their task ids as brake_guard=False
-    brake_guard: bool = True
-    leader_kind: str = "constant"  # "constant" | "braking" | "accelerating" | "recorded"
-    leader_speed_range_mps: tuple[float, float] = (25.0, 32.0)  # leader (initial) speed [m/s]
-    brake_time_s: float = 5.0  # braking/accelerating leader: the change starts at this time [s]
-    brake_decel_mps2: float = 3.0  # braking/accelerating leader: rate of the change [m/s^2]
-    brake_to_mps: float = 15.0  # braking/accelerating leader: final speed [m/s]
-    # ego initial speed [m/s]; None: DEFAULT_EGO_SPEED_MPS, or behind a recorded leader the
-    # recording's start (the recorded follower's speed, or the leader's own speed for a profile
-    # file: :func:`safeil_sumo.scenarios.recorded_leaders.draw`); stays None in the JSON then
-    ego_speed_mps: float | None = None
-    initial_gap_m: float | tuple[float, float] = 50.0  # bumper gap, fixed or (low, high) [m]
-    lane_noise_c0_m: float = 0.0  # std of camera lane-offset noise [m]
-    radar_noise_m: float = 0.0  # std of radar range noise [m]
-    plan_rate_hz: float = PLAN_RATE_HZ  # re-planning rate [Hz]
-    max_time_s: float | None = None  # scenario duration; None: the loop's default [s]
-    stop_on_flag: bool = False  # end the scenario at its first safety flag
-    # recorded leader: "ngsim", "openacc" or a CSV/Parquet profile file or folder
-    # (:mod:`safeil_sumo.scenarios.recorded_leaders`); "" (other kinds) is left out of the JSON,
-    # so the task ids of specs without it are those of earlier versions
-    leader_profile: str = ""
-    # SUMO edges the ego drives, in order, on a multi-edge ``net`` (:mod:`safeil_sumo.scenarios.
-    # route`); () = the net's one edge. Left out of the JSON when empty, like leader_profile
-    route: tuple[str, ...] = ()
-    # ``net="n74"``: the stretch of direction A between these kilometre posts (None: its start /
-    # end; :func:`safeil_sumo.roads.n74.stretch_road`); left out of the JSON when None
-    from_km: float | None = None
-    to_km: float | None = None
+    master_seed: int = field(default=0, metadata=_opt(
+        "master seed: with the scenario index, the scenario seed (SUMO, sensors, draws)",
+        "--seed"))
+    leader_kind: str = field(default="constant", metadata=_opt(
+        "constant speed (the paper); braking or accelerating (to --brake-to-mps at "
+        "--brake-decel-mps2 after --brake-time-s); or recorded (a human leader's speed "
+        "profile, the ego starting as the recorded follower did, or behind a profile file at "
+        "the leader's speed)", "--leader", choices=LEADER_KINDS))
+    leader_speed_range_mps: tuple[float, float] = field(default=(25.0, 32.0), metadata=_opt(
+        "leader (initial) speed range [m/s], drawn per scenario (the paper's)",
+        metavar=("LOW", "HIGH")))
+    brake_time_s: float = field(default=5.0, metadata=_opt(
+        "braking/accelerating leader: the change starts at [s]"))
+    brake_decel_mps2: float = field(default=3.0, metadata=_opt(
+        "braking/accelerating leader: rate of the change [m/s^2]"))
+    brake_to_mps: float = field(default=15.0, metadata=_opt(
+        "braking/accelerating leader: final speed [m/s]"))
+    # None: DEFAULT_EGO_SPEED_MPS, or behind a recorded leader the recording's start (the
+    # recorded follower's speed, or the leader's own speed for a profile file:
+    # :func:`safeil_sumo.scenarios.recorded_leaders.draw`); stays None in the JSON then
+    ego_speed_mps: float | None = field(default=None, metadata=_opt(
+        f"ego initial speed [m/s] (default {DEFAULT_EGO_SPEED_MPS:g}; with --leader recorded: "
+        "as the recorded follower started (ngsim, openacc), or the profile's speed where the "
+        "scenario starts in it (a file); a speed given here wins)"))
+    initial_gap_m: float | tuple[float, float] = field(default=50.0, metadata=_opt(
+        "initial bumper gap [m]", "--gap-m"))  # or a (low, high) range: --gap-range-m
+    lane_noise_c0_m: float = field(default=0.0, metadata=_opt(
+        "camera lane-offset (c0) noise std [m]", "--lane-noise-m"))
+    radar_noise_m: float = field(default=0.0, metadata=_opt("radar range noise std [m]"))
+    max_time_s: float | None = field(default=None, metadata=_opt(
+        "scenario duration [s] (default: 2x the path at the ego speed + 10 s)"))
+    # "" (other kinds) is left out of the JSON, so the task ids of specs without it are those
+    # of earlier versions
+    leader_profile: str = field(default="", metadata=_opt(
+        "with --leader recorded: ngsim (default) or openacc (from ../shared/data), or a "
+        "CSV/Parquet file with columns time [s] and speed [m/s], or a folder of them"))
+    # left out of the JSON when empty, like leader_profile
+    route: tuple[str, ...] = field(default=(), metadata=_opt(
+        "SUMO edges the ego drives, in driving order, on a multi-edge .net.xml (its lane is "
+        "followed across the junctions; the route must end where that lane ends) (default: "
+        "the net's one edge)", metavar="EDGE"))
+    # net="n74": the stretch of direction A between these kilometre posts
+    # (:func:`safeil_sumo.roads.n74.stretch_road`); left out of the JSON when None
+    from_km: float | None = field(default=None, metadata=_opt(
+        "with --net n74: start of the stretch driven, kilometre post of direction A (default "
+        "0)"))
+    to_km: float | None = field(default=None, metadata=_opt(
+        "with --net n74: end of the stretch (default 29.2, the whole carriageway)"))
     # background traffic of the net's route files: "" (none) or a density of
-    # :data:`safeil_sumo.sim.traffic.DENSITIES`; it replaces the scripted leader. Left out of the
-    # JSON when ""
-    traffic: str = ""
-    # the ego's lane: "" (the net's default), "right"/"left" on n74, a SUMO lane index of the
-    # first edge (as text) on a .net.xml (:func:`lane_for_net`); left out
-    # of the JSON when ""
-    lane: str = ""
-    # the planner's preferred time gap [s] (an ACC's distance setting,
-    # :func:`safeil_sumo.planners.registry.with_time_gap`); None: its default; left out of the
-    # JSON then
-    time_gap_s: float | None = None
+    # :data:`safeil_sumo.sim.traffic.DENSITIES`; it replaces the scripted leader. Left out of
+    # the JSON when ""
+    traffic: str = field(default="", metadata=_opt(
+        "with --net n74: SUMO's own traffic from sumo_scenarios/n74/n74.rou.xml (main road + "
+        "on-ramps), flows scaled x0.5 light, x1 default, x2 dense, seeded by the scenario "
+        "seed; the ego's leader is whichever vehicle is ahead in its lane (no scripted "
+        "leader) (default none)", choices=("none", *DENSITIES)))
+    # :func:`lane_for_net`; left out of the JSON when ""
+    lane: str = field(default="", metadata=_opt(
+        "the ego's lane: with --net n74 the main lane, right (the default) or left; with a "
+        ".net.xml path the SUMO lane index (0 = rightmost) on the first edge of --route (or of "
+        "the net's one edge) (default: the middle lane)"))
 
     def __post_init__(self) -> None:
         self._normalise()
         self._check_numbers()
         self._check_leader()
-        self._check_ego_and_loop()
+        self._check_ego()
         self._check_road()
 
     def _normalise(self) -> None:
         """Normalise types so that 25 and 25.0, or a JSON list and a tuple, hash the same."""
         set_ = object.__setattr__
         set_(self, "net", str(self.net))
-        set_(self, "policy", str(self.policy))
         set_(self, "leader_profile", str(self.leader_profile))
         route = self.route.split() if isinstance(self.route, str) else self.route
         set_(self, "route", tuple(str(e) for e in route))
@@ -122,26 +152,21 @@ class ScenarioSpec:
             set_(self, "ego_speed_mps", DEFAULT_EGO_SPEED_MPS)  # the JSON of earlier versions
         set_(self, "index", int(self.index))
         set_(self, "master_seed", int(self.master_seed))
-        set_(self, "safety_filter", bool(self.safety_filter))
-        set_(self, "brake_guard", bool(self.brake_guard))
-        set_(self, "stop_on_flag", bool(self.stop_on_flag))
         set_(self, "leader_speed_range_mps", _pair(self.leader_speed_range_mps, "leader speed"))
         gap = self.initial_gap_m
         set_(self, "initial_gap_m", float(gap) if isinstance(gap, numbers.Real)
              else _pair(gap, "initial gap"))
         for name in ("brake_time_s", "brake_decel_mps2", "brake_to_mps",
-                     "lane_noise_c0_m", "radar_noise_m", "plan_rate_hz"):
+                     "lane_noise_c0_m", "radar_noise_m"):
             set_(self, name, float(getattr(self, name)))
-        for name in ("max_time_s", "ego_speed_mps", "from_km", "to_km", "time_gap_s"):
+        for name in ("max_time_s", "ego_speed_mps", "from_km", "to_km"):
             if getattr(self, name) is not None:
                 set_(self, name, float(getattr(self, name)))
         set_(self, "traffic", "" if self.traffic in ("", "none", None) else str(self.traffic))
         set_(self, "lane", "" if self.lane in ("", None) else str(self.lane))
 
     def _check_numbers(self) -> None:
-        """The time gap's range, non-negative seeds, every float finite."""
-        if self.time_gap_s is not None and not (0 < self.time_gap_s <= 10):
-            raise ValueError(f"time gap must be in (0, 10] s, got {self.time_gap_s}")
+        """Non-negative seeds, every float finite."""
         if self.index < 0 or self.master_seed < 0:
             raise ValueError(f"scenario index and master seed must be >= 0, got {self.index}, "
                              f"{self.master_seed}")
@@ -171,15 +196,13 @@ class ScenarioSpec:
         if self.leader_profile and self.leader_kind != "recorded":
             raise ValueError("a leader profile needs leader kind 'recorded'")
 
-    def _check_ego_and_loop(self) -> None:
-        """The ego's speed, the sensors' noise and the plan rate."""
+    def _check_ego(self) -> None:
+        """The ego's speed and the sensors' noise."""
         if self.ego_speed_mps is not None and not 0 <= self.ego_speed_mps <= MAX_SPEED_MPS:
             raise ValueError(f"ego speed must be in [0, {MAX_SPEED_MPS:g}] m/s, "
                              f"got {self.ego_speed_mps}")
         if self.lane_noise_c0_m < 0 or self.radar_noise_m < 0:
             raise ValueError("sensor noise must be >= 0")
-        if not 0 < self.plan_rate_hz <= 100:  # the loop's step is 0.01 s
-            raise ValueError(f"plan rate must be in (0, 100] Hz, got {self.plan_rate_hz}")
 
     def _check_road(self) -> None:
         """The net's route, stretch, traffic and lane, and the duration."""
@@ -189,8 +212,6 @@ class ScenarioSpec:
         if (self.from_km is not None or self.to_km is not None) and self.net != "n74":
             raise ValueError("--from-km/--to-km need --net n74")
         if self.traffic:
-            from safeil_sumo.sim.traffic import DENSITIES
-
             if self.traffic not in DENSITIES:
                 raise ValueError(f"traffic must be one of none, {', '.join(DENSITIES)}, got "
                                  f"{self.traffic!r}")
@@ -209,30 +230,86 @@ class ScenarioSpec:
 
     def to_json(self) -> dict[str, Any]:
         out = asdict(self)
-        if not out["leader_profile"]:
-            del out["leader_profile"]
         if out["route"]:
             out["route"] = list(out["route"])
-        else:
-            del out["route"]
-        for name in ("from_km", "to_km", "time_gap_s"):
-            if out[name] is None:
+        for name in ("leader_profile", "route", "from_km", "to_km", "traffic", "lane"):
+            if out[name] in ("", (), None):
                 del out[name]
-        if not out["traffic"]:
-            del out["traffic"]
-        if not out["lane"]:
-            del out["lane"]
-        if not out["brake_guard"]:
-            del out["brake_guard"]
         return out
 
+
+# the loop settings a task sets (the rest of LoopConfig is how a command runs it: a backend,
+# sumo-gui, SSM output) and the JSON keys of a task, in the order of its table columns
+LOOP_FIELDS = ("plan_rate_hz", "stop_on_flag", "brake_guard")
+TASK_KEYS = ("net", "index", "master_seed", "policy", "safety_filter", "brake_guard",
+             "leader_kind", "leader_speed_range_mps", "brake_time_s", "brake_decel_mps2",
+             "brake_to_mps", "ego_speed_mps", "initial_gap_m", "lane_noise_c0_m",
+             "radar_noise_m", "plan_rate_hz", "max_time_s", "stop_on_flag", "leader_profile",
+             "route", "from_km", "to_km", "traffic", "lane", "time_gap_s")
+
+
+@dataclass(frozen=True)
+class Task:
+    """One closed-loop task: a scenario, the planner that drives it and how the loop runs, each
+    a frozen dataclass. JSON-able as one flat object (:meth:`to_json`; a sweep's task id hashes
+    it); the loop sets only :data:`LOOP_FIELDS`, its brake guard the shipped one or none."""
+
+    scenario: ScenarioSpec = field(default_factory=ScenarioSpec)
+    planner: PlannerRef = field(default_factory=PlannerRef)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scenario, ScenarioSpec) or not isinstance(
+                self.planner, PlannerRef) or not isinstance(self.loop, LoopConfig):
+            raise TypeError("a Task is a ScenarioSpec, a PlannerRef and a LoopConfig")
+        if self.loop.brake_guard not in (None, BrakeGuard()):
+            raise ValueError("a task's loop has the shipped brake guard or none")
+        others = replace(self.loop, **{name: getattr(LoopConfig(), name) for name in LOOP_FIELDS})
+        if others != LoopConfig():
+            raise ValueError(f"a task's loop sets only {', '.join(LOOP_FIELDS)}")
+
+    @property
+    def brake_guard(self) -> bool:
+        """Whether the loop has the brake guard."""
+        return self.loop.brake_guard is not None
+
+    def to_json(self) -> dict[str, Any]:
+        """The three parts' fields in one object (keys in :data:`TASK_KEYS` order).
+        ``brake_guard`` is there only when on: tasks of the versions before the guard, which
+        ran without it, keep their ids as guard-off tasks."""
+        out = {**self.scenario.to_json(), **self.planner.to_json(),
+               "plan_rate_hz": float(self.loop.plan_rate_hz),
+               "stop_on_flag": bool(self.loop.stop_on_flag)}
+        if self.brake_guard:
+            out["brake_guard"] = True
+        return {k: out[k] for k in TASK_KEYS if k in out}
+
     @classmethod
-    def from_json(cls, data: dict[str, Any]) -> ScenarioSpec:
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
+    def from_json(cls, data: dict[str, Any]) -> Task:
+        """The task of :meth:`to_json`'s object (no ``brake_guard``: off; any other key left
+        out has its part's default)."""
+        return cls.of(**{"brake_guard": False, **data})
+
+    @classmethod
+    def of(cls, **fields_: Any) -> Task:
+        """The task of flat fields (:data:`TASK_KEYS`, as a sweep file names them), each given
+        to its part; any left out has its part's default (the brake guard on, as shipped)."""
+        unknown = set(fields_) - set(TASK_KEYS)
         if unknown:
-            raise ValueError(f"unknown ScenarioSpec fields: {sorted(unknown)}")
-        return cls(**data)
+            raise ValueError(f"unknown task fields: {sorted(unknown)}")
+        return cls(*_split_fields(fields_))
+
+
+def _split_fields(data: dict[str, Any]) -> tuple[ScenarioSpec, PlannerRef, LoopConfig]:
+    """A task's flat fields as its three parts."""
+    planner_keys = {f.name for f in fields(PlannerRef)}
+    scenario = ScenarioSpec(**{k: v for k, v in data.items()
+                               if k not in planner_keys and k not in LOOP_FIELDS})
+    planner = PlannerRef(**{k: v for k, v in data.items() if k in planner_keys})
+    loop = LoopConfig(plan_rate_hz=float(data.get("plan_rate_hz", LoopConfig.plan_rate_hz)),
+                      stop_on_flag=bool(data.get("stop_on_flag", False)),
+                      brake_guard=brake_guard_when(bool(data.get("brake_guard", True))))
+    return scenario, planner, loop
 
 
 def _pair(value: Any, what: str) -> tuple[float, float]:

@@ -110,7 +110,8 @@ class LoopConfig:
         if not 0 < self.step_s <= 0.1:
             raise ValueError(f"step_s must be in (0, 0.1] s, got {self.step_s}")
         if not 0 < self.plan_rate_hz <= 1.0 / self.step_s:
-            raise ValueError(f"plan_rate_hz must be in (0, {1.0 / self.step_s:g}] Hz")
+            raise ValueError(f"plan rate must be in (0, {1.0 / self.step_s:g}] Hz, got "
+                             f"{self.plan_rate_hz}")
         if self.gui_screenshot is not None and not self.gui:
             raise ValueError("gui_screenshot needs gui=True")
 

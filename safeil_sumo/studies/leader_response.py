@@ -29,7 +29,7 @@ def leader(out: Path, work: Path, workers: int, seed: int, variants: int) -> dic
         probes.append({**summary, "policy": p})
     probe_table = pd.DataFrame(probes)
     save_csv(probe_table, out / "leader_probe.csv")
-    df = section_sweep(suite.suite_specs(list(POLICIES), seed + 6, variants), work, "suite",
+    df = section_sweep(suite.suite_tasks(list(POLICIES), seed + 6, variants), work, "suite",
                        workers)
     table = suite.aggregate(df[df["status"] == "ok"])
     save_csv(table, out / "leader_suite.csv")

@@ -39,7 +39,7 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
     # --quick: 1 km of each planner (a smoke test of the section)
     stretches, per = ((QUICK_STRETCH_KM,), 1) if quick else (nd.STRETCHES_KM,
                                                               nd.SEEDS_PER_STRETCH)
-    specs = nd.drive_specs(nd.PLANNERS, seed, stretches, per)
+    tasks = nd.drive_tasks(nd.PLANNERS, seed, stretches, per)
     # a population of drivers: one setting per drive, from the real training maneuvers
     pop_per = 1 if quick else nd.POPULATION_SEEDS_PER_STRETCH
     try:
@@ -49,13 +49,13 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
         print(f"[n74] no driver population ({exc}); build the real tuples with python "
               "training/build_real_datasets.py")
         estimates = {}
-    population = nd.population_specs(estimates, nd.POPULATION_PLANNERS, seed, stretches,
+    population = nd.population_tasks(estimates, nd.POPULATION_PLANNERS, seed, stretches,
                                      pop_per, per) if estimates else []
-    specs += population
-    names = [*nd.PLANNERS, *dict.fromkeys(nd.row_name(s.policy, s.time_gap_s)
-                                          for s in population)]
-    print(f"[n74] {len(specs)} drives", flush=True)
-    df = run_sweep(specs, work / "n74", workers=workers, progress=True, task_fn=nd.drive_task)
+    tasks += population
+    names = [*nd.PLANNERS, *dict.fromkeys(nd.row_name(t.planner.policy, t.planner.time_gap_s)
+                                          for t in population)]
+    print(f"[n74] {len(tasks)} drives", flush=True)
+    df = run_sweep(tasks, work / "n74", workers=workers, progress=True, task_fn=nd.drive_task)
     failed = df[df["status"] != "ok"]
     if len(failed):
         print(f"[n74] {len(failed)} drive(s) failed, e.g. {failed['error'].iloc[0]}")
@@ -75,15 +75,15 @@ def n74(out: Path, work: Path, workers: int, seed: int, quick: bool = False) -> 
     table = _n74_time_gaps(out, ok, names, seed)
     design = {"planners": list(nd.PLANNERS), "stretches_km": [list(s) for s in stretches],
               "seeds_per_stretch": per, "traffic": nd.TRAFFIC,
-              "master_seed": seed, "drives": len(specs), "failed": len(failed),
+              "master_seed": seed, "drives": len(tasks), "failed": len(failed),
               "time_gap_rate_hz": nd.TIME_GAP_RATE_HZ, "follow_max_gap_m": nd.FOLLOW_MAX_GAP_M,
               "follow_min_speed_mps": nd.FOLLOW_MIN_SPEED_MPS,
               # one core's time of every drive (stable across resumes, unlike the wall time)
               "drives_core_s": round(float(ok["task_wall_time_s"].sum()), 1)}
     if population:
-        # every population drive has its setting (nd.population_specs)
-        drawn = np.array(sorted({s.index: s.time_gap_s for s in population
-                                 if s.time_gap_s is not None}.values()))
+        # every population drive has its setting (nd.population_tasks)
+        drawn = np.array(sorted({t.scenario.index: t.planner.time_gap_s for t in population
+                                 if t.planner.time_gap_s is not None}.values()))
         est = np.array(list(estimates.values()))
         design["population"] = {
             "planners": list(nd.POPULATION_PLANNERS), "seeds_per_stretch": pop_per,

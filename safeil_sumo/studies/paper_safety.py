@@ -15,7 +15,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from safeil_sumo.experiments.sweep_executor import comparable
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 from safeil_sumo.studies.shared import COLORS, LABELS, POLICIES, md_table, save_csv, section_sweep
 
 # The paper's Fig. "Safety Performance" (path completed before the first flag, scenarios 1..10)
@@ -26,7 +27,7 @@ PAPER_BC = (0.305120983855612, 0.085567405490334, 0.24590380413413, 0.1881621825
 
 
 def safety(out: Path, work: Path, workers: int, seed: int) -> dict:
-    specs = [ScenarioSpec(net="curved500", index=i, master_seed=seed, policy=p)
+    specs = [Task(ScenarioSpec(net="curved500", index=i, master_seed=seed), PlannerRef(p))
              for p in POLICIES for i in range(10)]
     df = comparable(section_sweep(specs, work, "safety", workers))
     cols = ["policy", "index", "leader_speed_mps", "path_completed", "completed", "flag",

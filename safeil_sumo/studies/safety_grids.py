@@ -18,7 +18,8 @@ import pandas as pd
 
 from safeil_sumo.experiments.stats import breakdown
 from safeil_sumo.experiments.sweep_executor import comparable
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 from safeil_sumo.studies.shared import (
     COLORS,
     LABELS,
@@ -39,8 +40,8 @@ def large(out: Path, work: Path, workers: int, seed: int, n: int) -> pd.DataFram
     def count(p: str, f: bool) -> int:
         return max(n, DEFAULT_LARGE_N) if (p == "safeil" and not f and n >= 100) else n
 
-    specs = [ScenarioSpec(net="curved500", index=i, master_seed=seed + 1, policy=p,
-                          safety_filter=f)
+    specs = [Task(ScenarioSpec(net="curved500", index=i, master_seed=seed + 1),
+                  PlannerRef(p, safety_filter=f))
              for p in POLICIES for f in (False, True) for i in range(count(p, f))
              if not (p in NO_FILTER and f)]
     df = comparable(section_sweep(specs, work, "large", workers))
@@ -72,20 +73,22 @@ def _plot_rates(table: pd.DataFrame, path: Path, title: str,
 
 def grids(out: Path, work: Path, workers: int, seed: int, n: int) -> dict[str, pd.DataFrame]:
     learned = ("safeil", "safeil_paper", "bc")
-    groups: dict[str, tuple[list[ScenarioSpec], list[str]]] = {
-        "radius": ([ScenarioSpec(net=f"curved{r}", index=i, master_seed=seed + 2, policy=p)
+    groups: dict[str, tuple[list[Task], list[str]]] = {
+        "radius": ([Task(ScenarioSpec(net=f"curved{r}", index=i, master_seed=seed + 2),
+                         PlannerRef(p))
                     for r in (300, 500, 750, 1000) for p in learned for i in range(n)],
                    ["policy", "radius_m"]),
-        "braking": ([ScenarioSpec(index=i, master_seed=seed + 3, policy=p, leader_kind="braking",
-                                  safety_filter=f)
+        "braking": ([Task(ScenarioSpec(index=i, master_seed=seed + 3, leader_kind="braking"),
+                          PlannerRef(p, safety_filter=f))
                      for p in learned for f in (False, True) for i in range(n)],
                     ["policy", "safety_filter"]),
-        "noise": ([ScenarioSpec(index=i, master_seed=seed + 4, policy=p, radar_noise_m=rn,
-                                lane_noise_c0_m=ln)
+        "noise": ([Task(ScenarioSpec(index=i, master_seed=seed + 4, radar_noise_m=rn,
+                                     lane_noise_c0_m=ln), PlannerRef(p))
                    for p in learned for rn, ln in ((0.0, 0.0), (0.5, 0.05), (1.0, 0.15))
                    for i in range(n)],
                   ["policy", "radar_noise_m", "lane_noise_c0_m"]),
-        "gap": ([ScenarioSpec(index=i, master_seed=seed + 5, policy=p, initial_gap_m=(15.0, 80.0))
+        "gap": ([Task(ScenarioSpec(index=i, master_seed=seed + 5, initial_gap_m=(15.0, 80.0)),
+                      PlannerRef(p))
                  for p in learned for i in range(n)], ["policy"]),
     }
     tables = {}

@@ -18,7 +18,8 @@ import numpy as np
 import pandas as pd
 
 from safeil_sumo.experiments.sweep_executor import comparable
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.planners.registry import PlannerRef
+from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 from safeil_sumo.studies.paper_replay import paper_like_window
 from safeil_sumo.studies.shared import (
     COLORS,
@@ -70,8 +71,8 @@ def efficiency(out: Path, work: Path, workers: int, fractions: list[float], seed
                 runs.append({"method": m, "maneuvers": k, "tuples": len(sub), "seed": s,
                              "checkpoint": str(prefix.with_suffix(".safetensors"))})
     runs_df = pd.DataFrame(runs)
-    specs = [ScenarioSpec(index=i, master_seed=0, policy=c) for c in runs_df["checkpoint"]
-             for i in range(scenarios)]
+    specs = [Task(ScenarioSpec(index=i, master_seed=0), PlannerRef(c))
+             for c in runs_df["checkpoint"] for i in range(scenarios)]
     df = comparable(section_sweep(specs, work, "efficiency_sweep", workers))
     agg = df.groupby("policy").agg(completion_rate=("completed", "mean"),
                                    mean_path_completed=("path_completed", "mean")).reset_index()

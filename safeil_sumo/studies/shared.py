@@ -12,7 +12,7 @@ from pathlib import Path
 import pandas as pd
 
 from safeil_sumo.experiments.sweep_executor import DEFAULT_BATCH, run_sweep
-from safeil_sumo.scenarios.spec import ScenarioSpec
+from safeil_sumo.scenarios.spec import Task
 
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED_DATA = REPO / "data" / "synthetic" / "tuples.parquet"
@@ -32,7 +32,7 @@ COLORS = {"safeil": "tab:green", "safeil_openloop": "tab:cyan", "safeil_paper": 
           "idm_population": "tab:orange"}
 
 
-def section_sweep(specs: list[ScenarioSpec], work: Path, name: str, workers: int) -> pd.DataFrame:
+def section_sweep(specs: list[Task], work: Path, name: str, workers: int) -> pd.DataFrame:
     print(f"[{name}] {len(specs)} tasks", flush=True)
     df = run_sweep(specs, work / name, workers=workers, progress=True, batch=DEFAULT_BATCH)
     failed = df[df["status"] != "ok"] if "status" in df else df.iloc[:0]
