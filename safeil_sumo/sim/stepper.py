@@ -10,14 +10,15 @@ holds acceleration and steering commands over the period instead (no plan or tra
 ``restart(i, scenario)`` starts an ended scenario again on its copy of the track while the
 others run (N > 1; each scenario counts its time, leader commands, log rows and time limit from
 its own start step ``k0``). Every other loop is a driver of it: :func:`.runner.run_scenario` (N = 1, to the end), :func:`.batch.run_batch` (N, to
-the end, each rollout as it ends), the replays, Gymnasium envs, closed-loop training rollouts
-and falsification.
+the end, each rollout as it ends), the replays, Gymnasium envs, closed-loop training rollouts,
+falsification and the synthetic-drive recorder (:func:`safeil_sumo.data.recorder.record_drive`).
 
 It is composed per scenario of a leader provider (:mod:`.providers`: a scripted or recorded
 speed profile on a SUMO vehicle of its own, or whichever of SUMO's traffic leads) and an ego
 driver (:class:`PlanAndTrack`: the policy's plan tracked by the controller on our vehicle
 plant; :class:`Kinematic`: moved to a recorded pose every step, ``pose_at``, with no plan,
-tracker or plant), and of the stages every scenario shares: the sensors (camera, radar), the
+tracker or plant; :class:`SelfDriven`: an ego that enters SUMO itself and gives its pose every
+step, :class:`SelfDrivenEgo`, the synthetic-drive recorder's), and of the stages every scenario shares: the sensors (camera, radar), the
 monitors and the SUMO seam (:mod:`.sumo_setup`, :mod:`.sumo_api`).
 
 Each sub-step is the stage sequence drive (track -> plant) -> move in SUMO -> step -> monitor,
