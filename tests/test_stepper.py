@@ -395,3 +395,31 @@ def test_controls_drive_the_plant_without_a_plan(road):
                 loop.step(controls=bad)
         with pytest.raises(ValueError, match="not both"):
             loop.step(np.zeros((1, 3, 2)), controls=np.zeros((1, 2)))
+
+
+class _SelfDriven:
+    """A self-driven ego (the synthetic-drive recorder's kind): never started here."""
+
+    name, horizon = "self", 3.0
+
+    def pose_at(self, t):
+        return 0.0, 0.0, 0.0, 0.0
+
+    def enter(self, api, ego_id):
+        raise AssertionError("refused before SUMO starts")
+
+    def drive(self, api, t):
+        raise AssertionError("refused before SUMO starts")
+
+    def plan(self, features):
+        raise AssertionError("never planned")
+
+
+def test_a_self_driven_ego_runs_alone(road):
+    """A self-driven ego (``enter``, ``drive``: it enters SUMO itself) runs alone: with another
+    scenario or a scripted leader of the loop's it is refused before SUMO starts."""
+    alone = Scenario("alone", road, None, 25.0, seed=0)
+    led = Scenario("led", road, constant(30.0), 30.0, 50.0, seed=0)
+    for scenarios in ([alone, alone], [led]):
+        with pytest.raises(ValueError, match="runs alone"):
+            ClosedLoop().reset(scenarios, [_SelfDriven()] * len(scenarios))

@@ -2,7 +2,16 @@
 
 The ego is driven by :class:`safeil_sumo.data.synthetic.SyntheticDriver`; SUMO drives everyone
 else (direction-A flows of ``sumo_scenarios/n74/n74.rou.xml``, so cut-ins, merges from the
-on-ramps and slow trucks happen for real). Every ``step_s`` (0.1 s = the 10 Hz logging rate):
+on-ramps and slow trucks happen for real). The recording is a driver of the project's one closed
+loop, :class:`safeil_sumo.sim.stepper.ClosedLoop`: :class:`SyntheticEgo` is a self-driven ego
+(:class:`~safeil_sumo.sim.stepper.SelfDrivenEgo`) on the n74 road
+(:func:`~safeil_sumo.roads.n74.stretch_road`), one decision per step, with no leader
+provider of the loop's. It enters SUMO itself after SUMO's own traffic has run ``warmup_s``
+(:func:`~safeil_sumo.sim.sumo_setup.warm_up`; :func:`~safeil_sumo.sim.sumo_setup.add_when_clear`:
+vType ``ego`` of the route file, once its start spot is free). The loop moves it, steps SUMO and
+flags its collisions (the recording drives on through one and counts its steps); what the
+recording logs is the ego's own per-step code, run when the loop asks for its next pose. Every
+``step_s`` (0.1 s = the 10 Hz logging rate):
 
 1. read the vehicles around the ego (a libsumo context subscription, ``view_m`` around it);
 2. log the sensors at the ego's current pose through the SAME code as the closed loop:
@@ -14,8 +23,9 @@ on-ramps and slow trucks happen for real). Every ``step_s`` (0.1 s = the 10 Hz l
    overlap of their footprint) and returns an acceleration and a lateral target;
 4. the ego moves KINEMATICALLY along the road in Frenet coordinates of the reference line
    (arc length advanced by the driven distance, lateral offset = the driver's target), heading =
-   road heading + ``atan(d'/ds)``; SUMO gets it with ``moveToXY(keepRoute=2)`` + ``setSpeed``
-   (speed mode 0, lane-change mode 0), then steps.
+   road heading + ``atan(d'/ds)``; the loop gives SUMO that front bumper with
+   ``moveToXY(keepRoute=2)`` + ``setSpeed`` (``LoopConfig.ego_placement = "xy"``; speed mode 0,
+   lane-change mode 0), then steps.
 
 Why kinematic: for RECORDING a plant adds nothing the paper's data would show at 4-10 Hz; the
 closed loop uses :mod:`safeil_sumo.sim.vehicle`. Why our own road geometry: n74 has several
@@ -38,12 +48,16 @@ import numpy as np
 import pandas as pd
 
 from safeil_sumo.core.geometry import Polyline, sumo_angle_to_yaw, yaw_to_sumo_angle
+from safeil_sumo.core.policy import PLAN_HORIZON_S
 from safeil_sumo.data.schema import validate_drive
 from safeil_sumo.data.synthetic import DriverParams, LaneGaps, Observation, SyntheticDriver
 from safeil_sumo.roads import n74
 from safeil_sumo.roads.road import Lane, Road
 from safeil_sumo.sim import sensors as sen
 from safeil_sumo.sim import sumo_api
+from safeil_sumo.sim.loop_types import LoopConfig, Scenario
+from safeil_sumo.sim.stepper import ClosedLoop, Pose
+from safeil_sumo.sim.sumo_setup import add_when_clear, warm_up
 
 EGO_ID = "ego"
 EGO_LENGTH_M = 4.54  # [m] Toyota Prius (sim.vehicle.VehicleParams)
@@ -65,7 +79,7 @@ class RecordingConfig:
     end_margin_m: float = 200.0  # [m] stop this far before the road's end
     start_lane: int = 0  # [-] 0 = right lane
     start_speed_mps: float = 25.0  # [m/s]
-    step_s: float = 0.1  # [s] SUMO step = driver step = logging period
+    step_s: float = 0.1  # [s] SUMO step = driver step = logging period (the loop's <= 0.1 s)
     view_m: float = 160.0  # [m] radius in which other vehicles are read
     window_m: float = 400.0  # [m] length of a Road window (+ margins either side)
     lane_change_duration_s: float = 3.0  # [s] SUMO's lanechange.duration for background traffic
@@ -73,8 +87,9 @@ class RecordingConfig:
     sensors: sen.SensorConfig = field(default_factory=sen.SensorConfig)
 
     def __post_init__(self) -> None:
-        if not 0 < self.step_s <= 0.25:
-            raise ValueError(f"step_s must be in (0, 0.25] s, got {self.step_s}")
+        if not 0 < self.step_s <= 0.1:
+            raise ValueError(f"step_s must be in (0, 0.1] s (the closed loop's step), got "
+                             f"{self.step_s}")
 
 
 def sumo_args(cfg: RecordingConfig) -> list[str]:
@@ -133,9 +148,10 @@ class Others:
     width: np.ndarray  # [m]
 
 
-def read_others(api: sumo_api.SumoApi) -> Others:
-    res = api.vehicle.getContextSubscriptionResults(EGO_ID) or {}
-    ids = tuple(sorted(v for v in res if v != EGO_ID))
+def read_others(api: sumo_api.SumoApi, ego_id: str = EGO_ID) -> Others:
+    """The vehicles of ``ego_id``'s context subscription (itself left out), sorted by id."""
+    res = api.vehicle.getContextSubscriptionResults(ego_id) or {}
+    ids = tuple(sorted(v for v in res if v != ego_id))
     m = len(ids)
     front, rear = np.zeros((m, 2)), np.zeros((m, 2))
     speed, width = np.zeros(m), np.zeros(m)
@@ -170,22 +186,6 @@ def lane_gaps(s_front_ego: float, s_front: np.ndarray, s_rear: np.ndarray, d: np
             g = LaneGaps(g.gap_ahead, g.v_ahead, float(s_rear_ego - s_front[j]), float(speed[j]))
         out.append(g)
     return tuple(out)
-
-
-def _insert_ego(api: sumo_api.SumoApi, cfg: RecordingConfig, route_edges: list[str]) -> None:
-    """Add the ego once its start spot is free (no vehicle within -40 / +60 m in its lane)."""
-    api.route.add("ego_route", route_edges)
-    lane_id = f"{route_edges[0]}_{cfg.start_lane}"
-    for _ in range(int(120.0 / cfg.step_s)):
-        pos = [api.vehicle.getLanePosition(v) for v in api.lane.getLastStepVehicleIDs(lane_id)]
-        if all(not (cfg.start_s_m - 40.0 < p < cfg.start_s_m + 60.0) for p in pos):
-            break
-        api.simulation.step()
-    api.vehicle.add(EGO_ID, "ego_route", typeID="ego", depart="now",
-                    departLane=str(cfg.start_lane), departPos=f"{cfg.start_s_m:.2f}",
-                    departSpeed=f"{cfg.start_speed_mps:.2f}")
-    api.vehicle.setSpeedMode(EGO_ID, 0)
-    api.vehicle.setLaneChangeMode(EGO_ID, 0)
 
 
 def radar_lead(others: Others, xy: np.ndarray, yaw: float, left: np.ndarray,
@@ -235,6 +235,99 @@ def kinematic_step(geo: n74.N74Geometry, s: float, d: float, v: float, accel: fl
     return s_new, d_new, v_new, float(geo.heading_at(s_new)) + heading_err
 
 
+class SyntheticEgo:
+    """The synthetic driver as a self-driven ego of the closed loop
+    (:class:`~safeil_sumo.sim.stepper.SelfDrivenEgo`): it enters SUMO after the warm-up
+    (:meth:`enter`) and, every step the loop asks for its next pose (:meth:`drive`), reads the
+    vehicles around it, logs its sensors at its current pose, lets the driver decide and moves
+    kinematically along the road (:func:`kinematic_step`). ``cols``: the drive's columns so far,
+    ``leader_ids``: the radar's leader per sample ("" none), ``k``: samples logged, ``s`` [m]:
+    its arc length along the reference line, ``api``: SUMO, once entered."""
+
+    name = "synthetic"
+    horizon = PLAN_HORIZON_S  # [s] unused (nothing is planned); the loop's Policy protocol
+
+    def __init__(self, params: DriverParams, cfg: RecordingConfig, geo: n74.N74Geometry,
+                 n_max: int) -> None:
+        self.params, self.cfg, self.geo = params, cfg, geo
+        self.windows = RoadWindows(geo, cfg.window_m)
+        rng = np.random.default_rng(cfg.seed)
+        self.driver = SyntheticDriver(params, rng, dt=cfg.step_s, lane=cfg.start_lane,
+                                      max_steps=n_max + 1)
+        self.s, self.d, self.v = cfg.start_s_m, n74.lane_centre_offset(cfg.start_lane), \
+            cfg.start_speed_mps
+        self.yaw = float(geo.heading_at(self.s))
+        self.cols: dict[str, list[float]] = {k: [] for k in (
+            "time", "x", "y", "yaw", "v_x", "left_c0", "left_c1", "left_c2", "left_c3",
+            "right_c0", "right_c1", "right_c2", "right_c3", "lead_x", "lead_y", "lead_v",
+            "lane_index", "s_road", "d_road", "accel")}
+        self.leader_ids: list[str] = []
+        self.k = 0
+        self.ego_id = EGO_ID
+        self.api: sumo_api.SumoApi | None = None
+
+    def pose_at(self, t: float) -> Pose:
+        """Its front bumper ``x, y`` [m], heading [rad] and speed [m/s] now (the loop asks at
+        t = 0 for its initial pose)."""
+        x, y = self.geo.frenet_to_xy(self.s, self.d)
+        return float(x), float(y), self.yaw, self.v
+
+    def enter(self, api: sumo_api.SumoApi, ego_id: str) -> None:
+        """SUMO's traffic for ``warmup_s``, then the ego added where its start spot is free,
+        its neighbourhood subscribed (``view_m``) and put at its initial pose."""
+        cfg = self.cfg
+        self.api, self.ego_id = api, ego_id
+        warm_up(api, cfg.warmup_s, cfg.step_s)
+        add_when_clear(api, ego_id, "ego_route", n74.main_route(self.geo), cfg.start_lane,
+                       cfg.start_s_m, cfg.start_speed_mps, "ego", cfg.step_s)
+        api.vehicle.subscribeContext(ego_id, CMD_GET_VEHICLE_VARIABLE, cfg.view_m,
+                                     [VAR_POSITION, VAR_SPEED, VAR_ANGLE, VAR_LENGTH, VAR_WIDTH])
+        x, y, yaw, v = self.pose_at(0.0)
+        api.vehicle.moveToXY(ego_id, "", -1, x, y, yaw_to_sumo_angle(yaw), keepRoute=2)
+        api.vehicle.setSpeed(ego_id, v)
+
+    def drive(self, api: sumo_api.SumoApi, t: float) -> Pose:
+        """One step: sensors logged at the current pose, the driver's command, the kinematic
+        move; the pose after it."""
+        cfg, geo, s, d, v, yaw = self.cfg, self.geo, self.s, self.d, self.v, self.yaw
+        road, ref, _ = self.windows.at(s)
+        xy = geo.frenet_to_xy(s, d)
+        others = read_others(api, self.ego_id)
+        # sensors: the closed loop's code
+        left, right, lane_idx = sen.camera_lane_lines(road, xy, yaw, cfg.sensors)
+        target, lead_id = radar_lead(others, xy, yaw, left, right, cfg.sensors)
+        self.leader_ids.append(lead_id)
+        _log(self.cols, self.k * cfg.step_s, xy, yaw, v, left, right, target, lane_idx, s, d)
+        # driver
+        kappa_ahead = float(geo.kappa_at(s + v * self.params.curve_preview_s))
+        cmd = self.driver.step(Observation(v, perceived_gaps(ref, xy, others), kappa_ahead,
+                                           n74.LANE_WIDTH_M))
+        self.cols["accel"].append(cmd.accel)
+        # kinematic ego along the road; the loop moves it in SUMO and steps
+        self.s, self.d, self.v, self.yaw = kinematic_step(geo, s, d, v, cmd.accel,
+                                                          cmd.lateral_m, cfg.step_s)
+        self.k += 1
+        return self.pose_at(t)
+
+    def plan(self, features: np.ndarray) -> np.ndarray:
+        """Not a planner: the closed loop calls :meth:`drive` instead."""
+        raise TypeError("the synthetic ego drives itself: the closed loop calls drive()")
+
+
+def recording_scenario(cfg: RecordingConfig, n_max: int) -> tuple[Scenario, LoopConfig]:
+    """The closed loop's scenario and settings of a recording: the n74 road from the ego's
+    start in its start lane (the loop's lane monitors; its path end beyond ``end_margin_m``),
+    no leader of the loop's, a time limit after the recording's ``n_max`` steps; one decision
+    per step, the ego placed with ``moveToXY``, no brake guard (nothing is planned)."""
+    road = n74.stretch_road(cfg.start_s_m / 1000.0, lane=("right", "left")[cfg.start_lane],
+                            net_dir=Path(cfg.net_dir))
+    scenario = Scenario(f"record {cfg.recording_id}", road, None, cfg.start_speed_mps,
+                        seed=cfg.seed, max_time_s=(n_max + 1) * cfg.step_s, sensors=cfg.sensors)
+    loop = LoopConfig(step_s=cfg.step_s, plan_rate_hz=1.0 / cfg.step_s, ego_placement="xy",
+                      brake_guard=None)
+    return scenario, loop
+
+
 def record_drive(params: DriverParams, cfg: RecordingConfig = RecordingConfig(),
                  geo: n74.N74Geometry | None = None) -> pd.DataFrame:
     """Drive one synthetic driver on n74 and return the validated drive frame.
@@ -243,67 +336,32 @@ def record_drive(params: DriverParams, cfg: RecordingConfig = RecordingConfig(),
     switches, collisions) and timings. SUMO is always closed.
     """
     geo = geo or n74.n74_geometry(_layout_seed(cfg))
-    windows = RoadWindows(geo, cfg.window_m)
-    rng = np.random.default_rng(cfg.seed)
     dt = cfg.step_s
     s_end = geo.length - cfg.end_margin_m
     max_t = cfg.duration_s if cfg.duration_s is not None else 3.0 * geo.length / 10.0
     n_max = math.ceil(max_t / dt)
-    driver = SyntheticDriver(params, rng, dt=dt, lane=cfg.start_lane, max_steps=n_max + 1)
+    ego = SyntheticEgo(params, cfg, geo, n_max)
+    scenario, loop_cfg = recording_scenario(cfg, n_max)
 
     wall0 = time.perf_counter()
-    api = sumo_api.start(sumo_args(cfg))
-    cols: dict[str, list[float]] = {k: [] for k in (
-        "time", "x", "y", "yaw", "v_x", "left_c0", "left_c1", "left_c2", "left_c3",
-        "right_c0", "right_c1", "right_c2", "right_c3", "lead_x", "lead_y", "lead_v",
-        "lane_index", "s_road", "d_road", "accel")}
-    leader_ids: list[str] = []
-    collisions = 0
-    try:
-        for _ in range(int(cfg.warmup_s / dt)):
-            api.simulation.step()
-        _insert_ego(api, cfg, n74.main_route(geo))
-        api.vehicle.subscribeContext(EGO_ID, CMD_GET_VEHICLE_VARIABLE, cfg.view_m,
-                                     [VAR_POSITION, VAR_SPEED, VAR_ANGLE, VAR_LENGTH, VAR_WIDTH])
-        s = cfg.start_s_m
-        d = n74.lane_centre_offset(cfg.start_lane)
-        v = cfg.start_speed_mps
-        yaw = float(geo.heading_at(s))
-        _move(api, geo, s, d, yaw, v)
-        api.simulation.step()
-        t0 = api.simulation.getTime()
+    # SUMO with the recorder's options (its route files, teleports), not the loop's
+    with ClosedLoop(loop_cfg, api_factory=lambda _args: sumo_api.start(sumo_args(cfg))) as loop:
+        loop.reset([scenario], [ego])
+        assert ego.api is not None, "the ego entered SUMO in reset"
+        t0 = ego.api.simulation.getTime()
         wall_sim0 = time.perf_counter()
-        for k in range(n_max):
-            if s >= s_end:
-                break
-            road, ref, _ = windows.at(s)
-            xy = geo.frenet_to_xy(s, d)
-            others = read_others(api)
-            # sensors: the closed loop's code
-            left, right, lane_idx = sen.camera_lane_lines(road, xy, yaw, cfg.sensors)
-            target, lead_id = radar_lead(others, xy, yaw, left, right, cfg.sensors)
-            leader_ids.append(lead_id)
-            _log(cols, k * dt, xy, yaw, v, left, right, target, lane_idx, s, d)
-            # driver
-            kappa_ahead = float(geo.kappa_at(s + v * params.curve_preview_s))
-            cmd = driver.step(Observation(v, perceived_gaps(ref, xy, others), kappa_ahead,
-                                          n74.LANE_WIDTH_M))
-            cols["accel"].append(cmd.accel)
-            # kinematic ego along the road, then SUMO
-            s, d, v, yaw = kinematic_step(geo, s, d, v, cmd.accel, cmd.lateral_m, dt)
-            _move(api, geo, s, d, yaw, v)
-            api.simulation.step()
-            if EGO_ID in api.simulation.getCollidingVehiclesIDList():
-                collisions += 1
-        sim_time = api.simulation.getTime() - t0
-    finally:
-        api.close()
+        while ego.k < n_max and ego.s < s_end:
+            if not loop.advance()[0]:
+                raise RuntimeError(f"the closed loop ended the recording {cfg.recording_id}: "
+                                   f"{loop.end_reasons[0]}")
+        sim_time = ego.api.simulation.getTime() - t0
+        collisions = int(loop.rollout(0).log["collision"].sum())
     wall = time.perf_counter() - wall0
-    df = pd.DataFrame(cols)
+    df = pd.DataFrame(ego.cols)
     df.insert(0, "recording_id", cfg.recording_id)
     out = validate_drive(df, f"recording {cfg.recording_id}")
     out.attrs["recording_stats"] = {
-        **recording_stats(df, leader_ids, cfg, sim_time, collisions),
+        **recording_stats(df, ego.leader_ids, cfg, sim_time, collisions),
         "wall_s": round(wall, 2),
         "wall_drive_s": round(time.perf_counter() - wall_sim0, 2) if len(df) else 0.0,
     }
@@ -336,12 +394,6 @@ def _layout_seed(cfg: RecordingConfig) -> int:
 
     meta = Path(cfg.net_dir) / f"{n74.NAME}.json"
     return int(json.loads(meta.read_text())["seed"]) if meta.is_file() else n74.DEFAULT_SEED
-
-
-def _move(api: sumo_api.SumoApi, geo: n74.N74Geometry, s: float, d: float, yaw: float, v: float) -> None:
-    x, y = geo.frenet_to_xy(s, d)
-    api.vehicle.moveToXY(EGO_ID, "", -1, float(x), float(y), yaw_to_sumo_angle(yaw), keepRoute=2)
-    api.vehicle.setSpeed(EGO_ID, v)
 
 
 def _log(cols: dict, t: float, xy: np.ndarray, yaw: float, v: float, left: np.ndarray,

@@ -10,14 +10,15 @@ holds acceleration and steering commands over the period instead (no plan or tra
 ``restart(i, scenario)`` starts an ended scenario again on its copy of the track while the
 others run (N > 1; each scenario counts its time, leader commands, log rows and time limit from
 its own start step ``k0``). Every other loop is a driver of it: :func:`.runner.run_scenario` (N = 1, to the end), :func:`.batch.run_batch` (N, to
-the end, each rollout as it ends), the replays, Gymnasium envs, closed-loop training rollouts
-and falsification.
+the end, each rollout as it ends), the replays, Gymnasium envs, closed-loop training rollouts,
+falsification and the synthetic-drive recorder (:func:`safeil_sumo.data.recorder.record_drive`).
 
 It is composed per scenario of a leader provider (:mod:`.providers`: a scripted or recorded
 speed profile on a SUMO vehicle of its own, or whichever of SUMO's traffic leads) and an ego
 driver (:class:`PlanAndTrack`: the policy's plan tracked by the controller on our vehicle
 plant; :class:`Kinematic`: moved to a recorded pose every step, ``pose_at``, with no plan,
-tracker or plant), and of the stages every scenario shares: the sensors (camera, radar), the
+tracker or plant; :class:`SelfDriven`: an ego that enters SUMO itself and gives its pose every
+step, :class:`SelfDrivenEgo`, the synthetic-drive recorder's), and of the stages every scenario shares: the sensors (camera, radar), the
 monitors and the SUMO seam (:mod:`.sumo_setup`, :mod:`.sumo_api`).
 
 Each sub-step is the stage sequence drive (track -> plant) -> move in SUMO -> step -> monitor,
@@ -55,7 +56,7 @@ from contextlib import suppress
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Any, Self, TypeAlias, TypeVar
+from typing import Any, Protocol, Self, TypeAlias, TypeVar, cast
 
 import numpy as np
 
@@ -111,6 +112,34 @@ _END_REASONS = ("completed", "collision", "off_road", "flag", "timeout")
 Pose: TypeAlias = tuple[float, float, float, float]  # front bumper x, y [m], yaw [rad], v [m/s]
 # a kinematic ego's recorded pose at t [s] (the recorded pseudo-planner's pose_at)
 PoseAt: TypeAlias = Callable[[float], Pose]
+
+
+class SelfDrivenEgo(Protocol):
+    """An ego that drives itself (the synthetic-drive recorder's, :mod:`safeil_sumo.data.recorder`):
+    it enters SUMO itself, instead of the loop's insertion and placement (``enter(api,
+    ego_id)``, before the loop's first SUMO step), and every physics step, after SUMO's last
+    step, it may read SUMO and says where it is at ``t`` [s] (``drive(api, t)``: its front
+    bumper ``x, y`` [m], heading [rad], speed [m/s]); ``pose_at(0.0)``: its initial pose. The
+    loop moves it there in SUMO (its front bumper exactly as given), steps, monitors and logs
+    it; no plan, tracker or plant (NaN commands in the log). It runs alone (N = 1, no scripted
+    leader or traffic of the loop's) and drives on through a collision (the log's
+    ``collision`` column counts its steps)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def horizon(self) -> float: ...
+
+    def pose_at(self, t: float) -> Pose: ...
+
+    def enter(self, api: sumo_api.SumoApi, ego_id: str) -> None: ...
+
+    def drive(self, api: sumo_api.SumoApi, t: float) -> Pose: ...
+
+    def plan(self, features: np.ndarray) -> np.ndarray:
+        """A :class:`~safeil_sumo.core.policy.Policy`'s (``reset`` takes policies); never called."""
+        ...
 # (s, d, heading, segment) of points on each row's ego lane centre, walked from their segments:
 # floats and an int at N = 1 (Polyline.project_near), arrays else (project_near_many)
 Project: TypeAlias = Callable[..., tuple[Any, Any, Any, Any]]
@@ -229,6 +258,9 @@ class _Scenario:
         # a policy with pose_at(t) (the recorded pseudo-planner) is a kinematic ego
         pose_at: PoseAt | None = getattr(policy, "pose_at", None)
         self.pose_at = pose_at
+        # a kinematic ego with drive(api, t) drives itself (SelfDrivenEgo, SelfDriven)
+        self.self_driven = (cast(SelfDrivenEgo, policy)
+                            if getattr(policy, "drive", None) is not None else None)
         self.state0 = (initial_state(scenario, vehicle) if pose_at is None
                        else veh.state_from_front_bumper(*pose_at(0.0), vehicle))
         self.lead: ScriptedLeader | TrafficLeader | None = (
@@ -246,7 +278,10 @@ class _Scenario:
 
     def add(self, api: sumo_api.SumoApi, vehicle: veh.VehicleParams) -> None:
         """Insert the ego (and the scripted leader, or the traffic) on this scenario's track;
-        place the ego."""
+        place the ego; a self-driven ego enters SUMO itself."""
+        if self.self_driven is not None:
+            self.self_driven.enter(api, self.ego)
+            return
         road = self.road
         ego_k, ego_lane, ego_pos, lead_scale = insert_vehicles(
             api, self.scenario, vehicle, self.ego, self.leader_id, self.rename, self.tag)
@@ -288,11 +323,17 @@ def _kinematic_state(pose: Pose, vehicle: veh.VehicleParams) -> veh.PlantState:
 def check_scope(scenarios: Sequence[Scenario], policies: Sequence[Policy | None],
                 loop: LoopConfig) -> None:
     """Refuse what the loop does not run: kinematic and planned egos in one run; traffic,
-    sumo-gui or SSM output with more than one scenario."""
+    sumo-gui or SSM output with more than one scenario; a self-driven ego with others, a
+    scripted leader or traffic."""
     kinematic = [getattr(p, "pose_at", None) is not None for p in policies]
     if any(kinematic) and not all(kinematic):
         raise ValueError("a run's egos are all kinematic (pose_at) or all planned: run the "
                          "kinematic ones apart")
+    if any(getattr(p, "drive", None) is not None for p in policies) and (
+            len(scenarios) > 1 or any(sc.leader is not None or sc.traffic is not None
+                                      for sc in scenarios)):
+        raise ValueError("a self-driven ego (drive) runs alone: one scenario, no scripted "
+                         "leader or traffic of the loop's")
     if len(scenarios) > 1:
         if loop.gui or loop.ssm_file is not None:
             raise ValueError("sumo-gui and SSM output follow the vehicle 'ego' of ONE scenario: "
@@ -440,6 +481,29 @@ class Kinematic:
         return nans, nans, nans
 
 
+class SelfDriven:
+    """The ego driver of a self-driven ego (:class:`SelfDrivenEgo`, N = 1): every step it is
+    asked where it is (``drive(api, t)``, after SUMO's last step); its front bumper is kept as
+    given (``_Live.front_now``: no round trip through the centre of gravity); no plan, tracker
+    or plant (NaN commands in the log)."""
+
+    def __init__(self, loop: ClosedLoop) -> None:
+        self.loop, self.vehicle, self.dt = loop, loop.vehicle, loop.loop.step_s
+
+    def plan(self, live: _Live, given: np.ndarray | None, t: FloatOrArray, xp: Namespace,
+             controls: Controls | None = None) -> None:
+        pass  # nothing is planned (nor held): the log's plan columns stay NaN
+
+    def move(self, live: _Live, t: FloatOrArray, xp: Namespace) -> Commands:
+        api, ego = self.loop._api, live.runs[0].self_driven
+        assert api is not None and ego is not None, "a self-driven ego runs alone, in SUMO"
+        pose = ego.drive(api, _scalar(t) + self.dt)
+        live.st = _kinematic_state(pose, self.vehicle)
+        live.front_now = pose[0], pose[1]
+        nans = live.c.nans
+        return nans, nans, nans
+
+
 def on_lane_pose(fx: FloatOrArray, fy: FloatOrArray, d: FloatOrArray, heading: FloatOrArray,
                  d_front: float, xp: Namespace = FLOATS
                  ) -> tuple[FloatOrArray, FloatOrArray, FloatOrArray]:
@@ -494,6 +558,8 @@ class _Live:
         # front bumper then [m]
         self.front: tuple[FloatOrArray, FloatOrArray] = (xp.full(n, math.nan),
                                                          xp.full(n, math.nan))
+        # a self-driven ego's front bumper after its move, as it gave it [m]
+        self.front_now: tuple[FloatOrArray, FloatOrArray] = self.front
         # log columns: c0l..c2r, v_lead, d_lead as logged; the plan being tracked (time, pose,
         # control points)
         self.feature_log, self.plan_log = _block(xp, n, 8), _block(xp, n, 10)
@@ -635,7 +701,8 @@ class ClosedLoop:
         self._shot_k = (round(GUI_SCREENSHOT_AT_S / loop.step_s)
                         if loop.gui_screenshot is not None else -1)  # the screenshot's step
         self._xp = FLOATS  # the run's namespace: FLOATS at N = 1, ARRAYS else
-        self._driver: PlanAndTrack | Kinematic = PlanAndTrack(self)
+        self._driver: PlanAndTrack | Kinematic | SelfDriven = PlanAndTrack(self)
+        self._self_driven = False  # the run's ego drives itself (SelfDriven)
         self._api: sumo_api.SumoApi | None = None
         self._runs: list[_Scenario] = []  # every scenario of the last reset, in order
         self._live: _Live | None = None  # the running ones; None: nothing to step
@@ -684,7 +751,10 @@ class ClosedLoop:
                           len(self.columns), copies)
                 for i, (sc, p, dx) in enumerate(zip(scenarios, pols, shifts, strict=True))]
         self._xp = ARRAYS if copies else FLOATS
-        self._driver = Kinematic(self) if runs[0].pose_at is not None else PlanAndTrack(self)
+        self._self_driven = runs[0].self_driven is not None
+        self._driver = (SelfDriven(self) if self._self_driven
+                        else Kinematic(self) if runs[0].pose_at is not None
+                        else PlanAndTrack(self))
         self._api = api = self.api_factory(args)
         self.sumo_started_s = time.perf_counter()
         self._runs, self._k = runs, 0
@@ -802,6 +872,8 @@ class ClosedLoop:
         check_scope([scenario], [policy], self.loop)
         if scenario.traffic is not None:
             raise ValueError("traffic runs one scenario at a time (N = 1): it does not restart")
+        if getattr(policy, "drive", None) is not None:
+            raise ValueError("a self-driven ego runs alone (N = 1): it does not restart")
         if (getattr(policy, "pose_at", None) is not None) != isinstance(self._driver, Kinematic):
             raise ValueError("a run's egos are all kinematic (pose_at) or all planned: a restart "
                              "keeps the run's kind")
@@ -1042,8 +1114,10 @@ class ClosedLoop:
             live.ttc_flag = live.ttc_flag | ttc_flag
             live.collision = live.collision | hit
             live.sub_steps += 1
-        # the end conditions of _END_REASONS, in order
-        ends = (s >= c.path_end, hit, xp.abs(d) > c.half_width + self._offroad_m,
+        # the end conditions of _END_REASONS, in order (a self-driven ego drives on through a
+        # collision: its log counts it)
+        ends = (s >= c.path_end, c.no_flags if self._self_driven else hit,
+                xp.abs(d) > c.half_width + self._offroad_m,
                 (departed | ttc_flag) & self._stop_on_flag, k + 1 - c.k0 >= c.n_max)
         ended = ends[0] | ends[1] | ends[2] | ends[3] | ends[4]
         any_ended = xp.any(ended)
@@ -1062,8 +1136,11 @@ class ClosedLoop:
         steer_cmd, accel_cmd, guarded = self._driver.move(live, t, xp)
         x, y, yaw, vx, vy = live.st[:5]
         v = xp.hypot(vx, vy)
-        d_front = self._d_front
-        front_x, front_y = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+        if self._self_driven:  # its front bumper as it gave it
+            front_x, front_y = live.front_now
+        else:
+            d_front = self._d_front
+            front_x, front_y = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
         if lap is not None:
             lap("plant")
 

@@ -174,6 +174,34 @@ def insert_vehicles(api: sumo_api.SumoApi, scenario: Scenario, vehicle: veh.Vehi
     return ego_k, ego_lane, ego_pos, lead_scale
 
 
+def warm_up(api: sumo_api.SumoApi, duration_s: float, step_s: float) -> None:
+    """SUMO's own traffic driven for ``duration_s`` [s] (``int(duration_s / step_s)`` steps of
+    ``step_s`` [s]) before an ego enters (the synthetic-drive recorder's background traffic)."""
+    for _ in range(int(duration_s / step_s)):
+        api.simulation.step()
+
+
+def add_when_clear(api: sumo_api.SumoApi, veh_id: str, route_id: str, edges: Sequence[str],
+                   lane: int, pos_m: float, speed_mps: float, type_id: str, step_s: float,
+                   behind_m: float = 40.0, ahead_m: float = 60.0, max_wait_s: float = 120.0
+                   ) -> None:
+    """Add ``veh_id`` (vType ``type_id``) on lane ``lane`` of ``edges[0]`` at lane position
+    ``pos_m`` [m] and ``speed_mps`` [m/s] once no vehicle in that lane is within ``behind_m``
+    behind / ``ahead_m`` ahead of the spot [m] (SUMO stepped by ``step_s`` [s] meanwhile, at most
+    ``max_wait_s`` [s]); speed and lane-change modes 0. It enters SUMO at the next step."""
+    api.route.add(route_id, list(edges))
+    lane_id = f"{edges[0]}_{lane}"
+    for _ in range(int(max_wait_s / step_s)):
+        pos = [api.vehicle.getLanePosition(v) for v in api.lane.getLastStepVehicleIDs(lane_id)]
+        if all(not (pos_m - behind_m < p < pos_m + ahead_m) for p in pos):
+            break
+        api.simulation.step()
+    api.vehicle.add(veh_id, route_id, typeID=type_id, depart="now", departLane=str(lane),
+                    departPos=f"{pos_m:.2f}", departSpeed=f"{speed_mps:.2f}")
+    api.vehicle.setSpeedMode(veh_id, 0)
+    api.vehicle.setLaneChangeMode(veh_id, 0)
+
+
 def _configure(api: sumo_api.SumoApi, veh_id: str, vehicle: veh.VehicleParams) -> None:
     # speed mode 0 / lane-change mode 0: SUMO's own car-following must not leak in
     api.vehicle.setSpeedMode(veh_id, 0)
