@@ -1,5 +1,5 @@
-"""The golden logs' columns, tolerances and comparison (tests/test_golden.py's references,
-also compared by other closed-loop tests): see tests/test_golden.py for what they promise."""
+"""The golden logs' columns, tolerances and comparison (tests/sim/test_golden.py's references,
+also compared by other closed-loop tests): see tests/sim/test_golden.py for what they promise."""
 
 from __future__ import annotations
 

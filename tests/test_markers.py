@@ -38,7 +38,7 @@ def test_the_import_finder_by_hand() -> None:
 
 
 def test_no_test_file_imports_another() -> None:
-    imports = {p.name: sorted(found) for p in sorted(TESTS.glob("*.py"))
+    imports = {p.name: sorted(found) for p in sorted(TESTS.rglob("*.py"))
                if (found := imported_test_files(p.read_text()))}
     assert imports == {}, ("move what they share into tests/conftest.py or a tests/fixtures_*.py "
                            f"module: {imports}")

@@ -581,7 +581,7 @@ def _task_files(out: Path) -> dict[str, str]:
 @pytest.mark.parametrize(("workers", "batch"), [("1", "1"), ("2", "1"), ("2", "3")])
 def test_sigint_keeps_finished_results_and_rerun_completes_the_rest(workers, batch, tmp_path):
     """Batched (3 per simulation), each record is saved as its scenario ends (these end
-    together; tests/test_task_engine.py interrupts a batch whose scenarios end apart)."""
+    together; tests/experiments/test_task_engine.py interrupts a batch whose scenarios end apart)."""
     out = tmp_path / "sweep"
     args = [sys.executable, "-m", "safeil_sumo.sweep", "--net", "straight", "--policy",
             "analytic", "--scenarios", "12", "--max-time-s", "4", "--workers", workers,

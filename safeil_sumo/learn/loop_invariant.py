@@ -21,7 +21,7 @@ one decision period later:
 - the leader accelerating anywhere in ``leader_accel_mps2`` at every physics step, down to
   standstill and up to the speed limit.
 
-tests/test_loop_invariant.py checks the image against the loop's own code from thousands of
+tests/learn/test_loop_invariant.py checks the image against the loop's own code from thousands of
 random states. :func:`gap_floor` then computes the largest set, closed upwards in the gap, whose
 cells' images stay in it and never reach the margin: forward invariant by construction. On
 the shipped ``safeil`` at this grid (0.5 m/s speed cells) it is empty: see
@@ -369,7 +369,7 @@ def guard_bounds(g_s: Interval, v_s: Interval, vl_s: Interval, guard: BrakeGuard
                  ) -> Interval:
     """The guard's demand [m/s^2] over sensed boxes, its leader estimate anywhere in its clip
     range: :func:`guard_decel` grows with the ego speed and the leader's braking and falls with
-    the gap and the leader speed (tests/test_loop_invariant.py checks it), so the corners bound
+    the gap and the leader speed (tests/learn/test_loop_invariant.py checks it), so the corners bound
     it. Sensed speeds below 0 are taken as 0 (the demand there is below activation)."""
     b_max = guard.max_leader_decel_mps2
     lo = guard_decel(g_s[1], np.maximum(v_s[0], 0.0), np.maximum(vl_s[1], 0.0), 0.0, guard,

@@ -6,7 +6,7 @@ it ends. The loop itself (each scenario on its own renamed copy of its track, th
 arrays of the running scenarios, the planner once per plan step on features ``(N, 9)``) is the
 stepper's.
 
-Same answers as ``run_scenario`` (tests/test_batch.py): the same flags, flag times, path
+Same answers as ``run_scenario`` (tests/sim/test_batch.py): the same flags, flag times, path
 completed and end reasons, trajectories equal to round-off (numpy's ``cos``/``sin`` may differ
 from libm's by an ulp). SUMO has one ``--seed`` per simulation; the loop draws no random
 number from SUMO (speed mode 0, every speed commanded) and each scenario keeps its own

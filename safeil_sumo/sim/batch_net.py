@@ -7,7 +7,7 @@ Copy ``i`` renames every edge, lane and junction id with the prefix ``c{i}_`` (i
 each other, bit for bit at the original coordinates. SUMO detects collisions, and
 ``getLeader`` looks for leaders, per lane, never geometrically across edges, so the copies
 cannot interact; a copy's geometry is its net's moved by a whole number of metres, so positions
-read from SUMO, moved back, equal a one-scenario run's (tests/test_batch.py compares them).
+read from SUMO, moved back, equal a one-scenario run's (tests/sim/test_batch.py compares them).
 """
 
 from __future__ import annotations

@@ -244,7 +244,7 @@ def polyfit3_batch(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """:func:`polyfit3` of K point sets ``(K, n)`` at once: coefficients ``(K, 4)``.
 
     The same scaled Vandermonde least squares, solved by a stacked QR instead of LAPACK's SVD
-    solver: equal to :func:`polyfit3` to round-off (tests/test_sensors.py), for full-rank fits
+    solver: equal to :func:`polyfit3` to round-off (tests/sim/test_sensors.py), for full-rank fits
     (a camera's points spread over its view range).
     """
     van = np.stack([np.ones_like(x), x, x * x, x * x * x], axis=-1)  # (K, n, 4)

@@ -18,7 +18,7 @@ from safeil_sumo.learn import arch_acc, reach
 from safeil_sumo.learn.bounds import IDENTITY, RELU, Layer, crown, forward, propagate
 from safeil_sumo.learn.polar import parse_polar, read_polar
 
-BENCH = Path(__file__).resolve().parents[1].parent / "shared" / "benchmarks" / "arch_comp_acc"
+BENCH = Path(__file__).resolve().parents[2].parent / "shared" / "benchmarks" / "arch_comp_acc"
 # without the benchmark these tests skip, but under CI (env var CI set) they fail
 needs_bench = pytest.mark.skipif(not (BENCH / arch_acc.CONTROLLER_FILE).exists()
                                  and not os.environ.get("CI"),

@@ -17,8 +17,8 @@ Bit-identity is what can be promised on ONE machine with one set of library vers
 process and demands equal SHA-256 hashes of the logs.
 
 A change of the references is allowed only in its own commit that says why and shows the
-largest difference. ``python tests/test_golden.py --write`` rewrites them;
-``python tests/test_golden.py --hashes`` prints this machine's log hashes as JSON.
+largest difference. ``python tests/sim/test_golden.py --write`` rewrites them;
+``python tests/sim/test_golden.py --hashes`` prints this machine's log hashes as JSON.
 """
 
 from __future__ import annotations
@@ -168,7 +168,7 @@ if __name__ == "__main__":  # --write: rewrite the references; --hashes: print t
             r = run_golden(name, road)
             print(write_reference(name, r), len(r.log), r.summary["end_reason"])
     else:
-        sys.exit("usage: python tests/test_golden.py --write | --hashes")
+        sys.exit("usage: python tests/sim/test_golden.py --write | --hashes")
 
 
 def test_lane_camera_equals_the_reference_camera(curved500):

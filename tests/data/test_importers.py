@@ -160,7 +160,7 @@ def test_openacc_curvature_on_a_circle(tmp_path):
     np.testing.assert_allclose(mid["left_c2"], 0.5 / radius, rtol=0.02)
 
 
-# a missing Driver{k} falls back to the metadata ACC flag: tests/test_openacc_variations.py
+# a missing Driver{k} falls back to the metadata ACC flag: tests/data/test_openacc_variations.py
 @pytest.mark.parametrize("drop", ["IVS2", "E4", "Speed2"])
 def test_openacc_missing_column_is_named(tmp_path, drop):
     path = write_openacc(tmp_path / "x.csv", drop=drop)

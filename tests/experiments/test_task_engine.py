@@ -24,7 +24,7 @@ from safeil_sumo.experiments.sweep_executor import SweepJob, run_sweep, task_id
 from safeil_sumo.experiments.window_replays import WindowJob
 from safeil_sumo.scenarios.spec import Task
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _maneuvers() -> pd.DataFrame:

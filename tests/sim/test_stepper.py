@@ -3,7 +3,7 @@ answers, external plans give the policies' answers, a seed gives the same episod
 scenario that ends stops while the others go on.
 
 run_batch is itself a driver of the stepper, so in one process the two must agree bit for bit
-(tests/test_batch.py holds run_batch to run_scenario, tests/test_golden.py run_scenario to its
+(tests/sim/test_batch.py holds run_batch to run_scenario, tests/sim/test_golden.py run_scenario to its
 references); here the logs are compared exactly.
 """
 
@@ -314,7 +314,7 @@ def test_restart_runs_a_scenario_as_it_runs_alone(road):
     """A scenario restarted on an ended one's copy (a vector env's autoreset), while the other
     scenario runs on, gives the log it gives from a reset with that other one, bit for bit (the
     same arrays loop), and the log it gives alone (N = 1: the floats loop, libm's cos/sin
-    against numpy's) within the golden tolerances (tests/test_golden.py); a running scenario,
+    against numpy's) within the golden tolerances (tests/sim/test_golden.py); a running scenario,
     another net, another kind of ego and a closed SUMO are refused."""
     analytic = AnalyticPlanner()
     short = replace(safety_scenario(road, 0), max_time_s=1.0)

@@ -1,7 +1,7 @@
 """Batched replays (``replay_all(batch=)``): many windows side by side in one libsumo
 simulation give the records of one simulation per run (``batch=1``).
 
-Synthetic drives of tests/test_replay.py: arcs turning left and right, of other lengths and
+Synthetic drives of tests/experiments/test_replay.py: arcs turning left and right, of other lengths and
 world frames (each window its own replay net), a maneuver without a leader (its window fails
 in preparation; the others go on), and the ``recorded`` pseudo-planner (kinematic: it stays on
 ``run_scenario``) beside the learned and analytic planners.

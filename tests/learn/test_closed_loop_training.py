@@ -222,7 +222,7 @@ def test_closed_loop_finetune_is_deterministic_and_keeps_its_recipe(tmp_path):
     save_checkpoint(tmp_path / "init", model, name="safeil", horizon=5.0, train_config=cfg,
                     metrics={"val_maneuvers": held})
     spec = importlib.util.spec_from_file_location(
-        "finetune", Path(__file__).parents[1] / "training" / "closed_loop_finetune.py")
+        "finetune", Path(__file__).parents[2] / "training" / "closed_loop_finetune.py")
     ft = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ft)
     args = ["--init", str(tmp_path / "init.safetensors"), "--data", str(tmp_path / "t.parquet"),
@@ -309,7 +309,7 @@ def _tiny_finetune_setup(tmp_path):
             "--iters", "3", "--batch", "4", "--window", "8", "--stride", "4", "--style",
             "--perturb", "0.5", "--equilibrium-weight", "1", "--settle-weight", "1",
             "--no-progress"]
-    return args, Path(__file__).parents[1] / "training" / "closed_loop_finetune.py"
+    return args, Path(__file__).parents[2] / "training" / "closed_loop_finetune.py"
 
 
 def _load_script(path, name):
@@ -345,7 +345,7 @@ def test_lane_weight_0_is_the_recipe_before_the_option_bit_for_bit(tmp_path):
     from pathlib import Path
 
     args, script = _tiny_finetune_setup(tmp_path)
-    repo = Path(__file__).parents[1]
+    repo = Path(__file__).parents[2]
     try:
         old = subprocess.run(["git", "-C", str(repo), "show",
                               f"{BEFORE_LANE_TERM}:training/closed_loop_finetune.py"],

@@ -31,7 +31,7 @@ psutil = pytest.importorskip("psutil")
 
 CURVED = "safeil_sumo/Curved500-v0"
 HAS_DATA = (DEFAULT_DATA_DIR / "ngsim_i80").is_dir()
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _plan(policy, features: np.ndarray) -> np.ndarray:
@@ -48,7 +48,7 @@ def test_check_env_passes_for_every_id(env_id):
     env = gym.make(env_id, max_time_s=3.0)
     try:
         # check_env's render check makes an env of every render mode: "human" needs a display
-        # (sumo-gui: tests/test_gui.py); rgb_array is checked here
+        # (sumo-gui: tests/sim/test_gui.py); rgb_array is checked here
         check_env(env.unwrapped, skip_render_check=True)
         if env_id == CURVED:
             drawn = gym.make(env_id, max_time_s=3.0, render_mode="rgb_array")
@@ -145,7 +145,7 @@ def test_safeil_through_the_env_reproduces_run():
             for key in ("scenario", "end_reason", "flag", "completed", "path_completed",
                         "steps"):
                 assert got[key] == want[key], key
-            # the stepper against run_scenario: within tests/test_batch.py's tolerances
+            # the stepper against run_scenario: within tests/sim/test_batch.py's tolerances
             assert got["min_ttc_s"] == pytest.approx(want["min_ttc_s"], rel=1e-6)
             assert got["min_gap_m"] == pytest.approx(want["min_gap_m"], abs=1e-6)
             assert info["end_reason"] == "completed" and info["path_fraction"] == 1.0

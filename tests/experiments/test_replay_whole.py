@@ -2,7 +2,7 @@
 worst window), the ``constant_speed`` baseline in real libsumo replays, and aggregates per driver.
 
 Pure parts on hand-computed arrays and tables; the baseline on synthetic drives (a straight
-recording whose leader brakes hard, the R = 800 m arc of tests/test_replay.py).
+recording whose leader brakes hard, the R = 800 m arc of tests/experiments/test_replay.py).
 """
 
 from __future__ import annotations

@@ -169,7 +169,7 @@ def two_edge_net(tmp_path_factory):
     (work / "t.edg.xml").write_text(
         "<edges>\n" + edge.format(id="E0", a="a", b="j", extra="")
         + edge.format(id="E1", a="j", b="b", extra=f' shape="{shape}"') + "</edges>\n")
-    run_netconvert("t", work, "tests/test_route.py")
+    run_netconvert("t", work, "tests/roads/test_route.py")
     return work / "t.net.xml"
 
 

@@ -32,7 +32,7 @@ from safeil_sumo.learn.open_loop_metrics import open_loop_metrics, plan_metrics
 from safeil_sumo.learn.trainer import TrainConfig, split_by_maneuver, train
 from safeil_sumo.planners.safety_filter import SafeSet, plan_margins
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from scipy.stats import ks_2samp, poisson
 from safeil_sumo.experiments import n74_drives as nd
 from safeil_sumo.sim.rollout_log import drive_stats
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 # ------------------------------------------------------------------------- Garwood interval
