@@ -150,7 +150,9 @@ def test_same_run_twice_is_bit_identical(curved500):
 
     # the child imports the same package as this process (a checkout may shadow an install)
     root = str(Path(safeil_sumo.__file__).parent.parent)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    tests = str(Path(__file__).resolve().parents[1])  # the fixtures_*.py modules
+    env = {**os.environ,
+           "PYTHONPATH": os.pathsep.join([root, tests, os.environ.get("PYTHONPATH", "")])}
     out = subprocess.run([sys.executable, __file__, "--hashes"], capture_output=True, text=True,
                          check=True, env=env)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == here
