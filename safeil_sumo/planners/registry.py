@@ -21,7 +21,7 @@ from safeil_sumo.planners.analytic import AnalyticPlanner
 from safeil_sumo.sim.constant_speed_ego import CONSTANT_SPEED_NAME, ConstantSpeedPath
 from safeil_sumo.sim.recorded_ego import RECORDED_NAME, RecordedPath
 
-MODELS_DIR = Path(__file__).resolve().parent / "models"
+MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
 SHIPPED = ("safeil", "safeil_openloop", "safeil_paper", "bc")
 NAMES = ("analytic", "idm", *SHIPPED)
 REPLAY_ONLY = (RECORDED_NAME, CONSTANT_SPEED_NAME)  # kinematic pseudo-planners of a replay
