@@ -48,3 +48,46 @@ def real_period(policy, g, v, vl, f, lane, time_gap, integral, leader_accel, sen
         gap = lead_x - (state[0] + d * np.cos(state[2]))
         g_min = np.minimum(g_min, gap)
     return gap, state[3], lead_v, state[7] / vehicle.mass_kg, g_min
+
+
+def real_run(policy, g, v, vl, f, time_gap, leader_accel, sensing, guard_on, a, parts,
+             periods, lane_width=3.5):
+    """``periods`` decisions of the real loop from N states ``(N,)`` on a straight lane (the
+    plan re-made at every decision from the sensed state, the integral, the guard's leader
+    estimate and the plant carried over); the leader accelerates at ``leader_accel`` [m/s^2]
+    (a float) down to standstill, the sensing errors ``sensing (3,)`` [ego speed, leader speed,
+    gap] are constant. Returns the smallest gap met, per state."""
+    vehicle, guard = parts.vehicle, parts.guard
+    n, dt, period = len(g), a.step_s, a.step_s * a.steps_per_decision
+    d = vehicle.cog_to_front_bumper_m
+    zero = np.zeros(n)
+    state = (-d + zero, zero, zero, v.astype(float).copy(), zero, zero, zero,
+             f * vehicle.mass_kg)
+    lead_x, lead_v, g_min = g.astype(float).copy(), vl.astype(float).copy(), g.astype(float)
+    integral, prev_error, memory = zero.copy(), np.full(n, math.nan), grd.no_history(n, ARRAYS)
+    plant = veh.Plant.of(vehicle, dt)
+    policy.set_style(time_gap_s=float(time_gap))
+    for _ in range(periods):
+        x0, y0, yaw = state[0] + d * np.cos(state[2]), state[1] + d * np.sin(state[2]), state[2]
+        heading = -np.tan(yaw)
+        v_s, vl_s, gap_s = state[3] + sensing[0], lead_v + sensing[1], lead_x - x0 + sensing[2]
+        feats = np.stack([lane_width / 2 - y0 + zero, heading, zero, -lane_width / 2 - y0 + zero,
+                          heading, zero, v_s, vl_s, gap_s], axis=1)
+        target = ctl.make_targets(policy.plan(feats), np.full(n, policy.horizon), x0, y0, yaw)
+        a_lead = grd.leader_accel(*memory, vl_s, gap_s, period, guard, ARRAYS)
+        memory = (a_lead, vl_s, gap_s, v_s)
+        demand = grd.guard_decel(gap_s, v_s, vl_s, a_lead, guard, ARRAYS)
+        for j in range(a.steps_per_decision):
+            steer, accel, integral, prev_error = ctl.track_values(
+                target, np.full(n, j * dt), *state[:6], vehicle, integral, prev_error,
+                parts.controller, dt, ARRAYS)
+            if guard_on:
+                override = (demand > 0.0) & (demand > -accel)
+                accel = np.where(override, np.maximum(-demand, -vehicle.max_brake_decel_mps2),
+                                 accel)
+            throttle, brake = veh.pedals_from_accel_vx(accel, state[3], vehicle, ARRAYS)
+            state = plant.step(state, steer, throttle, brake, ARRAYS)
+            lead_v = np.clip(lead_v + leader_accel * dt, 0.0, a.speed_limit_mps)
+            lead_x = lead_x + lead_v * dt
+            g_min = np.minimum(g_min, lead_x - (state[0] + d * np.cos(state[2])))
+    return g_min

@@ -25,7 +25,8 @@ tests/test_loop_invariant.py checks the image against the loop's own code from t
 random states. :func:`gap_floor` then computes the largest set, closed upwards in the gap, whose
 cells' images stay in it and never reach the margin: forward invariant by construction. On
 the shipped ``safeil`` at this grid (0.5 m/s speed cells) it is empty: see
-docs/certification.md for why.
+docs/certification.md for why. :func:`box_period` also bounds each state's change over the
+period, which :mod:`.loop_barrier` checks a smooth gap floor against.
 
 Pure numpy; no SUMO, no torch. Arrays of cells are ``(n_g, n_v, n_l, n_f)`` in that order.
 """
