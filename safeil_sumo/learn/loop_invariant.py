@@ -25,7 +25,8 @@ tests/learn/test_loop_invariant.py checks the image against the loop's own code 
 random states. :func:`gap_floor` then computes the largest set, closed upwards in the gap, whose
 cells' images stay in it and never reach the margin: forward invariant by construction. On
 the shipped ``safeil`` at this grid (0.5 m/s speed cells) it is empty: see
-docs/certification.md for why.
+docs/certification.md for why. :func:`box_period` also bounds each state's change over the
+period, which :mod:`.loop_barrier` checks a smooth gap floor against.
 
 Pure numpy; no SUMO, no torch. Arrays of cells are ``(n_g, n_v, n_l, n_f)`` in that order.
 """
@@ -421,31 +422,40 @@ def _command(v: Interval, dv: Interval, ref: Reference, demand: Interval | None,
 
 def _physics_step(state: list[Interval], cmd: Interval, a: LoopAssumptions,
                   parts: LoopParts) -> list[Interval]:
-    """One physics step of ``[g, v, vl, f, dv]`` boxes under the command interval (``dv``: the
-    speed's change since the decision)."""
-    g, v, vl, f, dv = state
+    """One physics step of ``[g, v, vl, f, dg, dv, dvl, df]`` boxes under the command interval
+    (``dg .. df``: each state's change since the decision, bounded from the step's own change,
+    so that a cell's width does not enter the change twice)."""
+    g, v, vl, f, dg, dv, dvl, df = state
     veh, dt = parts.vehicle, a.step_s
     r = (_resistance(v[0], veh), _resistance(v[1], veh))  # 0 at rest
     drive = (_drive(v[1], veh), _drive(v[0], veh))
     full = veh.max_brake_decel_mps2
     target = (np.maximum(np.minimum(cmd[0] + r[0], drive[0]), -full),
               np.maximum(np.minimum(cmd[1] + r[1], drive[1]), -full))
-    # the brake lag or the drive lag: the new force is between the old and the target either way
+    # the brake lag or the drive lag: the new force is between the old and the target either way;
+    # its change (1 - d) (target - f)
     decays = (math.exp(-dt / veh.brake_time_constant_s), math.exp(-dt / veh.drive_time_constant_s))
     f_new = (np.minimum(*(d * f[0] + (1 - d) * target[0] for d in decays)),
              np.maximum(*(d * f[1] + (1 - d) * target[1] for d in decays)))
+    cf = (np.minimum(*((1 - d) * (target[0] - f[1]) for d in decays)),
+          np.maximum(*((1 - d) * (target[1] - f[0]) for d in decays)))
     eps = a.lateral_coupling_mps2
     acc = (f_new[0] - r[1] - eps, f_new[1] - r[0] + eps)
     v_new = (np.maximum(v[0] + acc[0] * dt, 0.0), np.maximum(v[1] + acc[1] * dt, 0.0))
     # the change max(acc dt, -v): the standstill clamp only raises it
-    dv_new = (dv[0] + np.maximum(acc[0] * dt, -v[1]), dv[1] + np.maximum(acc[1] * dt, -v[0]))
+    cv = (np.maximum(acc[0] * dt, -v[1]), np.maximum(acc[1] * dt, -v[0]))
     a_lo, a_hi = a.leader_accel_mps2
     vl_new = (np.clip(vl[0] + a_lo * dt, 0.0, a.speed_limit_mps),
               np.clip(vl[1] + a_hi * dt, 0.0, a.speed_limit_mps))
+    # the leader's change: its acceleration, clamped at standstill and the speed limit
+    cl = (np.maximum(a_lo * dt, -vl[1]), np.minimum(a_hi * dt, a.speed_limit_mps - vl[0]))
     # the gap moves by the speeds before or after the step (explicit or semi-implicit Euler)
-    g_new = (g[0] + (np.minimum(vl[0], vl_new[0]) - np.maximum(v[1], v_new[1])) * dt,
-             g[1] + (np.maximum(vl[1], vl_new[1]) - np.minimum(v[0], v_new[0])) * dt)
-    return [_widen(x) for x in (g_new, v_new, vl_new, f_new, dv_new)]
+    cg = ((np.minimum(vl[0], vl_new[0]) - np.maximum(v[1], v_new[1])) * dt,
+          (np.maximum(vl[1], vl_new[1]) - np.minimum(v[0], v_new[0])) * dt)
+    g_new = (g[0] + cg[0], g[1] + cg[1])
+    changes = [(d[0] + c[0], d[1] + c[1]) for d, c in zip((dg, dv, dvl, df), (cg, cv, cl, cf),
+                                                          strict=True)]
+    return [_widen(x) for x in (g_new, v_new, vl_new, f_new, *changes)]
 
 
 def _cell_boxes(edges: np.ndarray) -> Interval:
@@ -459,6 +469,17 @@ def box_image(policy: MLPPolicy, g: Interval, v: Interval, vl: Interval, f: Inte
     ``g, v, vl`` intervals of arrays ``(N,)``, ``f`` of arrays ``(N,)`` or ``(N, n_f)`` (several
     force boxes sharing one plan box). Returns ``[g, v, vl, f]`` intervals shaped as ``f`` and
     the smallest gap bound met at any physics step of the period [m]."""
+    image, _, g_min = box_period(policy, g, v, vl, f, time_gap, a, parts)
+    return image, g_min
+
+
+def box_period(policy: MLPPolicy, g: Interval, v: Interval, vl: Interval, f: Interval,
+               time_gap: tuple[float, float], a: LoopAssumptions, parts: LoopParts
+               ) -> tuple[list[Interval], list[Interval], np.ndarray]:
+    """:func:`box_image` and the bounds of each state's CHANGE over the period, ``[g⁺ - g,
+    v⁺ - v, vl⁺ - vl, f⁺ - f]`` for every state of the box (intervals shaped as ``f``): a
+    change is bounded step by step from the step's own change, so a cell's width enters it only
+    through the commands and the speeds' spread, not as the difference of two boxes."""
     if parts.controller.kd != 0.0:
         raise ValueError("the closed-loop bounds cover a PI tracker (kd = 0)")
     lo, hi = network_input_box(g, v, vl, time_gap, a)
@@ -477,7 +498,7 @@ def box_image(policy: MLPPolicy, g: Interval, v: Interval, vl: Interval, f: Inte
     state = [(np.broadcast_to(per_box(x[0]) if x is not f else x[0], shape).copy(),
               np.broadcast_to(per_box(x[1]) if x is not f else x[1], shape).copy())
              for x in (g, v, vl, f)]
-    state.append((np.zeros(shape), np.zeros(shape)))
+    state.extend((np.zeros(shape), np.zeros(shape)) for _ in range(4))
     g_min = state[0][0].copy()
     keep, horizon = policy.lane_keep_m, policy.horizon
     for j in range(a.steps_per_decision):
@@ -486,10 +507,10 @@ def box_image(policy: MLPPolicy, g: Interval, v: Interval, vl: Interval, f: Inte
         acc = reference_bounds(pb, t + parts.controller.accel_preview_s, horizon, keep, a)
         ref = Reference(*(per_box(x) for x in (speed.err_lo, speed.err_hi, speed.forwards,
                                                speed.backwards, acc.acc_lo, acc.acc_hi)))
-        cmd = _command(state[1], state[4], ref, demand, parts)
+        cmd = _command(state[1], state[5], ref, demand, parts)
         state = _physics_step(state, cmd, a, parts)
         g_min = np.minimum(g_min, state[0][0])
-    return state[:4], g_min
+    return state[:4], state[4:], g_min
 
 
 def period_image(policy: MLPPolicy, grid: Grid, rows: slice, time_gap: tuple[float, float],
@@ -561,10 +582,11 @@ def successors(policy: MLPPolicy, grid: Grid, time_gap: tuple[float, float],
 WINDOW_MAX = 8  # range maxima are read from windows of up to this many cells per axis
 
 
-def _window_maxima(rho: np.ndarray) -> np.ndarray:
+def _window_maxima(rho: np.ndarray, window: int = WINDOW_MAX) -> np.ndarray:
     """``out[p, q, r, i, j, k]`` = max of ``rho (n_v, n_l, n_f)`` over the window of
-    ``(p + 1, q + 1, r + 1)`` cells from ``(i, j, k)`` (cut at the grid's end)."""
-    lengths = [min(WINDOW_MAX, n) for n in rho.shape]
+    ``(p + 1, q + 1, r + 1)`` cells from ``(i, j, k)`` (cut at the grid's end), windows of up
+    to ``window`` cells per axis."""
+    lengths = [min(window, n) for n in rho.shape]
     out = np.empty((*lengths, *rho.shape), rho.dtype)
     per_axis = [rho]
     for axis in range(3):
@@ -594,7 +616,9 @@ def _range_max(windows: np.ndarray, first: np.ndarray, last: np.ndarray) -> np.n
     if np.any(span > 2 * lengths):
         raise ValueError("an image box is longer than two windows: refine the grid's time step")
     w = np.minimum(span, lengths)
-    out = np.full(first.shape[1], np.iinfo(windows.dtype).min, windows.dtype)
+    lowest = (np.iinfo(windows.dtype).min if np.issubdtype(windows.dtype, np.integer)
+              else -np.inf)
+    out = np.full(first.shape[1], lowest, windows.dtype)
     for corner in range(8):
         start = [np.where(corner >> k & 1, last[k] - w[k] + 1, first[k]) for k in range(3)]
         out = np.maximum(out, windows[w[0] - 1, w[1] - 1, w[2] - 1, start[0], start[1], start[2]])
@@ -633,14 +657,22 @@ def recoverable(g: np.ndarray, v: np.ndarray, vl: np.ndarray, f: np.ndarray,
     its lag from ``f`` to full braking (the plant's brake lag, drag and rolling resistance
     helping), the leader brakes at ``-leader_accel_mps2[0]`` to a stop, and the gap stays at
     or above the margin until both stand (explicit Euler at the loop's physics step)."""
-    g, v, vl, f = (np.array(x, float) for x in (g, v, vl, f))
+    return np.asarray(g, float) >= recoverable_gap(v, vl, f, a, veh)
+
+
+def recoverable_gap(v: np.ndarray, vl: np.ndarray, f: np.ndarray, a: LoopAssumptions,
+                    veh: VehicleParams = VehicleParams()) -> np.ndarray:
+    """The smallest recoverable gap (:func:`recoverable`) of ``(v, v_l, f)`` ``(N,)``: the
+    margin less the lowest the gap gets below its start while both brake (the gap's path does
+    not depend on where it starts)."""
+    v, vl, f = (np.array(x, float) for x in (v, vl, f))
     decay = math.exp(-a.step_s / veh.brake_time_constant_s)
     full, b_lead = veh.max_brake_decel_mps2, -a.leader_accel_mps2[0]
-    ok = g >= a.margin_m
-    while np.any((v > 0.0) & ok):
+    change, lowest = np.zeros_like(v), np.zeros_like(v)
+    while np.any(v > 0.0):
         f = -full + (f + full) * decay
         v = np.maximum(v + (f - _resistance(v, veh)) * a.step_s, 0.0)
         vl = np.maximum(vl - b_lead * a.step_s, 0.0)
-        g = g + (vl - v) * a.step_s
-        ok &= g >= a.margin_m
-    return ok
+        change = change + (vl - v) * a.step_s
+        lowest = np.minimum(lowest, change)
+    return a.margin_m - lowest

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 import pytest
+from fixtures_loop import real_period
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -19,7 +20,6 @@ from safeil_sumo.learn import loop_invariant as li
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.planners.registry import shipped_checkpoint
 from safeil_sumo.sim import brake_guard as grd
-from safeil_sumo.sim import controller as ctl
 from safeil_sumo.sim import vehicle as veh
 from safeil_sumo.sim.xp import ARRAYS
 
@@ -115,43 +115,6 @@ def safeil():
     return load_policy(shipped_checkpoint("safeil"))
 
 
-def _real_period(policy, g, v, vl, f, lane, time_gap, integral, leader_accel, sensing, a_est,
-                 guard_on, a, parts):
-    """One decision period of the real tracker, guard and plant for N states ``(N,)``; the
-    leader moves by explicit Euler on its new speed (SUMO's). Returns the final
-    ``(g, v, vl, f)`` and the smallest gap met."""
-    vehicle = parts.vehicle
-    n = len(g)
-    width, offset, heading = lane
-    feats = np.stack([width / 2 - offset, heading, 0 * g, -width / 2 - offset, heading, 0 * g,
-                      v + sensing[0], vl + sensing[1], g + sensing[2]], axis=1)
-    policy.set_style(time_gap_s=float(time_gap))
-    cps = policy.plan(feats)
-    yaw = -np.arctan(heading)
-    d = vehicle.cog_to_front_bumper_m
-    state = (-d * np.cos(yaw), offset - d * np.sin(yaw), yaw, v.copy(), 0 * g, 0 * g, 0 * g,
-             f * vehicle.mass_kg)
-    target = ctl.make_targets(cps, np.full(n, policy.horizon), 0 * g, offset + 0 * g, yaw)
-    demand = grd.guard_decel(feats[:, 8], feats[:, 6], feats[:, 7], a_est, parts.guard, ARRAYS)
-    plant = veh.Plant.of(vehicle, a.step_s)
-    lead_x, lead_v, g_min = g.copy(), vl.copy(), g.copy()
-    prev_error = np.full(n, math.nan)
-    for j in range(a.steps_per_decision):
-        steer, accel, integral, prev_error = ctl.track_values(
-            target, np.full(n, j * a.step_s), *state[:6], vehicle, integral, prev_error,
-            parts.controller, a.step_s, ARRAYS)
-        if guard_on:
-            override = (demand > 0.0) & (demand > -accel)
-            accel = np.where(override, np.maximum(-demand, -vehicle.max_brake_decel_mps2), accel)
-        throttle, brake = veh.pedals_from_accel_vx(accel, state[3], vehicle, ARRAYS)
-        state = plant.step(state, steer, throttle, brake, ARRAYS)
-        lead_v = np.clip(lead_v + leader_accel[:, j] * a.step_s, 0.0, a.speed_limit_mps)
-        lead_x = lead_x + lead_v * a.step_s
-        gap = lead_x - (state[0] + d * np.cos(state[2]))
-        g_min = np.minimum(g_min, gap)
-    return gap, state[3], lead_v, state[7] / vehicle.mass_kg, g_min
-
-
 @pytest.mark.parametrize("guard_on", [True, False])
 def test_period_image_contains_the_real_loop(safeil, guard_on: bool) -> None:
     rng = np.random.default_rng(7)
@@ -174,7 +137,7 @@ def test_period_image_contains_the_real_loop(safeil, guard_on: bool) -> None:
     leader[rng.random(n) < 0.3] = a.leader_accel_mps2[0]  # the extremes too
     integral = rng.uniform(-1, 1, n) * parts.controller.integral_limit_m
     a_est = -rng.uniform(0, grd.BrakeGuard().max_leader_decel_mps2, n)
-    got = _real_period(safeil, g, v, vl, f, lane, rng.uniform(*time_gap), integral, leader,
+    got = real_period(safeil, g, v, vl, f, lane, rng.uniform(*time_gap), integral, leader,
                        sensing, a_est, guard_on, a, li.LoopParts())
     cell = (ig, iv, il, jf)
     for k, name in enumerate(("gap", "speed", "leader speed", "force")):
