@@ -168,6 +168,13 @@ def test_the_closed_loop_objective_runs_the_decoded_points_in_order(monkeypatch,
                                               _planted_record(fz.decode(x, "idm", 30.0, True)))
                                 for x in u[:2]]
     assert len(batches) == 2  # read back from the records
+    from safeil_sumo.experiments import task_engine
+
+    calls = []
+    monkeypatch.setattr(task_engine, "execute", lambda *a, **kw: calls.append((a[3:], kw)))
+    fz.closed_loop_objective("idm", tasks_dir=tmp_path, workers=2, scheduler="tcp://h:1")(u[:1])
+    assert calls == [((2, "tcp://h:1"), {"progress": False})]
+    assert fz.decode(u[0], "idm", 12.0).scenario.max_time_s == 12.0
 
 
 def test_an_interrupted_search_resumes_from_its_finished_runs(monkeypatch, tmp_path) -> None:
@@ -622,10 +629,10 @@ def test_a_finished_search_is_reused_only_for_the_same_weights(tmp_path, monkeyp
     cfg = fz.SearchConfig(method="random", budget=20, batch=10, seed=0, max_time_s=12.0,
                           brake_guard=False)
     folder = tmp_path / "studies" / "m"  # made with its parents
-    first = fz.run_or_load(str(weights), cfg, folder)
+    first = fz.run_or_load(str(weights), cfg, folder, workers=3, scheduler="tcp://h:1")
     # searched with the planner's objective at the config's time limit and guard setting
-    assert made == [((str(weights), 12.0, False), {"tasks_dir": folder / "tasks", "workers": 1,
-                                                    "scheduler": None})]
+    assert made == [((str(weights), 12.0, False), {"tasks_dir": folder / "tasks", "workers": 3,
+                                                    "scheduler": "tcp://h:1"})]
     assert calls == [(cfg, planted)]
     assert sorted(p.name for p in folder.iterdir()) == ["config.json", "evaluations.csv"]
     # the table as written: no index column, each row's spec names the planner searched

@@ -272,6 +272,7 @@ def test_probe_tasks_are_every_policy_speed_and_kind() -> None:
     assert got == want and got[0].scenario.master_seed == 3
     assert [t.planner.policy for t in got] == ["idm"] * 4 + ["safeil"] * 4
     assert gp.probe_tasks(["idm"], speeds=(15.0,), kinds=("far",))[0].scenario.master_seed == 0
+    assert gp.probe_task("idm", "far", 15.0) == gp.probe_tasks(["idm"], (15.0,), ("far",))[0]
 
 
 def test_not_settled_drift_and_time_gap_edges() -> None:
