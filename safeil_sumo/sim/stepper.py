@@ -343,6 +343,13 @@ def check_scope(scenarios: Sequence[Scenario], policies: Sequence[Policy | None]
                              "name the original net's edges")
 
 
+def _front_bumper(st: veh.PlantState, d_front: float, xp: Namespace
+                  ) -> tuple[FloatOrArray, FloatOrArray]:
+    """The front bumper ``(x, y)`` [m] of plant states ``st`` (centre of gravity, yaw)."""
+    x, y, yaw = st[:3]
+    return x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+
+
 class PlanAndTrack:
     """The ego driver of planned egos: each decision's plans are prepared for tracking; every
     physics step the controller tracks them and our vehicle plant integrates the commands. A
@@ -356,6 +363,11 @@ class PlanAndTrack:
         self.guard, self.period = loop.loop.brake_guard, loop._plan_every * loop.loop.step_s
         self.full_brake_mps2 = loop.vehicle.max_brake_decel_mps2
         self.on_lane = loop.loop.lateral == "lane"  # LoopConfig.lateral: put on the lane centre
+        self.d_front = loop.vehicle.cog_to_front_bumper_m  # [m]
+
+    def front(self, live: _Live, xp: Namespace) -> tuple[FloatOrArray, FloatOrArray]:
+        """The front bumper [m] after this step's move."""
+        return _front_bumper(live.st, self.d_front, xp)
 
     def plan(self, live: _Live, given: np.ndarray | None, t: FloatOrArray, xp: Namespace,
              controls: Controls | None = None) -> None:
@@ -466,6 +478,11 @@ class Kinematic:
 
     def __init__(self, loop: ClosedLoop) -> None:
         self.vehicle, self.dt = loop.vehicle, loop.loop.step_s
+        self.d_front = loop.vehicle.cog_to_front_bumper_m  # [m]
+
+    def front(self, live: _Live, xp: Namespace) -> tuple[FloatOrArray, FloatOrArray]:
+        """The front bumper [m] after this step's move."""
+        return _front_bumper(live.st, self.d_front, xp)
 
     def plan(self, live: _Live, given: np.ndarray | None, t: FloatOrArray, xp: Namespace,
              controls: Controls | None = None) -> None:
@@ -493,6 +510,10 @@ class SelfDriven:
     def plan(self, live: _Live, given: np.ndarray | None, t: FloatOrArray, xp: Namespace,
              controls: Controls | None = None) -> None:
         pass  # nothing is planned (nor held): the log's plan columns stay NaN
+
+    def front(self, live: _Live, xp: Namespace) -> tuple[FloatOrArray, FloatOrArray]:
+        """Its front bumper as it gave it."""
+        return live.front_now
 
     def move(self, live: _Live, t: FloatOrArray, xp: Namespace) -> Commands:
         api, ego = self.loop._api, live.runs[0].self_driven
@@ -1134,13 +1155,9 @@ class ClosedLoop:
         c, dt, lap, xp = live.c, self._dt, self._sub_lap, self._xp
         t = (k - c.k0) * dt  # each scenario's own time (a restarted one's starts at its k0)
         steer_cmd, accel_cmd, guarded = self._driver.move(live, t, xp)
-        x, y, yaw, vx, vy = live.st[:5]
+        yaw, vx, vy = live.st[2:5]
         v = xp.hypot(vx, vy)
-        if self._self_driven:  # its front bumper as it gave it
-            front_x, front_y = live.front_now
-        else:
-            d_front = self._d_front
-            front_x, front_y = x + d_front * xp.cos(yaw), y + d_front * xp.sin(yaw)
+        front_x, front_y = self._driver.front(live, xp)
         if lap is not None:
             lap("plant")
 
