@@ -159,7 +159,7 @@ def windows(maneuvers: pd.DataFrame, mode: str = "sliding",
 
 MIN_SCORED_S = 20.0  # [s] an adapted maneuver needs this much left to score
 # the way adapt_planners adapts (a cached adapted result of another way is not reused)
-ADAPTATION_METHOD = "style-estimator-1"
+ADAPTATION_METHOD = "style-estimator-2"
 
 
 def driver_time_gap(first_rows: pd.DataFrame, default_s: float) -> float:
@@ -186,6 +186,22 @@ def driver_style(first_rows: pd.DataFrame, prior=None):
                                                                    "v_lead"))
     est, _ = estimate_drive(t, gap, speed, lead_speed, prior)
     return est
+
+
+def checkpoint_style(est, default_s: float) -> dict[str, float]:
+    """The style a style-conditioned checkpoint gets from the estimate ``est``: the line itself,
+    ``time_gap_s`` and ``standstill_m`` (s0 inside
+    :data:`~safeil_sumo.learn.style.STANDSTILL_RANGE_M`, T keeping the line's gap at the mean
+    speed of the steady samples seen, :func:`~safeil_sumo.learn.style_estimator.bounded_style`),
+    so the setting follows the speed (:func:`~safeil_sumo.learn.style.scheduled_time_gap`);
+    without a steady sample the default setting ``default_s`` [s] alone."""
+    from safeil_sumo.learn.style import STANDSTILL_NAME, STANDSTILL_RANGE_M
+    from safeil_sumo.learn.style_estimator import bounded_style
+
+    if not est.samples:
+        return {"time_gap_s": float(default_s)}
+    s0, t_gap = bounded_style(est, STANDSTILL_RANGE_M, (0.05, 10.0))
+    return {"time_gap_s": t_gap, STANDSTILL_NAME: s0}
 
 
 def driver_setting(first_rows: pd.DataFrame, default_s: float, prior=None) -> float:
@@ -232,8 +248,9 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
       of those seconds (:func:`driver_style`, the population ``prior``). Each planner is set so
       that its steady gap is the estimated line's at the speed seen: the IDM gets s0 and T
       (:func:`idm_style_params`), its v0, a, b and delta as calibrated; a style-conditioned
-      checkpoint the line's time gap at that speed (:func:`driver_setting`, its default
-      setting without a steady sample);
+      checkpoint the line itself, its setting following the speed (:func:`checkpoint_style`);
+    - ``safeil_one_setting``: the checkpoint set to one setting, the line's time gap at the mean
+      speed seen (:func:`driver_setting`, its default setting without a steady sample);
     - ``idm_refit5``: the IDM's five parameters fitted on those seconds
       (:func:`safeil_sumo.planners.idm.fit_idm`, the same calibration as the shipped fit);
     - ``safeil_median``: the checkpoint set to today's shrunk median of gap / speed
@@ -256,17 +273,21 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
         elif isinstance(policy, idm.IDMPlanner) and how == "refit5":
             fit = idm.fit_idm(idm.maneuvers_from_rows(first_rows), seed=seed, starts=2)
             out[label] = replace(policy, params=fit.params)
-        elif how == "median":  # a styled checkpoint, today's setting
+        elif how == "median":  # a styled checkpoint, the shrunk median's setting
             time_gap = driver_time_gap(first_rows, policy.style["time_gap_s"])
             out[label] = pol.with_time_gap(copy.deepcopy(policy), time_gap)
         else:
             est = est or driver_style(first_rows, prior)
             if isinstance(policy, idm.IDMPlanner):
                 out[label] = replace(policy, params=idm_style_params(policy.params, est))
-            else:  # a styled checkpoint
+            elif how == "one_setting":
                 setting = (est.setting_s(est.mean_speed_mps) if est.samples
                            else policy.style["time_gap_s"])
                 out[label] = pol.with_time_gap(copy.deepcopy(policy), setting)
+            else:  # a styled checkpoint
+                style = checkpoint_style(est, policy.style["time_gap_s"])
+                out[label] = pol.with_time_gap(copy.deepcopy(policy), style["time_gap_s"],
+                                               style.get("standstill_m"))
     return out
 
 

@@ -64,6 +64,7 @@ class MLPPolicy:
         self._hidden = ((self._wt[0], self._b[0], self._hidden[0][2]), *self._hidden[1:]) \
             if self._hidden else ()
         self.style: dict[str, float] = {}
+        self._schedule: tuple[float, float] | None = None  # (T [s], s0 [m]) when s0 != 0
         if self.style_names:
             default = (self.metadata.get("style_default") or {})
             self.set_style(**{n: float(default.get(n, DEFAULT_TIME_GAP_S))  # the one style
@@ -85,15 +86,46 @@ class MLPPolicy:
 
     def set_style(self, **style: float) -> None:
         """Set the style inputs, e.g. ``set_style(time_gap_s=2.0)`` [s]; a value outside the
-        trained range is clipped to it. A policy without style inputs raises ValueError."""
-        from safeil_sumo.learn.style import clip_time_gap
+        trained range is clipped to it. A policy without style inputs raises ValueError.
 
-        if set(style) != set(self.style_names):
+        A time-gap input also takes a driver's standstill distance, ``standstill_m`` [m] in
+        :data:`~safeil_sumo.learn.style.STANDSTILL_RANGE_M`: the style is then the line
+        ``gap = s0 + T v`` and every plan gets the setting ``T + s0 / v`` at its ego speed
+        (:func:`~safeil_sumo.learn.style.scheduled_time_gap`, inside the trained range);
+        ``standstill_m=0`` is the one-number style."""
+        from safeil_sumo.learn import style as st
+
+        extra = {st.STANDSTILL_NAME} if "time_gap_s" in self.style_names else set()
+        if not set(self.style_names) <= set(style) <= set(self.style_names) | extra:
             raise ValueError(f"{self.name}: style inputs are {list(self.style_names) or 'none'}"
+                             f"{' (and ' + st.STANDSTILL_NAME + ')' if extra else ''}"
                              f", got {sorted(style)}")
-        self.style = {n: clip_time_gap(style[n]) for n in self.style_names}
+        s0 = float(style.get(st.STANDSTILL_NAME, 0.0))
+        lo, hi = st.STANDSTILL_RANGE_M
+        if not lo <= s0 <= hi:
+            raise ValueError(f"{self.name}: {st.STANDSTILL_NAME} must be in [{lo:g}, {hi:g}] m,"
+                             f" got {s0}")
+        if s0 == 0.0:
+            self._schedule = None
+            self.style = {n: st.clip_time_gap(style[n]) for n in self.style_names}
+        else:  # the setting follows the ego speed: the bias is made per plan
+            time_gap = float(style["time_gap_s"])
+            if not 0.0 < time_gap <= 10.0:
+                raise ValueError(f"{self.name}: time_gap_s must be in (0, 10] s, got {time_gap}")
+            self._schedule = (time_gap, s0)
+            self.style = {"time_gap_s": time_gap, st.STANDSTILL_NAME: s0}
+            return
         values = np.array([self.style[n] for n in self.style_names])
         self._b[0][:] = self._bias0 + values @ self._style_rows
+
+    def _schedule_bias(self, speed_mps: float) -> None:
+        """The first layer's bias at the scheduled setting for ego speed ``speed_mps``."""
+        from safeil_sumo.learn.style import scheduled_time_gap
+
+        assert self._schedule is not None
+        setting = float(scheduled_time_gap(*self._schedule, speed_mps))
+        np.multiply(self._style_rows[0], setting, out=self._b[0])
+        self._b[0] += self._bias0
 
     @property
     def residual_times(self) -> np.ndarray | None:
@@ -106,7 +138,11 @@ class MLPPolicy:
         the arrays :meth:`plan` uses (scaling folded in); :attr:`activation` acts between
         layers and the residual mode adds ``v_x *`` :attr:`residual_times` to the x outputs
         after the last. ``style_input``: the first layer takes the style inputs as columns after
-        the 9 features (bias without them); else the current style is folded into its bias."""
+        the 9 features (bias without them); else the current style is folded into its bias
+        (a style with a standstill distance has no one bias: ValueError)."""
+        if self._schedule is not None and not style_input:
+            raise ValueError(f"{self.name}: a standstill distance makes the setting depend on "
+                             "the speed; take the style as an input (style_input=True)")
         layers = [(wt.T.copy(), b.copy()) for wt, b in zip(self._wt, self._b, strict=True)]
         if style_input:
             if not self.style_names:
@@ -123,6 +159,8 @@ class MLPPolicy:
 
     def _plan_one(self, f: np.ndarray) -> np.ndarray:
         """``(9,)`` float64 -> ``(3, 2)``: ~4 numpy calls per layer, no temporaries."""
+        if self._schedule is not None:
+            self._schedule_bias(f[6])
         h = f
         tanh = self._tanh
         for wt, b, buf in self._hidden:
@@ -152,9 +190,15 @@ class MLPPolicy:
         if f.ndim == 1:
             return self._plan_one(f)
         h = f.reshape(-1, N_FEATURES)
-        for wt, b in zip(self._wt[:-1], self._b[:-1], strict=True):
+        for j, (wt, b) in enumerate(zip(self._wt[:-1], self._b[:-1], strict=True)):
             h = h @ wt
-            h += b
+            if j == 0 and self._schedule is not None:  # each row's own setting
+                from safeil_sumo.learn.style import scheduled_time_gap
+
+                setting = scheduled_time_gap(*self._schedule, f.reshape(-1, N_FEATURES)[:, 6])
+                h += setting[:, None] * self._style_rows[0] + self._bias0  # as _schedule_bias
+            else:
+                h += b
             self._act(h)
         out = h @ self._wt[-1]
         out += self._b[-1]

@@ -35,6 +35,11 @@ SETTING_RANGE_S = (0.8, 3.5)
 MIN_SPEED_MPS = 5.0  # [m/s] slower samples say more about standstill distance than time gap
 MAX_TIME_GAP_S = 6.0  # [s] a sample farther back is not following
 STANDSTILL_GAP_M = 2.0  # [m] the equilibrium gap's floor at low speed
+# the second style number (scheduled_time_gap): a driver's standstill distance s0 [m], the
+# intercept of the steady gap's line s0 + T v
+STANDSTILL_NAME = "standstill_m"
+STANDSTILL_RANGE_M = (-30.0, 30.0)  # [m] the s0 a planner accepts (the population's +-4 sd)
+SCHEDULE_MIN_SPEED_MPS = 1.0  # [m/s] s0 / v is taken at this speed below it
 
 
 def following_time_gaps(gap_m: np.ndarray, speed_mps: np.ndarray,
@@ -131,3 +136,15 @@ def clip_time_gap(time_gap_s: float) -> float:
     """A setting inside :data:`SETTING_RANGE_S` (within the trained range)."""
     lo, hi = SETTING_RANGE_S
     return float(min(max(float(time_gap_s), lo), hi))
+
+
+def scheduled_time_gap(time_gap_s: float, standstill_m: float, speed_mps):
+    """The time-gap setting [s] that makes a planner whose steady gap is ``setting * v`` keep a
+    driver's line ``gap = standstill_m + time_gap_s * v`` instead: ``T + s0 / v`` at the ego's
+    speed ``speed_mps`` [m/s] (a float or an array ``(N,)``; below
+    :data:`SCHEDULE_MIN_SPEED_MPS` that speed), inside :data:`SETTING_RANGE_S`. A second style
+    number without retraining: the network's input stays the one it was trained and certified
+    on, so the setting it is given is always inside the certified range."""
+    lo, hi = SETTING_RANGE_S
+    v = np.maximum(speed_mps, SCHEDULE_MIN_SPEED_MPS)
+    return np.clip(time_gap_s + standstill_m / v, lo, hi)

@@ -38,6 +38,8 @@ ADAPTATION_VARIANTS = {
     "safeil_unadapted": ("safeil", "unadapted"),
     # the time-gap setting from the shrunk median of gap / speed (learn.style.adapted_time_gap)
     "safeil_median": ("safeil", "median"),
+    # one setting from the (s0, T) estimate: the line's time gap at the speed seen
+    "safeil_one_setting": ("safeil", "one_setting"),
 }
 
 
@@ -55,6 +57,9 @@ class PlannerRef:
     # the planner's preferred time gap [s] (an ACC's distance setting, :func:`with_time_gap`);
     # None: its default
     time_gap_s: float | None = None
+    # with it, the driver's standstill distance [m]: the style is the steady gap's line
+    # s0 + T v (:func:`with_time_gap`); None: the planner's own (0 for a checkpoint)
+    standstill_m: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "policy", str(self.policy))
@@ -63,6 +68,13 @@ class PlannerRef:
             object.__setattr__(self, "time_gap_s", float(self.time_gap_s))
             if not (math.isfinite(self.time_gap_s) and 0 < self.time_gap_s <= 10):
                 raise ValueError(f"time gap must be in (0, 10] s, got {self.time_gap_s}")
+        if self.standstill_m is not None:
+            if self.time_gap_s is None:
+                raise ValueError("a standstill distance needs a time gap (the style is the "
+                                 "line s0 + T v)")
+            object.__setattr__(self, "standstill_m", float(self.standstill_m))
+            if not math.isfinite(self.standstill_m):
+                raise ValueError(f"standstill distance must be finite, got {self.standstill_m}")
 
     def load(self) -> Policy:
         """The planner: loaded fresh (no state shared with another load), set to the time gap,
@@ -73,7 +85,8 @@ class PlannerRef:
         """The planner set to the time gap, without the safety filter (stateless: a batch of
         tasks may share it)."""
         policy = load(self.policy)
-        return policy if self.time_gap_s is None else with_time_gap(policy, self.time_gap_s)
+        return policy if self.time_gap_s is None else with_time_gap(policy, self.time_gap_s,
+                                                                    self.standstill_m)
 
     def wrap(self, policy: Policy) -> Policy:
         """``policy`` in the safety filter if this reference asks for it (a new wrapper: its
@@ -85,10 +98,11 @@ class PlannerRef:
         return SafetyFiltered(policy)
 
     def to_json(self) -> dict[str, object]:
-        """The fields, ``time_gap_s`` only when set."""
+        """The fields, ``time_gap_s`` and ``standstill_m`` only when set."""
         out = asdict(self)
-        if out["time_gap_s"] is None:
-            del out["time_gap_s"]
+        for key in ("time_gap_s", "standstill_m"):
+            if out[key] is None:
+                del out[key]
         return out
 
 
@@ -228,11 +242,15 @@ class _Styled(Protocol):
     def set_style(self, **style: float) -> None: ...
 
 
-def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:
+def with_time_gap(policy: Policy, time_gap_s: float, standstill_m: float | None = None
+                  ) -> Policy:
     """``policy`` set to keep a preferred time gap ``time_gap_s`` [s] (an ACC's distance
     setting): a style-conditioned checkpoint's style input (:mod:`safeil_sumo.learn.style`,
-    clipped to its trained range), or the IDM's time gap T. Other planners have no such setting:
-    :class:`PolicyError`."""
+    clipped to its trained range), or the IDM's time gap T. With ``standstill_m`` [m] the style
+    is a driver's steady-gap line ``s0 + T v``: the checkpoint's setting follows the speed
+    (:meth:`~safeil_sumo.learn.inference.MLPPolicy.set_style`), the IDM's s0 is set (inside its
+    calibration bounds). Other planners have no such setting, and a value out of range is
+    refused: :class:`PolicyError`."""
     from dataclasses import replace
 
     from safeil_sumo.planners import idm
@@ -240,9 +258,22 @@ def with_time_gap(policy: Policy, time_gap_s: float) -> Policy:
     if not (time_gap_s > 0):
         raise PolicyError(f"a time gap must be > 0 s, got {time_gap_s}")
     if isinstance(policy, idm.IDMPlanner):
-        return replace(policy, params=replace(policy.params, time_gap_s=float(time_gap_s)))
+        params = replace(policy.params, time_gap_s=float(time_gap_s))
+        if standstill_m is not None:
+            k = idm.FIT_FIELDS.index("s0_m")
+            if not idm.LOWER[k] <= standstill_m <= idm.UPPER[k]:
+                raise PolicyError(f"the IDM's standstill distance must be in [{idm.LOWER[k]:g}, "
+                                  f"{idm.UPPER[k]:g}] m, got {standstill_m}")
+            params = replace(params, s0_m=float(standstill_m))
+        return replace(policy, params=params)
     if "time_gap_s" in getattr(policy, "style_names", ()):  # a style-conditioned checkpoint
-        cast(_Styled, policy).set_style(time_gap_s=float(time_gap_s))
+        style = {"time_gap_s": float(time_gap_s)}
+        if standstill_m is not None:
+            style["standstill_m"] = float(standstill_m)
+        try:
+            cast(_Styled, policy).set_style(**style)
+        except ValueError as e:
+            raise PolicyError(str(e)) from None
         return policy
     raise PolicyError(f"{policy.name} has no time-gap setting (style-conditioned checkpoints "
                       "and the IDM have one)")

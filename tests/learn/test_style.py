@@ -17,6 +17,7 @@ from safeil_sumo.learn.style import (
     clip_time_gap,
     estimate_time_gap,
     maneuver_time_gaps,
+    scheduled_time_gap,
     training_time_gaps,
 )
 
@@ -125,6 +126,51 @@ def test_numpy_policy_folds_the_style_into_the_first_layer(tmp_path):
     assert model.n_features == 10 and meta["feature_names"][-1] == "time_gap_s"
 
 
+def test_scheduled_time_gap_by_hand():
+    """``T + s0 / v`` inside the setting range; below 1 m/s the speed is taken as 1 m/s."""
+    assert float(scheduled_time_gap(1.2, 8.0, 20.0)) == pytest.approx(1.6)
+    assert float(scheduled_time_gap(2.0, -15.0, 30.0)) == pytest.approx(1.5)
+    assert float(scheduled_time_gap(1.2, 8.0, 4.0)) == pytest.approx(3.2)
+    assert float(scheduled_time_gap(1.2, 8.0, 2.0)) == SETTING_RANGE_S[1]  # 5.2 s, clipped
+    assert float(scheduled_time_gap(1.0, -10.0, 20.0)) == SETTING_RANGE_S[0]  # 0.5 s, clipped
+    assert float(scheduled_time_gap(1.0, 1.0, 0.0)) == pytest.approx(2.0)  # at 1 m/s
+    np.testing.assert_allclose(scheduled_time_gap(1.2, 8.0, np.array([10.0, 40.0])),
+                               [2.0, 1.4])
+
+
+def test_a_standstill_distance_schedules_the_setting_by_the_ego_speed(tmp_path):
+    """With ``standstill_m`` every plan, single or batched, is the plan at the setting
+    ``T + s0 / v`` of its own ego speed; the certificate's folded layers are refused."""
+    styled = with_style_input(_style_model(), 1.5, 0.5)
+    with torch.no_grad():
+        styled.net[0].weight[:, 9].normal_(0.0, 0.5)
+    save_checkpoint(tmp_path / "m", styled, name="styled", horizon=5.0)
+    policy, fixed = load_policy(tmp_path / "m"), load_policy(tmp_path / "m")
+    policy.set_style(time_gap_s=1.2, standstill_m=8.0)
+    assert policy.style == {"time_gap_s": 1.2, "standstill_m": 8.0}
+    states = np.repeat(STATE[None], 3, axis=0)
+    states[:, 6] = [10.0, 20.0, 40.0]  # settings 2.0, 1.6, 1.4 s
+    batch = policy.plan(states)
+    for state, row, setting in zip(states, batch, (2.0, 1.6, 1.4), strict=True):
+        fixed.set_style(time_gap_s=setting)
+        np.testing.assert_allclose(policy.plan(state.copy()), fixed.plan(state), atol=1e-12)
+        np.testing.assert_allclose(row, fixed.plan(state), atol=1e-12)
+    assert np.abs(batch[0] - batch[2]).max() > 1e-3  # the setting matters
+    with pytest.raises(ValueError, match="style_input"):
+        policy.affine_layers()
+    assert len(policy.affine_layers(style_input=True)[0][0][0]) == 10
+    policy.set_style(time_gap_s=2.6, standstill_m=0.0)  # back to one number, clipped as before
+    fixed.set_style(time_gap_s=2.6)
+    np.testing.assert_array_equal(policy.plan(STATE), fixed.plan(STATE))
+    assert policy.style == {"time_gap_s": 2.6}
+    with pytest.raises(ValueError, match="standstill_m must be in"):
+        policy.set_style(time_gap_s=1.2, standstill_m=40.0)
+    with pytest.raises(ValueError, match="time_gap_s must be in"):
+        policy.set_style(time_gap_s=-1.0, standstill_m=5.0)
+    with pytest.raises(ValueError, match="style inputs are"):
+        policy.set_style(standstill_m=5.0)
+
+
 def test_a_policy_without_style_inputs_refuses_a_style(tmp_path):
     save_checkpoint(tmp_path / "plain", _style_model(), name="plain", horizon=5.0)
     policy = load_policy(tmp_path / "plain")
@@ -161,6 +207,21 @@ def test_with_time_gap_sets_the_style_or_the_idm_gap(tmp_path):
         planner_registry.with_time_gap(AnalyticPlanner(), 2.0)
     with pytest.raises(planner_registry.PolicyError, match="> 0"):
         planner_registry.with_time_gap(idm, 0.0)
+    # the second style number: the checkpoint's schedule, the IDM's s0 inside its bounds
+    p = planner_registry.with_time_gap(p, 1.4, -6.0)
+    assert p.style == {"time_gap_s": 1.4, "standstill_m": -6.0}
+    assert planner_registry.with_time_gap(idm, 1.4, 3.0).params.s0_m == 3.0
+    with pytest.raises(planner_registry.PolicyError, match="IDM's standstill distance"):
+        planner_registry.with_time_gap(idm, 1.4, -6.0)
+    with pytest.raises(planner_registry.PolicyError, match="standstill_m must be in"):
+        planner_registry.with_time_gap(p, 1.4, 100.0)
+    ref = planner_registry.PlannerRef(str(tmp_path / "m.safetensors"), time_gap_s=1.4,
+                                      standstill_m=-6.0)
+    assert ref.load().style == {"time_gap_s": 1.4, "standstill_m": -6.0}
+    assert ref.to_json()["standstill_m"] == -6.0
+    assert "standstill_m" not in planner_registry.PlannerRef("idm", time_gap_s=1.4).to_json()
+    with pytest.raises(ValueError, match="needs a time gap"):
+        planner_registry.PlannerRef("idm", standstill_m=2.0)
 
 
 # ------------------------------------------------------------------ adaptation in replays
@@ -234,8 +295,13 @@ def test_adapt_planners_sets_every_planner_from_one_style_estimate(tmp_path):
     est = ra.driver_style(rows)
     assert est.samples == len(rows) and est.mean_speed_mps == pytest.approx(V)
     assert est.gap_m(V) == pytest.approx(40.0, abs=0.5)  # 20 s of one speed: the gap there
-    out = ra.adapt_planners(planners, rows)
-    assert out["m"].style == {"time_gap_s": pytest.approx(est.gap_m(V) / V)}
+    out = ra.adapt_planners(planners | {"safeil_one_setting": styled}, rows)
+    # the checkpoint gets the line; at the speed seen its setting gives the line's gap there
+    s0, t_gap = out["m"].style["standstill_m"], out["m"].style["time_gap_s"]
+    assert s0 == pytest.approx(est.s0_m) and s0 != 0.0
+    assert float(scheduled_time_gap(t_gap, s0, V)) == pytest.approx(est.gap_m(V) / V)
+    # the named one-setting row: that time gap, constant
+    assert out["safeil_one_setting"].style == {"time_gap_s": pytest.approx(est.gap_m(V) / V)}
     assert styled.style == {"time_gap_s": 1.5}  # the shared planner is untouched
     p = out["idm"].params
     assert float(idm.equilibrium_gap(V, p)) == pytest.approx(est.gap_m(V), rel=1e-6)
