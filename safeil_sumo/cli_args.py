@@ -172,14 +172,26 @@ def nonnegative_int(text: str) -> int:
     return _int_at_least(text, 0)
 
 
-def add_time_gap_option(parser: CommandParser) -> None:
-    """``--time-gap-s``, shared by ``run`` and ``sweep``: the planner's preferred time gap."""
-    parser.rename(time_gap="--time-gap-s")
+def add_time_gap_option(parser: CommandParser, planners: str = "the planner's") -> None:
+    """``--time-gap-s`` and ``--standstill-m``, shared by ``run``, ``sweep`` and ``replay``:
+    the planner's style, the steady gap's line ``s0 + T v``."""
+    parser.rename(time_gap="--time-gap-s", standstill="--standstill-m")
     parser.add_argument(
         "--time-gap-s", type=finite_float, default=None, metavar="S",
-        help="the planner's preferred time gap [s], like an ACC's distance setting: the style "
+        help=f"{planners} preferred time gap T [s], like an ACC's distance setting: the style "
              "input of a style-conditioned checkpoint (default: the humans' median stored in "
              "it), or the IDM's T; other planners refuse it")
+    parser.add_argument(
+        "--standstill-m", type=finite_float, default=None, metavar="M",
+        help=f"with --time-gap-s: {planners} standstill distance s0 [m], so the steady gap is "
+             "s0 + T v (a checkpoint's setting follows the speed, the IDM's s0 is set; "
+             "default: none)")
+
+
+def check_style_options(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """``--standstill-m`` needs ``--time-gap-s``: a usage error otherwise."""
+    if args.standstill_m is not None and args.time_gap_s is None:
+        parser.error("--standstill-m needs --time-gap-s (the style is the line s0 + T v)")
 
 
 def add_brake_guard_option(parser: CommandParser) -> None:
@@ -306,7 +318,7 @@ def add_scenario_options(parser: CommandParser) -> None:
              brake_decel="--brake-decel-mps2", brake_to="--brake-to-mps",
              ego_speed="--ego-speed-mps", gap="--gap-m", gap_range="--gap-range-m",
              lane_noise="--lane-noise-m", radar_noise="--radar-noise-m",
-             max_time="--max-time-s", time_gap="--time-gap-s")
+             max_time="--max-time-s")
     add_brake_guard_option(p)
 
 
@@ -344,7 +356,8 @@ def task(args: argparse.Namespace, net: str, index: int, policy: str,
     from safeil_sumo.scenarios.spec import ScenarioSpec, Task
 
     return Task(ScenarioSpec(net=net, index=index, **scenario_fields(args)),
-                PlannerRef(policy, safety_filter, args.time_gap_s), loop_config(args))
+                PlannerRef(policy, safety_filter, args.time_gap_s, args.standstill_m),
+                loop_config(args))
 
 
 def check_scenario_options(parser: argparse.ArgumentParser, args: argparse.Namespace,

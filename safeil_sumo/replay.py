@@ -32,7 +32,9 @@ from safeil_sumo.cli_args import (
     add_policy_option,
     add_scheduler_option,
     add_task_options,
+    add_time_gap_option,
     check_scheduler,
+    check_style_options,
     check_task_options,
     finite_float,
     interruptible,
@@ -99,26 +101,25 @@ def build_parser() -> CommandParser:
                    help="with --windows whole: adapt the planners to each driver on the "
                         "maneuver's first S seconds, then score the rest: one estimate of the "
                         "driver's standstill distance and time gap (learn/style_estimator.py, "
-                        "from the population prior) sets a style-conditioned checkpoint's time "
-                        "gap and the IDM's s0 and T; the extra rows idm_refit5 (the IDM's five "
-                        "parameters refitted), safeil_median (the shrunk median of gap / "
-                        "speed), idm_unadapted and safeil_unadapted adapt otherwise; "
+                        "from the population prior) sets a style-conditioned checkpoint's style "
+                        "(its setting then follows the speed) and the IDM's s0 and T; the "
+                        "extra rows idm_refit5 (the IDM's five parameters refitted), "
+                        "safeil_one_setting (one time gap, the estimate's at the speed seen), "
+                        "safeil_median (the shrunk median of gap / speed), idm_unadapted and "
+                        "safeil_unadapted adapt otherwise; "
                         "maneuvers without 20 s left are skipped. Default 0: no adaptation")
     add_policy_option(p, ["analytic"],
                       "safeil, safeil_paper, bc, analytic, idm, recorded (the human's own "
                       "path: the instrument's error floor), constant_speed (the initial speed "
                       "held on the lane centre, no reaction to the leader: the naive "
-                      "baseline), with --adapt-first-s idm_refit5, safeil_median, "
-                      "idm_unadapted, safeil_unadapted, and/or checkpoint paths")
+                      "baseline), with --adapt-first-s idm_refit5, safeil_one_setting, "
+                      "safeil_median, idm_unadapted, safeil_unadapted, and/or checkpoint "
+                      "paths")
     p.add_argument("--rate-hz", type=finite_float, default=10.0, metavar="HZ",
                    help="sample rate [Hz] of the maneuver rows compared (default 10, the source)")
     add_plan_rate_option(p)
     add_brake_guard_option(p)
-    p.add_argument("--time-gap-s", type=finite_float, default=None, metavar="S",
-                   help="the planners' preferred time gap [s], like an ACC's distance setting: "
-                        "the style input of style-conditioned checkpoints and the IDM's T; "
-                        "other planners keep theirs (default: each planner's own; not with "
-                        "--adapt-first-s, which sets it per driver)")
+    add_time_gap_option(p, planners="the planners'")
     p.add_argument("--lateral", choices=LATERAL_MODES, default="free",
                    help="planned egos' lateral motion: free (default: the plan tracked by pure "
                         "pursuit on the plant) or lane, an INSTRUMENT MODE for longitudinal-only "
@@ -134,8 +135,7 @@ def build_parser() -> CommandParser:
                         "ffmpeg) of each policy; see python -m safeil_sumo.animate")
     p.add_argument("--out", type=Path, default=None, help="results folder "
                    "(default runs/replay_<maneuver>)")
-    p.rename(stride="--stride-s", start="--start-s", duration="--duration-s", rate="--rate-hz",
-             time_gap="--time-gap-s")
+    p.rename(stride="--stride-s", start="--start-s", duration="--duration-s", rate="--rate-hz")
     return p
 
 
@@ -160,6 +160,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.time_gap_s is not None and args.adapt_first_s:
         p.error("--time-gap-s and --adapt-first-s exclude each other (adapting sets each "
                 "driver's time gap)")
+    check_style_options(p, args)
     check_scheduler(p, args)
     check_task_options(p, args)
     if args.scheduler is not None and not args.many:
@@ -174,7 +175,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def replay_config(args: argparse.Namespace) -> rp.ReplayConfig:
     """The replay's settings from the command line: seed, time-gap setting, re-planning rate,
     brake guard and lateral mode on the default loop."""
-    config = rp.ReplayConfig(seed=args.seed, time_gap_s=args.time_gap_s)
+    config = rp.ReplayConfig(seed=args.seed, time_gap_s=args.time_gap_s,
+                             standstill_m=args.standstill_m)
     return replace(config, loop=replace(config.loop, plan_rate_hz=args.plan_rate_hz,
                                         brake_guard=brake_guard_when(args.brake_guard),
                                         lateral=args.lateral))
@@ -188,7 +190,8 @@ def many_manifest(args: argparse.Namespace, only: list[str] | None) -> dict:
             "duration_s": rp.PAPER_DURATION_S if args.duration_s is None
             and args.windows != "whole" else args.duration_s or None,
             "maneuvers": only or "all", "adapt_first_s": args.adapt_first_s,
-            "lateral": args.lateral, "time_gap_s": args.time_gap_s, "batch": args.batch}
+            "lateral": args.lateral, "time_gap_s": args.time_gap_s,
+            "standstill_m": args.standstill_m, "batch": args.batch}
 
 
 def main_many(args: argparse.Namespace, maneuvers: pd.DataFrame,
@@ -260,14 +263,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = args.out or Path("runs") / f"replay_{rp.rr.safe_name(mid)}"
-    policies = ra.with_setting(policies, config.time_gap_s)
+    policies = ra.with_setting(policies, config.time_gap_s, config.standstill_m)
     try:
         with outputs.AtomicDir(out) as tmp:
             result = rp.replay_maneuver(rows, policies, tmp, config, maneuver_id=mid)
             rp.write_replay(result, tmp, {"source": args.source, "maneuver_start_s": start,
                                           "policies": args.policy, "rate_hz": args.rate_hz,
                                           "lateral": args.lateral,
-                                          "time_gap_s": args.time_gap_s})
+                                          "time_gap_s": args.time_gap_s,
+                                          "standstill_m": args.standstill_m})
     except (rp.ReplayError, ProfileError, NetworkError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -103,7 +103,7 @@ def manifest_config(args: argparse.Namespace, road: Road, scenarios: list[Scenar
     return {
         "net": str(road.net_path), "route": list(args.route), "lane": args.lane or None,
         "stretch_km": road.meta.get("stretch_km"), "policy": args.policy,
-        "time_gap_s": args.time_gap_s,
+        "time_gap_s": args.time_gap_s, "standstill_m": args.standstill_m,
         "scenarios": args.scenarios,
         "master_seed": args.seed,
         "leader_speed_range_mps": list(args.leader_speed_range_mps),
@@ -145,7 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         road = api.road(args.net, args.route, args.from_km, args.to_km, args.lane)
-        policy = PlannerRef(args.policy, time_gap_s=args.time_gap_s).load()
+        policy = PlannerRef(args.policy, time_gap_s=args.time_gap_s,
+                            standstill_m=args.standstill_m).load()
     except (NetworkError, planner_registry.PolicyError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

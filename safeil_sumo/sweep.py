@@ -180,7 +180,7 @@ def build_tasks(args: argparse.Namespace) -> list[Task]:
 def check_inputs(nets: list[str], policies: list[str], profiles: Sequence[str] = (),
                  route: tuple[str, ...] = (), from_km: float | None = None,
                  to_km: float | None = None, lane: str = "",
-                 time_gap_s: float | None = None) -> None:
+                 time_gap_s: float | None = None, standstill_m: float | None = None) -> None:
     """Resolve every net (building curved<R> once; along ``route`` or the n74 stretch if given),
     load every policy
     and recorded-leader library before any task runs.
@@ -200,7 +200,7 @@ def check_inputs(nets: list[str], policies: list[str], profiles: Sequence[str] =
     for name in dict.fromkeys(policies):
         policy = planner_registry.load(name)
         if time_gap_s is not None:
-            planner_registry.with_time_gap(policy, time_gap_s)
+            planner_registry.with_time_gap(policy, time_gap_s, standstill_m)
 
 
 @interruptible
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
                      sorted({t.scenario.leader_profile for t in tasks
                              if t.scenario.leader_profile}),
                      tuple(args.route), args.from_km, args.to_km, args.lane or "",
-                     args.time_gap_s)
+                     args.time_gap_s, args.standstill_m)
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

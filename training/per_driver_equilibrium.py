@@ -12,8 +12,10 @@ least :data:`MIN_SAMPLES` samples each):
 - the driver's own median time gap per band;
 - the driver's (s0, T) from all their steady samples (``learn.style_estimator``, the population
   prior), and the planners set to it as an adapted replay sets them
-  (``experiments.window_replays.adapt_planners``): the shipped ``safeil`` gets the line's time
-  gap at the mean speed seen, the IDM s0 and T (its v0, a, b, delta as calibrated);
+  (``experiments.window_replays.adapt_planners``): the shipped ``safeil`` gets the line, its
+  setting following the speed (``checkpoint_style``), the IDM s0 and T (its v0, a, b, delta as
+  calibrated); ``safeil`` at one setting, the line's time gap at the mean speed seen (the
+  ``safeil_one_setting`` row of the replays), beside them;
 - each planner's equilibrium time gap per band: ``safeil``'s from a SUMO step response (the gap
   probe's ``close`` start behind a leader at the band's speed, its final-window time gap), the
   IDM's from its equilibrium gap in closed form (``idm.equilibrium_gap``); ``safeil``
@@ -37,7 +39,11 @@ from safeil_sumo.data.pipeline import PipelineConfig, process_drive
 from safeil_sumo.data.sources import DEFAULT_DATA_DIR, driver_of, load_source
 from safeil_sumo.experiments import gap_step_responses as gp
 from safeil_sumo.experiments.sweep_executor import run_sweep
-from safeil_sumo.experiments.window_replays import driver_style, idm_style_params
+from safeil_sumo.experiments.window_replays import (
+    checkpoint_style,
+    driver_style,
+    idm_style_params,
+)
 from safeil_sumo.planners import idm
 from safeil_sumo.planners import registry as pol
 from safeil_sumo.planners.registry import PlannerRef
@@ -80,8 +86,8 @@ def driver_bands(rows: pd.DataFrame) -> pd.DataFrame:
 
 def driver_settings(rows: pd.DataFrame, drivers: list[str]) -> pd.DataFrame:
     """Per driver: the (s0, T) estimate of all their rows (maneuvers in order, each one's time
-    shifted after the last so the estimator sees one drive), ``safeil``'s setting and the
-    IDM's s0 and T set to it."""
+    shifted after the last so the estimator sees one drive), ``safeil``'s style (the line) and
+    one setting, and the IDM's s0 and T set to it."""
     shipped_idm = pol.load("idm")
     out = []
     for driver in drivers:
@@ -92,21 +98,26 @@ def driver_settings(rows: pd.DataFrame, drivers: list[str]) -> pd.DataFrame:
             end = float(parts[-1]["time"].iloc[-1]) + 60.0  # a minute apart: no false accel
         est = driver_style(pd.concat(parts, ignore_index=True))
         params = idm_style_params(shipped_idm.params, est)
+        style = checkpoint_style(est, float("nan"))
         out.append({"driver": driver, "s0_m": float(est.mean[0]), "T_s": float(est.mean[1]),
                     "steady_samples": est.samples, "mean_speed_mps": est.mean_speed_mps,
+                    "safeil_T_s": style["time_gap_s"],
+                    "safeil_s0_m": style.get("standstill_m", float("nan")),
                     "safeil_setting_s": est.setting_s(est.mean_speed_mps),
                     "idm_s0_m": params.s0_m, "idm_T_s": params.time_gap_s})
     return pd.DataFrame(out)
 
 
 def safeil_equilibria(pairs: pd.DataFrame, out: Path, workers: int) -> pd.Series:
-    """``safeil``'s equilibrium time gap [s] per row of ``pairs`` (``speed_mps`` and
-    ``setting_s``, NaN: its default setting): the gap probe's final-window time gap."""
+    """``safeil``'s equilibrium time gap [s] per row of ``pairs`` (``speed_mps``, ``setting_s``
+    and ``standstill_m``, NaN: its default setting, no standstill distance): the gap probe's
+    final-window time gap."""
     specs = []
     for k, r in enumerate(pairs.itertuples()):
         setting = None if np.isnan(r.setting_s) else float(r.setting_s)
+        s0 = None if np.isnan(r.standstill_m) else float(r.standstill_m)
         specs.append(Task(gp.probe_scenario(KIND, float(r.speed_mps), seed=k),
-                          PlannerRef("safeil", time_gap_s=setting)))
+                          PlannerRef("safeil", time_gap_s=setting, standstill_m=s0)))
     records = run_sweep(specs, out / "runs", workers=workers, progress=True,
                         task_fn=gp.run_probe_task)
     table = gp.table(records)
@@ -116,7 +127,8 @@ def safeil_equilibria(pairs: pd.DataFrame, out: Path, workers: int) -> pd.Series
 def summary(table: pd.DataFrame) -> list[str]:
     lines = ["| planner | (driver, band) pairs | within ±0.2 s | share | median abs error [s] |",
              "|---|---:|---:|---:|---:|"]
-    for col, name in (("safeil_eq_s", "`safeil` set to the driver"),
+    for col, name in (("safeil_eq_s", "`safeil` set to the driver's line"),
+                      ("safeil_one_setting_eq_s", "`safeil` at one setting"),
                       ("safeil_default_eq_s", "`safeil` unadapted"),
                       ("idm_eq_s", "IDM set to the driver (closed form)")):
         err = (table[col] - table["driver_median_s"]).abs()
@@ -136,12 +148,15 @@ def main(argv: list[str] | None = None) -> int:
     bands = driver_bands(rows)
     settings = driver_settings(rows, sorted(bands["driver"].unique()))
     table = bands.merge(settings, on="driver")
-    pairs = pd.concat([table.assign(setting_s=table["safeil_setting_s"]),
-                       table.assign(setting_s=np.nan)], ignore_index=True)
+    pairs = pd.concat([table.assign(setting_s=table["safeil_T_s"],
+                                    standstill_m=table["safeil_s0_m"]),
+                       table.assign(setting_s=table["safeil_setting_s"], standstill_m=np.nan),
+                       table.assign(setting_s=np.nan, standstill_m=np.nan)], ignore_index=True)
     eq = safeil_equilibria(pairs, args.out, args.workers)
     n = len(table)
     table["safeil_eq_s"] = eq.iloc[:n].to_numpy()
-    table["safeil_default_eq_s"] = eq.iloc[n:].to_numpy()
+    table["safeil_one_setting_eq_s"] = eq.iloc[n:2 * n].to_numpy()
+    table["safeil_default_eq_s"] = eq.iloc[2 * n:].to_numpy()
     table["idm_eq_s"] = [float(idm.equilibrium_gap(r.speed_mps, dataclasses.replace(
         pol.load("idm").params, s0_m=r.idm_s0_m, time_gap_s=r.idm_T_s))) / r.speed_mps
         for r in table.itertuples()]

@@ -87,10 +87,16 @@ class ReplayConfig:
     # without one keep theirs. None: each planner's default. An adapted window
     # (window_replays.adapt_planners) sets its own.
     time_gap_s: float | None = None
+    # with it, the planners' standstill distance [m]: the style is the line s0 + T v
+    # (planner_registry.with_time_gap). None: none
+    standstill_m: float | None = None
 
     def __post_init__(self) -> None:
         if self.time_gap_s is not None and not (0 < self.time_gap_s <= 10):
             raise ValueError(f"time gap must be in (0, 10] s, got {self.time_gap_s}")
+        if self.standstill_m is not None and self.time_gap_s is None:
+            raise ValueError("a standstill distance needs a time gap (the style is the line "
+                             "s0 + T v)")
 
 
 @dataclass(frozen=True)

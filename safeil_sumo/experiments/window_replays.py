@@ -291,18 +291,20 @@ def adapt_planners(policies: dict, first_rows: pd.DataFrame, seed: int = 0,
     return out
 
 
-def with_setting(policies: dict, time_gap_s: float | None) -> dict:
+def with_setting(policies: dict, time_gap_s: float | None, standstill_m: float | None = None
+                 ) -> dict:
     """``policies`` with the planners that have a time-gap setting (style-conditioned
-    checkpoints, the IDM) set to ``time_gap_s`` [s] (:func:`safeil_sumo.planners.registry.
-    with_time_gap`); the others as they are. None: ``policies`` itself. Copies: ``policies`` is
-    unchanged."""
+    checkpoints, the IDM) set to ``time_gap_s`` [s] and ``standstill_m`` [m]
+    (:func:`safeil_sumo.planners.registry.with_time_gap`); the others as they are. None:
+    ``policies`` itself. Copies: ``policies`` is unchanged."""
     import copy
 
     from safeil_sumo.planners import registry as pol
 
     if time_gap_s is None:
         return policies
-    return {label: pol.with_time_gap(copy.deepcopy(p), time_gap_s) if pol.has_time_gap(p)
+    return {label: pol.with_time_gap(copy.deepcopy(p), time_gap_s, standstill_m)
+            if pol.has_time_gap(p)
             else p for label, p in policies.items()}
 
 
@@ -494,7 +496,8 @@ class WindowJob:
 
         if not self.loaded:
             planners = {name: pol.load_for_replay(name) for name in self.policy_names}
-            self.loaded.update(with_setting(planners, self.config.time_gap_s))
+            self.loaded.update(with_setting(planners, self.config.time_gap_s,
+                                            self.config.standstill_m))
         return self.loaded
 
 
