@@ -5,12 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 
 from safeil_sumo.learn.checkpoint import CheckpointError, load_model, save_checkpoint
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.learn.model import PlannerMLP, with_style_input
 from safeil_sumo.learn.style import (
     SETTING_RANGE_S,
+    STANDSTILL_RANGE_M,
     TIME_GAP_RANGE_S,
     TimeGapPrior,
     adapted_time_gap,
@@ -516,3 +519,21 @@ def test_run_with_a_standstill_distance_keeps_the_line(tmp_path):
         gaps[style] = float(log["gap"].iloc[-1])
     assert gaps[("1.0", "10")] == pytest.approx(gaps[("1.5",)], abs=1.0)
     assert gaps[("1.0", "10")] - gaps[("1.0",)] > 6.0
+
+
+@given(time_gap=st.floats(0.01, 10.0), standstill=st.floats(*STANDSTILL_RANGE_M),
+       speed=st.floats(0.0, 60.0))
+def test_every_two_number_style_is_inside_the_shipped_certificates_style_box(time_gap,
+                                                                             standstill, speed):
+    """The certificate covers the style box: every (s0, T) a planner accepts, at every speed,
+    gives the network a setting inside the time-gap range the shipped ``safeil``'s
+    certificate proves (0.6-3.5 s), so the one-plan proof holds for every two-number style."""
+    import json
+
+    from safeil_sumo.planners.registry import MODELS_DIR
+
+    cert = json.loads((MODELS_DIR / "safeil.certificate.json").read_text())
+    lo, hi = cert["style"]["time_gap_s"]
+    assert cert["complete"]
+    setting = float(scheduled_time_gap(time_gap, standstill, speed))
+    assert lo <= SETTING_RANGE_S[0] <= setting <= SETTING_RANGE_S[1] <= hi
