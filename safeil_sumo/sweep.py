@@ -170,7 +170,9 @@ def build_tasks(args: argparse.Namespace) -> list[Task]:
     if args.suite == "leader-response":
         from safeil_sumo.experiments.suite import suite_tasks
 
-        return [replace(t, loop=loop_config(args))
+        return [replace(t, loop=loop_config(args),
+                        planner=replace(t.planner, time_gap_s=args.time_gap_s,
+                                        standstill_m=args.standstill_m))
                 for t in suite_tasks(args.policy, args.seed, variants=1 if args.quick else 3)]
     return [task(args, net, index, policy, filt)
             for net, policy, filt, index in itertools.product(

@@ -1,4 +1,4 @@
-"""A driver's style as a planner input: the preferred time gap.
+"""A driver's style as a planner input: the preferred time gap, and the standstill distance.
 
 Drivers differ most in the time gap they keep (about 1-3 s), and ACC products expose it as the
 distance setting. A planner that cannot be told the preference cannot be close to every driver,
@@ -9,9 +9,15 @@ so a style-conditioned planner takes one more input after the paper's 9 features
 - in use it is a setting (``run``/``sweep --time-gap-s``, default the humans' median stored in the
   checkpoint; clipped at ISO 15622's 0.8 s floor);
 - in replay it is estimated from the first seconds of the recording only
-  (``replay --adapt-first-s``), which are then left out of the score: :func:`adapted_time_gap`
-  weighs those seconds against the population (:class:`TimeGapPrior`), so a few seconds of a
-  driver move the setting a little and a minute of following moves it almost all the way.
+  (``replay --adapt-first-s``), which are then left out of the score.
+
+One number cannot say how a driver's gap grows with speed, so a style is two: the steady gap's
+line ``gap = s0 + T v`` (standstill distance s0 [m], time gap T [s]; estimated as the driver is
+watched by :mod:`safeil_sumo.learn.style_estimator`). The network keeps its one input and is
+given, at each plan, the setting that puts its steady gap ``setting * v`` on the line at the
+ego's speed (:func:`scheduled_time_gap`, ``T + s0 / v`` inside :data:`SETTING_RANGE_S`): it
+only ever sees settings it was trained on, and the certificate's style range (0.6-3.5 s)
+covers every (s0, T) at every speed.
 
 The barrier and the envelope keep the plan safe at every setting: envelope states are drawn
 with styles across :data:`TIME_GAP_RANGE_S`.

@@ -436,3 +436,17 @@ def test_the_human_leader_libraries_are_plausible(source) -> None:
     # OpenACC -3.6 / +1.4 m/s^2 over 0.5 s)
     for rec in rl.library(source):
         assert implausible_change(rec.times, rec.speeds) is None, rec.recording_id
+
+
+def test_the_suite_on_the_command_line_takes_the_planners_style() -> None:
+    from safeil_sumo import sweep
+
+    args = sweep.parse_args(["--suite", "leader-response", "--policy", "safeil", "--quick",
+                             "--time-gap-s", "1.1", "--standstill-m", "6"])
+    tasks = sweep.build_tasks(args)
+    assert tasks and all(t.planner == PlannerRef("safeil", time_gap_s=1.1, standstill_m=6.0)
+                         for t in tasks)
+    plain = sweep.build_tasks(sweep.parse_args(["--suite", "leader-response", "--quick",
+                                                "--policy", "safeil"]))
+    assert [t.to_json() for t in plain] == [  # without a style: the suite's own task ids
+        t.to_json() for t in suite.suite_tasks(["safeil"], 0, variants=1)]
