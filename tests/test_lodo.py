@@ -149,19 +149,27 @@ def test_a_cached_replay_is_reused_only_with_the_same_planner_files(lodo, tmp_pa
         pd.DataFrame({"maneuver_id": [m], "policy": ["idm"], "rmse_gap": [1.0]}).to_csv(
             out / "windows.csv", index=False)
         calls.append(out.name)
+        adapt[out.name] = float(cmd[cmd.index("--adapt-first-s") + 1]) \
+            if "--adapt-first-s" in cmd else None
 
+    adapt: dict[str, float | None] = {}
     monkeypatch.setattr(lodo, "_run", fake_run)
     first = lodo.replay_fold(0, fold, workers=1)
-    assert sorted(calls) == ["replay_openacc", "replay_openacc_adapted"]
-    assert set(first["source"]) == {"openacc", "openacc (adapted)"}
+    looks = [f"replay_openacc_adapted{look:g}" for look in lodo.LOOKS_S]
+    assert sorted(calls) == sorted(["replay_openacc", "replay_openacc_adapted", *looks])
+    assert set(first["source"]) == {"openacc", "openacc (adapted)", *(
+        f"openacc (adapted {look:g} s)" for look in lodo.LOOKS_S)}
+    assert adapt == {"replay_openacc": None, "replay_openacc_adapted": lodo.ADAPT_S,
+                     **dict(zip(looks, lodo.LOOKS_S, strict=True))}
+    n = len(calls)
     lodo.replay_fold(0, fold, workers=1)
-    assert len(calls) == 2  # the same files: both replays reused
+    assert len(calls) == n  # the same files: every replay reused
     (fold / "idm.json").write_text("a refitted IDM")
     lodo.replay_fold(0, fold, workers=1)
-    assert len(calls) == 4  # one file changed: both replayed again
+    assert len(calls) == 2 * n  # one file changed: every replay made again
     (fold / "replay_openacc" / "made_from.json").unlink()
     lodo.replay_fold(0, fold, workers=1)
-    assert calls[4:] == ["replay_openacc"]  # a replay without a stamp: made again
+    assert calls[2 * n:] == ["replay_openacc"]  # a replay without a stamp: made again
 
 
 def test_time_gap_prior_correlation_time_by_hand() -> None:

@@ -62,6 +62,7 @@ with training_imports():  # without torch: one line that says what to install, n
 SOURCES = ("openacc", "ngsim")
 WORK = REPO / "data" / "lodo"
 ADAPT_S = 60.0  # [s] the adapted replays' first seconds (style and IDM fitted, then left out)
+LOOKS_S = (2.0, 10.0, 30.0)  # [s] shorter looks, replayed too (per-driver tables)
 # the fold's planners are replayed by path: their table names
 POLICY_LABELS = {"safeil.safetensors": "safeil (fold)", "idm.json": "idm (fold)"}
 
@@ -163,22 +164,26 @@ def replay_fold(k: int, fold: Path, workers: int) -> pd.DataFrame:
     held = held_out_maneuvers(set(json.loads((fold / "drivers.json").read_text())))
     tables = []
     runs = [(s, "", ["constant_speed"]) for s in SOURCES if held[s]]
-    # adapted to the driver on each maneuver's first ADAPT_S (NGSIM's 30-74 s leave too little)
+    # adapted to the driver on each maneuver's first ADAPT_S (NGSIM's 30-74 s leave too little),
+    # and on the shorter LOOKS_S
     runs += [("openacc", "adapted", [])] if held["openacc"] else []
+    runs += [("openacc", f"adapted{look:g}", []) for look in LOOKS_S if held["openacc"]]
     made_from = planner_fingerprints(fold)
     for s, mode, extra_policies in runs:
         out = fold / f"replay_{s}{'_' + mode if mode else ''}"
         stamp = out / "made_from.json"  # the planners a cached replay was made with
         if not ((out / "windows.csv").is_file() and stamp.is_file()
                 and json.loads(stamp.read_text()) == made_from):
-            adapt = ["--adapt-first-s", str(ADAPT_S)] if mode == "adapted" else []
+            look = ADAPT_S if mode == "adapted" else float(mode[len("adapted"):] or 0)
+            adapt = ["--adapt-first-s", str(look)] if look else []
             _run([sys.executable, "-m", "safeil_sumo.replay", "--source", s, "--maneuver",
                   ",".join(held[s]), "--windows", "whole", "--workers", str(workers), *adapt,
                   "--policy", str(fold / "safeil.safetensors"), str(fold / "idm.json"),
                   *extra_policies, "--out", str(out)], fold / "log.txt")
             stamp.write_text(json.dumps(made_from, indent=1) + "\n")
         t = pd.read_csv(out / "windows.csv")
-        tables.append(t.assign(fold=k, source=s + (f" ({mode})" if mode else ""),
+        label = f"adapted {mode[len('adapted'):]} s" if mode not in ("", "adapted") else mode
+        tables.append(t.assign(fold=k, source=s + (f" ({label})" if label else ""),
                                driver=[driver_of(s, m) for m in t["maneuver_id"]]))
     return pd.concat(tables, ignore_index=True)
 

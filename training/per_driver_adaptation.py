@@ -1,0 +1,138 @@
+"""Per-driver adaptation: each driver's whole-maneuver gap RMSE, unadapted and adapted after
+S s of looking, beside the equally adapted IDM and the best setting in hindsight (issue 42's
+per-driver instrument).
+
+    python training/per_driver_adaptation.py --looks 2=runs/zz_2 10=runs/zz_10 ... \
+        [--bound data/lodo/adaptation_bound_zalazone] [--name zalazone] [--out results/per_driver]
+
+Each ``S=DIR`` is a ``replay --windows whole --adapt-first-s S`` folder (its ``windows.csv``):
+every maneuver scored after its first S s. Its rows, by policy label: ``safeil`` (adapted by
+the (s0, T) estimator: the line), ``safeil_unadapted`` (its default setting, the same seconds),
+``idm`` (s0 and T from the same estimate), ``idm_unadapted``; others as they are named (a
+fold's checkpoint path is read as its table label, ``leave_one_driver_out.POLICY_LABELS``).
+``--bound DIR``: ``training/adaptation_bound.py``'s ``settings.csv`` (each maneuver replayed
+after ``--bound-look-s`` at every setting of a grid): the best setting per maneuver in hindsight,
+on that look's seconds.
+
+Writes ``<out>/adaptation_<name>.csv`` (driver, look, planner: maneuvers and mean gap RMSE [m])
+and ``<out>/adaptation_<name>.md`` (a driver per row, the looks as columns), and prints the
+markdown. No SUMO: tables of earlier replays only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "training"))
+
+from safeil_sumo.experiments.window_replays import driver_id
+
+HINDSIGHT = "hindsight best setting"
+# the columns of the markdown, in order (a label missing from the replays is left out)
+SHOWN = ("safeil", "safeil_unadapted", "idm", HINDSIGHT)
+
+
+def label_of(policy: str) -> str:
+    """A replay's policy column as a table label: a fold checkpoint's path by its file name
+    (``safeil.safetensors`` -> ``safeil``, ``idm.json`` -> ``idm``), a name as it is."""
+    name = Path(policy).name
+    return {"safeil.safetensors": "safeil", "idm.json": "idm"}.get(name, policy)
+
+
+def look_rows(look_s: float, folder: Path) -> pd.DataFrame:
+    """One look's scored maneuvers: ``maneuver_id, driver, look_s, planner, gap_rmse_m``
+    (windows that failed, and maneuvers whose replay broke for every planner (gap RMSE above
+    1 km: an instrument failure of that window), left out)."""
+    w = pd.read_csv(folder / "windows.csv")
+    w = w[w["status"] == "ok"]
+    broken = w.groupby("maneuver_id")["rmse_gap"].min() > 1e3
+    w = w[~w["maneuver_id"].isin(broken[broken].index)]
+    return pd.DataFrame({"maneuver_id": w["maneuver_id"].astype(str),
+                         "driver": [driver_id(m) for m in w["maneuver_id"].astype(str)],
+                         "look_s": float(look_s), "planner": w["policy"].map(label_of),
+                         "gap_rmse_m": w["rmse_gap"].to_numpy(float)})
+
+
+def hindsight_rows(bound: Path, look_s: float) -> pd.DataFrame:
+    """The best setting per maneuver in hindsight (``settings.csv`` of adaptation_bound.py)
+    as rows of :func:`look_rows`' shape."""
+    s = pd.read_csv(bound / "settings.csv")
+    best = s.groupby("maneuver_id")["gap_rmse_m"].min()
+    return pd.DataFrame({"maneuver_id": best.index.astype(str),
+                         "driver": [driver_id(m) for m in best.index.astype(str)],
+                         "look_s": float(look_s), "planner": HINDSIGHT,
+                         "gap_rmse_m": best.to_numpy(float)})
+
+
+def per_driver(rows: pd.DataFrame) -> pd.DataFrame:
+    """Per (driver, look, planner): maneuvers and mean gap RMSE [m]."""
+    return (rows.groupby(["driver", "look_s", "planner"])["gap_rmse_m"]
+            .agg(maneuvers="count", gap_rmse_mean_m="mean").reset_index())
+
+
+def markdown(table: pd.DataFrame, name: str) -> str:
+    """A driver per row, per look the planners' mean gap RMSE [m], and a last row of means
+    over the drivers."""
+    looks = sorted(table["look_s"].unique())
+    shown = [p for p in SHOWN if p in set(table["planner"])]
+    wide = table.pivot_table(index="driver", columns=["look_s", "planner"],
+                             values="gap_rmse_mean_m")
+    heads = [f"{p} after {s:g} s" for s in looks for p in shown
+             if (s, p) in wide.columns]
+    cols = [(s, p) for s in looks for p in shown if (s, p) in wide.columns]
+    lines = [f"# Per-driver adaptation: {name}", "",
+             ("Mean whole-maneuver gap RMSE [m] per driver, scored after the first S s "
+              "(`training/per_driver_adaptation.py`)."), "",
+             "| driver | " + " | ".join(heads) + " |",
+             "|---|" + "---:|" * len(cols)]
+    for driver, r in wide.iterrows():
+        lines.append(f"| {driver} | " + " | ".join(
+            "" if pd.isna(r[c]) else f"{r[c]:.2f}" for c in cols) + " |")
+    means = wide[cols].mean()
+    lines.append("| **mean over drivers** | " + " | ".join(f"**{means[c]:.2f}**"
+                                                           for c in cols) + " |")
+    for s in looks:
+        if (s, "safeil") in wide.columns and (s, "safeil_unadapted") in wide.columns:
+            d = wide[(s, "safeil")] - wide[(s, "safeil_unadapted")]
+            lines.append(f"\nAfter {s:g} s: adapted `safeil` at or below its unadapted default "
+                         f"for {int((d <= 0).sum())} of {int(d.notna().sum())} drivers.")
+        if (s, "safeil") in wide.columns and (s, "idm") in wide.columns:
+            d = wide[(s, "safeil")] - wide[(s, "idm")]
+            lines.append(f"After {s:g} s: adapted `safeil` at or below the equally adapted IDM "
+                         f"for {int((d <= 0).sum())} of {int(d.notna().sum())} drivers.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--looks", nargs="+", required=True, metavar="S=DIR",
+                    help="replay folders adapted on their first S s")
+    ap.add_argument("--bound", type=Path, default=None,
+                    help="adaptation_bound.py's output folder (settings.csv)")
+    ap.add_argument("--bound-look-s", type=float, default=60.0,
+                    help="the seconds --bound's replays left out (default 60)")
+    ap.add_argument("--name", default="zalazone")
+    ap.add_argument("--out", type=Path, default=REPO / "results" / "per_driver")
+    args = ap.parse_args(argv)
+    parts = []
+    for item in args.looks:
+        look, _, folder = item.partition("=")
+        parts.append(look_rows(float(look), Path(folder)))
+    if args.bound is not None:
+        parts.append(hindsight_rows(args.bound, args.bound_look_s))
+    table = per_driver(pd.concat(parts, ignore_index=True))
+    args.out.mkdir(parents=True, exist_ok=True)
+    table.to_csv(args.out / f"adaptation_{args.name}.csv", index=False)
+    text = markdown(table, args.name)
+    (args.out / f"adaptation_{args.name}.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
