@@ -5,8 +5,9 @@ per-driver instrument).
     python training/per_driver_adaptation.py --looks 2=runs/zz_2 10=runs/zz_10 ... \
         [--bound data/lodo/adaptation_bound_zalazone] [--name zalazone] [--out results/per_driver]
 
-Each ``S=DIR`` is a ``replay --windows whole --adapt-first-s S`` folder (its ``windows.csv``):
-every maneuver scored after its first S s. Its rows, by policy label: ``safeil`` (adapted by
+Each ``S=DIR`` is a ``replay --windows whole --adapt-first-s S`` folder (its ``windows.csv``;
+a glob for several, e.g. one per fold: ``60='data/lodo/fold*/replay_openacc_adapted'``): every
+maneuver scored after its first S s; ``0=DIR``: unadapted replays of whole maneuvers. Its rows, by policy label: ``safeil`` (adapted by
 the (s0, T) estimator: the line), ``safeil_unadapted`` (its default setting, the same seconds),
 ``idm`` (s0 and T from the same estimate), ``idm_unadapted``; others as they are named (a
 fold's checkpoint path is read as its table label, ``leave_one_driver_out.POLICY_LABELS``).
@@ -22,6 +23,7 @@ markdown. No SUMO: tables of earlier replays only.
 from __future__ import annotations
 
 import argparse
+import glob
 import sys
 from pathlib import Path
 
@@ -44,11 +46,14 @@ def label_of(policy: str) -> str:
     return {"safeil.safetensors": "safeil", "idm.json": "idm"}.get(name, policy)
 
 
-def look_rows(look_s: float, folder: Path) -> pd.DataFrame:
-    """One look's scored maneuvers: ``maneuver_id, driver, look_s, planner, gap_rmse_m``
-    (windows that failed, and maneuvers whose replay broke for every planner (gap RMSE above
-    1 km: an instrument failure of that window), left out)."""
-    w = pd.read_csv(folder / "windows.csv")
+def look_rows(look_s: float, folders: list[Path]) -> pd.DataFrame:
+    """One look's scored maneuvers (of the ``windows.csv`` of every folder of ``folders``, e.g.
+    one per fold): ``maneuver_id, driver, look_s, planner, gap_rmse_m`` (windows that failed,
+    and maneuvers whose replay broke for every planner (gap RMSE above 1 km: an instrument
+    failure of that window), left out)."""
+    if not folders:
+        raise SystemExit(f"no replay folder for the look of {look_s:g} s")
+    w = pd.concat([pd.read_csv(f / "windows.csv") for f in folders], ignore_index=True)
     w = w[w["status"] == "ok"]
     broken = w.groupby("maneuver_id")["rmse_gap"].min() > 1e3
     w = w[~w["maneuver_id"].isin(broken[broken].index)]
@@ -121,8 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     parts = []
     for item in args.looks:
-        look, _, folder = item.partition("=")
-        parts.append(look_rows(float(look), Path(folder)))
+        look, _, pattern = item.partition("=")
+        parts.append(look_rows(float(look), [Path(f) for f in sorted(glob.glob(pattern))]))
     if args.bound is not None:
         parts.append(hindsight_rows(args.bound, args.bound_look_s))
     table = per_driver(pd.concat(parts, ignore_index=True))
