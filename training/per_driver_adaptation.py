@@ -127,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     parts = []
     for item in args.looks:
         look, _, pattern = item.partition("=")
-        parts.append(look_rows(float(look), [Path(f) for f in sorted(glob.glob(pattern))]))
+        folders = [Path(f) for f in sorted(glob.glob(pattern))
+                   if (Path(f) / "windows.csv").is_file()]
+        parts.append(look_rows(float(look), folders))
     if args.bound is not None:
         parts.append(hindsight_rows(args.bound, args.bound_look_s))
     table = per_driver(pd.concat(parts, ignore_index=True))
