@@ -215,3 +215,45 @@ def test_setting_calibrated_like_the_idm_weighs_maneuvers_by_their_samples() -> 
     assert mod.pooled_best(table) == 1.0
     table["steps"] = [100, 900]
     assert mod.pooled_best(table) == 2.0
+
+
+def test_per_driver_adaptation_by_hand(tmp_path) -> None:
+    """Two looks, folds in two folders, a broken maneuver and a failed window left out; the
+    hindsight column is each maneuver's best setting; means per driver by hand."""
+    pda = load_training_script("per_driver_adaptation")
+
+    def windows(folder: Path, rows: list[tuple[str, str, float, str]]) -> None:
+        folder.mkdir(parents=True)
+        pd.DataFrame(rows, columns=["maneuver_id", "policy", "rmse_gap", "status"]).to_csv(
+            folder / "windows.csv", index=False)
+
+    a, b = "JRC-VC_280219_part2_f2#0", "JRC-VC_280219_part2_f2_s1#0"  # one driver: f2
+    c = "JRC-VC_280219_part3_f3#0"
+    windows(tmp_path / "fold0" / "look2", [
+        (a, "data/lodo/fold0/safeil.safetensors", 4.0, "ok"), (a, "idm", 6.0, "ok"),
+        (b, "data/lodo/fold0/safeil.safetensors", 8.0, "ok"), (b, "idm", 2.0, "ok")])
+    windows(tmp_path / "fold1" / "look2", [
+        (c, "safeil", 5.0, "ok"), (c, "idm", 1e9, "ok"),  # one planner sane: kept
+        ("JRC-VC_280219_part3_f4#0", "safeil", 2e3, "ok"),  # every planner broke: out
+        ("JRC-VC_280219_part3_f4#0", "idm", 3e3, "ok"),
+        ("JRC-VC_280219_part3_f5#0", "safeil", 1.0, "failed")])
+    windows(tmp_path / "look60", [(a, "safeil", 3.0, "ok"), (a, "safeil_unadapted", 9.0, "ok")])
+    bound = tmp_path / "bound"
+    bound.mkdir()
+    pd.DataFrame({"maneuver_id": [a, a, b, b], "time_gap_s": [1.0, 1.5, 1.0, 1.5],
+                  "gap_rmse_m": [2.5, 1.5, 0.5, 7.0]}).to_csv(bound / "settings.csv",
+                                                              index=False)
+    assert pda.main(["--looks", f"2={tmp_path}/fold*/look2", f"60={tmp_path}/look60",
+                     "--bound", str(bound), "--name", "t", "--out", str(tmp_path)]) == 0
+    t = pd.read_csv(tmp_path / "adaptation_t.csv").set_index(["driver", "look_s", "planner"])
+    f2 = "JRC-VC_280219_part2_f2"
+    assert t.loc[(f2, 2.0, "safeil"), "gap_rmse_mean_m"] == 6.0  # (4 + 8) / 2
+    assert t.loc[(f2, 2.0, "idm"), "gap_rmse_mean_m"] == 4.0
+    assert t.loc[(f2, 2.0, "safeil"), "maneuvers"] == 2
+    assert t.loc[(f2, 60.0, pda.HINDSIGHT), "gap_rmse_mean_m"] == 1.0  # (1.5 + 0.5) / 2
+    assert t.loc[(f2, 60.0, "safeil_unadapted"), "gap_rmse_mean_m"] == 9.0
+    assert t.loc[("JRC-VC_280219_part3_f3", 2.0, "safeil"), "gap_rmse_mean_m"] == 5.0
+    drivers = set(t.index.get_level_values("driver"))
+    assert drivers == {f2, "JRC-VC_280219_part3_f3"}  # f4 broke, f5 failed
+    text = (tmp_path / "adaptation_t.md").read_text()
+    assert "After 60 s: adapted `safeil` at or below its unadapted default for 1 of 1" in text
