@@ -85,7 +85,7 @@ def _load_policy(planner: PlannerRef, shared: bool = False):
     ``shared``: a batch shares the (stateless) planner itself, each task its own filter."""
     if not shared:
         return planner.load()
-    key = (planner.policy, planner.time_gap_s)
+    key = (planner.policy, planner.time_gap_s, planner.standstill_m)
     if key not in _SHARED_POLICIES:
         _SHARED_POLICIES[key] = planner.load_unfiltered()
     return planner.wrap(_SHARED_POLICIES[key])
