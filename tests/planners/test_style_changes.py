@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 
+from safeil_sumo import api
 from safeil_sumo.experiments import sweep_executor as se
 from safeil_sumo.planners import idm
 from safeil_sumo.planners import registry as reg
@@ -84,14 +85,25 @@ def test_a_malformed_schedule_is_refused_in_one_line(changes, match):
     assert "\n" not in str(err.value)
 
 
-def test_only_a_planner_with_a_time_gap_setting_takes_a_schedule():
-    """Refused at load, before any simulation, also for a change the planner refuses."""
+def test_only_a_planner_with_a_time_gap_setting_takes_a_schedule(tmp_path):
+    """Refused at load, before any simulation (these tests are not marked sumo: a SUMO start
+    would fail them), also by the Python API and for a change the planner refuses."""
     for name in ("analytic", "safeil_paper", "bc"):
         with pytest.raises(PolicyError, match="no time-gap setting"):
             PlannerRef(name, style_changes=[(5.0, 2.0)]).load()
+    with pytest.raises(PolicyError, match="no time-gap setting"):
+        api.run("straight", "analytic", scenarios=1, style_changes=[(5.0, 2.0)])
+    with pytest.raises(PolicyError, match="no time-gap setting"):
+        api.run("straight", reg.load("analytic"), scenarios=1, style_changes=[(5.0, 2.0)])
+    with pytest.raises(PolicyError, match="no time-gap setting"):
+        api.sweep("analytic", tmp_path / "sweep", scenarios=1, nets=("straight",),
+                  style_changes=[(5.0, 2.0)])
+    assert not (tmp_path / "sweep").exists()
     # the IDM's s0 must stay inside its calibration bounds: refused at load, not mid-run
     with pytest.raises(PolicyError, match="standstill distance must be in"):
         PlannerRef("idm", style_changes=[(5.0, 2.0, 0.5), (9.0, 2.0, 20.0)]).load()
+    with pytest.raises(ValueError, match="needs a time gap"):
+        api.run("straight", "idm", scenarios=1, standstill_m=2.0)
 
 
 # ------------------------------------------------------------------ the schedule in time
@@ -205,3 +217,69 @@ def test_scenarios_at_different_times_cannot_share_a_changing_planner():
     assert _decision_time(2.5, slice(None), FLOATS) == 2.5
     with pytest.raises(ValueError, match="give each scenario its own"):
         _decision_time(np.array([3.0, 1.0]), slice(None), ARRAYS)
+
+
+# ------------------------------------------------------------------ in SUMO
+
+SPEED_MPS = 10.0  # [m/s] the leader's constant speed and the ego's start
+S0_M = 2.0  # [m] both styles' standstill distance
+CHANGE_S = 50.0  # [s]
+END_S = 110.0  # [s] the straight track's 1.2 km test path lasts ~117 s at 10 m/s
+STRAIGHT = {"leader_speed_range_mps": (SPEED_MPS, SPEED_MPS), "ego_speed_mps": SPEED_MPS}
+
+
+def _settled_time_gap(log, t0: float, t1: float) -> float:
+    """The mean time gap [s] (bumper gap / ego speed) over ``t0 <= t < t1`` [s]."""
+    m = (log["t"] >= t0) & (log["t"] < t1)
+    return float((log["gap"][m] / log["v"][m]).mean())
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize(("policy", "first", "second"), [
+    ("safeil", 1.0, 2.5),  # the checkpoint drops back
+    ("idm", 2.5, 1.0),  # the IDM closes up
+])
+def test_a_style_that_changes_mid_run_settles_at_each_styles_gap(policy, first, second):
+    """Real libsumo, straight track, a leader at a constant 10 m/s, the ego starting on the
+    first style's line: the steady time gap is (s0 + T v) / v = T + s0 / v, so 1.0 s and
+    2.5 s with s0 = 2 m are 1.2 s and 2.7 s. Settled (the mean over the 10 s before the
+    change at 50 s, and over the run's last 10 s) at each within 0.3 s, moved by > 1 s."""
+    pytest.importorskip("libsumo")
+    result = api.run("straight", policy, scenarios=1, time_gap_s=first, standstill_m=S0_M,
+                     style_changes=[(CHANGE_S, second, S0_M)], max_time_s=END_S,
+                     initial_gap_m=S0_M + first * SPEED_MPS, **STRAIGHT)
+    log = result.log
+    assert result.summary["end_reason"].iloc[0] == "timeout" and not result.summary[
+        "flag"].iloc[0]
+    before = _settled_time_gap(log, CHANGE_S - 10.0, CHANGE_S)
+    after = _settled_time_gap(log, END_S - 10.0, END_S)
+    print(f"{policy}: settled time gap {before:.3f} s before, {after:.3f} s after")
+    assert before == pytest.approx(first + S0_M / SPEED_MPS, abs=0.3)
+    assert after == pytest.approx(second + S0_M / SPEED_MPS, abs=0.3)
+    assert (after - before) * np.sign(second - first) > 1.0
+    if policy == "safeil":  # the change comes at the decision at 50 s, not one before
+        plain = api.run("straight", policy, scenarios=1, time_gap_s=first,
+                        standstill_m=S0_M, max_time_s=CHANGE_S + 0.15,
+                        initial_gap_m=S0_M + first * SPEED_MPS, **STRAIGHT).log
+        cp = ["cp1_x", "cp2_x", "cp3_x"]
+        early = plain["plan_t"] < CHANGE_S - 1e-6
+        np.testing.assert_array_equal(log.loc[:len(plain) - 1][early][cp], plain[early][cp])
+        at = (plain["plan_t"] - CHANGE_S).abs() < 1e-6
+        assert at.any() and (log.loc[:len(plain) - 1][at]["cp3_x"] != plain[at]["cp3_x"]).all()
+
+
+@pytest.mark.sumo
+def test_a_batched_sweep_changes_every_tasks_style(tmp_path):
+    """Real libsumo, ``api.sweep`` with two tasks in one simulation (batch 2): each task's own
+    scheduled planner closes up from 2.7 s (2.5 s + 2 m / 10 m/s) to near 1.2 s after the change
+    at 30 s; the two identical tasks give the same records (to round-off)."""
+    pytest.importorskip("libsumo")
+    summary = api.sweep("safeil", tmp_path, scenarios=2, nets=("straight",), batch=2,
+                        time_gap_s=2.5, standstill_m=S0_M, style_changes=[(30.0, 1.0, S0_M)],
+                        initial_gap_m=S0_M + 2.5 * SPEED_MPS, max_time_s=70.0, **STRAIGHT)
+    assert list(summary["status"]) == ["ok", "ok"]
+    assert list(summary["style_changes"]) == ["[[30.0, 1.0, 2.0]]"] * 2
+    gaps = summary["resp_min_time_gap_s"]
+    print(f"batched: min time gap {list(gaps)} s")
+    # (the copies of the track lie 1 km apart in x: equal to round-off)
+    assert gaps.iloc[0] == pytest.approx(gaps.iloc[1], abs=1e-9) and gaps.iloc[0] < 1.5
