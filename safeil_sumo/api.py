@@ -103,10 +103,44 @@ def run_scenarios(scenarios: Sequence[Scenario], policy: str | Policy,
     return RunResult(pd.DataFrame(rows), pd.concat(logs, ignore_index=True), tuple(scenarios))
 
 
+def styled_policy(policy: str | Policy, time_gap_s: float | None = None,
+                  standstill_m: float | None = None,
+                  style_changes: Sequence[Sequence[float | None]] = ()) -> Policy:
+    """``policy`` (as :func:`load_policy` takes it) set to a driver's style: the time gap
+    ``time_gap_s`` [s] and standstill distance ``standstill_m`` [m] of the steady gap's line
+    ``s0 + T v`` (:func:`~safeil_sumo.planners.registry.with_time_gap`; a Policy object given is
+    set in place where its setting is in place), changing during each run at ``style_changes``
+    ``((t_s [s], time_gap_s [s], standstill_m [m] or None), ...)`` (a
+    :class:`~safeil_sumo.planners.registry.ScheduledStyle`). Only a planner with a time-gap
+    setting (a style-conditioned checkpoint, the IDM) takes a style: ``PolicyError``, as for a
+    value it refuses; ``ValueError`` for a malformed one."""
+    changes = planner_registry.checked_style_changes(style_changes)
+    if isinstance(policy, str):
+        return PlannerRef(policy, time_gap_s=time_gap_s, standstill_m=standstill_m,
+                          style_changes=changes).load()
+    planner = load_policy(policy)
+    # the values checked as a task's
+    ref = PlannerRef(planner.name, time_gap_s=time_gap_s, standstill_m=standstill_m)
+    if ref.time_gap_s is not None:
+        planner = planner_registry.with_time_gap(planner, ref.time_gap_s, ref.standstill_m)
+    if changes:
+        planner = planner_registry.ScheduledStyle(planner, changes)
+    return planner
+
+
 def run(net: str = "curved500", policy: str | Policy = "safeil", scenarios: int = 10,
-        seed: int = 0, loop: LoopConfig | None = None, **spec: Any) -> RunResult:
-    """Run ``scenarios`` scenarios (indices 0..n-1 of master ``seed``) closed loop in libsumo."""
-    planner = load_policy(policy)  # a bad policy fails before any scenario is built
+        seed: int = 0, loop: LoopConfig | None = None, time_gap_s: float | None = None,
+        standstill_m: float | None = None,
+        style_changes: Sequence[Sequence[float | None]] = (), **spec: Any) -> RunResult:
+    """Run ``scenarios`` scenarios (indices 0..n-1 of master ``seed``) closed loop in libsumo.
+
+    A driver's style (:func:`styled_policy`): ``time_gap_s`` [s] and ``standstill_m`` [m], the
+    steady gap's line ``s0 + T v`` from the start; ``style_changes`` ``[(t_s, time_gap_s,
+    standstill_m), ...]`` ([s], [s], [m] or None), each set at the first decision at or after
+    ``t_s`` of each scenario's time, e.g. ``api.run("straight", "idm", time_gap_s=1.0,
+    style_changes=[(50.0, 2.5, 2.0)])``."""
+    # a bad policy or style fails before any scenario is built
+    planner = styled_policy(policy, time_gap_s, standstill_m, style_changes)
     return run_scenarios(build_scenarios(net, scenarios, seed, **spec), planner, loop)
 
 
@@ -123,19 +157,28 @@ def sweep(policy: str | Sequence[str], out: str | Path, scenarios: int = 10,
           nets: Sequence[str] = ("curved500",), seed: int = 0, workers: int = 1,
           batch: int = DEFAULT_BATCH, scheduler: str | None = None,
           loop: LoopConfig | None = None, safety_filter: bool = False,
-          time_gap_s: float | None = None, **spec: Any) -> pd.DataFrame:
+          time_gap_s: float | None = None, standstill_m: float | None = None,
+          style_changes: Sequence[Sequence[float | None]] = (), **spec: Any) -> pd.DataFrame:
     """A resumable sweep (nets x policies x scenarios) written to ``out``; returns its summary
     (one row per task). Each task is a :class:`~safeil_sumo.scenarios.spec.Task`: its scenario
     takes ``spec`` (any ScenarioSpec field), its planner ``policy`` (a name or path, or several:
-    they travel to worker processes) with ``safety_filter`` and ``time_gap_s``, its loop
-    ``loop`` (the plan rate, stop on flag and the brake guard; default: as shipped). Up to
-    ``batch`` scenarios share one SUMO simulation (1: one each). ``scheduler``
-    (``"tcp://host:port"``): the tasks run on that Dask cluster instead of ``workers`` local
-    processes."""
+    they travel to worker processes) with ``safety_filter`` and a driver's style (as
+    :func:`run`: ``time_gap_s`` [s], ``standstill_m`` [m], ``style_changes`` ``[(t_s [s],
+    time_gap_s [s], standstill_m [m] or None), ...]``), its loop ``loop`` (the plan rate, stop
+    on flag and the brake guard; default: as shipped). Up to ``batch`` scenarios share one
+    SUMO simulation (1: one each; each task with style changes has a planner of its own). A
+    planner without a time-gap setting refuses a style before any task runs (``PolicyError``).
+    ``scheduler`` (``"tcp://host:port"``): the tasks run on that Dask cluster instead of
+    ``workers`` local processes."""
     loop = loop or LoopConfig()
     tasks = [Task(ScenarioSpec(net=n, index=i, master_seed=seed, **spec),
-                  PlannerRef(p, safety_filter, time_gap_s), loop)
+                  PlannerRef(p, safety_filter, time_gap_s, standstill_m,
+                             planner_registry.checked_style_changes(style_changes)),
+                  loop)
              for n in nets for p in policy_names(policy) for i in range(scenarios)]
+    if time_gap_s is not None or style_changes:  # a planner refuses a style before any task
+        for planner in dict.fromkeys(t.planner for t in tasks):
+            planner.load()
     return run_sweep(tasks, out, workers=workers, scheduler=scheduler, progress=False,
                      batch=batch)
 

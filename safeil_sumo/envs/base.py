@@ -1,10 +1,11 @@
 """What the single and the vector env share: the loop's settings, the one-SUMO-per-process
-guard, the options a reset takes and the rgb_array frame."""
+guard, the options a reset takes, a driver's style and the rgb_array frame."""
 
 from __future__ import annotations
 
 import math
 import weakref
+from typing import SupportsFloat
 
 import numpy as np
 import pandas as pd
@@ -14,7 +15,9 @@ from safeil_sumo.sim.brake_guard import when as brake_guard_when
 from safeil_sumo.sim.loop_types import LoopConfig
 from safeil_sumo.sim.vehicle import VehicleParams
 
-RESET_OPTIONS = ("index",)  # reset(options={"index": i}): episode i of the task
+# reset(options={"index": i}): episode i of the task; {"style": {...}}: a driver's style
+RESET_OPTIONS = ("index", "style")
+STYLE_KEYS = ("time_gap_s", "standstill_m")  # a style: T [s] and s0 [m] of the line s0 + T v
 _OWNER: list = [None]  # a weakref to the env whose SUMO simulation runs in this process
 
 
@@ -71,6 +74,43 @@ def check_options(options: dict | None, max_index: int) -> int | None:
     if index is None:
         return None
     return check_index(index, max_index)
+
+
+def check_style(style: object) -> tuple[float, float] | None:
+    """A driver's style given to an env (its ``style`` option, ``reset(options={"style":
+    ...})``): a dict ``{"time_gap_s": T, "standstill_m": s0}`` (s0 0 m if left out) as ``(T
+    [s], s0 [m])``, the steady gap's line ``s0 + T v``; None: no style. T in (0, 10] s, s0 in
+    :data:`~safeil_sumo.learn.style.STANDSTILL_RANGE_M` (a planner's); ``ValueError`` else
+    (``TypeError`` for no dict)."""
+    if style is None:
+        return None
+    if not isinstance(style, dict):
+        raise TypeError(f"a style is a dict {{'time_gap_s': T, 'standstill_m': s0}} [s, m] or "
+                        f"None, got {style!r}")
+    unknown = sorted(set(style) - set(STYLE_KEYS))
+    if unknown or "time_gap_s" not in style:
+        raise ValueError(f"a style takes time_gap_s [s] and standstill_m [m] (0 if left out), "
+                         f"got {sorted(style)}")
+    return style_values(style["time_gap_s"], style.get("standstill_m", 0.0))  # checked there
+
+
+def style_values(time_gap_s: SupportsFloat, standstill_m: SupportsFloat) -> tuple[float, float]:
+    """``(time_gap_s [s], standstill_m [m])`` of :meth:`set_style` checked as
+    :func:`check_style` checks them."""
+    from safeil_sumo.learn.style import STANDSTILL_RANGE_M
+
+    try:
+        t, s0 = float(time_gap_s), float(standstill_m)
+    except (TypeError, ValueError):
+        raise ValueError(f"a style's time gap [s] and standstill distance [m] are numbers, got "
+                         f"{time_gap_s!r}, {standstill_m!r}") from None
+    if isinstance(time_gap_s, bool) or not (math.isfinite(t) and 0.0 < t <= 10.0):
+        raise ValueError(f"a style's time_gap_s must be in (0, 10] s, got {time_gap_s!r}")
+    lo, hi = STANDSTILL_RANGE_M
+    if isinstance(standstill_m, bool) or not (math.isfinite(s0) and lo <= s0 <= hi):
+        raise ValueError(f"a style's standstill_m must be in [{lo:g}, {hi:g}] m, got "
+                         f"{standstill_m!r}")
+    return t, s0
 
 
 def check_index(index: object, max_index: int) -> int:

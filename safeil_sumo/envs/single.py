@@ -31,6 +31,14 @@ class SafeILEnv(gym.Env):
     the episode as it runs, following the ego; it needs a display and runs SUMO through traci,
     whatever ``backend`` says; :meth:`render` does nothing). Without a display ``"human"`` is
     refused and not listed in the instance's ``metadata["render_modes"]``.
+
+    ``style``: the driver the agent should imitate, ``{"time_gap_s": T, "standstill_m": s0}``
+    [s, m] (:func:`~safeil_sumo.envs.base.check_style`), the steady gap's line ``s0 + T v``;
+    while one is set its gap at the step's end is ``info["style_gap"]`` (no such key without
+    one: Gymnasium's env checker compares infos, and NaN equals nothing) and
+    :attr:`RewardConfig.style_gap_per_m2` rewards keeping it. ``reset(options={"style": ...})``
+    or :meth:`set_style` changes it (None: no style). The agent plans: the style changes no
+    part of the loop.
     """
 
     # gymnasium's Env declares metadata an instance attribute whose default is the class's
@@ -43,7 +51,9 @@ class SafeILEnv(gym.Env):
                  out_of_space: str = "clip", render_mode: str | None = None,
                  step_s: float = 0.01, plan_rate_hz: float = PLAN_RATE_HZ,
                  stop_on_flag: bool = False,
-                 backend: str = "libsumo", brake_guard: bool = True, **task_options) -> None:
+                 backend: str = "libsumo", brake_guard: bool = True,
+                 style: dict | None = None, **task_options) -> None:
+        self._style = base.check_style(style)  # (T [s], s0 [m]) or None
         if not has_display():  # Gymnasium's check_env makes an env of every mode listed
             self.metadata = {**self.metadata, "render_modes": ["rgb_array"]}
             if render_mode == "human":
@@ -85,9 +95,32 @@ class SafeILEnv(gym.Env):
             self._loop.close()
         self._done, self._lost = True, True
 
+    def set_style(self, time_gap_s: float | None, standstill_m: float = 0.0) -> None:
+        """The driver's style from the next step on: time gap ``time_gap_s`` [s] and standstill
+        distance ``standstill_m`` [m], the steady gap's line ``s0 + T v`` (``info["style_gap"]``
+        and the reward's :attr:`~RewardConfig.style_gap_per_m2` term); ``time_gap_s=None``:
+        no style."""
+        self._style = (None if time_gap_s is None
+                       else base.style_values(time_gap_s, standstill_m))
+
+    @property
+    def style(self) -> dict[str, float] | None:
+        """The style in force, ``{"time_gap_s": T, "standstill_m": s0}`` [s, m], or None."""
+        return None if self._style is None else dict(zip(base.STYLE_KEYS, self._style,
+                                                         strict=True))
+
+    def _style_gap(self, v: float) -> float | None:
+        """The style's gap [m] at ego speed ``v`` [m/s] (None: no style)."""
+        if self._style is None:
+            return None
+        time_gap, standstill = self._style
+        return standstill + time_gap * v
+
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         index = base.check_options(options, self.task.max_index)
+        if options and "style" in options:
+            self._style = base.check_style(options["style"])
         self.index = index if index is not None else self.task.draw_index(self.np_random)
         scenario = self.task.scenario(self.index)
         base.claim_sumo(self, self.loop_config)
@@ -97,7 +130,9 @@ class SafeILEnv(gym.Env):
         self._obs = self._loop.reset([scenario], horizon_s=self.horizon_s)
         self._done, self._reset_once, self._lost = False, True, False
         info = {k: v[0] for k, v in sp.infos(
-            self._obs, human_gap=self.task.human_gap_at(self._obs.t)).items()}
+            self._obs, human_gap=self.task.human_gap_at(self._obs.t),
+            style_gap=None if self._style is None else np.array(
+                [self._style_gap(float(self._obs.v[0]))])).items()}
         return sp.observe(self._obs.features[0]), info | {"index": self.index}
 
     def step(self, action):
@@ -118,12 +153,13 @@ class SafeILEnv(gym.Env):
         self._obs = obs
         # one scenario: floats, not the vector env's (N,) arrays (the same values)
         human_gap = self.task.human_gap_at(obs.t[0])
-        reward = self.reward_config.reward_one(before, obs, ev, human_gap)
+        style_gap = self._style_gap(float(obs.v[0]))
+        reward = self.reward_config.reward_one(before, obs, ev, human_gap, style_gap)
         ended, reason = bool(ev.ended[0]), ev.end_reason[0]
         terminated = ended and reason in TERMINAL_REASONS
         truncated = ended and reason in LIMIT_REASONS
         self._done = terminated or truncated
-        info = sp.info_one(obs, ev, human_gap)
+        info = sp.info_one(obs, ev, human_gap, style_gap)
         return sp.observe_one(obs.features[0]), reward, terminated, truncated, info
 
     def rollout(self) -> Rollout:

@@ -38,7 +38,7 @@ PLAN_LOW = np.array([0.0, -80.0] * 3)
 PLAN_HIGH = np.array([250.0, 80.0] * 3)
 ACTION_LEVELS = ("plan", "control")
 OUT_OF_SPACE = ("clip", "raise")
-MAX_GAP_ERROR_M = 100.0  # [m] the replay reward's gap error counted at most
+MAX_GAP_ERROR_M = 100.0  # [m] the replay's and the style's gap error counted at most
 INFO_KEYS = ("t", "ttc", "gap", "lateral_offset", "v", "leader_v", "path_fraction",
              "lane_departure", "ttc_flag", "collision", "end_reason")
 
@@ -107,6 +107,11 @@ class RewardConfig:
     # step's end against the recorded human's gap at the same time (the error counted at most
     # MAX_GAP_ERROR_M, also where no leader is seen)
     human_gap_per_m2: float = -0.01
+    # with a style set (the env's style option, set_style): times the squared error [m^2] of
+    # the gap at the step's end against the style's gap s0 + T v at the ego's speed then
+    # (info["style_gap"]; the error counted at most MAX_GAP_ERROR_M, also where no leader is
+    # seen); 0: no term (a scenario without a style never has one)
+    style_gap_per_m2: float = 0.0
 
     @classmethod
     def of(cls, value: RewardConfig | dict | None, base: RewardConfig | None = None
@@ -130,10 +135,11 @@ class RewardConfig:
             raise ValueError("reward weights must be finite")
         return out
 
-    def rewards(self, s_before: np.ndarray, obs, events, human_gap: np.ndarray | None = None
-                ) -> np.ndarray:
+    def rewards(self, s_before: np.ndarray, obs, events, human_gap: np.ndarray | None = None,
+                style_gap: np.ndarray | None = None) -> np.ndarray:
         """``(N,)`` rewards of one step (``obs``: the Observation after it, ``events``: its
-        Events; ``human_gap`` [m]: the recorded human's gap at ``obs.t``, replay tasks only); a
+        Events; ``human_gap`` [m]: the recorded human's gap at ``obs.t``, replay tasks only;
+        ``style_gap`` [m]: the style's gap (:func:`style_gaps`), NaN where no style is set); a
         scenario that did not run in the step gets 0."""
         gained = np.nan_to_num(obs.s - s_before)
         r = (self.progress_per_m * gained + self.ttc_flag * events.ttc_flag
@@ -144,11 +150,16 @@ class RewardConfig:
                                 neginf=MAX_GAP_ERROR_M)
             e = np.minimum(np.abs(err), MAX_GAP_ERROR_M)
             r = r + self.human_gap_per_m2 * (e * e)
+        if style_gap is not None and self.style_gap_per_m2 != 0.0:
+            err = np.nan_to_num(obs.gap - style_gap, nan=MAX_GAP_ERROR_M,
+                                posinf=MAX_GAP_ERROR_M, neginf=MAX_GAP_ERROR_M)
+            e = np.minimum(np.abs(err), MAX_GAP_ERROR_M)
+            r = np.where(np.isnan(style_gap), r, r + self.style_gap_per_m2 * (e * e))
         return np.where(events.sub_steps > 0, r, 0.0)
 
     def reward_one(self, s_before: float, obs, events,
-                   human_gap: float | np.ndarray | None = None
-                   ) -> float:
+                   human_gap: float | np.ndarray | None = None,
+                   style_gap: float | None = None) -> float:
         """:meth:`rewards` of a one-scenario step, on Python floats (the same operations in the
         same order: the same value, bit for bit, without numpy's per-call overhead)."""
         if events.sub_steps[0] <= 0:
@@ -166,6 +177,10 @@ class RewardConfig:
             err = float(obs.gap[0]) - float(human_gap)
             e = min(abs(err), MAX_GAP_ERROR_M) if math.isfinite(err) else MAX_GAP_ERROR_M
             r = r + self.human_gap_per_m2 * (e * e)
+        if style_gap is not None and self.style_gap_per_m2 != 0.0 and not math.isnan(style_gap):
+            err = float(obs.gap[0]) - style_gap
+            e = min(abs(err), MAX_GAP_ERROR_M) if math.isfinite(err) else MAX_GAP_ERROR_M
+            r = r + self.style_gap_per_m2 * (e * e)
         return r
 
 
@@ -176,12 +191,21 @@ _MAX_FLOAT = float(np.finfo(float).max)
 REPLAY_REWARD = RewardConfig(progress_per_m=0.0)
 
 
-def infos(obs, events=None, human_gap: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def style_gaps(time_gap_s: np.ndarray, standstill_m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``(N,)`` the styles' gaps [m] at ego speeds ``v`` [m/s]: ``standstill_m + time_gap_s *
+    v``, the steady gap's line of a driver's style (NaN where ``time_gap_s`` is NaN: no
+    style)."""
+    return standstill_m + time_gap_s * v
+
+
+def infos(obs, events=None, human_gap: np.ndarray | None = None,
+          style_gap: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """``info`` arrays ``(N,)``: time [s], TTC [s] (inf: not closing), gap [m] (inf: no
     leader), lateral offset of the front bumper from the lane centre [m, left +], speed and the
     leader's [m/s], path fraction [-], the flags (during the step, or at the reset's state), the
-    end reason ("" while running), the raw features ``(N, 9)``, and in a replay the recorded
-    human's gap at the same time ``human_gap`` [m]."""
+    end reason ("" while running), the raw features ``(N, 9)``, in a replay the recorded
+    human's gap at the same time ``human_gap`` [m], and the style's gap ``style_gap`` [m]
+    (:func:`style_gaps`; NaN: no style) when given."""
     flags = (events.lane_departure, events.ttc_flag, events.collision) if events is not None \
         else (obs.lane_departure, obs.ttc_flag, obs.collision)
     reason = (events.end_reason.astype(str) if events is not None
@@ -192,12 +216,15 @@ def infos(obs, events=None, human_gap: np.ndarray | None = None) -> dict[str, np
            "end_reason": reason, "features": obs.features}
     if human_gap is not None:
         out["human_gap"] = np.asarray(human_gap, float)
+    if style_gap is not None:
+        out["style_gap"] = np.asarray(style_gap, float)
     return out
 
 
-def info_one(obs, events=None, human_gap: float | np.ndarray | None = None) -> dict:
-    """``{k: v[0] for k, v in infos(obs, events, human_gap).items()}`` of a one-scenario step,
-    built directly (the same keys and values)."""
+def info_one(obs, events=None, human_gap: float | np.ndarray | None = None,
+             style_gap: float | None = None) -> dict:
+    """``{k: v[0] for k, v in infos(obs, events, human_gap, style_gap).items()}`` of a
+    one-scenario step, built directly (the same keys and values)."""
     src = events if events is not None else obs
     out = {"t": obs.t[0], "ttc": obs.ttc[0], "gap": obs.gap[0], "lateral_offset": obs.d[0],
            "v": obs.v[0], "leader_v": obs.leader_v[0], "path_fraction": obs.path_fraction[0],
@@ -207,6 +234,8 @@ def info_one(obs, events=None, human_gap: float | np.ndarray | None = None) -> d
            "features": obs.features[0]}
     if human_gap is not None:
         out["human_gap"] = np.float64(human_gap)
+    if style_gap is not None:
+        out["style_gap"] = np.float64(style_gap)
     return out
 
 

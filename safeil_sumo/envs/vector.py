@@ -32,8 +32,9 @@ from safeil_sumo.sim.vehicle import VehicleParams
 
 class SafeILVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` sub-envs of one task in one SUMO simulation; the other arguments are
-    :class:`~safeil_sumo.envs.single.SafeILEnv`'s. ``info`` holds arrays ``(num_envs,)`` (and
-    Gymnasium's ``_<key>`` masks)."""
+    :class:`~safeil_sumo.envs.single.SafeILEnv`'s (``style``: every sub-env's, kept across
+    autoresets; :meth:`set_style` and ``reset(options={"style": ...})`` set all or one).
+    ``info`` holds arrays ``(num_envs,)`` (and Gymnasium's ``_<key>`` masks)."""
 
     # gymnasium's VectorEnv declares metadata an instance attribute whose default is the class's
     # (gymnasium.make_vec reads it from the class)
@@ -45,7 +46,9 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
                  out_of_space: str = "clip", render_mode: str | None = None,
                  step_s: float = 0.01, plan_rate_hz: float = PLAN_RATE_HZ,
                  stop_on_flag: bool = False,
-                 backend: str = "libsumo", brake_guard: bool = True, **task_options) -> None:
+                 backend: str = "libsumo", brake_guard: bool = True,
+                 style: dict | None = None, **task_options) -> None:
+        first = base.check_style(style)
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) \
                 or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
@@ -57,6 +60,10 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         if not (np.isfinite(horizon_s) and horizon_s > 0):
             raise ValueError(f"horizon_s must be > 0 s, got {horizon_s}")
         self.num_envs = int(num_envs)
+        # each sub-env's style: time gap [s] and standstill distance [m], NaN: none
+        self._time_gap = np.full(self.num_envs, np.nan)
+        self._standstill = np.full(self.num_envs, np.nan)
+        self._set_styles([first] * self.num_envs)
         self.task = make_task(task, **task_options)
         self.action_level, self.vehicle = action_level, VehicleParams()
         self.single_observation_space = sp.observation_space()
@@ -91,6 +98,41 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         self.loop.close()
         self._open, self._lost = False, True
 
+    def set_style(self, time_gap_s: float | None, standstill_m: float = 0.0,
+                  index: int | None = None) -> None:
+        """The driver's style of sub-env ``index`` (None: of all) from the next step on: time
+        gap ``time_gap_s`` [s] and standstill distance ``standstill_m`` [m], the steady gap's
+        line ``s0 + T v`` (``info["style_gap"]`` and the reward's ``style_gap_per_m2`` term);
+        ``time_gap_s=None``: no style."""
+        style = None if time_gap_s is None else base.style_values(time_gap_s, standstill_m)
+        if index is None:
+            self._set_styles([style] * self.num_envs)
+            return
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or not (
+                0 <= index < self.num_envs):
+            raise ValueError(f"index must be a sub-env in [0, {self.num_envs}) or None (all), "
+                             f"got {index!r}")
+        self._set_styles([style if i == index else self._style_of(i)
+                          for i in range(self.num_envs)])
+
+    @property
+    def styles(self) -> list[dict[str, float] | None]:
+        """Each sub-env's style, ``{"time_gap_s": T, "standstill_m": s0}`` [s, m], or None."""
+        return [None if (st := self._style_of(i)) is None
+                else dict(zip(base.STYLE_KEYS, st, strict=True)) for i in range(self.num_envs)]
+
+    def _style_of(self, i: int) -> tuple[float, float] | None:
+        t = float(self._time_gap[i])
+        return None if np.isnan(t) else (t, float(self._standstill[i]))
+
+    def _set_styles(self, styles: list[tuple[float, float] | None]) -> None:
+        for i, st in enumerate(styles):
+            self._time_gap[i], self._standstill[i] = st if st is not None else (np.nan, np.nan)
+
+    def _style_gaps(self, obs: Observation) -> np.ndarray:
+        """``(num_envs,)`` each style's gap [m] at the ego's speed in ``obs`` (NaN: none)."""
+        return sp.style_gaps(self._time_gap, self._standstill, obs.v)
+
     def reset(self, *, seed: int | list | None = None, options: dict | None = None):
         # the vector env's own generator takes an int seed only (gymnasium's seeding refuses a
         # list, and numpy ints); a list seeds the sub-envs alone, as gymnasium's SyncVectorEnv
@@ -100,6 +142,8 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
             if s is not None or seed is not None:
                 self._rngs[i] = seeding.np_random(s)[0]
         indices = _option_indices(options, self.num_envs, self.task.max_index)
+        if options and "style" in options:
+            self._set_styles(_option_styles(options["style"], self.num_envs))
         for i in range(self.num_envs):
             self.indices[i] = (indices[i] if indices is not None
                                else self.task.draw_index(self._rngs[i]))
@@ -112,7 +156,7 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         self._obs = obs = self.loop.reset(scenarios, horizon_s=self.horizon_s)
         self._open, self._autoreset[:], self._lost = True, False, False
         return sp.observe(obs.features), _with_masks(sp.infos(
-            obs, human_gap=self.task.human_gap_at(obs.t)))
+            obs, human_gap=self.task.human_gap_at(obs.t), style_gap=self._style_gaps(obs)))
 
     def step(self, actions):
         if self._obs is None:
@@ -141,10 +185,11 @@ class SafeILVectorEnv(gym.vector.VectorEnv):
         self._obs = obs
         self._open = bool(obs.running.any())
         human_gap = self.task.human_gap_at(obs.t)
-        rewards = self.reward_config.rewards(before, obs, ev, human_gap)
+        style_gap = self._style_gaps(obs)
+        rewards = self.reward_config.rewards(before, obs, ev, human_gap, style_gap)
         self._autoreset = ev.ended.copy()
         return (sp.observe(obs.features), rewards, ev.terminated.copy(), ev.truncated.copy(),
-                _with_masks(sp.infos(obs, ev, human_gap)))
+                _with_masks(sp.infos(obs, ev, human_gap, style_gap)))
 
     def render(self):
         if self.render_mode != "rgb_array" or self._obs is None:
@@ -186,9 +231,23 @@ def _option_indices(options: dict | None, n: int, max_index: int) -> list[int] |
     return [base.check_index(int(i), max_index) for i in index]
 
 
+def _option_styles(style: object, n: int) -> list[tuple[float, float] | None]:
+    """``options={"style": ...}``: one style (a dict, or None) for every sub-env, or a list of
+    ``n`` (each a dict or None)."""
+    if isinstance(style, (list, tuple)):
+        if len(style) != n:
+            raise ValueError(f"options['style'] needs one style or {n}, got {len(style)}")
+        return [base.check_style(st) for st in style]
+    return [base.check_style(style)] * n
+
+
 def _with_masks(info: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Gymnasium's vector info: each key with its ``_key`` mask (every sub-env has each)."""
+    """Gymnasium's vector info: each key with its ``_key`` mask (every sub-env has each, but
+    ``style_gap`` only the sub-envs with a style: NaN and masked out in the others, which, as
+    a single env, have no such key)."""
     out = dict(info)
     for k, v in info.items():
         out[f"_{k}"] = np.ones(len(v), bool)
+    if "style_gap" in info:
+        out["_style_gap"] = ~np.isnan(info["style_gap"])
     return out

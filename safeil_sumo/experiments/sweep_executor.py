@@ -72,6 +72,8 @@ def spec_fields(task: Task) -> dict[str, Any]:
     row["gap_low_m"], row["gap_high_m"] = task.scenario.gap_range_m
     if "route" in row:  # one table cell
         row["route"] = " ".join(row["route"])
+    if "style_changes" in row:  # one table cell, its JSON
+        row["style_changes"] = json.dumps(row["style_changes"])
     return row
 
 
@@ -82,10 +84,11 @@ _SHARED_POLICIES: dict[tuple, Any] = {}
 
 def _load_policy(planner: PlannerRef, shared: bool = False):
     """The task's planner, loaded fresh (no state, e.g. filter counters, leaks between tasks);
-    ``shared``: a batch shares the (stateless) planner itself, each task its own filter."""
-    if not shared:
+    ``shared``: a batch shares the (stateless) planner itself, each task its own filter. A
+    style that changes during the run is state: such a planner is the task's own."""
+    if not shared or planner.style_changes:
         return planner.load()
-    key = (planner.policy, planner.time_gap_s)
+    key = (planner.policy, planner.time_gap_s, planner.standstill_m)
     if key not in _SHARED_POLICIES:
         _SHARED_POLICIES[key] = planner.load_unfiltered()
     return planner.wrap(_SHARED_POLICIES[key])

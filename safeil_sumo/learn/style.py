@@ -144,7 +144,8 @@ def clip_time_gap(time_gap_s: float) -> float:
     return float(min(max(float(time_gap_s), lo), hi))
 
 
-def scheduled_time_gap(time_gap_s: float, standstill_m: float, speed_mps):
+def scheduled_time_gap(time_gap_s: float, standstill_m: float,
+                       speed_mps: float | np.ndarray) -> np.ndarray:
     """The time-gap setting [s] that makes a planner whose steady gap is ``setting * v`` keep a
     driver's line ``gap = standstill_m + time_gap_s * v`` instead: ``T + s0 / v`` at the ego's
     speed ``speed_mps`` [m/s] (a float or an array ``(N,)``; below

@@ -13,10 +13,13 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Protocol, cast
+
+import numpy as np
 
 from safeil_sumo.core.policy import Policy
 from safeil_sumo.planners.analytic import AnalyticPlanner
@@ -60,6 +63,10 @@ class PlannerRef:
     # with it, the driver's standstill distance [m]: the style is the steady gap's line
     # s0 + T v (:func:`with_time_gap`); None: the planner's own (0 for a checkpoint)
     standstill_m: float | None = None
+    # a style that changes during the run: ((t_s [s], time_gap_s [s], standstill_m [m] or None),
+    # ...) in increasing t_s, each set at the first decision at or after t_s of the scenario's
+    # time (:class:`ScheduledStyle`); () : none (left out of the JSON)
+    style_changes: tuple[StyleChange, ...] = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "policy", str(self.policy))
@@ -75,15 +82,22 @@ class PlannerRef:
             object.__setattr__(self, "standstill_m", float(self.standstill_m))
             if not math.isfinite(self.standstill_m):
                 raise ValueError(f"standstill distance must be finite, got {self.standstill_m}")
+        object.__setattr__(self, "style_changes", checked_style_changes(self.style_changes))
 
     def load(self) -> Policy:
         """The planner: loaded fresh (no state shared with another load), set to the time gap,
-        wrapped in the safety filter."""
+        wrapped in the safety filter; with :attr:`style_changes` a :class:`ScheduledStyle`
+        (the filter inside it). A planner without a time-gap setting refuses a style:
+        :class:`PolicyError`."""
+        if self.style_changes:
+            return ScheduledStyle(self.load_unfiltered(), self.style_changes,
+                                  self.safety_filter)
         return self.wrap(self.load_unfiltered())
 
     def load_unfiltered(self) -> Policy:
-        """The planner set to the time gap, without the safety filter (stateless: a batch of
-        tasks may share it)."""
+        """The planner set to the time gap, without the safety filter and the style changes
+        (stateless: a batch of tasks may share it; :meth:`load` makes a task's own
+        :class:`ScheduledStyle` of it)."""
         policy = load(self.policy)
         return policy if self.time_gap_s is None else with_time_gap(policy, self.time_gap_s,
                                                                     self.standstill_m)
@@ -98,12 +112,141 @@ class PlannerRef:
         return SafetyFiltered(policy)
 
     def to_json(self) -> dict[str, object]:
-        """The fields, ``time_gap_s`` and ``standstill_m`` only when set."""
+        """The fields, ``time_gap_s``, ``standstill_m`` and ``style_changes`` (a list of
+        ``[t_s, time_gap_s, standstill_m]``) only when set."""
         out = asdict(self)
-        for key in ("time_gap_s", "standstill_m"):
-            if out[key] is None:
+        for key in ("time_gap_s", "standstill_m", "style_changes"):
+            if out[key] in (None, ()):
                 del out[key]
+        if "style_changes" in out:
+            out["style_changes"] = [list(change) for change in self.style_changes]
         return out
+
+
+# a style change: (t_s [s], time_gap_s [s], standstill_m [m] or None: the planner's own)
+StyleChange = tuple[float, float, float | None]
+_TIME_TOLERANCE_S = 1e-9  # a decision this close before a change's time is at it
+
+
+def checked_style_changes(changes: object) -> tuple[StyleChange, ...]:
+    """``changes`` (pairs ``(t_s, time_gap_s)`` or triples ``(t_s, time_gap_s, standstill_m)``,
+    e.g. read from JSON) as triples of floats (``standstill_m`` None in a pair), checked: times
+    finite, >= 0 s and increasing, time gaps in (0, 10] s, standstill distances finite.
+    ``ValueError`` in one line otherwise."""
+    if isinstance(changes, (str, bytes)) or not hasattr(changes, "__iter__"):
+        raise ValueError(f"style changes must be a sequence of (t_s, time_gap_s[, standstill_m]),"
+                         f" got {changes!r}")
+    out: list[StyleChange] = []
+    for change in cast(Iterable[object], changes):
+        if isinstance(change, (str, bytes)) or not hasattr(change, "__len__") or len(
+                cast(Sequence[object], change)) not in (2, 3):
+            raise ValueError(f"a style change is (t_s, time_gap_s[, standstill_m]), got "
+                             f"{change!r}")
+        t, gap, *rest = cast(Sequence[object], change)
+        s0 = rest[0] if rest else None
+        try:
+            triple = (float(cast(float, t)), float(cast(float, gap)),
+                      None if s0 is None else float(cast(float, s0)))
+        except (TypeError, ValueError):
+            raise ValueError(f"a style change holds numbers [s, s, m], got {change!r}") from None
+        t_s, time_gap_s, standstill_m = triple
+        if not (math.isfinite(t_s) and t_s >= 0):
+            raise ValueError(f"a style change's time must be >= 0 s, got {t_s}")
+        if out and not t_s > out[-1][0]:
+            raise ValueError(f"style changes must be in increasing time, got {t_s} s after "
+                             f"{out[-1][0]} s")
+        if not (math.isfinite(time_gap_s) and 0 < time_gap_s <= 10):
+            raise ValueError(f"a style change's time gap must be in (0, 10] s, got {time_gap_s}")
+        if standstill_m is not None and not math.isfinite(standstill_m):
+            raise ValueError(f"a style change's standstill distance must be finite, got "
+                             f"{standstill_m}")
+        out.append(triple)
+    return tuple(out)
+
+
+class ScheduledStyle:
+    """A planner whose style changes during a run: each change ``(t_s, time_gap_s,
+    standstill_m)`` (:func:`checked_style_changes`; None: as :func:`with_time_gap` without one)
+    is set by :func:`with_time_gap` at the first decision at or after ``t_s`` [s] of the
+    scenario's time, before that decision plans. The loop tells it each decision's time
+    (:meth:`at_time`, :class:`safeil_sumo.sim.stepper.PlanAndTrack`); a time earlier than the
+    last one told (the object run again) starts over from the style it was built with.
+    ``safety_filter``: its plans are filtered (the filter's counters are this object's:
+    ``interventions``, ``calls``, ``intervention_rate``).
+
+    Stateful, so one per scenario: scenarios that share one must be at the same time at every
+    decision (a batch started together; the loop checks it). A planner without a time-gap
+    setting (:func:`has_time_gap`), or a change it refuses (e.g. the IDM's s0 out of its
+    bounds), raises :class:`PolicyError` here, before any simulation."""
+
+    def __init__(self, policy: Policy, changes: Iterable[Sequence[float | None]],
+                 safety_filter: bool = False) -> None:
+        if not has_time_gap(policy):
+            raise PolicyError(f"{policy.name} has no time-gap setting, so its style cannot "
+                              "change (style-conditioned checkpoints and the IDM have one)")
+        self.changes = checked_style_changes(changes)
+        self._initial = _style_of(policy)
+        self._planner = policy
+        for _, time_gap_s, standstill_m in self.changes:  # each change refused now, not mid-run
+            self._planner = with_time_gap(self._planner, time_gap_s, standstill_m)
+        self._planner = with_time_gap(self._planner, *self._initial)
+        self._filter = None
+        if safety_filter:
+            from safeil_sumo.planners.safety_filter import SafetyFiltered
+
+            self._filter = SafetyFiltered(self._planner)
+        self.name: str = (self._filter or self._planner).name
+        self.horizon: float = float(policy.horizon)
+        self._next = 0  # the next change to set
+        self._t_last = -math.inf  # the last decision's time [s]
+
+    @property
+    def planner(self) -> Policy:
+        """The planner at its current style (unfiltered)."""
+        return self._planner
+
+    def at_time(self, t_s: float) -> None:
+        """The decision at the scenario's time ``t_s`` [s] plans next: set every change due."""
+        planner = self._planner
+        if t_s < self._t_last:  # run again from the start
+            planner = with_time_gap(planner, *self._initial)
+            self._next = 0
+        self._t_last = t_s
+        while (self._next < len(self.changes)
+               and self.changes[self._next][0] <= t_s + _TIME_TOLERANCE_S):
+            _, time_gap_s, standstill_m = self.changes[self._next]
+            planner = with_time_gap(planner, time_gap_s, standstill_m)
+            self._next += 1
+        self._planner = planner
+        if self._filter is not None:
+            self._filter.policy = planner  # the IDM's setting is a new planner
+
+    def plan(self, features: np.ndarray) -> np.ndarray:
+        return (self._filter or self._planner).plan(features)
+
+    @property
+    def interventions(self) -> int:
+        return self._filter.interventions if self._filter is not None else 0
+
+    @property
+    def calls(self) -> int:
+        return self._filter.calls if self._filter is not None else 0
+
+    @property
+    def intervention_rate(self) -> float:
+        return self._filter.intervention_rate if self._filter is not None else 0.0
+
+
+def _style_of(policy: Policy) -> tuple[float, float | None]:
+    """The time gap [s] and standstill distance [m] (None: a checkpoint's one-number style)
+    ``policy`` is set to (:func:`has_time_gap`)."""
+    from safeil_sumo.planners import idm
+
+    if isinstance(policy, idm.IDMPlanner):
+        return policy.params.time_gap_s, policy.params.s0_m
+    style = cast(_Styled, policy).style
+    s0 = style.get("standstill_m")
+    return style["time_gap_s"], s0
 
 
 def shipped_checkpoint(name: str) -> Path:
@@ -238,6 +381,8 @@ def has_time_gap(policy: Policy) -> bool:
 class _Styled(Protocol):
     """A style-conditioned checkpoint's planner (:class:`~safeil_sumo.learn.inference.
     MLPPolicy` with ``style_names``): its style inputs are set in place."""
+
+    style: dict[str, float]
 
     def set_style(self, **style: float) -> None: ...
 

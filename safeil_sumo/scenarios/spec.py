@@ -245,8 +245,8 @@ TASK_KEYS = ("net", "index", "master_seed", "policy", "safety_filter", "brake_gu
              "leader_kind", "leader_speed_range_mps", "brake_time_s", "brake_decel_mps2",
              "brake_to_mps", "ego_speed_mps", "initial_gap_m", "lane_noise_c0_m",
              "radar_noise_m", "plan_rate_hz", "max_time_s", "stop_on_flag", "leader_profile",
-             "route", "from_km", "to_km", "traffic", "lane", "time_gap_s",
-             "standstill_m")
+             "route", "from_km", "to_km", "traffic", "lane", "time_gap_s", "standstill_m",
+             "style_changes")
 
 
 @dataclass(frozen=True)

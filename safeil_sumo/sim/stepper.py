@@ -114,6 +114,15 @@ Pose: TypeAlias = tuple[float, float, float, float]  # front bumper x, y [m], ya
 PoseAt: TypeAlias = Callable[[float], Pose]
 
 
+class TimedPolicy(Protocol):
+    """A planner that changes with its scenario's time (a driver's style that changes during
+    the run, :class:`safeil_sumo.planners.registry.ScheduledStyle`): :class:`PlanAndTrack`
+    tells it the time of each decision it plans for, before it plans (scenarios that share
+    one must be at the same time)."""
+
+    def at_time(self, t_s: float) -> None: ...
+
+
 class SelfDrivenEgo(Protocol):
     """An ego that drives itself (the synthetic-drive recorder's, :mod:`safeil_sumo.data.recorder`):
     it enters SUMO itself, instead of the loop's insertion and placement (``enter(api,
@@ -386,6 +395,9 @@ class PlanAndTrack:
             return
         fx, fy = live.front
         yaw = live.st[2]
+        if given is None:
+            for timed, rows_of in live.c.timed:  # told the decision's time first
+                timed.at_time(_decision_time(t, rows_of, xp))
         if xp is FLOATS:
             if given is not None:
                 cp = given[0]
@@ -535,6 +547,20 @@ def on_lane_pose(fx: FloatOrArray, fy: FloatOrArray, d: FloatOrArray, heading: F
     cos_h, sin_h = xp.cos(heading), xp.sin(heading)
     foot_x, foot_y = fx + d * sin_h, fy - d * cos_h
     return foot_x - d_front * cos_h, foot_y - d_front * sin_h, heading
+
+
+def _decision_time(t: FloatOrArray, rows_of: np.ndarray | slice, xp: Namespace) -> float:
+    """The one time [s] of the scenarios ``rows_of`` at a decision (``t``: each running
+    scenario's); ``ValueError`` when a planner that changes in time is shared by scenarios at
+    different times."""
+    if xp is FLOATS:
+        return _scalar(t)
+    times = np.asarray(t)[rows_of]
+    if times.min() != times.max():
+        raise ValueError("a planner whose style changes in time (at_time) plans for scenarios "
+                         f"at different times ({times.min():g} s to {times.max():g} s): give "
+                         "each scenario its own")
+    return float(times.flat[0])
 
 
 def _scalar(value: FloatOrArray) -> float:
@@ -1410,6 +1436,7 @@ class _Fixed:
     no_flags: BoolOrArray  # (n,) bool: False in every row (not written to)
     nans: FloatOrArray  # (n,) NaN in every row (not written to)
     planners: list[tuple[Policy | None, np.ndarray | slice]]  # (planner, rows): a call each
+    timed: list[tuple[TimedPolicy, np.ndarray | slice]]  # the planners with at_time, their rows
     unplanned: bool  # a row has no policy: step needs its plans
     # (x, y, segment) -> s, d, heading, segment on each row's ego lane centre: the one polyline,
     # or several (scenarios on different roads) walked at once on their stack (NaN points give
@@ -1439,6 +1466,8 @@ class _Fixed:
             traffic=xp.from_rows(traffic), any_traffic=any(traffic),
             no_flags=xp.from_rows([False] * len(live)), nans=xp.full(len(live), math.nan),
             planners=planners,
+            timed=[(cast(TimedPolicy, policy), rows) for policy, rows in planners
+                   if getattr(policy, "at_time", None) is not None],
             unplanned=any(policy is None for policy, _ in planners), project=project,
             k0=col(lambda r: r.k0))
 

@@ -9,6 +9,7 @@ clearly; closing or killing ends SUMO; PPO trains on the vector env (when SB3 is
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import signal
 import subprocess
@@ -607,14 +608,16 @@ def test_safeil_through_the_replay_env_reproduces_the_replay_cli(tmp_path, capsy
 def test_the_single_envs_float_path_equals_the_array_path():
     """The single env's reward, info and observation on floats (reward_one, info_one,
     observe_one) equal the vector env's array functions, bit for bit, on crafted steps: NaN and
-    inf features and progress, every flag and end, the replay's gap error."""
+    inf features and progress, every flag and end, the replay's gap error, the style's gap error
+    (with a style, without one: NaN, and none given)."""
     from types import SimpleNamespace as NS
 
     from safeil_sumo.envs import spaces as sp
 
     rng = np.random.default_rng(0)
     cfg = sp.RewardConfig(progress_per_m=0.013, ttc_flag=-1.5, lane_departure=-0.7,
-                          collision=-9.0, off_road=-11.0, human_gap_per_m2=-0.02)
+                          collision=-9.0, off_road=-11.0, human_gap_per_m2=-0.02,
+                          style_gap_per_m2=-0.03)
     reasons = ["", "completed", "timeout", "collision", "off_road", "flag"]
     for k in range(200):
         feats = rng.normal(0, 60, 9)
@@ -632,15 +635,160 @@ def test_the_single_envs_float_path_equals_the_array_path():
                 end_reason=np.array([reasons[k % 6]], object),
                 sub_steps=np.array([0 if k % 11 == 0 else 10]))
         before = rng.uniform(0, 400)
-        for human in (None, np.array([rng.uniform(0, 80)])):
-            want = cfg.rewards(np.array([before]), obs, ev, human)[0]
-            got = cfg.reward_one(before, obs, ev, None if human is None else human[0])
+        style = sp.style_gaps(np.array([rng.uniform(0.5, 3.0)]), np.array([rng.uniform(-5, 9)]),
+                              obs.v)
+        for human, styled in itertools.product(
+                (None, np.array([rng.uniform(0, 80)])), (None, np.array([np.nan]), style)):
+            want = cfg.rewards(np.array([before]), obs, ev, human, styled)[0]
+            got = cfg.reward_one(before, obs, ev, None if human is None else human[0],
+                                 None if styled is None else float(styled[0]))
             assert got == want or (np.isnan(got) and np.isnan(want)), (k, got, want)
-            arrays = {key: v[0] for key, v in sp.infos(obs, ev, human).items()}
-            floats = sp.info_one(obs, ev, None if human is None else human[0])
+            arrays = {key: v[0] for key, v in sp.infos(obs, ev, human, styled).items()}
+            floats = sp.info_one(obs, ev, None if human is None else human[0],
+                                 None if styled is None else float(styled[0]))
             assert arrays.keys() == floats.keys()
             for key, value in arrays.items():
                 np.testing.assert_array_equal(floats[key], value, err_msg=key)
         got_obs = sp.observe_one(feats)
         np.testing.assert_array_equal(got_obs, sp.observe(feats[None])[0])
         assert got_obs.dtype == np.float32
+
+
+def test_the_style_reward_term_by_hand():
+    """``style_gap_per_m2`` times the squared gap error against s0 + T v, capped at 100 m (also
+    with no leader seen); 0 by default, and never where no style is set (NaN)."""
+    from types import SimpleNamespace as NS
+
+    from safeil_sumo.envs import spaces as sp
+
+    assert sp.RewardConfig().style_gap_per_m2 == 0.0
+    v = np.array([20.0, 20.0, 20.0, 20.0])
+    style = sp.style_gaps(np.array([1.5, 1.5, np.nan, 1.5]), np.array([2.0, 2.0, 2.0, 2.0]), v)
+    np.testing.assert_array_equal(style[[0, 1, 3]], 32.0)  # 2 m + 1.5 s x 20 m/s
+    assert np.isnan(style[2])
+    obs = NS(s=np.zeros(4), gap=np.array([30.0, 250.0, 30.0, np.inf]), v=v)
+    ev = NS(ttc_flag=np.zeros(4, bool), lane_departure=np.zeros(4, bool),
+            collision=np.zeros(4, bool), end_reason=np.array([""] * 4, object),
+            sub_steps=np.full(4, 10))
+    cfg = sp.RewardConfig(progress_per_m=0.0, style_gap_per_m2=-0.02)
+    # (30 - 32)^2 = 4 m^2; |250 - 32| capped at 100 m; no style; no leader: capped
+    np.testing.assert_allclose(cfg.rewards(np.zeros(4), obs, ev, style_gap=style),
+                               [-0.08, -200.0, 0.0, -200.0], rtol=1e-15)
+    np.testing.assert_array_equal(sp.RewardConfig(progress_per_m=0.0).rewards(
+        np.zeros(4), obs, ev, style_gap=style), 0.0)
+
+
+def _style_episode(env, steps: int, style_at: dict, seed: int = 3):
+    """Rewards and infos of one episode of ``env`` driven by the analytic planner's plans;
+    ``style_at``: step k -> (T, s0) or None, set before step k."""
+    policy = planner_registry.load("analytic")
+    _, info = env.reset(seed=seed)
+    rewards, infos = [], []
+    for k in range(steps):
+        if k in style_at:
+            style = style_at[k]
+            env.unwrapped.set_style(*((None,) if style is None else style))
+        _, r, te, tr, info = env.step(_plan(policy, info["features"])[0])
+        rewards.append(r)
+        infos.append(info)
+        assert not (te or tr)
+    return np.array(rewards), infos
+
+
+@pytest.mark.sumo
+def test_set_style_changes_the_style_gap_and_the_reward_by_hand():
+    """The single env: a style set before step 5 shows in that step's info["style_gap"] as
+    s0 + T v (v: info["v"], the step's end) and changes its reward by w (gap - style gap)^2
+    against the same episode without a style; cleared before step 10, the reward is the
+    unstyled one again, bit for bit, and the key is gone. The reset option sets it too."""
+    w, T, s0 = -0.01, 2.0, 4.0
+    env = gym.make(CURVED, max_time_s=3.0, reward={"style_gap_per_m2": w})
+    try:
+        plain, plain_infos = _style_episode(env, 15, {})
+        styled, infos = _style_episode(env, 15, {5: (T, s0), 10: None})
+        assert env.unwrapped.style is None
+        for k in range(15):
+            on = 5 <= k < 10
+            info = infos[k]
+            assert info["gap"] == plain_infos[k]["gap"]  # the style changes no part of the loop
+            assert "style_gap" not in plain_infos[k]
+            if not on:
+                assert "style_gap" not in info and styled[k] == plain[k]
+                continue
+            assert info["style_gap"] == s0 + T * info["v"]
+            e = info["gap"] - (s0 + T * info["v"])
+            assert abs(e) > 10.0  # 50 m at 30 m/s against ~64 m: a term worth checking
+            assert styled[k] - plain[k] == pytest.approx(w * e * e, rel=1e-12)
+        _, info = env.reset(seed=3, options={"style": {"time_gap_s": T}})  # s0 0 m
+        assert env.unwrapped.style == {"time_gap_s": T, "standstill_m": 0.0}
+        assert info["style_gap"] == T * info["v"]
+        _, info = env.reset(seed=3)  # kept until changed
+        assert info["style_gap"] == T * info["v"]
+        _, info = env.reset(seed=3, options={"style": None})
+        assert "style_gap" not in info
+    finally:
+        env.close()
+
+
+@pytest.mark.sumo
+def test_the_vector_envs_style_is_per_sub_env():
+    """Two sub-envs on the same episode: the style set for sub-env 1 only shows in its
+    info["style_gap"] (sub-env 0's is NaN and masked out) and changes its reward alone, by
+    w (gap - (s0 + T v))^2; the constructor's style is every sub-env's, and a reset option
+    sets each."""
+    w, T, s0 = -0.01, 1.5, 2.0
+    policy = planner_registry.load("analytic")
+    venv = envs.SafeILVectorEnv(2, max_time_s=2.0, reward={"style_gap_per_m2": w},
+                                style={"time_gap_s": 3.0, "standstill_m": 1.0})
+    try:
+        assert venv.styles == [{"time_gap_s": 3.0, "standstill_m": 1.0}] * 2
+        _, info = venv.reset(options={"index": [4, 4], "style": [None, None]})
+        assert np.isnan(info["style_gap"]).all() and not info["_style_gap"].any()
+        for k in range(8):
+            if k == 3:
+                venv.set_style(T, s0, index=1)
+                assert venv.styles == [None, {"time_gap_s": T, "standstill_m": s0}]
+            _, r, _, _, info = venv.step(_plan(policy, info["features"]))
+            assert np.isnan(info["style_gap"][0]) and not info["_style_gap"][0]
+            assert info["_style_gap"][1] == (k >= 3)
+            if k < 3:
+                assert np.isnan(info["style_gap"][1])
+                assert r[1] == pytest.approx(r[0], abs=1e-9)
+                continue
+            assert info["style_gap"][1] == s0 + T * info["v"][1]
+            e = info["gap"][1] - info["style_gap"][1]
+            assert r[1] - r[0] == pytest.approx(w * e * e, rel=1e-6)
+        _, info = venv.reset(options={"index": [4, 4], "style": {"time_gap_s": 2.0}})
+        np.testing.assert_array_equal(info["style_gap"], 2.0 * info["v"])
+        assert info["_style_gap"].all()
+    finally:
+        venv.close()
+
+
+def test_a_bad_style_is_refused_before_sumo_starts():
+    for bad, error, match in (
+            ({"time_gap_s": 0.0}, ValueError, r"\(0, 10\] s"),
+            ({"time_gap_s": float("nan")}, ValueError, r"\(0, 10\] s"),
+            ({"time_gap_s": 1.5, "standstill_m": 50.0}, ValueError, "standstill_m must be in"),
+            ({"time_gap": 1.5}, ValueError, "takes time_gap_s"),
+            ({"standstill_m": 2.0}, ValueError, "takes time_gap_s"),
+            ({"time_gap_s": "x"}, ValueError, "numbers"),
+            ("1.5", TypeError, "a dict")):
+        with pytest.raises(error, match=match):
+            envs.SafeILEnv(style=bad)
+        with pytest.raises(error, match=match):
+            envs.SafeILVectorEnv(2, style=bad)
+    env = envs.SafeILEnv(max_time_s=0.2)
+    venv = envs.SafeILVectorEnv(2, max_time_s=0.2)
+    with pytest.raises(ValueError, match=r"\(0, 10\] s"):
+        env.set_style(-1.0)
+    with pytest.raises(ValueError, match="standstill_m must be in"):
+        venv.set_style(1.5, 40.0)
+    for index in (2, -1, True, 0.5):
+        with pytest.raises(ValueError, match="sub-env in"):
+            venv.set_style(1.5, index=index)
+    with pytest.raises(ValueError, match="one style or 2"):
+        venv.reset(options={"style": [{"time_gap_s": 1.0}]})
+    with pytest.raises(ValueError, match="takes time_gap_s"):
+        env.reset(options={"style": {"gap": 1.0}})
+    assert env.style is None and venv.styles == [None, None]
