@@ -1,0 +1,111 @@
+"""The lateral closed loop's own code for one decision period on a circular lane (the camera's
+fit, the network, pure pursuit and the plant), for the tests of the lateral bound
+(tests/learn/test_loop_lateral.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from safeil_sumo.core.geometry import Polyline
+from safeil_sumo.sim import controller as ctl
+from safeil_sumo.sim import vehicle as veh
+from safeil_sumo.sim.sensors import SensorConfig, fit_boundary
+from safeil_sumo.sim.xp import ARRAYS
+
+
+def arc(curvature: float, offset_m: float, start_m: float = -30.0, end_m: float = 120.0,
+        ds_m: float = 0.5) -> np.ndarray:
+    """Points ``(n, 2)`` [m] of the line ``offset_m`` left of a lane centre that starts at the
+    origin heading +x and turns with ``curvature`` [1/m] (a circle about ``(0, 1/curvature)``)."""
+    s = np.arange(start_m, end_m, ds_m)
+    if curvature == 0.0:
+        return np.stack([s, np.full_like(s, offset_m)], 1)
+    radius = 1.0 / curvature
+    th = s * curvature
+    return np.stack([(radius - offset_m) * np.sin(th),
+                     radius - (radius - offset_m) * np.cos(th)], 1)
+
+
+CAMERA = SensorConfig()
+
+
+def camera_lines(e_y, e_psi, curvature, width, config=CAMERA):
+    """The camera's lines ``(N, 3)`` x2 of the ego's front bumper at lane offset ``e_y`` and
+    heading error ``e_psi`` (arrays ``(N,)``) at the start of the lane of :func:`arc`, by the
+    simulation's own fit (:func:`safeil_sumo.sim.sensors.fit_boundary`)."""
+    left, right = [], []
+    for ey, ep, k, w in zip(e_y, e_psi, curvature, width, strict=True):
+        xy = np.array([0.0, ey])
+        left.append(fit_boundary(Polyline(arc(float(k), w / 2)), xy, float(ep), config)[:3])
+        right.append(fit_boundary(Polyline(arc(float(k), -w / 2)), xy, float(ep), config)[:3])
+    return np.array(left), np.array(right)
+
+
+def lane_pose(x, y, yaw, curvature, vehicle):
+    """The front bumper's offset from the lane centre of :func:`arc` [m] and the heading less
+    the lane's there [rad], from the CoG pose (arrays ``(N,)``): plain geometry of the circle."""
+    d = vehicle.cog_to_front_bumper_m
+    fx, fy = x + d * np.cos(yaw), y + d * np.sin(yaw)
+    k = np.asarray(curvature, float)
+    straight = k == 0.0
+    radius = 1.0 / np.where(straight, 1.0, k)
+    ox, oy = fx, fy - radius  # F - O
+    dist = np.hypot(ox, oy)
+    e_y = np.where(straight, fy, (1.0 - np.abs(k) * dist) / np.where(straight, 1.0, k))
+    sgn = np.sign(k)
+    lane_yaw = np.where(straight, 0.0, np.arctan2(sgn * ox, -sgn * oy))
+    e_psi = (yaw - lane_yaw + math.pi) % (2 * math.pi) - math.pi
+    return e_y, e_psi
+
+
+def real_lateral_period(policy, e_y, e_psi, steer, vy, r, v, curvature, width, lead, gap,
+                        integral, force, accel, a, parts):
+    """One decision period of the real camera, planner, tracker and plant for N states
+    ``(N,)`` on the circular lane of :func:`arc`: sensed leader speed ``lead`` and gap ``gap``
+    into the network, the PI ``integral`` and the plant's tyre force per mass ``force``;
+    ``accel (N, steps)`` [m/s^2] replaces the tracker's acceleration command where finite (a
+    guard's braking). Returns the final ``(e_y, e_psi, steer, vy, r, v)``, the front bumper's
+    offsets at every physics step ``(N, steps)`` and the camera's lines ``(N, 3)`` x2."""
+    vehicle = parts.vehicle
+    n = len(e_y)
+    left, right = camera_lines(e_y, e_psi, curvature, width)
+    feats = np.concatenate([left, right, np.stack([v, lead, gap], 1)], 1)
+    cps = policy.plan(feats)
+    d = vehicle.cog_to_front_bumper_m
+    yaw = np.asarray(e_psi, float).copy()
+    state = (-d * np.cos(yaw), e_y - d * np.sin(yaw), yaw, v.copy(), vy.copy(), r.copy(),
+             steer.copy(), force * vehicle.mass_kg)
+    target = ctl.make_targets(cps, np.full(n, policy.horizon), 0 * e_y, e_y + 0.0, yaw)
+    plant = veh.Plant.of(vehicle, a.step_s)
+    prev_error = np.full(n, math.nan)
+    path = []
+    for j in range(a.steps_per_decision):
+        steer_cmd, acc, integral, prev_error = ctl.track_values(
+            target, np.full(n, j * a.step_s), *state[:6], vehicle, integral, prev_error,
+            parts.controller, a.step_s, ARRAYS)
+        acc = np.where(np.isfinite(accel[:, j]), accel[:, j], acc)
+        throttle, brake = veh.pedals_from_accel_vx(acc, state[3], vehicle, ARRAYS)
+        state = plant.step(state, steer_cmd, throttle, brake, ARRAYS)
+        path.append(lane_pose(state[0], state[1], state[2], curvature, vehicle)[0])
+    e_y1, e_psi1 = lane_pose(state[0], state[1], state[2], curvature, vehicle)
+    return (e_y1, e_psi1, state[6], state[4], state[5], state[3]), np.stack(path, 1), (left,
+                                                                                        right)
+
+
+def steady_turn(v, curvature, vehicle=veh.VehicleParams()):
+    """Road-wheel angle [rad], lateral speed [m/s] and yaw rate [rad/s] ``(N,)`` of the linear
+    single track turning steadily with ``curvature`` at speed ``v`` (arrays ``(N,)``)."""
+    p = vehicle
+    m, lf, lr, iz = p.mass_kg, p.lf_m, p.lr_m, p.yaw_inertia_kgm2
+    cf, cr = p.cornering_stiffness_front_npr, p.cornering_stiffness_rear_npr
+    r = v * curvature
+    # 0 = a11 vy + a12 r + b1 delta, 0 = a21 vy + a22 r + b2 delta
+    a11, a12 = -(cf + cr) / (m * v), -(lf * cf - lr * cr) / (m * v) - v
+    a21, a22 = -(lf * cf - lr * cr) / (iz * v), -(lf * lf * cf + lr * lr * cr) / (iz * v)
+    b1, b2 = cf / m, lf * cf / iz
+    # eliminate delta: (a11 b2 - a21 b1) vy = (a22 b1 - a12 b2) r
+    vy = (a22 * b1 - a12 * b2) * r / (a11 * b2 - a21 * b1)
+    delta = -(a11 * vy + a12 * r) / b1
+    return delta, vy, r
