@@ -38,6 +38,7 @@ Pure numpy; no SUMO, no torch.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -175,7 +176,7 @@ def _cos(a: Interval) -> Interval:
     return _w((np.minimum(c0, c1), np.where(across, 1.0, np.maximum(c0, c1))))
 
 
-def _mono(fn, a: Interval) -> Interval:
+def _mono(fn: Callable[[np.ndarray], np.ndarray], a: Interval) -> Interval:
     """An increasing function of an interval."""
     return _w((fn(a[0]), fn(a[1])))
 
@@ -273,7 +274,7 @@ def leader_boxes(a: LateralAssumptions) -> tuple[Interval, Interval]:
     """The M leader sub-boxes: sensed leader speed and gap intervals ``(M,)`` each."""
     nv, ng = a.leader_cuts
     ev = np.linspace(*a.leader_speed_mps, nv + 1)
-    eg = np.exp(np.linspace(*np.log(a.gap_m), ng + 1))
+    eg = np.exp(np.linspace(math.log(a.gap_m[0]), math.log(a.gap_m[1]), ng + 1))
     eg[0], eg[-1] = a.gap_m  # the range's own ends, not their exp(log)
     iv, ig = np.meshgrid(np.arange(nv), np.arange(ng), indexing="ij")
     return (ev[iv.ravel()], ev[iv.ravel() + 1]), (eg[ig.ravel()], eg[ig.ravel() + 1])
@@ -284,8 +285,8 @@ def lane_features(box: LateralBox, a: LateralAssumptions) -> tuple[Interval, ...
     ``cm0, cm1, cm2, h0, h1, h2``."""
     dc, dh = a.camera_centre, a.camera_half
     slope = _mono(np.tan, (-box.e_psi[1], -box.e_psi[0]))
-    cm = ((-box.e_y[1], -box.e_y[0]), slope, _scale(0.5, box.curvature))
-    cm = tuple(_w((x[0] - d, x[1] + d)) for x, d in zip(cm, dc, strict=True))
+    ideal = ((-box.e_y[1], -box.e_y[0]), slope, _scale(0.5, box.curvature))
+    cm = tuple(_w((x[0] - d, x[1] + d)) for x, d in zip(ideal, dc, strict=True))
     n = len(box)
     w = (np.full(n, a.lane_width_m[0]), np.full(n, a.lane_width_m[1]))
     # the lines' curvatures k / (1 -+ k w / 2): half their difference ~ k^2 w / 4
@@ -300,8 +301,8 @@ def plan_terms(policy: MLPPolicy, box: LateralBox, a: LateralAssumptions) -> Pla
     n = len(box)
     (vl_lo, vl_hi), (g_lo, g_hi) = leader_boxes(a)
     m = len(vl_lo)
-    cm0, cm1, cm2, h0, h1, h2 = (tuple(np.repeat(x, m) for x in iv) for iv in
-                                 lane_features(box, a))
+    cm0, cm1, cm2, h0, h1, h2 = ((np.repeat(iv[0], m), np.repeat(iv[1], m))
+                                 for iv in lane_features(box, a))
     lo, hi = np.empty((n * m, 10)), np.empty((n * m, 10))
     lines = ((cm0, h0), (cm1, h1), (cm2, h2))
     for k, (c, h) in enumerate(lines):
@@ -318,6 +319,7 @@ def plan_terms(policy: MLPPolicy, box: LateralBox, a: LateralAssumptions) -> Pla
     rad = np.abs(pb.gens).sum(1) + pb.err
     o = _w((pb.centre - rad, pb.centre + rad))  # (K, 3)
     times = policy.residual_times
+    assert times is not None  # li.plan_bounds refuses a policy without the residual mode
     x = _w((o[0] + v_s[0][:, None] * times, o[1] + v_s[1][:, None] * times))
     resid = _residual(pb, v_s, times)
     # the offsets' room h_k (lane_following_y), floored at 0
@@ -492,7 +494,7 @@ def steer_command(terms: PlanTerms, st: _State, m: int, parts: LateralParts
     steer = (np.clip(steer[0], -veh.max_steer_rad, veh.max_steer_rad),
              np.clip(steer[1], -veh.max_steer_rad, veh.max_steer_rad))
     cmd = (steer[0].reshape(-1, m).min(1), steer[1].reshape(-1, m).max(1))
-    return cmd, ok.reshape(-1, m).all(1)
+    return cmd, np.asarray(ok.reshape(-1, m).all(1))
 
 
 def _bern_offsets(terms: PlanTerms) -> Interval:
