@@ -75,7 +75,9 @@ def test_adaptation_bound_summary_by_hand() -> None:
     assert "in hindsight): mean 3.50, median 3.50" in text  # min(4, 10), min(9, 3)
     assert "first seconds): mean 6.50, median 6.50" in text
     assert "1 s 6.50, 2 s 6.50" in text
-    assert "a: 1 / 1.20" in text and "b: 2 / 1.40" in text
+    assert "a: 1 / 1.20, nan" in text and "b: 2 / 1.40, nan" in text
+    lined = bound.summary(settings, adapted.assign(standstill_m=[-5.0, 2.5]))
+    assert "a: 1 / 1.20, -5.0" in lined and "b: 2 / 1.40, 2.5" in lined
 
 
 def test_adaptation_curve_by_hand() -> None:

@@ -79,10 +79,11 @@ def grid_runs(rows: pd.DataFrame, maneuvers: list[str], label: int | str, grid: 
         print(f"{tag}: {tg:g} s done ({len(recs)} maneuvers)", flush=True)
     recs = ra.replay_all(rows, adapted, [str(policy)], out / tag / "adapted", config, workers,
                          progress=False)
+    styles = [(r.get("adapted") or {}).get(str(policy), {}) for r in recs]
     adapt = [{"fold": label, "maneuver_id": r["maneuver_id"], "gap_rmse_m": _gap_rmse(r),
-              "time_gap_s": (r.get("adapted") or {}).get(str(policy), {}).get("time_gap_s",
-                                                                              np.nan)}
-             for r in recs]
+              "time_gap_s": style.get("time_gap_s", np.nan),
+              "standstill_m": style.get("standstill_m", np.nan)}
+             for r, style in zip(recs, styles, strict=True)]
     return settings, adapt
 
 
@@ -126,9 +127,11 @@ def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
          f"{adapted['gap_rmse_m'].mean():.2f}, median {adapted['gap_rmse_m'].median():.2f}"),
         "  one setting for every maneuver: " + ", ".join(
             f"{tg:g} s {v:.2f}" for tg, v in by_setting.items()),
-        "  per maneuver: best setting / estimated setting [s]:"]
-    est = adapted.set_index("maneuver_id")["time_gap_s"]
-    lines += [f"    {m}: {best[m]:g} / {est.get(m, np.nan):.2f}" for m in table.index]
+        "  per maneuver: best setting [s] / estimated style, T [s] and s0 [m]:"]
+    est = adapted.set_index("maneuver_id")
+    s0 = est["standstill_m"] if "standstill_m" in est else pd.Series(np.nan, est.index)
+    lines += [f"    {m}: {best[m]:g} / {est['time_gap_s'].get(m, np.nan):.2f}, "
+              f"{s0.get(m, np.nan):.1f}" for m in table.index]
     return "\n".join(lines)
 
 
