@@ -173,3 +173,61 @@ def test_boxes_tile_the_grid_and_contains_finds_them() -> None:
     far = lat[0].copy()
     far[0] = 5.0
     assert not lv.contains(grid, alive, np.array([30.5, 35.0]), np.stack([far, lat[0]])).any()
+
+
+def test_successors_hold_the_real_loop() -> None:
+    """What the fixpoint rests on, against the loop's own code: from random states of every
+    claimed cell of a small grid (random leaders, lane widths, PI integrals, tyre forces,
+    overriding braking; seed 5), the camera fit, planner, pure pursuit and plant
+    (tests/fixtures_lateral.py) end the period in a speed cell the successors check, inside the
+    cells they name there (or beyond the grid's speeds, where the claim stops)."""
+    from fixtures_lateral import real_lateral_period
+
+    from safeil_sumo.learn.inference import load_policy
+    from safeil_sumo.planners.registry import shipped_checkpoint
+
+    policy = load_policy(shipped_checkpoint("safeil"))
+    grid = lv.LateralGrid((30.0, 31.0, 32.0), (0.0015, 0.0025), (0.45, 0.03, 0.015, 0.1, 0.04),
+                          (3, 3, 1, 1, 1))
+    a, parts = ll.LateralAssumptions(), ll.LateralParts()
+    boxes = grid.boxes()
+    image = ll.period_bound(policy, boxes, a, parts)
+    succ = lv.successors(grid, image)
+    assert image.ok.mean() >= 0.5
+    # not vacuous: some images lie inside the grid in e_y and in e_psi (none in delta, v_y, r:
+    # one cell there, and no image of a cell fits in it)
+    inside = (succ.lo >= 0) & (succ.hi < np.array(grid.cells))
+    assert (inside[succ.check][:, :2].mean(0) >= 0.2).all()
+    rng = np.random.default_rng(5)
+    idx = np.repeat(np.flatnonzero(image.ok), 100)
+    n = len(idx)
+    fields = (*ll.STATE, "curvature")
+    draw = {f: getattr(boxes, f)[0][idx] + rng.random(n) * (getattr(boxes, f)[1][idx]
+                                                             - getattr(boxes, f)[0][idx])
+            for f in fields}
+    width = rng.uniform(*a.lane_width_m, n)
+    lead = rng.uniform(0.0, 40.0, n)
+    gap = np.exp(rng.uniform(np.log(3.0), np.log(150.0), n))
+    accel = np.where(rng.random((n, 1)) < 0.3, rng.uniform(-9.0, 3.0, (n, a.steps_per_decision)),
+                     np.nan)
+    integral = rng.uniform(-1.0, 1.0, n) * parts.controller.integral_limit_m
+    force = rng.uniform(-9.0, 3.0, n)
+    final, _, _ = real_lateral_period(policy, *(draw[f] for f in fields), width, lead, gap,
+                                      integral, force, accel, a, parts)
+    lateral = np.stack(final[:5], 1)
+    v = final[5]
+    ve = np.array(grid.speed_edges_mps)
+    edges = grid.edges()
+    inside_speeds = 0
+    for j in range(grid.shape[0]):
+        at = (v >= ve[j]) & (v <= ve[j + 1])
+        inside_speeds += int(at.sum())
+        assert succ.check[idx[at], j].all(), "a final speed in a speed cell not checked"
+        for d in range(5):
+            lo, hi = succ.lo[idx[at], j, d], succ.hi[idx[at], j, d]
+            e = edges[j][d]
+            below = np.where(lo >= 0, e[np.clip(lo, 0, len(e) - 1)], -np.inf)
+            above = np.where(hi < len(e) - 1, e[np.clip(hi + 1, 0, len(e) - 1)], np.inf)
+            x = lateral[at, d]
+            assert np.all((below <= x) & (x <= above)), f"{lv.LATERAL[d]} outside its cells"
+    assert n >= 600 and inside_speeds >= n // 2  # not vacuous
