@@ -74,6 +74,10 @@ class LateralGrid:
     vehicle: VehicleParams = VehicleParams()
 
     def __post_init__(self) -> None:
+        # floats: integer speed arrays would make period_bound's working arrays integers
+        object.__setattr__(self, "speed_edges_mps", tuple(float(v) for v in self.speed_edges_mps))
+        object.__setattr__(self, "curvature_1pm", tuple(float(k) for k in self.curvature_1pm))
+        object.__setattr__(self, "half_range", tuple(float(h) for h in self.half_range))
         if len(self.speed_edges_mps) < 2 or np.any(np.diff(self.speed_edges_mps) <= 0.0):
             raise ValueError("speed_edges_mps must increase")
         if self.curvature_1pm[0] > self.curvature_1pm[1]:
