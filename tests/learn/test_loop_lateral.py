@@ -151,3 +151,16 @@ def test_sumo_runs_stay_inside_the_period_bound(safeil) -> None:
         assert np.median(image.final.e_y[1][ok] - image.final.e_y[0][ok]) < 0.05  # not vacuous
         checked += int(ok.sum())
     assert checked >= 300, checked
+
+
+def test_integer_bounds_are_taken_as_floats(safeil) -> None:
+    rng = np.random.default_rng(2)
+    boxes = random_boxes(rng, 4, speed=(31.0, 31.0))
+    as_int = ll.LateralBox(*(boxes._fields()[:5]), (np.full(4, 31), np.full(4, 32)),
+                           boxes.curvature)
+    as_float = ll.LateralBox(*(boxes._fields()[:5]), (np.full(4, 31.0), np.full(4, 32.0)),
+                             boxes.curvature)
+    a, b = ll.period_bound(safeil, as_int), ll.period_bound(safeil, as_float)
+    assert a.ok.tolist() == b.ok.tolist() and b.ok.all()
+    for f in ll.STATE:
+        assert np.array_equal(getattr(a.final, f)[0], getattr(b.final, f)[0])
