@@ -109,3 +109,22 @@ def steady_turn(v, curvature, vehicle=veh.VehicleParams()):
     vy = (a22 * b1 - a12 * b2) * r / (a11 * b2 - a21 * b1)
     delta = -(a11 * vy + a12 * r) / b1
     return delta, vy, r
+
+
+def logged_lateral_states(log, spec, vehicle=veh.VehicleParams()):
+    """The lateral state of every row of a closed-loop log on a circular test track
+    (:class:`safeil_sumo.roads.track.TrackSpec` ``spec``, the ego lane's centre a circle of
+    radius ``spec.radius_m`` about ``(run_in_m, road_radius_m)``), as the lateral bound reads
+    it: a dict of arrays ``(rows,)`` ``e_y`` (front bumper's offset from the exact circle) [m],
+    ``e_psi`` [rad], ``steer`` (the plant's road-wheel angle) [rad], ``vy`` [m/s], ``r``
+    [rad/s], ``v`` (the plant's longitudinal speed, from the logged speed ``hypot(vx, vy)``)
+    [m/s] and ``curvature`` [1/m]."""
+    k = 1.0 / spec.radius_m
+    # lane_pose's circle is about (0, 1 / k): the track's, shifted
+    x = log["x"].to_numpy() - spec.run_in_m
+    y = log["y"].to_numpy() - (spec.road_radius_m - spec.radius_m)
+    e_y, e_psi = lane_pose(x, y, log["yaw"].to_numpy(), np.full(len(x), k), vehicle)
+    vy = log["vy"].to_numpy()
+    return {"e_y": e_y, "e_psi": e_psi, "steer": log["steer"].to_numpy(), "vy": vy,
+            "r": log["yaw_rate"].to_numpy(), "v": np.sqrt(log["v"].to_numpy() ** 2 - vy * vy),
+            "curvature": np.full(len(x), k)}

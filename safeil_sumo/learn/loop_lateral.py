@@ -582,6 +582,9 @@ def period_bound(policy: MLPPolicy, box: LateralBox, a: LateralAssumptions = Lat
     in chunks of ``chunk`` boxes."""
     if policy.lateral_mode != "lane" or policy.residual_times is None:
         raise ValueError(f"{policy.name}: the lateral bound needs the lane head and residual x")
+    # floats: integer bounds (speeds given as whole numbers) would make the working arrays
+    # (np.zeros_like of them) integers and truncate
+    box = LateralBox(*((np.asarray(x[0], float), np.asarray(x[1], float)) for x in box._fields()))
     parts_out = [_period(policy, box.take(slice(i, i + chunk)), a, parts)
                  for i in range(0, len(box), chunk)]
     cat = lambda xs: (np.concatenate([x[0] for x in xs]), np.concatenate([x[1] for x in xs]))
