@@ -200,7 +200,7 @@ def checkpoint_style(est, default_s: float) -> dict[str, float]:
 
     if not est.samples:
         return {"time_gap_s": float(default_s)}
-    s0, t_gap = bounded_style(est, STANDSTILL_RANGE_M, (0.05, 10.0))
+    s0, t_gap = bounded_style(est, STANDSTILL_RANGE_M, (0.05, 10.0))  # a T set_style takes
     return {"time_gap_s": t_gap, STANDSTILL_NAME: s0}
 
 
