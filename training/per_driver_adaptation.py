@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import glob
 import sys
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
@@ -32,6 +33,7 @@ import pandas as pd
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "training"))
 
+from safeil_sumo.data.sources import driver_of
 from safeil_sumo.experiments.window_replays import driver_id
 
 HINDSIGHT = "hindsight best setting"
@@ -46,11 +48,11 @@ def label_of(policy: str) -> str:
     return {"safeil.safetensors": "safeil", "idm.json": "idm"}.get(name, policy)
 
 
-def look_rows(look_s: float, folders: list[Path]) -> pd.DataFrame:
+def look_rows(look_s: float, folders: list[Path], driver=driver_id) -> pd.DataFrame:
     """One look's scored maneuvers (of the ``windows.csv`` of every folder of ``folders``, e.g.
     one per fold): ``maneuver_id, driver, look_s, planner, gap_rmse_m`` (windows that failed,
     and maneuvers whose replay broke for every planner (gap RMSE above 1 km: an instrument
-    failure of that window), left out)."""
+    failure of that window), left out). ``driver``: a maneuver id's driver."""
     if not folders:
         raise SystemExit(f"no replay folder for the look of {look_s:g} s")
     w = pd.concat([pd.read_csv(f / "windows.csv") for f in folders], ignore_index=True)
@@ -58,18 +60,18 @@ def look_rows(look_s: float, folders: list[Path]) -> pd.DataFrame:
     broken = w.groupby("maneuver_id")["rmse_gap"].min() > 1e3
     w = w[~w["maneuver_id"].isin(broken[broken].index)]
     return pd.DataFrame({"maneuver_id": w["maneuver_id"].astype(str),
-                         "driver": [driver_id(m) for m in w["maneuver_id"].astype(str)],
+                         "driver": [driver(m) for m in w["maneuver_id"].astype(str)],
                          "look_s": float(look_s), "planner": w["policy"].map(label_of),
                          "gap_rmse_m": w["rmse_gap"].to_numpy(float)})
 
 
-def hindsight_rows(bound: Path, look_s: float) -> pd.DataFrame:
+def hindsight_rows(bound: Path, look_s: float, driver=driver_id) -> pd.DataFrame:
     """The best setting per maneuver in hindsight (``settings.csv`` of adaptation_bound.py)
     as rows of :func:`look_rows`' shape."""
     s = pd.read_csv(bound / "settings.csv")
     best = s.groupby("maneuver_id")["gap_rmse_m"].min()
     return pd.DataFrame({"maneuver_id": best.index.astype(str),
-                         "driver": [driver_id(m) for m in best.index.astype(str)],
+                         "driver": [driver(m) for m in best.index.astype(str)],
                          "look_s": float(look_s), "planner": HINDSIGHT,
                          "gap_rmse_m": best.to_numpy(float)})
 
@@ -108,8 +110,10 @@ def markdown(table: pd.DataFrame, name: str) -> str:
                          f"for {int((d <= 0).sum())} of {int(d.notna().sum())} drivers.")
         if (s, "safeil") in wide.columns and (s, "idm") in wide.columns:
             d = wide[(s, "safeil")] - wide[(s, "idm")]
-            lines.append(f"After {s:g} s: adapted `safeil` at or below the equally adapted IDM "
-                         f"for {int((d <= 0).sum())} of {int(d.notna().sum())} drivers.")
+            which = "adapted `safeil` at or below the equally adapted IDM" if s else \
+                "unadapted `safeil` at or below the IDM"
+            lines.append(f"After {s:g} s: {which} for {int((d <= 0).sum())} of "
+                         f"{int(d.notna().sum())} drivers.")
     return "\n".join(lines) + "\n"
 
 
@@ -122,16 +126,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--bound-look-s", type=float, default=60.0,
                     help="the seconds --bound's replays left out (default 60)")
     ap.add_argument("--name", default="zalazone")
+    ap.add_argument("--source", default=None,
+                    help="the drivers as data.sources.driver_of names them for this source "
+                         "(openacc: the platoon position, zalazone: the car); default: the "
+                         "recording (window_replays.driver_id)")
     ap.add_argument("--out", type=Path, default=REPO / "results" / "per_driver")
     args = ap.parse_args(argv)
+    driver = driver_id if args.source is None else partial(driver_of, args.source)
     parts = []
     for item in args.looks:
         look, _, pattern = item.partition("=")
         folders = [Path(f) for f in sorted(glob.glob(pattern))
                    if (Path(f) / "windows.csv").is_file()]
-        parts.append(look_rows(float(look), folders))
+        parts.append(look_rows(float(look), folders, driver))
     if args.bound is not None:
-        parts.append(hindsight_rows(args.bound, args.bound_look_s))
+        parts.append(hindsight_rows(args.bound, args.bound_look_s, driver))
     table = per_driver(pd.concat(parts, ignore_index=True))
     args.out.mkdir(parents=True, exist_ok=True)
     table.to_csv(args.out / f"adaptation_{args.name}.csv", index=False)
