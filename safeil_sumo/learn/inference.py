@@ -95,7 +95,8 @@ class MLPPolicy:
         ``standstill_m=0`` is the one-number style."""
         from safeil_sumo.learn import style as st
 
-        extra = {st.STANDSTILL_NAME} if "time_gap_s" in self.style_names else set()
+        # the schedule replaces the one style input's bias row (_schedule_bias)
+        extra = {st.STANDSTILL_NAME} if self.style_names == ("time_gap_s",) else set()
         if not set(self.style_names) <= set(style) <= set(self.style_names) | extra:
             raise ValueError(f"{self.name}: style inputs are {list(self.style_names) or 'none'}"
                              f"{' (and ' + st.STANDSTILL_NAME + ')' if extra else ''}"
