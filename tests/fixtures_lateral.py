@@ -94,21 +94,18 @@ def real_lateral_period(policy, e_y, e_psi, steer, vy, r, v, curvature, width, l
                                                                                         right)
 
 
-def steady_turn(v, curvature, vehicle=veh.VehicleParams()):
-    """Road-wheel angle [rad], lateral speed [m/s] and yaw rate [rad/s] ``(N,)`` of the linear
-    single track turning steadily with ``curvature`` at speed ``v`` (arrays ``(N,)``)."""
-    p = vehicle
-    m, lf, lr, iz = p.mass_kg, p.lf_m, p.lr_m, p.yaw_inertia_kgm2
-    cf, cr = p.cornering_stiffness_front_npr, p.cornering_stiffness_rear_npr
-    r = v * curvature
-    # 0 = a11 vy + a12 r + b1 delta, 0 = a21 vy + a22 r + b2 delta
-    a11, a12 = -(cf + cr) / (m * v), -(lf * cf - lr * cr) / (m * v) - v
-    a21, a22 = -(lf * cf - lr * cr) / (iz * v), -(lf * lf * cf + lr * lr * cr) / (iz * v)
-    b1, b2 = cf / m, lf * cf / iz
-    # eliminate delta: (a11 b2 - a21 b1) vy = (a22 b1 - a12 b2) r
-    vy = (a22 * b1 - a12 * b2) * r / (a11 * b2 - a21 * b1)
-    delta = -(a11 * vy + a12 * r) / b1
-    return delta, vy, r
+def random_loop_inputs(rng, n: int, a, parts):
+    """The leader and actuator draws of a random period (arrays ``(n,)``; accelerations
+    ``(n, steps)``): lane width [m], leader speed [m/s] and gap [m], overriding accelerations
+    (30 % of the rows, else NaN) [m/s^2], PID integral [m], tyre force per mass [m/s^2]."""
+    width = rng.uniform(*a.lane_width_m, n)
+    lead = rng.uniform(0.0, 40.0, n)
+    gap = np.exp(rng.uniform(np.log(3.0), np.log(150.0), n))
+    accel = np.where(rng.random((n, 1)) < 0.3, rng.uniform(-9.0, 3.0, (n, a.steps_per_decision)),
+                     np.nan)
+    integral = rng.uniform(-1.0, 1.0, n) * parts.controller.integral_limit_m
+    force = rng.uniform(-9.0, 3.0, n)
+    return width, lead, gap, accel, integral, force
 
 
 def logged_lateral_states(log, spec, vehicle=veh.VehicleParams()):

@@ -181,7 +181,7 @@ def test_successors_hold_the_real_loop() -> None:
     overriding braking; seed 5), the camera fit, planner, pure pursuit and plant
     (tests/fixtures_lateral.py) end the period in a speed cell the successors check, inside the
     cells they name there (or beyond the grid's speeds, where the claim stops)."""
-    from fixtures_lateral import real_lateral_period
+    from fixtures_lateral import random_loop_inputs, real_lateral_period
 
     from safeil_sumo.learn.inference import load_policy
     from safeil_sumo.planners.registry import shipped_checkpoint
@@ -205,13 +205,7 @@ def test_successors_hold_the_real_loop() -> None:
     draw = {f: getattr(boxes, f)[0][idx] + rng.random(n) * (getattr(boxes, f)[1][idx]
                                                              - getattr(boxes, f)[0][idx])
             for f in fields}
-    width = rng.uniform(*a.lane_width_m, n)
-    lead = rng.uniform(0.0, 40.0, n)
-    gap = np.exp(rng.uniform(np.log(3.0), np.log(150.0), n))
-    accel = np.where(rng.random((n, 1)) < 0.3, rng.uniform(-9.0, 3.0, (n, a.steps_per_decision)),
-                     np.nan)
-    integral = rng.uniform(-1.0, 1.0, n) * parts.controller.integral_limit_m
-    force = rng.uniform(-9.0, 3.0, n)
+    width, lead, gap, accel, integral, force = random_loop_inputs(rng, n, a, parts)
     final, _, _ = real_lateral_period(policy, *(draw[f] for f in fields), width, lead, gap,
                                       integral, force, accel, a, parts)
     lateral = np.stack(final[:5], 1)

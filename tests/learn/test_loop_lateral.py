@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fixtures_lateral import real_lateral_period, steady_turn
+from fixtures_lateral import random_loop_inputs, real_lateral_period
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safeil_sumo.learn import loop_lateral as ll
 from safeil_sumo.learn.inference import load_policy
+from safeil_sumo.learn.lateral_invariant import steady_turn
 from safeil_sumo.planners.registry import shipped_checkpoint
 
 FIELDS = (*ll.STATE, "curvature")
@@ -64,14 +65,8 @@ def test_period_bound_contains_the_real_loop(safeil) -> None:
     draw = {f: getattr(boxes, f)[0][idx] + rng.random(n) * (getattr(boxes, f)[1][idx]
                                                              - getattr(boxes, f)[0][idx])
             for f in FIELDS}
-    width = rng.uniform(*a.lane_width_m, n)
+    width, lead, gap, accel, integral, force = random_loop_inputs(rng, n, a, parts)
     width[rng.random(n) < 0.2] = a.lane_width_m[0]
-    lead = rng.uniform(0.0, 40.0, n)
-    gap = np.exp(rng.uniform(np.log(3.0), np.log(150.0), n))
-    accel = np.where(rng.random((n, 1)) < 0.3, rng.uniform(-9.0, 3.0, (n, a.steps_per_decision)),
-                     np.nan)
-    integral = rng.uniform(-1.0, 1.0, n) * parts.controller.integral_limit_m
-    force = rng.uniform(-9.0, 3.0, n)
     final, path, (left, right) = real_lateral_period(
         safeil, *(draw[f] for f in FIELDS), width, lead, gap, integral, force, accel, a, parts)
     # the camera error the bound assumes
