@@ -78,6 +78,24 @@ def test_adaptation_bound_summary_by_hand() -> None:
     assert "a: 1 / 1.20, nan" in text and "b: 2 / 1.40, nan" in text
     lined = bound.summary(settings, adapted.assign(standstill_m=[-5.0, 2.5]))
     assert "a: 1 / 1.20, -5.0" in lined and "b: 2 / 1.40, 2.5" in lined
+    assert "two numbers" not in lined  # one standstill distance: no second oracle
+
+
+def test_adaptation_bound_two_number_oracle_by_hand() -> None:
+    """With standstill distances besides 0, the one-number oracle keeps to s0 = 0 and the
+    two-number oracle takes each maneuver's best (T, s0) of the whole grid."""
+    bound = load_training_script("adaptation_bound")
+    settings = pd.DataFrame({
+        "maneuver_id": ["a", "a", "a", "b", "b", "b"],
+        "time_gap_s": [1.0, 2.0, 1.0, 1.0, 2.0, 2.0],
+        "standstill_m": [0.0, 0.0, 10.0, 0.0, 0.0, -10.0],
+        "gap_rmse_m": [4.0, 10.0, 1.0, 9.0, 3.0, 5.0]})
+    adapted = pd.DataFrame({"maneuver_id": ["a", "b"], "gap_rmse_m": [5.0, 8.0],
+                            "time_gap_s": [1.2, 1.4]})
+    text = bound.summary(settings, adapted)
+    assert "in hindsight): mean 3.50, median 3.50" in text  # min(4, 10), min(9, 3): s0 = 0
+    assert "per maneuver, in hindsight): mean 2.00, median 2.00" in text  # min(1, ...), 3
+    assert "a (1, 10), b (2, 0)" in text
 
 
 def test_adaptation_curve_by_hand() -> None:
@@ -253,9 +271,32 @@ def test_per_driver_adaptation_by_hand(tmp_path) -> None:
     assert t.loc[(f2, 2.0, "idm"), "gap_rmse_mean_m"] == 4.0
     assert t.loc[(f2, 2.0, "safeil"), "maneuvers"] == 2
     assert t.loc[(f2, 60.0, pda.HINDSIGHT), "gap_rmse_mean_m"] == 1.0  # (1.5 + 0.5) / 2
+    assert (f2, 60.0, pda.HINDSIGHT_LINE) not in t.index  # a one-number grid
     assert t.loc[(f2, 60.0, "safeil_unadapted"), "gap_rmse_mean_m"] == 9.0
     assert t.loc[("JRC-VC_280219_part3_f3", 2.0, "safeil"), "gap_rmse_mean_m"] == 5.0
     drivers = set(t.index.get_level_values("driver"))
     assert drivers == {f2, "JRC-VC_280219_part3_f3"}  # f4 broke, f5 failed
     text = (tmp_path / "adaptation_t.md").read_text()
     assert "After 60 s: adapted `safeil` at or below its unadapted default for 1 of 1" in text
+
+
+def test_per_driver_two_number_hindsight_by_hand(tmp_path) -> None:
+    """A grid over both numbers gives a second hindsight column: each maneuver's best (T, s0);
+    the one-number column keeps to s0 = 0."""
+    pda = load_training_script("per_driver_adaptation")
+    a, b = "JRC-VC_280219_part2_f2#0", "JRC-VC_280219_part2_f2_s1#0"
+    look = tmp_path / "look60"
+    look.mkdir()
+    pd.DataFrame([(a, "safeil", 3.0, "ok")], columns=["maneuver_id", "policy", "rmse_gap",
+                                                     "status"]).to_csv(look / "windows.csv")
+    bound = tmp_path / "bound"
+    bound.mkdir()
+    pd.DataFrame({"maneuver_id": [a, a, b, b], "time_gap_s": [1.0, 1.0, 1.0, 1.5],
+                  "standstill_m": [0.0, 5.0, 0.0, -5.0],
+                  "gap_rmse_m": [2.5, 0.5, 1.5, 0.5]}).to_csv(bound / "settings.csv")
+    assert pda.main(["--looks", f"60={look}", "--bound", str(bound), "--name", "t",
+                     "--out", str(tmp_path)]) == 0
+    t = pd.read_csv(tmp_path / "adaptation_t.csv").set_index(["driver", "look_s", "planner"])
+    f2 = "JRC-VC_280219_part2_f2"
+    assert t.loc[(f2, 60.0, pda.HINDSIGHT), "gap_rmse_mean_m"] == 2.0  # (2.5 + 1.5) / 2
+    assert t.loc[(f2, 60.0, pda.HINDSIGHT_LINE), "gap_rmse_mean_m"] == 0.5

@@ -60,23 +60,29 @@ def _gap_rmse(record: dict) -> float:
 
 
 def grid_runs(rows: pd.DataFrame, maneuvers: list[str], label: int | str, grid: tuple[float, ...],
-              adapt_s: float, out: Path, workers: int, config: ReplayConfig
-              ) -> tuple[list[dict], list[dict]]:
+              adapt_s: float, out: Path, workers: int, config: ReplayConfig,
+              standstills: tuple[float, ...] = (0.0,)) -> tuple[list[dict], list[dict]]:
     """``maneuvers`` (at least ``adapt_s`` + 20 s long) replayed from ``adapt_s`` to their end
-    with the ``safeil`` of ``label`` (:func:`planner_of`) at each setting of ``grid``, and
-    adapted (the setting estimated on their first ``adapt_s``): gap RMSE per (maneuver,
-    setting), and per maneuver adapted; ``label`` in their ``fold`` column."""
+    with the ``safeil`` of ``label`` (:func:`planner_of`) at each style of ``grid`` (time gaps
+    [s]) x ``standstills`` (standstill distances [m]; 0 is the one-number setting), and
+    adapted (the style estimated on their first ``adapt_s``): gap RMSE per (maneuver, time
+    gap, standstill), and per maneuver adapted; ``label`` in their ``fold`` column."""
     policy, tag = planner_of(label), _folder(label)
     adapted = ra.windows(rows, "whole", None, 20.0, maneuvers, adapt_s)
     # the same span, from adapt_s to the end, at a fixed setting
     plain = [ra.Window(w.maneuver_id, w.start_s, w.duration_s) for w in adapted]
     settings = []
-    for tg in grid:
-        recs = ra.replay_all(rows, plain, [str(policy)], out / tag / f"tg{tg:g}",
-                             replace(config, time_gap_s=tg), workers, progress=False)
-        settings += [{"fold": label, "maneuver_id": r["maneuver_id"], "time_gap_s": tg,
-                      "gap_rmse_m": _gap_rmse(r)} for r in recs]
-        print(f"{tag}: {tg:g} s done ({len(recs)} maneuvers)", flush=True)
+    for s0 in standstills:
+        for tg in grid:
+            # s0 = 0 is the one-number setting, in the folder the one-number grid always used
+            folder, style = ((f"tg{tg:g}", replace(config, time_gap_s=tg)) if s0 == 0.0 else
+                             (f"tg{tg:g}_s0{s0:g}",
+                              replace(config, time_gap_s=tg, standstill_m=s0)))
+            recs = ra.replay_all(rows, plain, [str(policy)], out / tag / folder, style, workers,
+                                 progress=False)
+            settings += [{"fold": label, "maneuver_id": r["maneuver_id"], "time_gap_s": tg,
+                          "standstill_m": s0, "gap_rmse_m": _gap_rmse(r)} for r in recs]
+            print(f"{tag}: {tg:g} s, {s0:g} m done ({len(recs)} maneuvers)", flush=True)
     recs = ra.replay_all(rows, adapted, [str(policy)], out / tag / "adapted", config, workers,
                          progress=False)
     styles = [(r.get("adapted") or {}).get(str(policy), {}) for r in recs]
@@ -88,14 +94,15 @@ def grid_runs(rows: pd.DataFrame, maneuvers: list[str], label: int | str, grid: 
 
 
 def fold_runs(k: int, rows: pd.DataFrame, grid: tuple[float, ...], adapt_s: float,
-              out: Path, workers: int) -> tuple[list[dict], list[dict]]:
+              out: Path, workers: int, standstills: tuple[float, ...] = (0.0,)
+              ) -> tuple[list[dict], list[dict]]:
     """Fold ``k``'s left-out OpenACC maneuvers with the fold's ``safeil``: :func:`grid_runs`."""
     policy = planner_of(k)
     if not policy.is_file():
         raise SystemExit(f"{policy} is missing: run training/leave_one_driver_out.py first")
     drivers = set(json.loads((policy.parent / "drivers.json").read_text()))
     held = lodo.held_out_maneuvers(drivers)["openacc"]
-    return grid_runs(rows, held, k, grid, adapt_s, out, workers, ReplayConfig())
+    return grid_runs(rows, held, k, grid, adapt_s, out, workers, ReplayConfig(), standstills)
 
 
 SHIPPED = "shipped"  # the label of runs with the shipped safeil (ZalaZone: unseen by it)
@@ -114,8 +121,16 @@ def _folder(label: int | str) -> str:
     return SHIPPED if str(label) == SHIPPED else f"fold{int(label)}"
 
 
+def one_number(settings: pd.DataFrame) -> pd.DataFrame:
+    """The rows of ``settings`` at the one-number setting (standstill distance 0; tables of
+    runs before the second number have no such column)."""
+    return (settings if "standstill_m" not in settings
+            else settings[settings["standstill_m"] == 0.0])
+
+
 def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
-    table = settings.pivot_table(index="maneuver_id", columns="time_gap_s", values="gap_rmse_m")
+    table = one_number(settings).pivot_table(index="maneuver_id", columns="time_gap_s",
+                                             values="gap_rmse_m")
     best = table.idxmin(axis=1)
     oracle = table.min(axis=1)
     by_setting = table.mean()
@@ -125,6 +140,7 @@ def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
          f"median {oracle.median():.2f}"),
         (f"  adapted (setting estimated on the first seconds): mean "
          f"{adapted['gap_rmse_m'].mean():.2f}, median {adapted['gap_rmse_m'].median():.2f}"),
+        *two_number_lines(settings),
         "  one setting for every maneuver: " + ", ".join(
             f"{tg:g} s {v:.2f}" for tg, v in by_setting.items()),
         "  per maneuver: best setting [s] / estimated style, T [s] and s0 [m]:"]
@@ -133,6 +149,20 @@ def summary(settings: pd.DataFrame, adapted: pd.DataFrame) -> str:
     lines += [f"    {m}: {best[m]:g} / {est['time_gap_s'].get(m, np.nan):.2f}, "
               f"{s0.get(m, np.nan):.1f}" for m in table.index]
     return "\n".join(lines)
+
+
+def two_number_lines(settings: pd.DataFrame) -> list[str]:
+    """The summary's lines on the best (time gap, standstill) per maneuver in hindsight, if
+    ``settings`` holds more than one standstill distance."""
+    if "standstill_m" not in settings or settings["standstill_m"].nunique() < 2:
+        return []
+    best = settings.loc[settings.groupby("maneuver_id")["gap_rmse_m"].idxmin()]
+    return [(f"  oracle of two numbers (best time gap and standstill per maneuver, in "
+             f"hindsight): mean {best['gap_rmse_m'].mean():.2f}, median "
+             f"{best['gap_rmse_m'].median():.2f}"),
+            "    best (T [s], s0 [m]) per maneuver: " + ", ".join(
+                f"{r.maneuver_id} ({r.time_gap_s:g}, {r.standstill_m:g})"
+                for r in best.itertuples())]
 
 
 def setting_from_first(rows: pd.DataFrame, seconds: float, default_s: float) -> float:
@@ -157,7 +187,8 @@ def adaptation_curve(rows: pd.DataFrame, settings: pd.DataFrame, defaults: dict[
     estimated from that many first seconds, read off each maneuver's grid of replays
     (:func:`read_off`); mean and median over the maneuvers. ``defaults``: each maneuver's
     planner's default setting [s]."""
-    table = settings.pivot_table(index="maneuver_id", columns="time_gap_s", values="gap_rmse_m")
+    table = one_number(settings).pivot_table(index="maneuver_id", columns="time_gap_s",
+                                             values="gap_rmse_m")
     out = []
     for seconds in observed:
         errors = np.array([read_off(table.loc[m], setting_from_first(
@@ -183,6 +214,9 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--grid", type=float, nargs="+", default=list(GRID_S), metavar="S",
                    help="time-gap settings to try [s]")
+    p.add_argument("--standstill-grid", type=float, nargs="+", default=[0.0], metavar="M",
+                   help="standstill distances [m] tried with every time gap of --grid (the "
+                   "style is the line s0 + T v; default 0: the one-number setting)")
     p.add_argument("--adapt-first-s", type=float, default=lodo.ADAPT_S, metavar="S",
                    help="seconds left out of the score (adapted on) (default %(default)s)")
     p.add_argument("--source", choices=("openacc", "zalazone"), default="openacc",
@@ -207,13 +241,13 @@ def main(argv: list[str] | None = None) -> int:
         lane = replace(lane, loop=replace(lane.loop, lateral="lane"))
         settings, adapted = grid_runs(rows, sorted(rows["maneuver_id"].unique()), SHIPPED,
                                       tuple(args.grid), args.adapt_first_s, args.out,
-                                      args.workers, lane)
+                                      args.workers, lane, tuple(args.standstill_grid))
         settings_df, adapted_df = pd.DataFrame(settings), pd.DataFrame(adapted)
     else:
         settings, adapted = [], []
         for k in range(args.folds):
             s, a = fold_runs(k, rows, tuple(args.grid), args.adapt_first_s, args.out,
-                             args.workers)
+                             args.workers, tuple(args.standstill_grid))
             settings += s
             adapted += a
             print(f"fold {k}: {len(a)} maneuvers", flush=True)

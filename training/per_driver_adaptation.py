@@ -37,8 +37,9 @@ from safeil_sumo.data.sources import driver_of
 from safeil_sumo.experiments.window_replays import driver_id
 
 HINDSIGHT = "hindsight best setting"
+HINDSIGHT_LINE = "hindsight best (T, s0)"  # of a grid over both numbers
 # the columns of the markdown, in order (a label missing from the replays is left out)
-SHOWN = ("safeil", "safeil_unadapted", "idm", HINDSIGHT)
+SHOWN = ("safeil", "safeil_unadapted", "idm", HINDSIGHT, HINDSIGHT_LINE)
 
 
 def label_of(policy: str) -> str:
@@ -67,13 +68,22 @@ def look_rows(look_s: float, folders: list[Path], driver=driver_id) -> pd.DataFr
 
 def hindsight_rows(bound: Path, look_s: float, driver=driver_id) -> pd.DataFrame:
     """The best setting per maneuver in hindsight (``settings.csv`` of adaptation_bound.py)
-    as rows of :func:`look_rows`' shape."""
+    as rows of :func:`look_rows`' shape: of the one-number settings (standstill 0), and, if
+    the grid tried other standstill distances, of both numbers (:data:`HINDSIGHT_LINE`)."""
     s = pd.read_csv(bound / "settings.csv")
-    best = s.groupby("maneuver_id")["gap_rmse_m"].min()
-    return pd.DataFrame({"maneuver_id": best.index.astype(str),
-                         "driver": [driver(m) for m in best.index.astype(str)],
-                         "look_s": float(look_s), "planner": HINDSIGHT,
-                         "gap_rmse_m": best.to_numpy(float)})
+    if "standstill_m" not in s:
+        s["standstill_m"] = 0.0
+    kinds = [(HINDSIGHT, s[s["standstill_m"] == 0.0])]
+    if s["standstill_m"].nunique() > 1:
+        kinds.append((HINDSIGHT_LINE, s))
+    parts = []
+    for planner, rows in kinds:
+        best = rows.groupby("maneuver_id")["gap_rmse_m"].min()
+        parts.append(pd.DataFrame({"maneuver_id": best.index.astype(str),
+                                   "driver": [driver(m) for m in best.index.astype(str)],
+                                   "look_s": float(look_s), "planner": planner,
+                                   "gap_rmse_m": best.to_numpy(float)}))
+    return pd.concat(parts, ignore_index=True)
 
 
 def per_driver(rows: pd.DataFrame) -> pd.DataFrame:
