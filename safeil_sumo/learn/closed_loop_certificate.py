@@ -380,7 +380,8 @@ def read_arrays(path: str | Path) -> dict[str, np.ndarray]:
 def settings_of(body: dict) -> ClosedLoopSettings:
     """The :class:`ClosedLoopSettings` a certificate records."""
     a = body["assumptions"]
-    loop = {k: tuple(v) if isinstance(v, list) else v for k, v in a["loop"].items()}
+    loop: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v
+                            for k, v in a["loop"].items()}
     grid = {k: tuple(v) for k, v in a["grid"].items() if k != "shape"}
     return ClosedLoopSettings(tuple(a["time_gap_s"]), bool(a["brake_guard"]), li.Grid(**grid),
                               li.LoopAssumptions(**loop),
