@@ -14,6 +14,21 @@ and writes a certificate JSON next to the checkpoint (shipped models: into ``--o
 ``runs/certify_<name>/``). ``--check`` reports whether the checkpoint has a valid certificate
 (exit 0 if so, 1 if not): the one in ``--out`` if given, else the one beside the checkpoint
 (``safeil`` ships its own), else ``runs/certify_<name>/``. See docs/certification.md.
+
+    python -m safeil_sumo.certify --policy safeil --closed-loop [--time-gap-s T |
+        --time-gap-range-s LO HI] [--no-brake-guard] [--search-s S] [--cells G V VL F]
+
+``--closed-loop`` checks a barrier certificate of the longitudinal closed loop (planner, PI
+tracker, brake guard unless ``--no-brake-guard``, plant; learn/loop_barrier.py): every grid
+cell's change over one decision period bounded, then the gap floor checked, the recoverable
+envelope's lower boundary (with ``--search-s S``: the last floor a search of S seconds finds).
+Prints the verdict (proven only if every column passes), S's share of the recoverable envelope
+(0 unless proven), the failing columns and their deficits, the worst failing cells as states
+with their reason, and writes ``<name>.closed_loop_certificate.json`` and the floor's
+``.safetensors`` where the one-plan certificate goes. ``--cells`` sets the cell widths (gap,
+ego speed, leader speed, force; default 1.5 0.5 0.5 1.5). ``--closed-loop --check`` reports
+whether the checkpoint has a valid closed-loop certificate that proves invariance (exit 0 only
+then).
 """
 
 from __future__ import annotations
@@ -30,6 +45,8 @@ from safeil_sumo.cli_args import (
     nonnegative_int,
     one_policy,
 )
+from safeil_sumo.learn import closed_loop_certificate as clc
+from safeil_sumo.learn import loop_invariant as li
 from safeil_sumo.learn.branch_and_bound import (
     Budget,
     CertEnvelope,
@@ -52,17 +69,20 @@ def build_parser() -> CommandParser:
                    help="certify a style-conditioned checkpoint over this range of its time-gap "
                         "setting [s] (an extra input dimension); default: at its default setting")
     p.rename(time_gap="--time-gap-range-s")
-    p.add_argument("--margins", nargs="+", choices=MARGINS, default=list(MARGINS),
+    p.add_argument("--margins", nargs="+", choices=MARGINS, default=None,
                    help="the margins to certify (default both; the budget is shared equally)")
-    p.add_argument("--budget-s", type=finite_float, default=600.0,
+    p.add_argument("--budget-s", type=finite_float, default=None,
                    help="wall-time budget for all margins [s] (default 600)")
     p.add_argument("--max-boxes", type=nonnegative_int, default=None,
                    help="box budget for all margins (reproducible across machines)")
-    p.add_argument("--batch", type=nonnegative_int, default=512, help="boxes bounded together")
-    p.add_argument("--seed", type=int, default=0, help="seeds the counterexample search")
-    p.add_argument("--cex-min-share", type=finite_float, default=Budget.cex_min_share,
+    p.add_argument("--batch", type=nonnegative_int, default=None,
+                   help="boxes bounded together (default 512)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seeds the counterexample search (default 0)")
+    p.add_argument("--cex-min-share", type=finite_float, default=None,
                    help="split a box holding a counterexample only while its share of the "
                         f"envelope exceeds this (default {Budget.cex_min_share:g})")
+    add_closed_loop_options(p)
     p.add_argument("--out", type=Path, default=None,
                    help="folder for the certificate (default: next to the checkpoint; "
                         "runs/certify_<name>/ for a shipped model)")
@@ -74,10 +94,55 @@ def build_parser() -> CommandParser:
     return p
 
 
+def add_closed_loop_options(p: CommandParser) -> None:
+    """``--closed-loop`` and the options only it reads."""
+    p.add_argument("--closed-loop", action="store_true",
+                   help="check a barrier certificate of the longitudinal closed loop instead "
+                        "(planner, PI tracker, brake guard, plant; docs/certification.md)")
+    p.add_argument("--time-gap-s", type=finite_float, default=None, metavar="T",
+                   help="--closed-loop: at this time-gap setting [s] (default: the "
+                        "checkpoint's default setting)")
+    p.add_switch("--brake-guard", default=None,
+                 help="--closed-loop: the brake guard in the loop (default on)")
+    p.add_argument("--search-s", type=finite_float, default=None, metavar="S",
+                   help="--closed-loop: search a floor for this long [s] and check its last "
+                        "(default 0: check the recoverable envelope's lower boundary)")
+    p.add_argument("--cells", type=finite_float, nargs=4, default=None,
+                   metavar=("GAP_M", "SPEED_MPS", "LEADER_MPS", "FORCE_MPS2"),
+                   help="--closed-loop: cell widths of gap, ego speed, leader speed and force "
+                        "over 1-151 m, 0-50 m/s, 0-40 m/s, -9-3 m/s^2 (default 1.5 0.5 0.5 "
+                        "1.5)")
+
+
+ONE_PLAN_ONLY = {"margins": "--margins", "budget_s": "--budget-s", "max_boxes": "--max-boxes",
+                 "batch": "--batch", "seed": "--seed", "cex_min_share": "--cex-min-share"}
+CLOSED_LOOP_ONLY = {"time_gap_s": "--time-gap-s", "brake_guard": "--brake-guard/--no-brake-guard",
+                    "search_s": "--search-s", "cells": "--cells"}
+ONE_PLAN_DEFAULTS = {"margins": list(MARGINS), "budget_s": 600.0, "batch": 512, "seed": 0,
+                     "cex_min_share": Budget.cex_min_share}
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = build_parser()
     args = p.parse_args(argv)
     args.policy = one_policy(p, args, "certify each network in turn")
+    given = {k for k in (*ONE_PLAN_ONLY, *CLOSED_LOOP_ONLY) if getattr(args, k) is not None}
+    if args.closed_loop:
+        wrong = [ONE_PLAN_ONLY[k] for k in ONE_PLAN_ONLY if k in given]
+        if wrong:
+            p.error(f"{', '.join(wrong)} certif{'ies' if len(wrong) == 1 else 'y'} one plan: "
+                    "not with --closed-loop")
+        if args.time_gap_s is not None and args.time_gap_range_s is not None:
+            p.error("use either --time-gap-s (one setting) or --time-gap-range-s LO HI")
+        if args.search_s is not None and args.search_s < 0:
+            p.error(f"--search-s must be >= 0 s, got {args.search_s:g}")
+        return args
+    wrong = [CLOSED_LOOP_ONLY[k] for k in CLOSED_LOOP_ONLY if k in given]
+    if wrong:
+        p.error(f"{', '.join(wrong)} only with --closed-loop")
+    for k, default in ONE_PLAN_DEFAULTS.items():
+        if getattr(args, k) is None:
+            setattr(args, k, default)
     return args
 
 
@@ -114,40 +179,143 @@ def print_result(r: CertifyResult) -> None:
             print(f"unproven {m.margin} volume by quarter of range: {where}")
 
 
+def default_out(args: argparse.Namespace, shipped: bool) -> Path | None:
+    """Where certificates go: ``--out``, else ``runs/certify_<name>/`` for a shipped model,
+    else (None) next to the checkpoint."""
+    if args.out is not None:
+        return args.out
+    return Path("runs") / f"certify_{args.policy}" if shipped else None
+
+
+def check_path(args: argparse.Namespace, path: Path, out: Path | None,
+               beside: Path) -> Path | None:
+    """The certificate ``--check`` reads: a given file; else in ``--out``; else next to the
+    checkpoint (``beside``, where a shipped model's own certificate is shipped), for a shipped
+    model without one there in runs/ (``out``); None: the default beside the checkpoint."""
+    if args.check:
+        return Path(args.check)
+    if out is not None and (args.out is not None or not beside.is_file()):
+        return out / beside.name
+    return None
+
+
+def check_one_plan(args: argparse.Namespace, path: Path, out: Path | None) -> int:
+    status = load_certificate(path, check_path(args, path, out, certificate_path(path)))
+    shares = ", ".join(f"{k} {v:.4%}" for k, v in status.certified.items())
+    print(f"{status.path}: {'valid' if status.valid else 'INVALID'} ({status.reason})"
+          + (f"; certified {shares}" + (" (complete)" if status.complete else "")
+             if status.certified else ""))
+    return 0 if status.valid else 1
+
+
+def certify_one_plan(args: argparse.Namespace, policy: MLPPolicy, path: Path,
+                     out: Path | None) -> int:
+    env = CertEnvelope(time_gap_s=tuple(args.time_gap_range_s) if args.time_gap_range_s
+                       else None)
+    budget = Budget(seconds=args.budget_s, boxes=args.max_boxes, batch=max(args.batch, 1),
+                    seed=args.seed, cex_min_share=args.cex_min_share)
+    result = certify(policy, env, budget=budget, margins=tuple(args.margins),
+                     progress=not args.no_progress)
+    print_result(result)
+    written = write_certificate(result, path, out)
+    print(f"certificate: {written}")
+    return 0
+
+
 @interruptible
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         policy, path, shipped = resolve(args.policy)
-        out = args.out if args.out is not None else (
-            Path("runs") / f"certify_{args.policy}" if shipped else None)
+        out = default_out(args, shipped)
+        if args.closed_loop:
+            if args.check is not None:
+                return check_closed_loop(args, path, out)
+            return certify_closed_loop(args, policy, path, out)
         if args.check is not None:
-            # a given file; else in --out; else next to the checkpoint (where a shipped model's
-            # own certificate is shipped), for a shipped model without one in runs/
-            cert = None
-            if args.check:
-                cert = Path(args.check)
-            elif out is not None and (args.out is not None or not certificate_path(path).is_file()):
-                cert = certificate_path(path, out)
-            status = load_certificate(path, cert)
-            shares = ", ".join(f"{k} {v:.4%}" for k, v in status.certified.items())
-            print(f"{status.path}: {'valid' if status.valid else 'INVALID'} ({status.reason})"
-                  + (f"; certified {shares}" + (" (complete)" if status.complete else "")
-                     if status.certified else ""))
-            return 0 if status.valid else 1
-        env = CertEnvelope(time_gap_s=tuple(args.time_gap_range_s) if args.time_gap_range_s
-                           else None)
-        budget = Budget(seconds=args.budget_s, boxes=args.max_boxes, batch=max(args.batch, 1),
-                        seed=args.seed, cex_min_share=args.cex_min_share)
-        result = certify(policy, env, budget=budget, margins=tuple(args.margins),
-                         progress=not args.no_progress)
-    except (CertifyError, pol.PolicyError) as exc:
+            return check_one_plan(args, path, out)
+        return certify_one_plan(args, policy, path, out)
+    except (CertifyError, pol.PolicyError, clc.ClosedLoopError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print_result(result)
-    written = write_certificate(result, path, out)
-    print(f"certificate: {written}")
+
+
+# ------------------------------------------------------------------ --closed-loop
+
+
+def closed_loop_settings(args: argparse.Namespace, policy: MLPPolicy) -> clc.ClosedLoopSettings:
+    """The settings the options ask for (the time gap by default the checkpoint's own)."""
+    if args.time_gap_range_s is not None:
+        time_gap = (args.time_gap_range_s[0], args.time_gap_range_s[1])
+    elif args.time_gap_s is not None:
+        time_gap = (args.time_gap_s, args.time_gap_s)
+    elif "time_gap_s" in policy.style:
+        time_gap = (policy.style["time_gap_s"], policy.style["time_gap_s"])
+    else:
+        raise clc.ClosedLoopError(f"{policy.name} has no time-gap input: the closed-loop bounds "
+                                  "need a style-conditioned two-tower checkpoint")
+    grid = clc.grid_with_widths(tuple(args.cells)) if args.cells is not None else li.Grid()
+    return clc.ClosedLoopSettings(time_gap, args.brake_guard is not False, grid,
+                                  search_s=args.search_s or 0.0)
+
+
+def certify_closed_loop(args: argparse.Namespace, policy: MLPPolicy, path: Path,
+                        out: Path | None) -> int:
+    settings = closed_loop_settings(args, policy)
+    try:
+        result = clc.run(policy, settings, progress=not args.no_progress)
+    except ValueError as exc:  # a checkpoint the bounds do not cover: they say why
+        raise clc.ClosedLoopError(str(exc)) from None
+    print_closed_loop(result)
+    written = clc.write(result, path, out)
+    floor = clc.certificate_path(path, out, clc.FLOOR_SUFFIX)
+    print(f"certificate: {written} (the floor: {floor})")
     return 0
+
+
+def check_closed_loop(args: argparse.Namespace, path: Path, out: Path | None) -> int:
+    status = clc.load(path, check_path(args, path, out, clc.certificate_path(path)))
+    said = ""
+    if status.certificate is not None:
+        c = status.certificate
+        said = (f"; {c['verdict']}: {c['failing_columns']:,} of {c['columns']:,} columns fail, "
+                f"S {c['share_of_recoverable_envelope']:.4%} of the recoverable envelope")
+    print(f"{status.path}: {'valid' if status.valid else 'INVALID'} ({status.reason}){said}")
+    return 0 if status.proven else 1
+
+
+def _span(lo_hi: list[float], unit: str) -> str:
+    return f"{lo_hi[0]:g}-{lo_hi[1]:g} {unit}"
+
+
+def print_closed_loop(r: clc.ClosedLoopResult) -> None:
+    s = r.settings
+    (g0, g1, gw), (_, _, vw), (_, _, lw), (_, _, fw) = (s.grid.gap_m, s.grid.speed_mps,
+                                                        s.grid.leader_speed_mps, s.grid.force_mps2)
+    tg = s.time_gap_s
+    times = ", ".join(f"{k} {v:.0f} s" for k, v in r.seconds.items() if k != "total")
+    print(f"{r.policy} closed loop: time gap {tg[0]:g}" + (f"-{tg[1]:g}" if tg[1] != tg[0] else "")
+          + f" s, brake guard {'on' if s.guard else 'off'}, "
+          f"{' x '.join(map(str, s.grid.shape))} cells of {gw:g} m x {vw:g} m/s x {lw:g} m/s x "
+          f"{fw:g} m/s^2 (gap {g0:g}-{g1:g} m); {r.seconds['total']:.0f} s ({times})")
+    print(f"floor checked: {r.floor['source']}")
+    deficits = (f"; median / max deficit {r.deficit_median_m:.2f} / {r.deficit_max_m:.2f} m"
+                if r.deficit_max_m is not None else "")
+    unbounded = f", {r.unbounded_deficits:,} unbounded" if r.unbounded_deficits else ""
+    print(f"verdict: {r.verdict.upper()}: {r.failing_columns:,} of {r.columns:,} columns fail"
+          f"{unbounded}{deficits}")
+    print(f"S's share of the recoverable envelope: {r.share:.4%}"
+          + (f" ± {r.share_stderr:.4%}" if r.proven else
+             " (0: only a passing check proves anything)"))
+    for reason, n in sorted(r.failing_by_reason.items(), key=lambda kv: -kv[1]):
+        print(f"  {n:,} columns: {reason}")
+    if r.worst:
+        print("worst failing cells (where the proof fails):")
+    for c in r.worst[:5]:
+        d = "unbounded" if c["deficit_m"] is None else f"{c['deficit_m']:.2f} m"
+        print(f"  gap {_span(c['gap_m'], 'm')}, ego {_span(c['speed_mps'], 'm/s')}, leader "
+              f"{_span(c['leader_speed_mps'], 'm/s')}, force {_span(c['force_mps2'], 'm/s^2')}: "
+              f"deficit {d} (reason {c['reason']}: {c['reason_text']})")
 
 
 if __name__ == "__main__":
