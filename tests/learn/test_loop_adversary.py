@@ -170,7 +170,9 @@ def test_counterexamples_hold_in_sumo(safeil) -> None:
     for k in range(2):
         sc = dataclasses.replace(base, leader=_profile(BRAKE_NOW, vl[k], 10.0),
                                  ego_speed_mps=v[k], initial_gap_m=g[k])
-        log = api.run_scenarios([sc], safeil, LoopConfig(max_time_s=10.0,
-                                                         brake_guard=grd.BrakeGuard())).log
+        run = api.run_scenarios([sc], safeil, LoopConfig(max_time_s=10.0,
+                                                         brake_guard=grd.BrakeGuard()))
+        log = run.log
         assert log["gap"].min() < (0.0 if k == 0 else A.margin_m)
+        assert run.summary["end_reason"].iloc[0] == ("collision" if k == 0 else "timeout")
         assert log["gap"].min() == pytest.approx(rollout[k], abs=0.5)
