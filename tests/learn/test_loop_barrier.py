@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from fixtures_loop import real_period, real_run
 
 from safeil_sumo.learn import loop_barrier as lb
 from safeil_sumo.learn import loop_invariant as li
+from safeil_sumo.learn import loop_rollout as lr
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.planners.registry import shipped_checkpoint
 from safeil_sumo.sim import brake_guard as grd
@@ -119,8 +119,8 @@ def test_changes_contain_the_real_loop(safeil, guard_on: bool) -> None:
     cell = tuple(rng.integers(0, k, n) for k in SMALL.shape)
     x = [e[c] + rng.random(n) * (e[1] - e[0]) for e, c in zip(axes, cell, strict=True)]
     lane, sensing, leader, integral, a_est = _draws(rng, n, a, parts)
-    got = real_period(safeil, *x, lane, rng.uniform(*time_gap), integral, leader, sensing,
-                      a_est, guard_on, a, li.LoopParts())
+    got = lr.one_period(safeil, *x, lane, rng.uniform(*time_gap), integral, leader, sensing,
+                        a_est, guard_on, a, li.LoopParts())
     for k, name in enumerate(("gap", "speed", "leader speed", "force")):
         change = got[k] - x[k]
         lo, hi = inc.lo[(k, *cell)], inc.hi[(k, *cell)]
@@ -165,8 +165,8 @@ def test_the_real_loop_keeps_h_on_passing_cells(safeil, guard_on: bool) -> None:
     x = [xi[inside] for xi in x]
     m = len(x[0])
     lane, sensing, leader, integral, a_est = _draws(rng, m, a, parts)
-    got = real_period(safeil, *x, lane, rng.uniform(*time_gap), integral, leader, sensing,
-                      a_est, guard_on, a, li.LoopParts())
+    got = lr.one_period(safeil, *x, lane, rng.uniform(*time_gap), integral, leader, sensing,
+                        a_est, guard_on, a, li.LoopParts())
     on_grid = ((got[1] >= axes[1][0]) & (got[1] <= axes[1][-1]) & (got[2] >= axes[2][0])
                & (got[2] <= axes[2][-1]))
     h_next = got[0] - lb.interpolate(phi, SMALL, got[1], got[2], got[3])
@@ -192,6 +192,6 @@ def test_the_real_loop_leaves_the_envelope(safeil, guard_on: bool, gap: float,
     parts = li.LoopParts()
     g = np.array([gap, gap + 6.0])
     assert np.all(li.recoverable(g, np.full(2, 30.0), np.full(2, 30.0), np.zeros(2), a))
-    low = real_run(safeil, g, np.full(2, 30.0), np.full(2, 30.0), np.zeros(2), 1.5, -6.0,
-                   np.array(sensing), guard_on, a, parts, 100)
+    low = lr.run(safeil, g, np.full(2, 30.0), np.full(2, 30.0), np.zeros(2), 1.5, -6.0,
+                 np.array(sensing), guard_on, a, parts, 100).g_min
     assert low[0] < a.margin_m <= low[1]

@@ -12,11 +12,11 @@ import math
 
 import numpy as np
 import pytest
-from fixtures_loop import real_period
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from safeil_sumo.learn import loop_invariant as li
+from safeil_sumo.learn import loop_rollout as lr
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.planners.registry import shipped_checkpoint
 from safeil_sumo.sim import brake_guard as grd
@@ -137,8 +137,8 @@ def test_period_image_contains_the_real_loop(safeil, guard_on: bool) -> None:
     leader[rng.random(n) < 0.3] = a.leader_accel_mps2[0]  # the extremes too
     integral = rng.uniform(-1, 1, n) * parts.controller.integral_limit_m
     a_est = -rng.uniform(0, grd.BrakeGuard().max_leader_decel_mps2, n)
-    got = real_period(safeil, g, v, vl, f, lane, rng.uniform(*time_gap), integral, leader,
-                       sensing, a_est, guard_on, a, li.LoopParts())
+    got = lr.one_period(safeil, g, v, vl, f, lane, rng.uniform(*time_gap), integral, leader,
+                        sensing, a_est, guard_on, a, li.LoopParts())
     cell = (ig, iv, il, jf)
     for k, name in enumerate(("gap", "speed", "leader speed", "force")):
         lo, hi = image[k][0][cell], image[k][1][cell]
