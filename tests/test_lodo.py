@@ -300,3 +300,23 @@ def test_per_driver_two_number_hindsight_by_hand(tmp_path) -> None:
     f2 = "JRC-VC_280219_part2_f2"
     assert t.loc[(f2, 60.0, pda.HINDSIGHT), "gap_rmse_mean_m"] == 2.0  # (2.5 + 1.5) / 2
     assert t.loc[(f2, 60.0, pda.HINDSIGHT_LINE), "gap_rmse_mean_m"] == 0.5
+
+
+def test_idm_oracles_find_the_idm_that_drove() -> None:
+    """``setting_in_models.idm_oracles`` on a maneuver the IDM itself drove at T 1.2 s, s0
+    3 m: the best (T, s0) of the grid is exact (0 m), the best T alone is not, and the fit it
+    is given (T 1.5 s, s0 2 m) errs most; the span scored starts at the given second."""
+    mod = load_training_script("setting_in_models")
+    from safeil_sumo.planners import idm
+
+    t = np.round(np.arange(600) * 0.1, 10)
+    v_lead = 20.0 + 6.0 * np.sin(t / 8.0)  # speeds that show s0 apart from T
+    driver = idm.IDMParams(time_gap_s=1.2, s0_m=3.0)
+    seed = idm.Maneuver("m", t, np.full(600, 20.0), np.full(600, 30.0), v_lead)
+    gap, v = idm.simulate_stacked(idm._stacked([seed]), driver)
+    m = idm.Maneuver("m", t, v[0], gap[0], v_lead)
+    r = mod.idm_oracles(idm.IDMParams(), m, from_s=10.0)
+    assert r["idm_best_t_s0_m"] < 1e-9
+    assert r["idm_best_t_m"] > 0.05
+    assert r["idm_fitted_m"] > r["idm_best_t_m"]
+    assert r["idm_refit_on_span_m"] < r["idm_best_t_m"]

@@ -15,6 +15,12 @@ Printed, on the left-out drivers' maneuvers: the gap RMSE at the shipped default
 fitted T, at the best setting per maneuver chosen in hindsight, and at a default calibrated on
 the fold's own OpenACC training maneuvers as ``fit_idm`` calibrates T (the setting with the
 least pooled gap RMSE there). About 5 min on one core; ``--out`` keeps the tables (CSV).
+
+``--idm-oracle-from-s S``: instead, how far the IDM's own numbers can go in hindsight on each
+left-out maneuver from its S-th second to its end (the span ``adaptation_bound.py`` scores),
+started from the recorded state there: its best T (``IDM_T_S``), its best (T, s0) (s0 over
+``IDM_S0_M``), and all five parameters refitted on that very span; beside the fold's fit. About
+2 min on one core.
 """
 
 from __future__ import annotations
@@ -46,6 +52,7 @@ from safeil_sumo.planners import idm
 
 SETTINGS_S = tuple(np.round(np.arange(0.8, 2.41, 0.1), 1))  # [s] the style input's settings
 IDM_T_S = tuple(np.round(np.arange(0.4, 2.41, 0.1), 1))  # [s] the IDM's time gaps
+IDM_S0_M = tuple(np.round(np.arange(0.5, 10.01, 0.5), 1))  # [m] its standstill distances
 
 
 def safeil_rmse(checkpoint: Path, tuples: Tuples) -> pd.DataFrame:
@@ -78,6 +85,41 @@ def idm_rmse(fit: idm.IDMParams, maneuvers: list[idm.Maneuver]) -> pd.DataFrame:
     return pd.DataFrame.from_dict(rows, orient="index")
 
 
+def idm_oracles(fit: idm.IDMParams, m: idm.Maneuver, from_s: float) -> dict[str, float]:
+    """Gap RMSE [m] of the IDM on ``m`` from its ``from_s``-th second to its end: as fitted,
+    at its best T, at its best (T, s0), and with all five parameters refitted on that span
+    (each chosen on the very span it is scored on: oracles)."""
+    keep = m.times >= m.times[0] + from_s
+    span = idm.Maneuver(m.maneuver_id, m.times[keep], m.v[keep], m.gap[keep], m.v_lead[keep])
+
+    def rmse(p: idm.IDMParams) -> float:
+        return idm.evaluate_fit([span], p)[0]
+
+    by_t = {t: rmse(dataclasses.replace(fit, time_gap_s=t)) for t in IDM_T_S}
+    by_line = [rmse(dataclasses.replace(fit, time_gap_s=t, s0_m=s0))
+               for t in IDM_T_S for s0 in IDM_S0_M]
+    return {"idm_fitted_m": rmse(fit), "idm_best_t_m": min(by_t.values()),
+            "idm_best_t_s0_m": min(by_line),
+            "idm_refit_on_span_m": rmse(idm.fit_idm([span], seed=0).params)}
+
+
+def idm_oracle_table(from_s: float, folds: int) -> pd.DataFrame:
+    """:func:`idm_oracles` of every fold's left-out OpenACC maneuvers at least ``from_s`` + 20 s
+    long, with the fold's own IDM fit."""
+    rows, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
+    maneuvers = {m.maneuver_id: m for m in idm.maneuvers_from_rows(rows)}
+    out = {}
+    for k in range(folds):
+        fold = lodo.WORK / f"fold{k}"
+        held = set(json.loads((fold / "held_out.json").read_text())) & set(maneuvers)
+        fit = idm.IDMParams(**json.loads((fold / "idm.json").read_text())["fits"]["openacc"]["params"])
+        for mid in sorted(held):
+            m = maneuvers[mid]
+            if m.times[-1] - m.times[0] >= from_s + 20.0:
+                out[mid] = {"fold": k, **idm_oracles(fit, m, from_s)}
+    return pd.DataFrame.from_dict(out, orient="index")
+
+
 def pooled_best(table: pd.DataFrame) -> float:
     """The setting with the least pooled (sample-weighted) gap RMSE over the table's rows."""
     cols = list(SETTINGS_S)
@@ -89,8 +131,16 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--folds", type=int, default=4)
     ap.add_argument("--out", type=Path, default=None, help="folder for the per-maneuver CSVs")
+    ap.add_argument("--idm-oracle-from-s", type=float, default=None, metavar="S",
+                    help="the IDM's hindsight oracles from each maneuver's S-th second instead")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.idm_oracle_from_s is not None:
+        oracles = idm_oracle_table(args.idm_oracle_from_s, args.folds)
+        print(oracles.round(2).to_string())
+        print(f"\n{len(oracles)} maneuvers, mean [m]:",
+              oracles.drop(columns="fold").mean().round(2).to_dict())
+        return 0
     all_tuples = Tuples.load(lodo.tuples_path("openacc"))
     rows, _ = process_drive(load_source("openacc"), PipelineConfig(rate_hz=10.0))
     idm_maneuvers = {m.maneuver_id: m for m in idm.maneuvers_from_rows(rows)}
