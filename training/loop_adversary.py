@@ -1,8 +1,8 @@
 """An upper bound on any invariant set of the longitudinal loop: an adversarial leader.
 
     python training/loop_adversary.py [--states 1000] [--seed 0] [--time-gaps 0.6 1.5 3.5]
-        [--guard on off] [--policy safeil] [--encounters default|mild-sweep]
-        [--out results/loop_adversary.csv]
+        [--guard on off] [--policy safeil] [--encounters default|mild-sweep|random]
+        [--random-count 60] [--out results/loop_adversary.csv]
 
 Issue 41 asks for a proven invariant set S covering >= 95 % of the recoverable envelope's
 volume. S must lie inside the states from which the real loop is safe against every admissible
@@ -11,7 +11,10 @@ leader and sensing error, so the share of the envelope from which some admissibl
 1 m margin bounds S's share from above: at most one minus it. States are drawn uniformly from
 the envelope's volume over ``loop_invariant.Grid()``'s box (seeded). Prints, per setting, that
 share (and contact, the gap at or below 0) with its standard error and the encounters that find
-it; writes one CSV row per setting and encounter (docs/certification.md).
+it; writes one CSV row per setting and encounter (docs/certification.md). ``--encounters
+random``: the default encounters and ``--random-count`` random leaders
+(``loop_adversary.random_encounters``, drawn from ``[--seed, 1]``: a stream apart from the
+states').
 """
 
 from __future__ import annotations
@@ -62,14 +65,19 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--time-gaps", type=float, nargs="+", default=[0.6, 1.5, 3.5])
     p.add_argument("--guard", nargs="+", choices=("on", "off"), default=["on", "off"])
     p.add_argument("--policy", default="safeil", help="a shipped planner with a time gap")
-    p.add_argument("--encounters", choices=("default", "mild-sweep"), default="default",
-                   help="default_encounters, or mild_sweep_encounters (mild braking swept)")
+    p.add_argument("--encounters", choices=("default", "mild-sweep", "random"),
+                   default="default", help="default_encounters, mild_sweep_encounters (mild "
+                   "braking swept), or random_encounters (the defaults and random leaders)")
+    p.add_argument("--random-count", type=int, default=60,
+                   help="random leaders with --encounters random")
     p.add_argument("--out", type=Path, default=REPO / "results" / "loop_adversary.csv")
     args = p.parse_args(argv)
     policy = registry.load(args.policy)
     a, rows = LoopAssumptions(), []
-    encounters = (adv.default_encounters(a) if args.encounters == "default"
-                  else adv.mild_sweep_encounters(a))
+    encounters = {"default": adv.default_encounters, "mild-sweep": adv.mild_sweep_encounters,
+                  "random": lambda a: adv.random_encounters(
+                      args.random_count, np.random.default_rng([args.seed, 1]), a)
+                  }[args.encounters](a)
     for guard in args.guard:
         for time_gap in args.time_gaps:
             start = time.perf_counter()

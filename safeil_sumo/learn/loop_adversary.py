@@ -155,6 +155,22 @@ def mild_sweep_encounters(a: LoopAssumptions) -> tuple[Encounter, ...]:
     return tuple(Encounter(lead, opt) for lead in (leaders[0], leaders[8], leaders[9], *out))
 
 
+def random_encounters(count: int, rng: np.random.Generator, a: LoopAssumptions
+                      ) -> tuple[Encounter, ...]:
+    """``count`` random leaders under the optimistic corner, besides the default encounters
+    (they may find states no scripted leader does): 1-4 phases, each 0.5-5 s long (whole
+    decision periods) at an acceleration uniform in the admissible range, then the hardest
+    braking; drawn from ``rng``."""
+    lo, hi = a.leader_accel_mps2
+    opt = SensingPattern("optimistic corner", optimistic(a))
+    out = []
+    for k in range(count):
+        phases = tuple((round(float(rng.uniform(0.5, 5.0)), 1), float(rng.uniform(lo, hi)))
+                       for _ in range(int(rng.integers(1, 5))))
+        out.append(Encounter(LeaderStrategy(f"random {k}", phases), opt))
+    return (*default_encounters(a), *out)
+
+
 def envelope_states(n: int, grid: Grid, a: LoopAssumptions, parts: LoopParts,
                     rng: np.random.Generator) -> tuple[np.ndarray, ...]:
     """``n`` states ``(g, v, v_l, f)`` ``(n,)`` each, uniform over the recoverable envelope's

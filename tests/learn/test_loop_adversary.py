@@ -176,3 +176,19 @@ def test_counterexamples_hold_in_sumo(safeil) -> None:
         assert log["gap"].min() < (0.0 if k == 0 else A.margin_m)
         assert run.summary["end_reason"].iloc[0] == ("collision" if k == 0 else "timeout")
         assert log["gap"].min() == pytest.approx(rollout[k], abs=0.5)
+
+
+def test_random_encounters_are_admissible_and_seeded() -> None:
+    """The random leaders follow the defaults, lie within the assumptions, take 1-4 phases of
+    0.5-5 s under the optimistic corner, and the same seed draws the same leaders."""
+    a = li.LoopAssumptions()
+    first = adv.random_encounters(20, np.random.default_rng(3), a)
+    defaults = adv.default_encounters(a)
+    assert first[:len(defaults)] == defaults and len(first) == len(defaults) + 20
+    extra = first[len(defaults):]
+    assert all(adv.admissible(e, a) for e in extra)
+    assert all(1 <= len(e.leader.phases) <= 4 for e in extra)
+    assert all(0.5 <= d <= 5.0 and -6.0 <= acc <= 2.0 for e in extra for d, acc in e.leader.phases)
+    assert {e.sensing.bias for e in extra} == {adv.optimistic(a)}
+    assert adv.random_encounters(20, np.random.default_rng(3), a) == first
+    assert adv.random_encounters(20, np.random.default_rng(4), a) != first
