@@ -1,6 +1,7 @@
 """How far can adapting one setting go? The best time-gap setting per left-out driver, in hindsight.
 
     python training/adaptation_bound.py [--grid 0.8 1.0 ... 2.3] [--adapt-first-s 60]
+        [--standstill-grid 0 -10 10 -20 -30]
     python training/adaptation_bound.py --source zalazone [--grid ...]
 
 Issue 20 asks the planner adapted to a driver (``replay --adapt-first-s``: its time-gap setting
@@ -12,7 +13,9 @@ fold models in ``data/lodo/fold*/``, trained without that driver) is replayed in
 (``ReplayConfig.time_gap_s``, ``replay --time-gap-s``), and the setting with the smallest gap
 RMSE on that scored part itself is kept: an oracle, chosen on the very seconds it is scored on.
 Beside it, the same span replayed adapted as ``replay --adapt-first-s`` does (the setting
-estimated from the first seconds).
+estimated from the first seconds). ``--standstill-grid``: every time gap also with these
+standstill distances (the style ``s0 + T v``, ``ReplayConfig.standstill_m``), and the best of
+both numbers per maneuver in hindsight beside the best one setting.
 ``--source zalazone``: the same for every ZalaZone maneuver long enough, with the shipped
 ``safeil`` (no fold: no planner has seen those drivers), in lane mode (longitudinal only, as
 ``results --only unseen``).
