@@ -59,6 +59,13 @@ from safeil_sumo.learn.certify_margins import MARGINS
 from safeil_sumo.learn.inference import MLPPolicy
 from safeil_sumo.planners import registry as pol
 
+ONE_PLAN_ONLY = {"margins": "--margins", "budget_s": "--budget-s", "max_boxes": "--max-boxes",
+                 "batch": "--batch", "seed": "--seed", "cex_min_share": "--cex-min-share"}
+CLOSED_LOOP_ONLY = {"time_gap_s": "--time-gap-s", "brake_guard": "--brake-guard/--no-brake-guard",
+                    "search_s": "--search-s", "cells": "--cells"}
+ONE_PLAN_DEFAULTS = {"margins": list(MARGINS), "budget_s": 600.0, "batch": 512, "seed": 0,
+                     "cex_min_share": Budget.cex_min_share}
+
 
 def build_parser() -> CommandParser:
     p = CommandParser("safeil_sumo.certify", description=__doc__.split("\n")[0])
@@ -72,16 +79,18 @@ def build_parser() -> CommandParser:
     p.add_argument("--margins", nargs="+", choices=MARGINS, default=None,
                    help="the margins to certify (default both; the budget is shared equally)")
     p.add_argument("--budget-s", type=finite_float, default=None,
-                   help="wall-time budget for all margins [s] (default 600)")
+                   help="wall-time budget for all margins [s] (default "
+                        f"{ONE_PLAN_DEFAULTS['budget_s']:g})")
     p.add_argument("--max-boxes", type=nonnegative_int, default=None,
                    help="box budget for all margins (reproducible across machines)")
     p.add_argument("--batch", type=nonnegative_int, default=None,
-                   help="boxes bounded together (default 512)")
+                   help=f"boxes bounded together (default {ONE_PLAN_DEFAULTS['batch']})")
     p.add_argument("--seed", type=int, default=None,
-                   help="seeds the counterexample search (default 0)")
+                   help="seeds the counterexample search (default "
+                        f"{ONE_PLAN_DEFAULTS['seed']})")
     p.add_argument("--cex-min-share", type=finite_float, default=None,
                    help="split a box holding a counterexample only while its share of the "
-                        f"envelope exceeds this (default {Budget.cex_min_share:g})")
+                        f"envelope exceeds this (default {ONE_PLAN_DEFAULTS['cex_min_share']:g})")
     add_closed_loop_options(p)
     p.add_argument("--out", type=Path, default=None,
                    help="folder for the certificate (default: next to the checkpoint; "
@@ -112,14 +121,6 @@ def add_closed_loop_options(p: CommandParser) -> None:
                    help="--closed-loop: cell widths of gap, ego speed, leader speed and force "
                         "over 1-151 m, 0-50 m/s, 0-40 m/s, -9-3 m/s^2 (default 1.5 0.5 0.5 "
                         "1.5)")
-
-
-ONE_PLAN_ONLY = {"margins": "--margins", "budget_s": "--budget-s", "max_boxes": "--max-boxes",
-                 "batch": "--batch", "seed": "--seed", "cex_min_share": "--cex-min-share"}
-CLOSED_LOOP_ONLY = {"time_gap_s": "--time-gap-s", "brake_guard": "--brake-guard/--no-brake-guard",
-                    "search_s": "--search-s", "cells": "--cells"}
-ONE_PLAN_DEFAULTS = {"margins": list(MARGINS), "budget_s": 600.0, "batch": 512, "seed": 0,
-                     "cex_min_share": Budget.cex_min_share}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -33,10 +33,10 @@ import numpy as np
 
 from safeil_sumo import __version__
 from safeil_sumo.core.atomic import atomic_path
+from safeil_sumo.learn import certificate as cert
 from safeil_sumo.learn import loop_barrier as lb
 from safeil_sumo.learn import loop_invariant as li
-from safeil_sumo.learn.certificate import function_sha256
-from safeil_sumo.learn.checkpoint import CheckpointError, checkpoint_paths, load_checkpoint
+from safeil_sumo.learn.checkpoint import CheckpointError, checkpoint_paths
 from safeil_sumo.learn.inference import MLPPolicy
 
 FORMAT = "safeil-closed-loop-certificate"
@@ -260,21 +260,19 @@ def _search(policy: MLPPolicy, settings: ClosedLoopSettings, inc: lb.Increments,
 
 def certificate_path(checkpoint: str | Path, out_dir: str | Path | None = None,
                      suffix: str = SUFFIX) -> Path:
-    """``<checkpoint prefix>.closed_loop_certificate.json`` (or another ``suffix``), in
-    ``out_dir`` if given, else beside the checkpoint."""
-    weights, _ = checkpoint_paths(checkpoint)
-    name = weights.name.removesuffix(".safetensors") + suffix
-    return (Path(out_dir) / name) if out_dir is not None else weights.with_name(name)
+    """``<checkpoint prefix>.closed_loop_certificate.json`` (or another ``suffix``), where the
+    one-plan certificate goes (:func:`.certificate.certificate_path`)."""
+    one_plan = cert.certificate_path(checkpoint, out_dir)
+    return one_plan.with_name(one_plan.name.removesuffix(cert.SUFFIX) + suffix)
 
 
 def checkpoint_fingerprint(checkpoint: str | Path) -> dict:
     """The checkpoint's name, weights file and two hashes, as the one-plan certificate
-    records them (:func:`.certificate.function_sha256`)."""
-    _, meta = load_checkpoint(checkpoint)
+    records them (its own hashing, so the two certificates name a checkpoint alike)."""
+    weights_sha, function_sha, meta = cert._checkpoint_hashes(checkpoint)
     weights, _ = checkpoint_paths(checkpoint)
-    digest = hashlib.sha256(weights.read_bytes()).hexdigest()
-    return {"name": meta.get("name"), "weights_file": weights.name, "weights_sha256": digest,
-            "function_sha256": function_sha256(meta, digest)}
+    return {"name": meta.get("name"), "weights_file": weights.name,
+            "weights_sha256": weights_sha, "function_sha256": function_sha}
 
 
 def _assumptions(s: ClosedLoopSettings) -> dict:

@@ -108,24 +108,15 @@ def one_period(policy: MLPPolicy, g: np.ndarray, v: np.ndarray, vl: np.ndarray, 
     target = ctl.make_targets(cps, np.full(n, policy.horizon), 0 * g, offset + 0 * g, yaw)
     demand = grd.guard_decel(feats[:, 8], feats[:, 6], feats[:, 7], a_est, guard, ARRAYS)
     plant = veh.Plant.of(vehicle, a.step_s)
-    lead_x, lead_v, g_min = g.copy(), vl.copy(), g.copy()
-    prev_error: Any = np.full(n, math.nan)
-    gap: Any = g
-    carried: Any = integral  # the tracker's integral, step to step
+    # the guard's memory is not read here: its estimate a_est and demand are given
+    loop = _Loop(state, g.copy(), vl.copy(), integral, np.full(n, math.nan), None, g.copy(),
+                 np.zeros(n))
     for j in range(a.steps_per_decision):
-        x, y, yaw_, vx, vy, r = state[:6]
-        steer, accel, carried, prev_error = ctl.track_values(
-            target, np.full(n, j * a.step_s), x, y, yaw_, vx, vy, r, vehicle, carried,
-            prev_error, parts.controller, a.step_s, ARRAYS)
-        if guard_on:
-            accel = _override(accel, demand, vehicle)
-        throttle, brake = veh.pedals_from_accel_vx(accel, state[3], vehicle, ARRAYS)
-        state = plant.step(state, steer, throttle, brake, ARRAYS)
-        lead_v = np.clip(lead_v + leader_accel[:, j] * a.step_s, 0.0, a.speed_limit_mps)
-        lead_x = lead_x + lead_v * a.step_s
-        gap = lead_x - (state[0] + d * np.cos(state[2]))
-        g_min = np.minimum(g_min, gap)
-    return gap, state[3], lead_v, state[7] / vehicle.mass_kg, g_min
+        _physics_step(loop, target, j * a.step_s, demand, leader_accel[:, j], guard_on, a,
+                      parts, plant, (j + 1) * a.step_s)
+    state = loop.plant
+    gap = loop.lead_x - (state[0] + d * np.cos(state[2]))
+    return gap, state[3], loop.lead_v, state[7] / vehicle.mass_kg, loop.g_min
 
 
 @dataclass
