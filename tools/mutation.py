@@ -51,6 +51,9 @@ SAFETY_MODULES = (
     "safeil_sumo.experiments.suite", "safeil_sumo.planners.safety_filter",
     # the closed-loop reachability of the ARCH-COMP ACC benchmark (issue 41)
     "safeil_sumo.learn.reach",
+    # the closed loop's one-period bound, the barrier check and its certificate file (issue 41)
+    "safeil_sumo.learn.loop_invariant", "safeil_sumo.learn.loop_barrier",
+    "safeil_sumo.learn.closed_loop_certificate",
 )
 SAFETY_SCOPE = (
     "safeil_sumo.learn.bounds.*",
@@ -69,11 +72,16 @@ SAFETY_SCOPE = (
     "safeil_sumo.planners.safety_filter.*",
     "safeil_sumo.sim.monitors.*",
     "safeil_sumo.learn.reach.*",
+    "safeil_sumo.learn.loop_invariant.*",
+    "safeil_sumo.learn.loop_barrier.*",
+    "safeil_sumo.learn.closed_loop_certificate.*",
 )
 # the certification modules' tests are the slowest (branch and bound runs): their kill rate is
 # measured on a seeded uniform sample of their mutants (each name in or out by its hash)
 SAMPLE_FRACTION = {"safeil_sumo.learn.bounds": 0.25, "safeil_sumo.learn.branch_and_bound": 0.25,
-                   "safeil_sumo.learn.certify_margins": 0.25, "safeil_sumo.learn.reach": 0.25}
+                   "safeil_sumo.learn.certify_margins": 0.25, "safeil_sumo.learn.reach": 0.25,
+                   "safeil_sumo.learn.loop_invariant": 0.25, "safeil_sumo.learn.loop_barrier": 0.25,
+                   "safeil_sumo.learn.closed_loop_certificate": 0.25}
 # fnmatch patterns over mutmut's mutant names (module.x_function__mutmut_N,
 # module.xǁClassǁmethod__mutmut_N); the files themselves are listed in setup.cfg
 SCOPE = (

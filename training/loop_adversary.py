@@ -2,7 +2,7 @@
 
     python training/loop_adversary.py [--states 1000] [--seed 0] [--time-gaps 0.6 1.5 3.5]
         [--guard on off] [--policy safeil] [--encounters default|mild-sweep|random]
-        [--random-count 60] [--out results/loop_adversary.csv]
+        [--random-count 60] [--sumo K] [--out results/loop_adversary.csv]
 
 Issue 41 asks for a proven invariant set S covering >= 95 % of the recoverable envelope's
 volume. S must lie inside the states from which the real loop is safe against every admissible
@@ -14,7 +14,9 @@ share (and contact, the gap at or below 0) with its standard error and the encou
 it; writes one CSV row per setting and encounter (docs/certification.md). ``--encounters
 random``: the default encounters and ``--random-count`` random leaders
 (``loop_adversary.random_encounters``, drawn from ``[--seed, 1]``: a stream apart from the
-states').
+states'). ``--sumo K``: per setting, up to K counterexamples from cruising starts (drawn from
+``[--seed, 2]``, exact sensing, the encounters' leaders) replayed in libsumo
+(``safeil_sumo.experiments.loop_counterexamples``), one row each in ``<out>_sumo.csv``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from safeil_sumo.experiments import loop_counterexamples as lc
 from safeil_sumo.learn import loop_adversary as adv
 from safeil_sumo.learn.loop_invariant import LoopAssumptions, LoopParts
 from safeil_sumo.planners import registry
@@ -58,6 +61,18 @@ def _print(rows: list[dict]) -> None:
               f"(only this: {100 * r['only_this']:.1f} %)")
 
 
+def _print_sumo(df: pd.DataFrame, margin_m: float) -> None:
+    if df.empty:
+        print("    SUMO: no counterexample from a cruising start")
+        return
+    apart = df[df["end_reason"] != "collision"]
+    diff = (apart["sumo_gap_m"] - apart["rollout_gap_m"]).abs()
+    print(f"    SUMO: {int(df['confirmed'].sum())} of {len(df)} cruising counterexamples below "
+          f"{margin_m:g} m in libsumo too ({int((df['end_reason'] == 'collision').sum())} "
+          f"collisions; without collision |SUMO - rollout| max "
+          f"{diff.max() if len(diff) else float('nan'):.3f} m)")
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--states", type=int, default=1000, help="states drawn per setting")
@@ -70,8 +85,11 @@ def main(argv: list[str] | None = None) -> None:
                    "braking swept), or random_encounters (the defaults and random leaders)")
     p.add_argument("--random-count", type=int, default=60,
                    help="random leaders with --encounters random")
+    p.add_argument("--sumo", type=int, default=0, metavar="K",
+                   help="replay up to K counterexamples per setting in libsumo")
     p.add_argument("--out", type=Path, default=REPO / "results" / "loop_adversary.csv")
     args = p.parse_args(argv)
+    sumo_out, confirmed = args.out.with_name(f"{args.out.stem}_sumo.csv"), []
     policy = registry.load(args.policy)
     a, rows = LoopAssumptions(), []
     encounters = {"default": adv.default_encounters, "mild-sweep": adv.mild_sweep_encounters,
@@ -90,7 +108,14 @@ def main(argv: list[str] | None = None) -> None:
             rows += new
             args.out.parent.mkdir(parents=True, exist_ok=True)
             pd.DataFrame(rows).to_csv(args.out, index=False)  # after each setting: resumable
-    print(f"wrote {args.out}")
+            if args.sumo:
+                leaders = tuple(dict.fromkeys(e.leader for e in encounters))
+                df = lc.confirm(policy, time_gap, guard == "on", args.states, args.sumo,
+                                np.random.default_rng([args.seed, 2]), leaders, a)
+                _print_sumo(df, a.margin_m)
+                confirmed.append(df)
+                pd.concat(confirmed).to_csv(sumo_out, index=False)
+    print(f"wrote {args.out}" + (f" and {sumo_out}" if args.sumo else ""))
 
 
 if __name__ == "__main__":

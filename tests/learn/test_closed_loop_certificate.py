@@ -11,6 +11,7 @@ import shutil
 
 import numpy as np
 import pytest
+from safetensors.numpy import load_file, save_file
 
 from safeil_sumo.learn import closed_loop_certificate as clc
 from safeil_sumo.learn import loop_barrier as lb
@@ -179,7 +180,25 @@ def test_the_certificate_round_trips(shipped_result, settings, tmp_path) -> None
     meta = json.loads(sidecar.read_text())
     sidecar.write_text(json.dumps({**meta, "style_default": {"time_gap_s": 2.5}}))
     status = clc.load(path, written)
-    assert not status.valid and status.reason.startswith("sha256 mismatch")
+    assert not status.valid and not status.proven
+    assert status.reason == ("sha256 mismatch: the checkpoint's sidecar changed since it was "
+                             "checked")
+    assert status.path == written and status.certificate == body
+    sidecar.write_text(json.dumps(meta))
+    weights = tmp_path / "safeil.safetensors"
+    tensors = load_file(weights)  # another network, its sidecar updated
+    first = next(iter(tensors))
+    save_file({**tensors, first: tensors[first] + 1e-3}, weights)
+    sidecar.write_text(json.dumps(
+        {**meta, "weights_sha256": hashlib.sha256(weights.read_bytes()).hexdigest()}))
+    status = clc.load(path, written)
+    assert status.reason == ("sha256 mismatch: the checkpoint's weights changed since it was "
+                             "checked")
+    assert status.path == written and status.certificate == body
+    weights.write_bytes(b"")
+    status = clc.load(path, written)
+    assert not status.valid and status.reason.startswith("checkpoint unreadable: ")
+    assert status.path == written and status.certificate == body
 
 
 def test_settings_grids_and_files_refuse_what_they_cannot_do(tmp_path) -> None:
@@ -205,3 +224,55 @@ def test_settings_grids_and_files_refuse_what_they_cannot_do(tmp_path) -> None:
             clc.read(path)
     with pytest.raises(clc.ClosedLoopError, match="no closed-loop certificate"):
         clc.read(tmp_path / "none.json")
+
+
+def test_the_file_has_every_field_a_reader_needs(shipped_result, settings, tmp_path) -> None:
+    """The file's schema, field by field, and the floor's summary recomputed from its array:
+    readers of the certificate rely on these names."""
+    path = _copy_checkpoint("safeil", tmp_path)
+    body = clc.read(clc.write(shipped_result, path))
+    assert set(body) == {
+        "format", "format_version", "checkpoint", "policy", "covers", "assumptions", "verdict",
+        "proven", "share_of_recoverable_envelope", "share_stderr", "share_measure", "columns",
+        "failing_columns", "columns_with_states", "speed_exit_columns", "deficit_median_m",
+        "deficit_max_m", "unbounded_deficits", "failing_by_reason", "reasons", "worst_cells",
+        "floor", "search", "seconds", "versions", "created_unix_s"}
+    assert body["policy"] == "safeil" and body["covers"] == clc.COVERS
+    assert body["share_measure"].startswith(f"envelope_share: {clc.SHARE_SAMPLES} draws")
+    assert body["checkpoint"]["name"] == "safeil"
+    assert set(body["checkpoint"]) == {"name", "weights_file", "weights_sha256",
+                                       "function_sha256"}
+    assert body["checkpoint"]["weights_file"] == "safeil.safetensors"
+    assert set(body["versions"]) == {"safeil_sumo", "numpy", "python"}
+    assert body["versions"]["numpy"] == np.__version__
+    assert body["assumptions"]["float_margin"] == li.FLOAT_MARGIN
+    assert body["reasons"] == {str(k): t for k, t in enumerate(lb.REASONS)}
+    floor = body["floor"]
+    phi = clc.read_arrays(tmp_path / floor["file"])["floor"]
+    top = settings.grid.axes()[0][-1]
+    assert floor["node_axes"] == ["speed_mps", "leader_speed_mps", "force_mps2"]
+    assert floor["nodes"] == list(phi.shape)
+    assert (floor["min_m"], floor["median_m"], floor["max_m"]) == (
+        float(phi.min()), float(np.median(phi)), float(phi.max()))
+    assert floor["nodes_above_top_gap"] == int(np.sum(phi > top))
+    lifted = np.full_like(phi, 100.0)  # by hand: one node above the top gap (151 m)
+    lifted[3, 2, 1] = top + 1.0
+    assert clc.floor_summary(lifted, settings.grid, settings, "x")["nodes_above_top_gap"] == 1
+    assert floor["sha256"] == hashlib.sha256(phi.astype(np.float64).tobytes()).hexdigest()
+    assert set(body["seconds"]) >= {"increments", "check", "total"}
+
+
+def test_a_searched_floor_is_the_one_checked(safeil, settings) -> None:
+    """With a search budget the floor checked is the search's last, its rounds recorded; the
+    verdict stays the check's."""
+    searched = dataclasses.replace(settings, search_s=1.0)
+    r = clc.run(safeil, searched)
+    assert r.verdict == clc.NOT_PROVEN
+    assert r.search["budget_s"] == 1.0 and r.search["stopped_by"] in ("budget", "rounds")
+    rounds = r.search["rounds"]
+    assert rounds and all(set(x) == {"failing_columns", "max_finite_deficit_m", "seconds"}
+                          for x in rounds)
+    assert rounds[-1]["failing_columns"] == r.failing_columns
+    assert r.floor["source"] == f"synthesize: last of {len(rounds)} checks"
+    base = lb.recoverable_floor(settings.grid, settings.assumptions, settings.parts)
+    assert np.all(r.arrays["floor"] >= base) and not np.array_equal(r.arrays["floor"], base)

@@ -4,18 +4,15 @@ inside the envelope never failing, and the counterexamples confirmed in libsumo.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
+from safeil_sumo.experiments import loop_counterexamples as lc
 from safeil_sumo.learn import loop_adversary as adv
 from safeil_sumo.learn import loop_invariant as li
 from safeil_sumo.learn import loop_rollout as lr
 from safeil_sumo.learn.inference import load_policy
 from safeil_sumo.planners.registry import shipped_checkpoint
-from safeil_sumo.sim.vehicle import VehicleParams, resistance_force
-from safeil_sumo.sim.xp import ARRAYS
 
 A = li.LoopAssumptions()
 PARTS = li.LoopParts()
@@ -29,9 +26,7 @@ def safeil():
 
 
 def _cruising_force(v: np.ndarray) -> np.ndarray:
-    """The tyre force per mass [m/s^2] that holds ``v`` (SUMO's start: drag and rolling)."""
-    p = VehicleParams()
-    return resistance_force(v, p, ARRAYS) / p.mass_kg
+    return lc.cruising_force(v, PARTS.vehicle)
 
 
 def test_leader_and_sensing_shapes_by_hand() -> None:
@@ -135,19 +130,6 @@ def test_the_adversary_finds_a_weaker_loop_weaker_and_a_deep_state_safe(safeil) 
     assert np.min(g_min[:, 1]) < 0.0
 
 
-def _profile(strategy: adv.LeaderStrategy, speed: float, seconds: float):
-    """The strategy's leader as a SUMO speed profile: knots at every physics step, the speed
-    updated as the rollout does (SUMO reads it at each step's end)."""
-    from safeil_sumo.sim.leaders import piecewise
-
-    periods = round(seconds / 0.1)
-    acc = np.repeat(strategy.accel(periods, 0.1, A), A.steps_per_decision)
-    speeds = [speed]
-    for x in acc:
-        speeds.append(min(max(speeds[-1] + x * A.step_s, 0.0), A.speed_limit_mps))
-    return piecewise(list(np.arange(len(speeds)) * A.step_s), speeds)
-
-
 @pytest.mark.sumo
 def test_counterexamples_hold_in_sumo(safeil) -> None:
     """Recoverable states (full braking keeps the margin) from which the guarded loop, exact
@@ -155,27 +137,18 @@ def test_counterexamples_hold_in_sumo(safeil) -> None:
     in the rollout and in libsumo on the straight track (measured: 30 -> 20 m/s at 22 m:
     contact, -0.44 m in the rollout, -0.02 m in SUMO, which ends the run at the collision;
     30 -> 25 m/s at 8 m: 0.96 m in both)."""
-    from safeil_sumo import api
-    from safeil_sumo.sim import brake_guard as grd
-    from safeil_sumo.sim.loop_types import LoopConfig
-
     v, vl, g = np.array([30.0, 30.0]), np.array([20.0, 25.0]), np.array([22.0, 8.0])
     f = _cruising_force(v)
     assert np.all(li.recoverable(g, v, vl, f, A))
     rollout = adv.run_encounters(safeil, (g, v, vl, f), 1.5, (adv.Encounter(BRAKE_NOW, EXACT),),
                                  True, A, PARTS)[0]
     assert rollout[0] < 0.0 and rollout[1] < A.margin_m
-    safeil.set_style(time_gap_s=1.5)
-    base = api.scenario("straight", 0, 0)
     for k in range(2):
-        sc = dataclasses.replace(base, leader=_profile(BRAKE_NOW, vl[k], 10.0),
-                                 ego_speed_mps=v[k], initial_gap_m=g[k])
-        run = api.run_scenarios([sc], safeil, LoopConfig(max_time_s=10.0,
-                                                         brake_guard=grd.BrakeGuard()))
-        log = run.log
-        assert log["gap"].min() < (0.0 if k == 0 else A.margin_m)
-        assert run.summary["end_reason"].iloc[0] == ("collision" if k == 0 else "timeout")
-        assert log["gap"].min() == pytest.approx(rollout[k], abs=0.5)
+        row = lc.replay(safeil, lc.Counterexample(g[k], v[k], vl[k], BRAKE_NOW, rollout[k]), 1.5,
+                        True, A)
+        assert row["confirmed"] and row["sumo_gap_m"] < (0.0 if k == 0 else A.margin_m)
+        assert row["end_reason"] == ("collision" if k == 0 else "timeout")
+        assert row["sumo_gap_m"] == pytest.approx(rollout[k], abs=0.5)
 
 
 def test_random_encounters_are_admissible_and_seeded() -> None:
@@ -200,10 +173,6 @@ def test_a_random_leaders_counterexample_holds_in_sumo(safeil) -> None:
     gap 0.6 s, guard on) and a random leader (``random 24`` of seed [1, 1]: braking at 1.2,
     1.9, 3.4, 0.6 m/s^2 over 11.6 s, then 6) takes below it, in the rollout and in libsumo
     alike (measured: 20 m/s behind 17.5 m/s at 6 m: 0.174 m in both)."""
-    from safeil_sumo import api
-    from safeil_sumo.sim import brake_guard as grd
-    from safeil_sumo.sim.loop_types import LoopConfig
-
     g, v, vl = np.array([6.0]), np.array([20.0]), np.array([17.5])
     f = _cruising_force(v)
     random_24 = adv.random_encounters(60, np.random.default_rng([1, 1]), A)[
@@ -212,10 +181,38 @@ def test_a_random_leaders_counterexample_holds_in_sumo(safeil) -> None:
     gaps = adv.run_encounters(safeil, (g, v, vl, f), 0.6,
                               (*scripted, adv.Encounter(random_24, EXACT)), True, A, PARTS)[:, 0]
     assert np.all(gaps[:-1] >= A.margin_m) and gaps[-1] < A.margin_m
-    safeil.set_style(time_gap_s=0.6)
-    sc = dataclasses.replace(api.scenario("straight", 0, 0), leader=_profile(random_24, 17.5, 30.0),
-                             ego_speed_mps=20.0, initial_gap_m=6.0)
-    run = api.run_scenarios([sc], safeil, LoopConfig(max_time_s=30.0,
-                                                     brake_guard=grd.BrakeGuard()))
-    assert run.log["gap"].min() == pytest.approx(gaps[-1], abs=0.05)
-    assert run.log["gap"].min() < A.margin_m
+    row = lc.replay(safeil, lc.Counterexample(6.0, 20.0, 17.5, random_24, gaps[-1]), 0.6, True, A)
+    assert row["sumo_gap_m"] == pytest.approx(gaps[-1], abs=0.05)
+    assert row["confirmed"] and row["end_reason"] == "timeout"
+
+
+def test_cruising_counterexamples_are_searched_worst_first(safeil) -> None:
+    """The unguarded loop at 1.5 s behind a leader braking now: the counterexamples of 300
+    cruising starts are recoverable, below the margin, worst first, at most ``count``, and each
+    gap is the rollout's from that start (cruising force, exact sensing); the same seed finds the
+    same ones."""
+    def found():
+        return lc.search(safeil, 1.5, False, 300, 3, np.random.default_rng(0), (BRAKE_NOW,), A,
+                         PARTS, li.Grid())
+
+    cases = found()
+    assert 1 <= len(cases) <= 3 and cases == found()
+    gaps = [c.rollout_gap_m for c in cases]
+    assert gaps == sorted(gaps) and gaps[-1] < A.margin_m
+    g, v, vl = (np.array([getattr(c, k) for c in cases])
+                for k in ("gap_m", "speed_mps", "lead_speed_mps"))
+    f = _cruising_force(v)
+    assert np.all(li.recoverable(g, v, vl, f, A))
+    again = adv.run_encounters(safeil, (g, v, vl, f), 1.5, (adv.Encounter(BRAKE_NOW, EXACT),),
+                               False, A, PARTS)[0]
+    np.testing.assert_allclose(again, gaps, atol=1e-9)
+
+
+def test_a_leader_profile_is_the_rollouts_leader() -> None:
+    """Braking at 6 m/s^2 after 0.5 s at +2 from 10 m/s: 11 m/s at 0.5 s, standing from
+    about 2.33 s, knots every physics step."""
+    lead = adv.LeaderStrategy("up, brake", ((0.5, 2.0),))
+    prof = lc.leader_profile(lead, 10.0, 3.0, A)
+    assert prof.speed_at(0.5) == pytest.approx(11.0)
+    assert prof.speed_at(0.5 + 11.0 / 6.0 - 0.05) == pytest.approx(0.3, abs=1e-9)
+    assert prof.speed_at(2.5) == 0.0
