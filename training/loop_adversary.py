@@ -14,9 +14,10 @@ share (and contact, the gap at or below 0) with its standard error and the encou
 it; writes one CSV row per setting and encounter (docs/certification.md). ``--encounters
 random``: the default encounters and ``--random-count`` random leaders
 (``loop_adversary.random_encounters``, drawn from ``[--seed, 1]``: a stream apart from the
-states'). ``--sumo K``: per setting, up to K counterexamples from cruising starts (drawn from
-``[--seed, 2]``, exact sensing, the encounters' leaders) replayed in libsumo
-(``safeil_sumo.experiments.loop_counterexamples``), one row each in ``<out>_sumo.csv``.
+states'). ``--sumo K``: instead, per setting, up to K counterexamples among ``--states``
+cruising starts (drawn from ``[--seed, 2]``, exact sensing, the encounters' leaders) replayed
+in libsumo (``safeil_sumo.experiments.loop_counterexamples``), one row each in
+``<out>_sumo.csv``.
 """
 
 from __future__ import annotations
@@ -65,12 +66,13 @@ def _print_sumo(df: pd.DataFrame, margin_m: float) -> None:
     if df.empty:
         print("    SUMO: no counterexample from a cruising start")
         return
-    apart = df[df["end_reason"] != "collision"]
+    ran = df[df["end_reason"] != "not replayed"]
+    apart = ran[ran["end_reason"] != "collision"]
     diff = (apart["sumo_gap_m"] - apart["rollout_gap_m"]).abs()
-    print(f"    SUMO: {int(df['confirmed'].sum())} of {len(df)} cruising counterexamples below "
-          f"{margin_m:g} m in libsumo too ({int((df['end_reason'] == 'collision').sum())} "
-          f"collisions; without collision |SUMO - rollout| max "
-          f"{diff.max() if len(diff) else float('nan'):.3f} m)")
+    print(f"    {len(df)} counterexamples; replayed in libsumo {len(ran)}: "
+          f"{int(ran['confirmed'].sum())} below {margin_m:g} m there too "
+          f"({int((ran['end_reason'] == 'collision').sum())} collisions; without a collision "
+          f"|SUMO - rollout| at most {diff.max() if len(diff) else float('nan'):.3f} m)")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -86,7 +88,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--random-count", type=int, default=60,
                    help="random leaders with --encounters random")
     p.add_argument("--sumo", type=int, default=0, metavar="K",
-                   help="replay up to K counterexamples per setting in libsumo")
+                   help="instead of the share: replay up to K counterexamples per setting "
+                   "in libsumo")
     p.add_argument("--out", type=Path, default=REPO / "results" / "loop_adversary.csv")
     args = p.parse_args(argv)
     sumo_out, confirmed = args.out.with_name(f"{args.out.stem}_sumo.csv"), []
@@ -98,6 +101,17 @@ def main(argv: list[str] | None = None) -> None:
                   }[args.encounters](a)
     for guard in args.guard:
         for time_gap in args.time_gaps:
+            if args.sumo:
+                leaders = tuple(dict.fromkeys(e.leader for e in encounters))
+                df = lc.confirm(policy, time_gap, guard == "on", args.states, args.sumo,
+                                np.random.default_rng([args.seed, 2]), leaders, a)
+                print(f"time gap {time_gap:.1f} s, guard {guard}, {args.states} cruising "
+                      f"starts:")
+                _print_sumo(df, a.margin_m)
+                confirmed.append(df)
+                sumo_out.parent.mkdir(parents=True, exist_ok=True)
+                pd.concat(confirmed).to_csv(sumo_out, index=False)
+                continue
             start = time.perf_counter()
             # the same states at every setting: one seed
             m = adv.measure(policy, time_gap, guard == "on", args.states,
@@ -108,14 +122,7 @@ def main(argv: list[str] | None = None) -> None:
             rows += new
             args.out.parent.mkdir(parents=True, exist_ok=True)
             pd.DataFrame(rows).to_csv(args.out, index=False)  # after each setting: resumable
-            if args.sumo:
-                leaders = tuple(dict.fromkeys(e.leader for e in encounters))
-                df = lc.confirm(policy, time_gap, guard == "on", args.states, args.sumo,
-                                np.random.default_rng([args.seed, 2]), leaders, a)
-                _print_sumo(df, a.margin_m)
-                confirmed.append(df)
-                pd.concat(confirmed).to_csv(sumo_out, index=False)
-    print(f"wrote {args.out}" + (f" and {sumo_out}" if args.sumo else ""))
+    print(f"wrote {sumo_out if args.sumo else args.out}")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ integral and the guard's estimate at zero) and senses exactly, so the counterexa
 here start there too: states drawn uniformly over the recoverable envelope
 (:func:`~safeil_sumo.learn.loop_adversary.envelope_states`), the force set to cruising, the
 unrecoverable dropped, every leader of the encounters run with exact sensing; of the states it
-fails, the ``count`` with the smallest gaps are replayed.
+fails, the ``count`` with the smallest gaps are replayed (all of them with a large ``count``).
 """
 
 from __future__ import annotations
@@ -67,11 +67,11 @@ class Counterexample:
     rollout_gap_m: float
 
 
-def search(policy: MLPPolicy, time_gap: float, guard_on: bool, n: int, count: int,
+def search(policy: MLPPolicy, time_gap: float, guard_on: bool, n: int,
            rng: np.random.Generator, leaders: tuple[adv.LeaderStrategy, ...],
            a: LoopAssumptions, parts: LoopParts, grid: Grid) -> list[Counterexample]:
-    """Up to ``count`` counterexamples among ``n`` cruising starts drawn from ``rng`` (module
-    doc): per failing state its worst leader, the ``count`` smallest gaps first."""
+    """The counterexamples among ``n`` cruising starts drawn from ``rng`` (module doc): per
+    failing state its worst leader, the smallest gap first."""
     g, v, vl, _ = adv.envelope_states(n, grid, a, parts, rng)
     f = cruising_force(v, parts.vehicle)
     keep = recoverable(g, v, vl, f, a, parts.vehicle)
@@ -80,16 +80,20 @@ def search(policy: MLPPolicy, time_gap: float, guard_on: bool, n: int, count: in
     g_min = adv.run_encounters(policy, (g, v, vl, f), time_gap, encounters, guard_on, a, parts)
     worst = np.argmin(g_min, axis=0)
     gap = g_min[worst, np.arange(g_min.shape[1])]
-    order = [i for i in np.argsort(gap, kind="stable") if gap[i] < a.margin_m][:count]
+    order = [i for i in np.argsort(gap, kind="stable") if gap[i] < a.margin_m]
     return [Counterexample(float(g[i]), float(v[i]), float(vl[i]), leaders[worst[i]],
                            float(gap[i])) for i in order]
+
+
+COLUMNS = ("time_gap_s", "guard", "gap_m", "speed_mps", "lead_speed_mps", "leader",
+           "rollout_gap_m", "sumo_gap_m", "end_reason", "confirmed")
 
 
 def replay(policy: MLPPolicy, case: Counterexample, time_gap: float, guard_on: bool,
            a: LoopAssumptions) -> dict:
     """``case`` in libsumo at the planner's ``time_gap`` [s], the guard on or off, for as long
     as its leader needs (:meth:`~safeil_sumo.learn.loop_adversary.LeaderStrategy.run_s`): the
-    smallest gap and how the run ended, beside the rollout's."""
+    smallest gap and how the run ended, beside the rollout's (a row of :data:`COLUMNS`)."""
     seconds = case.leader.run_s(a)
     spec = ScenarioSpec(net=TRACK, initial_gap_m=case.gap_m, ego_speed_mps=case.speed_mps)
     sc = build_scenario(spec, resolve_road(spec.net))
@@ -99,24 +103,28 @@ def replay(policy: MLPPolicy, case: Counterexample, time_gap: float, guard_on: b
     run = run_scenario(sc, policy, LoopConfig(max_time_s=seconds,
                                               brake_guard=grd.when(guard_on)))
     sumo_gap = float(run.log["gap"].min())
+    return {**_case_row(case, time_gap, guard_on), "sumo_gap_m": sumo_gap,
+            "end_reason": str(run.summary["end_reason"]), "confirmed": sumo_gap < a.margin_m}
+
+
+def _case_row(case: Counterexample, time_gap: float, guard_on: bool) -> dict:
     return {"time_gap_s": time_gap, "guard": "on" if guard_on else "off", "gap_m": case.gap_m,
             "speed_mps": case.speed_mps, "lead_speed_mps": case.lead_speed_mps,
             "leader": case.leader.name, "rollout_gap_m": case.rollout_gap_m,
-            "sumo_gap_m": sumo_gap, "end_reason": str(run.summary["end_reason"]),
-            "confirmed": sumo_gap < a.margin_m}
+            "sumo_gap_m": math.nan, "end_reason": "not replayed", "confirmed": pd.NA}
 
 
 def confirm(policy: MLPPolicy, time_gap: float, guard_on: bool, n: int, count: int,
             rng: np.random.Generator, leaders: tuple[adv.LeaderStrategy, ...] | None = None,
             a: LoopAssumptions | None = None, parts: LoopParts | None = None,
             grid: Grid | None = None) -> pd.DataFrame:
-    """:func:`search`, then every counterexample found :func:`replay`-ed: one row each
+    """Every counterexample :func:`search` finds, one row each (:data:`COLUMNS`), the first
+    ``count`` (the smallest gaps) :func:`replay`-ed in libsumo, the rest marked "not replayed"
     (defaults: the default leaders and the assumptions, parts and grid of
     :mod:`~safeil_sumo.learn.loop_invariant`)."""
     a, parts, grid = a or LoopAssumptions(), parts or LoopParts(), grid or Grid()
     leaders = adv.default_leaders(a) if leaders is None else leaders
-    cases = search(policy, time_gap, guard_on, n, count, rng, leaders, a, parts, grid)
-    return pd.DataFrame([replay(policy, c, time_gap, guard_on, a) for c in cases],
-                        columns=["time_gap_s", "guard", "gap_m", "speed_mps", "lead_speed_mps",
-                                 "leader", "rollout_gap_m", "sumo_gap_m", "end_reason",
-                                 "confirmed"])
+    cases = search(policy, time_gap, guard_on, n, rng, leaders, a, parts, grid)
+    rows = [replay(policy, c, time_gap, guard_on, a) if k < count
+            else _case_row(c, time_gap, guard_on) for k, c in enumerate(cases)]
+    return pd.DataFrame(rows, columns=list(COLUMNS))

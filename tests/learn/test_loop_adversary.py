@@ -188,15 +188,15 @@ def test_a_random_leaders_counterexample_holds_in_sumo(safeil) -> None:
 
 def test_cruising_counterexamples_are_searched_worst_first(safeil) -> None:
     """The unguarded loop at 1.5 s behind a leader braking now: the counterexamples of 300
-    cruising starts are recoverable, below the margin, worst first, at most ``count``, and each
-    gap is the rollout's from that start (cruising force, exact sensing); the same seed finds the
-    same ones."""
+    cruising starts are recoverable, below the margin, worst first, and each gap is the
+    rollout's from that start (cruising force, exact sensing); the same seed finds the same
+    ones."""
     def found():
-        return lc.search(safeil, 1.5, False, 300, 3, np.random.default_rng(0), (BRAKE_NOW,), A,
+        return lc.search(safeil, 1.5, False, 300, np.random.default_rng(0), (BRAKE_NOW,), A,
                          PARTS, li.Grid())
 
     cases = found()
-    assert 1 <= len(cases) <= 3 and cases == found()
+    assert len(cases) >= 2 and cases == found()
     gaps = [c.rollout_gap_m for c in cases]
     assert gaps == sorted(gaps) and gaps[-1] < A.margin_m
     g, v, vl = (np.array([getattr(c, k) for c in cases])
