@@ -4,6 +4,8 @@ passes, the real tracker, guard and plant never take a state with h >= 0 to h < 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -195,3 +197,105 @@ def test_the_real_loop_leaves_the_envelope(safeil, guard_on: bool, gap: float,
     low = lr.run(safeil, g, np.full(2, 30.0), np.full(2, 30.0), np.zeros(2), 1.5, -6.0,
                  np.array(sensing), guard_on, a, parts, 100).g_min
     assert low[0] < a.margin_m <= low[1]
+
+
+# a tiny grid for hand-built increments: gap rows [1, 2.5, 4, 5.5, 7, 8.5, 10], 4 x 4 x 2 columns
+TINY = li.Grid(gap_m=(1.0, 10.0, 1.5), speed_mps=(8.0, 10.0, 0.5),
+               leader_speed_mps=(8.0, 10.0, 0.5), force_mps2=(-3.0, 0.0, 1.5))
+
+
+def _hand_increments(dg_lo: float = -0.2, dv_lo: float = -0.05) -> lb.Increments:
+    """Every cell: the gap changes by [dg_lo, 0.1], the speeds by [dv_lo, 0.05], the force
+    not at all; hulls within the own cell; the gap dips 0.3 m within the period."""
+    shape = TINY.shape
+    lo, hi = np.zeros((4, *shape)), np.zeros((4, *shape))
+    lo[0], hi[0], lo[1:3], hi[1:3] = dg_lo, 0.1, dv_lo, 0.05
+    own = np.stack(np.indices(shape)[1:]).astype(np.int16)
+    return lb.Increments(lo, hi, own.copy(), own.copy(), np.full(shape, -0.3),
+                         np.zeros(shape, bool), 1.0)
+
+
+def test_cell_deficits_by_hand() -> None:
+    """A flat floor of 4 m: h = g - 4, no rise. Rows 1-2 (gaps 2.5-5.5 m) hold states with h
+    near 0 and fail by the gap's fall plus the float margin, row 3 (5.5-7 m) keeps h >= 1.5
+    and passes, row 0 has no state of S. A dip of 3.5 m takes row 2's lowest gap (4 m) below
+    the margin (reason: within the period); a dip of 4 m in row 3 leaves it 0.5 m inside a
+    passing cell; a speed leaving the grid marks passing cells only."""
+    inc = _hand_increments()
+    inc.dip[2, 1, 1, 0] = -3.5
+    inc.dip[3, 1, 1, 0] = -4.0
+    inc.off_grid[3, 2, 2, 1] = inc.off_grid[2, 2, 2, 1] = True
+    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
+    deficit, why = lb.cell_deficits(inc, phi, TINY, li.LoopAssumptions())
+    fm = li.FLOAT_MARGIN
+    fails = -(-0.2 - fm * (1.0 + 3.0 * 0.0 + 0.2))  # h_lo <= 0: the whole fall is the deficit
+    assert np.all(deficit[0] == -np.inf)
+    assert deficit[1, 0, 0, 0] == fails and deficit[2, 0, 0, 0] == fails
+    assert deficit[3, 0, 0, 0] == -1.5 + fails < 0.0
+    assert why[1, 0, 0, 0] == why[2, 0, 0, 0] == lb.INCREMENT and why[3, 0, 0, 0] == lb.OK
+    assert deficit[2, 1, 1, 0] == pytest.approx(1.0 - (4.0 - 3.5)) and \
+        why[2, 1, 1, 0] == lb.GAP_IN_PERIOD
+    assert deficit[3, 1, 1, 0] == pytest.approx(-0.5) and why[3, 1, 1, 0] == lb.OK
+    assert why[3, 2, 2, 1] == lb.SPEED_OFF_GRID and why[2, 2, 2, 1] == lb.INCREMENT
+    # the float margin grows with the size of the gap's change only
+    d2, _ = lb.cell_deficits(_hand_increments(-0.4, -3.0), phi, TINY, li.LoopAssumptions())
+    assert d2[1, 0, 0, 0] == -(-0.4 - fm * (1.0 + 0.4))
+
+
+def test_check_keeps_each_columns_worst_cell_over_chunks() -> None:
+    """check, one gap row per chunk: per column the worst cell's deficit, reason and row (the
+    first of equal ones), -inf and row -1 where the column has no state of S (a floor above
+    the top gap), a speed exit found in any chunk; a floor below the margin is refused."""
+    inc = _hand_increments()
+    inc.dip[2, 1, 1, 0] = -3.5
+    inc.off_grid[4, 0, 3, 1] = True
+    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
+    phi[3:, :, :] = 20.0  # the columns of speeds 9.5-10 m/s: S empty there
+    a = li.LoopAssumptions()
+    deficit, why = lb.cell_deficits(inc, phi, TINY, a)
+    for rows_per_chunk in (1, 2, 10):
+        got = lb.check(inc, phi, TINY, a, rows_per_chunk=rows_per_chunk)
+        assert np.array_equal(got.deficit, deficit.max(0))
+        assert np.all(got.deficit[3] == -np.inf) and np.all(got.row[3] == -1)
+        assert got.row[0, 1, 0] == 1 and got.row[1, 1, 0] == 2  # first of equals; the dip's
+        assert got.reason[1, 1, 0] == lb.GAP_IN_PERIOD and got.reason[0, 1, 0] == lb.INCREMENT
+        assert got.speed_exits[0, 3, 1] and got.speed_exits.sum() == 1
+        assert not got.passed
+    with pytest.raises(ValueError, match="at or above the margin"):
+        lb.check(inc, np.full_like(phi, 0.5), TINY, a)
+
+
+def test_a_hull_longer_than_the_windows_fails() -> None:
+    """A cell whose hull spans more lattice cells than the slope windows reach fails with an
+    infinite deficit; its neighbours' do not."""
+    inc = _hand_increments()
+    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
+    wide = dataclasses.replace(TINY, speed_mps=(0.0, 20.0, 0.5))  # 40 speed cells
+    shape = wide.shape
+    inc = lb.Increments(*(np.broadcast_to(x[:, :, :1], (x.shape[0], *shape)).copy()
+                          if x.ndim == 5 else np.broadcast_to(x[:, :1], shape).copy()
+                          for x in (inc.lo, inc.hi)), *(None,) * 4, 1.0)
+    own = np.stack(np.indices(shape)[1:]).astype(np.int16)
+    inc.first, inc.last = own.copy(), own.copy()
+    inc.dip, inc.off_grid = np.full(shape, -0.3), np.zeros(shape, bool)
+    inc.last[0, 3, 0, 0, 0] = 3 + 2 * lb.SLOPE_WINDOW  # hull 2 * window + 1 cells along v
+    phi = np.full(tuple(len(e) for e in lb.lattice_axes(wide)), 4.0)
+    deficit, why = lb.cell_deficits(inc, phi, wide, li.LoopAssumptions())
+    assert deficit[3, 0, 0, 0] == np.inf and why[3, 0, 0, 0] == lb.HULL_TOO_LONG
+    assert np.isfinite(deficit[3, 1, 0, 0]) and why[3, 1, 0, 0] == lb.OK
+    assert np.sum(why == lb.HULL_TOO_LONG) == 1
+
+
+def test_rise_moving_down_through_a_falling_floor() -> None:
+    """Along v the floor rises 1 m per m/s below 9 m/s and falls 6 m per m/s above. From cell
+    3 (9.5-10 m/s), the hull down to cell 1, the speed falling by 0.1-0.3 m/s: the slopes there
+    are -6 and 1, so the floor may rise by up to 6 * 0.3 = 1.8 m."""
+    v, _, _ = _nodes(SMALL)
+    phi = 40.0 + np.where(v < 9.0, v - 8.0, 1.0 - 6.0 * (v - 9.0))
+    slopes = lb._Slopes.of(phi, SMALL)
+    first, last, own = np.array([[1], [0], [0]]), np.array([[3], [0], [0]]), np.array(
+        [[3], [0], [0]])
+    lo, hi = np.array([[-0.3], [0.0], [0.0]]), np.array([[-0.1], [0.0], [0.0]])
+    total, size, too_long = slopes.rise(first, last, own, lo, hi)
+    assert total[0] == pytest.approx(1.8) and size[0] == pytest.approx(1.8)
+    assert not too_long[0]
