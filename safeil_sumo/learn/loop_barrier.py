@@ -361,8 +361,9 @@ def synthesize(policy: MLPPolicy, grid: li.Grid, time_gap: tuple[float, float],
                progress: Callable[[int, BarrierCheck], object] | None = None,
                inc: Increments | None = None) -> Synthesis:
     """Raise the floor from the recoverable boundary until :func:`check` passes, the rounds
-    run out or the budget [s] is spent (the last check's verdict is the answer either way);
-    ``inc``: the cells' increments at these settings, if already computed."""
+    run out or the budget [s] is spent (the last check's verdict is the answer either way,
+    and the floor returned is the one it checked); ``inc``: the cells' increments at these
+    settings, if already computed."""
     start = time.perf_counter()
     if inc is None:
         inc = increments(policy, grid, time_gap, a, parts)
@@ -377,7 +378,7 @@ def synthesize(policy: MLPPolicy, grid: li.Grid, time_gap: tuple[float, float],
                        time.perf_counter() - start))
         if progress is not None:
             progress(r, result)
-        if result.passed or time.perf_counter() - start > budget_s:
+        if result.passed or time.perf_counter() - start > budget_s or r == max_rounds - 1:
             break
         phi = _raise_nodes(phi, result.deficit, step_m, ceiling, grid, lift_slope)
     return Synthesis(phi, result, rounds, inc)

@@ -5,6 +5,7 @@ passes, the real tracker, guard and plant never take a state with h >= 0 to h < 
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import pytest
@@ -299,3 +300,94 @@ def test_rise_moving_down_through_a_falling_floor() -> None:
     total, size, too_long = slopes.rise(first, last, own, lo, hi)
     assert total[0] == pytest.approx(1.8) and size[0] == pytest.approx(1.8)
     assert not too_long[0]
+
+
+def test_raised_nodes_by_hand() -> None:
+    """One failing column (v cell 1, v_l cell 2, f cell 0) short by 5 m: its 8 nodes rise by
+    5.1 m (deficit + step), the rise spreads to every node less 2 m per v node, 2 m per v_l node
+    and 4.5 m per f node (slopes 4, 4, 3 times the widths 0.5, 0.5, 1.5), and the floor is cut at
+    the ceiling."""
+    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
+    deficit = np.full(TINY.shape[1:], -1.0)
+    deficit[1, 2, 0] = 5.0
+    got = lb._raise_nodes(phi, deficit, 0.1, 100.0, TINY, (4.0, 4.0, 3.0))
+    i, j, k = np.indices(phi.shape)
+    block = [(bv, bl, bf) for bv in (1, 2) for bl in (2, 3) for bf in (0, 1)]
+    want = np.max([5.1 - 2.0 * np.abs(i - bv) - 2.0 * np.abs(j - bl) - 4.5 * np.abs(k - bf)
+                   for bv, bl, bf in block], axis=0)
+    np.testing.assert_allclose(got, 4.0 + np.maximum(want, 0.0), atol=1e-12)
+    assert np.all(lb._raise_nodes(phi, deficit, 0.1, 7.0, TINY, (4.0, 4.0, 3.0)) <= 7.0)
+    assert lb._raise_nodes(phi, deficit, 0.1, 7.0, TINY, (4.0, 4.0, 3.0))[1, 2, 0] == 7.0
+
+
+def test_synthesize_returns_the_floor_it_checked() -> None:
+    """Hand-built increments whose gap always falls: no floor below the ceiling holds, so the
+    search lifts until every column's floor is above the top gap, the nodes capped at the top
+    gap + 1 m (S empty: a vacuous pass). Cut
+    after one round it returns the recoverable floor with that floor's check; every round is
+    recorded (failing columns, largest finite deficit, seconds since the start)."""
+    inc = _hand_increments()
+    a, parts = li.LoopAssumptions(), li.LoopParts()
+    one = lb.synthesize(None, TINY, (1.5, 1.5), a, parts, max_rounds=1, inc=inc)
+    base = lb.recoverable_floor(TINY, a, parts)
+    assert np.array_equal(one.phi, base) and one.increments is inc
+    first = lb.check(inc, base, TINY, a)
+    assert np.array_equal(one.result.deficit, first.deficit) and not one.result.passed
+    fails = first.deficit > 0.0
+    assert one.rounds[0][:2] == (int(fails.sum()), float(first.deficit[fails].max()))
+    start = time.perf_counter()
+    syn = lb.synthesize(None, TINY, (1.5, 1.5), a, parts, max_rounds=500, inc=inc)
+    elapsed = time.perf_counter() - start
+    top = TINY.axes()[0][-1]
+    assert syn.result.passed and np.all(syn.result.deficit == -np.inf)
+    assert np.all(lb.floor_bounds(syn.phi)[0] > top) and syn.phi.max() == top + 1.0
+    assert syn.rounds[-1][:2] == (0, 0.0) and len(syn.rounds) > 2
+    seconds = [r[2] for r in syn.rounds]
+    assert seconds == sorted(seconds) and 0.0 <= seconds[0] and seconds[-1] <= elapsed
+
+
+def test_increments_of_every_cell(safeil) -> None:
+    """increments over 10 gap rows of the small grid, 4 rows at a time: the arrays' shapes and
+    types, the progress in rows (4, 4, 2), the seconds, the same bounds as one chunk, and the
+    speed leaving the grid's top (14 m/s) only from its top cells."""
+    grid = dataclasses.replace(SMALL, gap_m=(1.0, 16.0, 1.5))
+    a, parts = li.LoopAssumptions(), li.LoopParts()
+    seen: list[int] = []
+    inc = lb.increments(safeil, grid, (1.5, 1.5), a, parts, rows_per_chunk=4,
+                        progress=seen.append)
+    assert seen == [4, 4, 2] and inc.seconds > 0.0
+    assert inc.lo.shape == inc.hi.shape == (4, *grid.shape)
+    assert inc.first.shape == inc.last.shape == (3, *grid.shape)
+    assert inc.first.dtype == inc.last.dtype == np.int16
+    assert inc.dip.shape == inc.off_grid.shape == grid.shape and inc.off_grid.dtype == bool
+    whole = lb.increments(safeil, grid, (1.5, 1.5), a, parts, rows_per_chunk=10)
+    for name in ("lo", "hi", "first", "last", "dip", "off_grid"):
+        assert np.array_equal(getattr(inc, name), getattr(whole, name)), name
+    assert np.all(inc.lo <= inc.hi) and np.all(inc.first <= inc.last)
+    assert inc.off_grid[:, -1].any() and not inc.off_grid[:, :-2].any()
+
+
+def test_envelope_share_against_quadrature() -> None:
+    """S's share for a floor rising with the closing speed, against a midpoint quadrature of
+    the same ratio over the box (the gap integrated exactly): within four standard errors; its
+    standard error against the spread of 30 seeds; the same seed, the same share."""
+    a, parts = li.LoopAssumptions(), li.LoopParts()
+    grid = li.Grid()
+    v, vl, f = _nodes(grid)
+    phi = np.maximum(30.0 + 3.0 * (v - vl) + 2.0 * f, a.margin_m)
+    share, err = lb.envelope_share(phi, grid, a, parts, samples=20_000, seed=4)
+    assert (share, err) == lb.envelope_share(phi, grid, a, parts, samples=20_000, seed=4)
+    _, ev, el, ef = grid.axes()
+    mids = [np.linspace(e[0], e[-1], n, endpoint=False) + (e[-1] - e[0]) / (2 * n)
+            for e, n in ((ev, 100), (el, 80), (ef, 24))]
+    qv, ql, qf = (x.ravel() for x in np.meshgrid(*mids, indexing="ij"))
+    top = grid.axes()[0][-1]
+    g_r = li.recoverable_gap(qv, ql, qf, a, parts.vehicle)
+    env = np.maximum(top - g_r, 0.0)
+    cert = np.maximum(top - np.maximum(lb.interpolate(phi, grid, qv, ql, qf), g_r), 0.0)
+    want = cert.sum() / env.sum()
+    assert 0.1 < want < 0.9 and abs(share - want) < 4.0 * err + 0.002
+    spread = np.std([lb.envelope_share(phi, grid, a, parts, samples=2_000, seed=s)[0]
+                     for s in range(30)])
+    small_err = lb.envelope_share(phi, grid, a, parts, samples=2_000, seed=0)[1]
+    assert 0.6 < small_err / spread < 1.6
