@@ -8,6 +8,7 @@ pieces' monotonicity and relaxations are checked on their own.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -222,3 +223,104 @@ def test_sumo_runs_stay_inside_the_period_bound(safeil, guard_on: bool) -> None:
     assert log["c1l"].abs().max() <= a.heading_error[1]
     width = log["c0l"] - log["c0r"]
     assert a.lane_width_m[0] <= width.min() and width.max() <= a.lane_width_m[1]
+
+
+def test_network_input_box_by_hand() -> None:
+    """Lane 3.3-3.8 m wide, the ego 0.3 m either side of its centre, slopes +-0.01: the lines'
+    c0 of [1.35, 2.2] (left) and [-2.2, -1.35] (right); speeds widened by 0.2 m/s, the gap by
+    0.5 m, the time-gap slice as given."""
+    a = li.LoopAssumptions()
+    lo, hi = li.network_input_box((np.array([10.0]), np.array([11.5])),
+                                  (np.array([20.0]), np.array([20.5])),
+                                  (np.array([19.0]), np.array([19.5])), (1.2, 1.6), a)
+    np.testing.assert_allclose(lo[0], [1.35, -0.01, 0.0, -2.2, -0.01, 0.0, 19.8, 18.8, 9.5, 1.2],
+                               atol=1e-12)
+    np.testing.assert_allclose(hi[0], [2.2, 0.01, 0.0, -1.35, 0.01, 0.0, 20.7, 19.7, 12.0, 1.6],
+                               atol=1e-12)
+
+
+def test_index_range_by_hand() -> None:
+    """Edges 0, 1, 2, 3: a box's first and last cells, clipped to the axis (int16), the top
+    edge itself in the last cell, and whether the box passes the top."""
+    first, last, out = li._index_range(np.array([0.0, 1.0, 2.0, 3.0]),
+                                       (np.array([-0.5, 0.5, 2.9, 1.2]),
+                                        np.array([0.2, 3.0, 3.5, 1.5])))
+    assert first.tolist() == [0, 0, 2, 1] and last.tolist() == [0, 2, 2, 1]
+    assert out.tolist() == [False, False, True, False]
+    assert first.dtype == last.dtype == np.int16
+
+
+def test_range_max_reaches_two_windows_and_keeps_the_type() -> None:
+    """Maxima over index boxes from windows of 2 cells: exact up to 4 cells per axis, refused
+    beyond; integer floors stay integers."""
+    rng = np.random.default_rng(5)
+    rho = rng.integers(0, 100, (6, 5, 4)).astype(np.int32)
+    win = li._window_maxima(rho, 2)
+    assert win.dtype == np.int32
+    first = np.array([[0, 2, 1], [1, 0, 3], [0, 3, 0]]).T  # (3, M): boxes along each axis
+    last = first + np.array([[3, 1, 0], [0, 3, 0], [2, 0, 3]]).T
+    got = li._range_max(win, first, last)
+    want = [rho[f[0]:l_[0] + 1, f[1]:l_[1] + 1, f[2]:l_[2] + 1].max()
+            for f, l_ in zip(first.T, last.T, strict=True)]
+    assert got.tolist() == want and got.dtype == np.int32
+    with pytest.raises(ValueError, match="longer than two windows"):
+        li._range_max(win, np.zeros((3, 1), np.int16), np.array([[4], [0], [0]], np.int16))
+
+
+def test_drive_force_limit_by_hand() -> None:
+    """The drive force per mass: the force limit at low speed, the power limit above."""
+    p = veh.VehicleParams()
+    v = np.array([0.0, 5.0, 40.0])
+    want = np.minimum(p.max_drive_force_n, p.max_drive_power_w / np.array([0.1, 5.0, 40.0]))
+    np.testing.assert_allclose(li._drive(v, p), want / p.mass_kg)
+    assert li._drive(np.array([40.0]), p)[0] == pytest.approx(p.max_drive_power_w / 40.0
+                                                               / p.mass_kg)
+
+
+def test_recoverable_gap_behind_a_braking_slow_leader() -> None:
+    """The ego at 30 m/s already braking fully, the leader at 10 m/s braking at 6 m/s^2: the
+    ego stops after about 30^2 / (2 (9 + resistance)) m, the leader after 10^2 / 12 = 8.3 m and
+    then stands; the gap is least when the ego stops, so the margin plus the difference (an
+    independent Euler sum at the loop's step, resistance included)."""
+    a, p = li.LoopAssumptions(), veh.VehicleParams()
+    got = li.recoverable_gap(np.array([30.0]), np.array([10.0]), np.array([-9.0]), a, p)[0]
+    v, x = 30.0, 0.0
+    while v > 0.0:
+        decel = 9.0 + float(veh.resistance_force(v, p)) / p.mass_kg
+        v = max(v - decel * a.step_s, 0.0)
+        x += v * a.step_s
+    vl, xl = 10.0, 0.0
+    while vl > 0.0:
+        vl = max(vl - 6.0 * a.step_s, 0.0)
+        xl += vl * a.step_s
+    assert got == pytest.approx(a.margin_m + x - xl, abs=0.3)
+
+
+def test_box_period_keeps_the_leader_speed_limits(safeil) -> None:
+    """A leader box at the top speed (39.99-40 m/s) can gain at most what the limit leaves
+    (0.01 m/s in the first step, then 0.02 per step below it: 0.19 m/s over the period); one
+    at 0-0.5 m/s ends within [0, 0.7] m/s."""
+    a, parts = li.LoopAssumptions(), li.LoopParts()
+    f_box = (np.array([[-1.5]]), np.array([[0.0]]))
+    box = lambda lo, hi: (np.array([lo]), np.array([hi]))  # noqa: E731
+    image, change, _ = li.box_period(safeil, box(60.0, 61.5), box(39.0, 39.5), box(39.99, 40.0),
+                                     f_box, (1.5, 1.5), a, parts)
+    assert change[2][1][0, 0] == pytest.approx(0.19, abs=1e-6) and image[2][1][0, 0] <= 40.0 + 1e-6
+    image, change, _ = li.box_period(safeil, box(20.0, 21.5), box(1.0, 1.5), box(0.0, 0.5),
+                                     f_box, (1.5, 1.5), a, parts)
+    assert image[2][0][0, 0] == pytest.approx(0.0, abs=1e-6)
+    assert image[2][1][0, 0] == pytest.approx(0.7, abs=1e-6)
+
+
+def test_the_bounds_refuse_what_they_do_not_cover(safeil) -> None:
+    """A tracker with a derivative term, a checkpoint without the towers: one line each."""
+    a = li.LoopAssumptions()
+    f_box = (np.array([[-1.5]]), np.array([[0.0]]))
+    one = (np.array([20.0]), np.array([21.5]))
+    with_kd = li.LoopParts(controller=dataclasses.replace(li.LoopParts().controller, kd=0.1))
+    with pytest.raises(ValueError, match=r"a PI tracker \(kd = 0\)"):
+        li.box_period(safeil, one, one, one, f_box, (1.5, 1.5), a, with_kd)
+    bc = load_policy(shipped_checkpoint("bc"))
+    lo, hi = li.network_input_box(one, one, one, (1.5, 1.5), a)
+    with pytest.raises(ValueError, match="needs the residual x outputs and the lane-following"):
+        li.plan_bounds(bc, lo, hi)
