@@ -324,3 +324,26 @@ def test_the_bounds_refuse_what_they_do_not_cover(safeil) -> None:
     lo, hi = li.network_input_box(one, one, one, (1.5, 1.5), a)
     with pytest.raises(ValueError, match="needs the residual x outputs and the lane-following"):
         li.plan_bounds(bc, lo, hi)
+
+
+def test_successors_are_the_images_cells(safeil) -> None:
+    """successors, two gap rows at a time: every cell's image as the grid cells it meets
+    (int16), failing where the gap can drop below the margin or the speed leave the grid,
+    the same as the period image of all rows at once; progress counted in rows."""
+    grid = li.Grid(gap_m=(1.0, 10.0, 1.5), speed_mps=(8.0, 10.0, 0.5),
+                   leader_speed_mps=(8.0, 10.0, 0.5), force_mps2=(-3.0, 0.0, 1.5))
+    a, parts = li.LoopAssumptions(), li.LoopParts()
+    seen: list[int] = []
+    succ = li.successors(safeil, grid, (1.5, 1.5), a, parts, rows_per_chunk=4,
+                         progress=seen.append)
+    assert seen == [4, 2]
+    assert succ.first.shape == succ.last.shape == (4, *grid.shape)
+    assert succ.first.dtype == succ.last.dtype == np.int16
+    image, g_min = li.period_image(safeil, grid, slice(0, grid.shape[0]), (1.5, 1.5), a, parts)
+    fails = g_min < a.margin_m
+    for k, (edges, box) in enumerate(zip(grid.axes(), image, strict=True)):
+        first, last, out = li._index_range(edges, box)
+        assert np.array_equal(succ.first[k], first) and np.array_equal(succ.last[k], last)
+        if k == 1:
+            fails |= out
+    assert np.array_equal(succ.fails, fails) and succ.fails.any() and not succ.fails.all()
