@@ -110,12 +110,15 @@ def test_a_file_never_says_proven_of_a_failing_check(shipped_result, tmp_path, c
     written = clc.write(shipped_result, path)
     body = json.loads(written.read_text())
     written.write_text(json.dumps({**body, **change}))
-    with pytest.raises(clc.ClosedLoopError, match="inconsistent verdict"):
+    with pytest.raises(clc.ClosedLoopError, match=f"^{written}: inconsistent verdict"):
         clc.read(written)
     status = clc.load(path)
     assert not status.valid and not status.proven and "inconsistent verdict" in status.reason
-    with pytest.raises(clc.ClosedLoopError, match="inconsistent verdict"):
+    with pytest.raises(clc.ClosedLoopError, match="^x: inconsistent verdict"):
         clc.consistent({**clc.build(shipped_result, path, None), **change}, "x")
+    bad = dataclasses.replace(shipped_result, share=0.4)  # a share claimed without a proof
+    with pytest.raises(clc.ClosedLoopError, match="^the result: inconsistent verdict"):
+        clc.build(bad, path, None)
 
 
 def test_a_floor_at_the_ceiling_passes_vacuously_with_no_share(safeil, settings) -> None:
