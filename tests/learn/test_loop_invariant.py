@@ -347,3 +347,30 @@ def test_successors_are_the_images_cells(safeil) -> None:
         if k == 1:
             fails |= out
     assert np.array_equal(succ.fails, fails) and succ.fails.any() and not succ.fails.all()
+
+
+def test_reference_bounds_of_one_plan_are_its_speed_and_acceleration(safeil) -> None:
+    """A box of one state on a lane of one width, offset and slope, sensed exactly: the bounds
+    of the tracker's reference hold the plan's own speed and acceleration
+    (controller.plan_speed, plan_accel) at times from the decision to the horizon, within a
+    millimetre per second and 0.05 m/s^2."""
+    from safeil_sumo.sim import controller as ctl
+
+    a = li.LoopAssumptions(lane_width_m=(3.5, 3.5), lateral_offset_m=(0.0, 0.0),
+                           heading_error=(0.0, 0.0), speed_sensing_mps=0.0, gap_sensing_m=0.0)
+    states = [(40.0, 25.0, 24.0), (12.0, 30.0, 20.0), (90.0, 15.0, 18.0)]  # gap, v, v_l
+    box = lambda k: (np.array([s[k] for s in states]),) * 2  # noqa: E731
+    lo, hi = li.network_input_box(box(0), box(1), box(2), (1.5, 1.5), a)
+    pb = li.plan_bounds(safeil, lo, hi)
+    safeil.set_style(time_gap_s=1.5)
+    target = ctl.make_targets(safeil.plan(lo[:, :9]), np.full(3, safeil.horizon), np.zeros(3),
+                              np.zeros(3), np.zeros(3))
+    for t in (0.0, 0.05, 0.1, 0.3, safeil.horizon):  # the tracker reads up to 0.3 s
+        ref = li.reference_bounds(pb, t, safeil.horizon, safeil.lane_keep_m, a)
+        speed = ctl.plan_speed(target.coeff_x, target.coeff_y, target.horizon_s, t, ARRAYS)
+        accel = ctl.plan_accel(target.coeff_x, target.coeff_y, target.horizon_s, t, ARRAYS)
+        v0 = lo[:, 6]
+        assert np.all(ref.err_lo + v0 <= speed + 1e-9) and np.all(speed <= ref.err_hi + v0 + 1e-9)
+        assert np.all(ref.err_hi - ref.err_lo < 1e-3)
+        assert np.all(ref.acc_lo <= accel + 1e-6) and np.all(accel <= ref.acc_hi + 1e-6)
+        assert np.all(ref.acc_hi - ref.acc_lo < 0.05)
