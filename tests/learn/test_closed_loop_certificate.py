@@ -11,6 +11,7 @@ import shutil
 
 import numpy as np
 import pytest
+from safetensors import safe_open
 from safetensors.numpy import load_file, save_file
 
 from safeil_sumo.learn import closed_loop_certificate as clc
@@ -173,6 +174,10 @@ def test_the_certificate_round_trips(shipped_result, settings, tmp_path) -> None
     arrays = clc.read_arrays(written.with_name(body["floor"]["file"]))
     for k, v in shipped_result.arrays.items():
         assert np.array_equal(arrays[k], v) and arrays[k].dtype == v.dtype
+    assert arrays["reason"].dtype == np.int8 and arrays["floor"].dtype == np.float64
+    with safe_open(written.with_name(body["floor"]["file"]), framework="numpy") as f:
+        assert f.metadata() == {"format": clc.FORMAT + "-floor",
+                                "format_version": str(clc.FORMAT_VERSION)}
     assert body["checkpoint"]["weights_sha256"] == json.loads(
         (tmp_path / "safeil.json").read_text())["weights_sha256"]
     assert body["versions"]["safeil_sumo"] and body["seconds"]["total"] > 0
@@ -210,8 +215,11 @@ def test_settings_grids_and_files_refuse_what_they_cannot_do(tmp_path) -> None:
                             ((0.0, 1, 1, 1), "must be > 0")):
         with pytest.raises(clc.ClosedLoopError, match=message):
             clc.grid_with_widths(widths)
-    with pytest.raises(clc.ClosedLoopError, match="0 < LO <= HI"):
-        clc.ClosedLoopSettings((2.0, 1.0))
+    for gaps in ((2.0, 1.0), (0.0, 1.0)):
+        with pytest.raises(clc.ClosedLoopError, match="0 < LO <= HI"):
+            clc.ClosedLoopSettings(gaps)
+    with pytest.raises(clc.ClosedLoopError, match="not a whole number of cells"):
+        clc.ClosedLoopSettings((1.0, 1.0), grid=li.Grid(gap_m=(1.0, 10.0, 2.0)))
     with pytest.raises(clc.ClosedLoopError, match=">= 0 s"):
         clc.ClosedLoopSettings((1.0, 1.0), search_s=-1.0)
     path = tmp_path / "c.json"
@@ -279,3 +287,6 @@ def test_a_searched_floor_is_the_one_checked(safeil, settings) -> None:
     assert r.floor["source"] == f"synthesize: last of {len(rounds)} checks"
     base = lb.recoverable_floor(settings.grid, settings.assumptions, settings.parts)
     assert np.all(r.arrays["floor"] >= base) and not np.array_equal(r.arrays["floor"], base)
+    assert 0.0 < r.seconds["search"] <= r.seconds["total"]
+    body = clc.build(r, pol.shipped_checkpoint("safeil"), None)
+    assert clc.settings_of(body) == searched and body["search"]["budget_s"] == 1.0

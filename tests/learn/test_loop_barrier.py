@@ -335,6 +335,10 @@ def test_synthesize_returns_the_floor_it_checked() -> None:
     assert np.array_equal(one.result.deficit, first.deficit) and not one.result.passed
     fails = first.deficit > 0.0
     assert one.rounds[0][:2] == (int(fails.sum()), float(first.deficit[fails].max()))
+    two = lb.synthesize(None, TINY, (1.5, 1.5), a, parts, max_rounds=2, inc=inc)
+    lifted = lb._raise_nodes(base, first.deficit, 0.1, TINY.axes()[0][-1] + 1.0, TINY,
+                             (4.0, 4.0, 3.0))  # the defaults: 0.1 m over the deficit
+    assert np.array_equal(two.phi, lifted)
     start = time.perf_counter()
     syn = lb.synthesize(None, TINY, (1.5, 1.5), a, parts, max_rounds=500, inc=inc)
     elapsed = time.perf_counter() - start
@@ -374,7 +378,7 @@ def test_envelope_share_against_quadrature() -> None:
     a, parts = li.LoopAssumptions(), li.LoopParts()
     grid = li.Grid()
     v, vl, f = _nodes(grid)
-    phi = np.maximum(30.0 + 3.0 * (v - vl) + 2.0 * f, a.margin_m)
+    phi = np.maximum(30.0 + 3.0 * (v - vl) + 6.0 * f, a.margin_m)
     share, err = lb.envelope_share(phi, grid, a, parts, samples=20_000, seed=4)
     assert (share, err) == lb.envelope_share(phi, grid, a, parts, samples=20_000, seed=4)
     _, ev, el, ef = grid.axes()
@@ -391,3 +395,12 @@ def test_envelope_share_against_quadrature() -> None:
                      for s in range(30)])
     small_err = lb.envelope_share(phi, grid, a, parts, samples=2_000, seed=0)[1]
     assert 0.6 < small_err / spread < 1.6
+
+
+def test_synthesize_bounds_the_increments_itself(safeil) -> None:
+    """Without increments given, synthesize computes them for the planner it is given."""
+    a, parts = li.LoopAssumptions(), li.LoopParts()
+    syn = lb.synthesize(safeil, TINY, (1.5, 1.5), a, parts, max_rounds=1)
+    own = lb.increments(safeil, TINY, (1.5, 1.5), a, parts)
+    assert np.array_equal(syn.increments.lo, own.lo) and np.array_equal(syn.increments.hi,
+                                                                         own.hi)
