@@ -16,6 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from safeil_sumo.learn import bounds as bnd
 from safeil_sumo.learn import loop_invariant as li
 from safeil_sumo.learn import loop_rollout as lr
 from safeil_sumo.learn.inference import load_policy
@@ -374,3 +375,52 @@ def test_reference_bounds_of_one_plan_are_its_speed_and_acceleration(safeil) -> 
         assert np.all(ref.err_hi - ref.err_lo < 1e-3)
         assert np.all(ref.acc_lo <= accel + 1e-6) and np.all(accel <= ref.acc_hi + 1e-6)
         assert np.all(ref.acc_hi - ref.acc_lo < 0.05)
+
+
+def test_widening_and_point_lines_by_hand() -> None:
+    """Each bound moves outwards by 1e-9 (1 + |bound|); on a point interval the tanh lines are
+    its tangent, their half gap the rounding allowance 1e-12 (1 + |offset|) and no more."""
+    lo, hi = li._widen((np.array([2.0, -3.0]), np.array([3.0, -1.0])))
+    fm = li.FLOAT_MARGIN
+    assert lo.tolist() == [2.0 - fm * 3.0, -3.0 - fm * 4.0]
+    assert hi.tolist() == [3.0 + fm * 4.0, -1.0 + fm * 2.0]
+    for width in (0.0, 5e-10):
+        z = np.array([0.7])
+        s, o, d = li.tanh_parallel_lines(z, z + width)
+        dev = math.tanh(0.7) - s[0] * 0.7
+        assert s[0] == pytest.approx(1.0 - math.tanh(0.7 + width / 2) ** 2, rel=1e-12)
+        assert abs(s[0] * 0.7 + o[0] - math.tanh(0.7)) <= d[0] <= 1e-11
+        assert d[0] >= 1e-12 * (1.0 + abs(dev)) * (1 - 1e-6)
+
+
+def test_guard_bounds_reach_a_standing_leader() -> None:
+    """A sensed leader speed box reaching below 0: the demand's upper bound is at least the
+    guard's demand behind a standing leader braking at the clip (10 m/s^2)."""
+    guard = grd.BrakeGuard()
+    box = lambda lo, hi: (np.array([lo]), np.array([hi]))  # noqa: E731
+    _, hi = li.guard_bounds(box(8.0, 9.0), box(12.0, 12.5), box(-0.2, 0.6), guard)
+    want = float(grd.guard_decel(8.0, 12.5, 0.0, -guard.max_leader_decel_mps2, guard, ARRAYS))
+    assert hi[0] >= want - 1e-9 > 0.0
+
+
+def test_assumptions_and_networks_refused_in_one_line(safeil) -> None:
+    """Assumptions that cannot hold, a ReLU network, a network without the towers, a tracker with
+    a derivative term: each a ValueError saying which."""
+    with pytest.raises(ValueError, match="^LoopAssumptions.step_s must be > 0"):
+        li.LoopAssumptions(step_s=0.0)
+    assert li.LoopAssumptions(leader_accel_mps2=(-6.0, 0.5)).leader_accel_mps2 == (-6.0, 0.5)
+    relu = [bnd.Layer.dense(np.eye(2), np.zeros(2), "relu"),
+            bnd.Layer.dense(np.eye(2), np.zeros(2), "identity")]
+    with pytest.raises(ValueError, match="^the closed-loop certificate bounds tanh networks$"):
+        li._affine_forms(relu, np.zeros((1, 2)), np.ones((1, 2)))
+    layers = li._network(safeil)
+    crossed = layers[1].weight.copy()
+    crossed[0, -1] = 0.1  # a longitudinal unit reading a lateral one
+    layers[1] = dataclasses.replace(layers[1], weight=crossed)
+    with pytest.raises(ValueError, match="^the closed-loop certificate needs a two-tower"):
+        li._longitudinal_tower(layers)
+    one = (np.array([20.0]), np.array([21.5]))
+    with_kd = li.LoopParts(controller=dataclasses.replace(li.LoopParts().controller, kd=0.1))
+    with pytest.raises(ValueError, match=r"^the closed-loop bounds cover a PI tracker \(kd = 0\)$"):
+        li.box_period(safeil, one, one, one, (np.array([[-1.5]]), np.array([[0.0]])), (1.5, 1.5),
+                      li.LoopAssumptions(), with_kd)
