@@ -260,26 +260,37 @@ def module_path(module: str) -> Path:
 
 def record() -> int:
     """Write RECORD: per safety-critical module, its counts, kill rate (over the mutants that
-    ran) and code digest, as measured by the last run; refused while a module has no results
-    or an equivalent is stale. Mutants not run are recorded as such."""
+    ran) and code digest, as measured by the last run; a module none of whose mutants ran
+    keeps its last record while its code still matches that record's digest. Refused while a
+    module has neither, or an equivalent is stale. Mutants not run are recorded as such."""
     per_module, _, stale = classify(SAFETY_SCOPE)
-    missing = [m for m in SAFETY_MODULES if m not in per_module]
-    if missing or stale:
-        print(f"not recorded: run every safety module first (missing {missing}, stale "
-              f"equivalents {stale})", file=sys.stderr)
-        return 2
-    modules = {}
+    old = json.loads(RECORD.read_text()) if RECORD.is_file() else {"modules": {}}
+    previous = {path: {**entry, "measured": entry.get("measured", old.get("measured"))}
+                for path, entry in old["modules"].items()}
+    modules, missing = {}, []
     for module in SAFETY_MODULES:
-        c = per_module[module]
+        path = module_path(module)
+        c = per_module.get(module)
+        if c is None or c["not run"] == sum(c.values()):
+            kept = previous.get(str(path))
+            if kept is None or kept["source_digest"] != source_digest(ROOT / path):
+                missing.append(module)
+            else:
+                modules[str(path)] = kept
+            continue
         caught, candidates = kill_rate(c)
-        modules[str(module_path(module))] = {
-            "source_digest": source_digest(ROOT / module_path(module)),
+        modules[str(path)] = {
+            "source_digest": source_digest(ROOT / path),
             "sample_fraction": SAMPLE_FRACTION.get(module, 1.0),
             **{k: c[k] for k in ("killed", "timeout", "equivalent", "survived", "no tests",
                                  "not run")},
-            "kill_rate": round(caught / candidates, 4)}
-    data = {"mutmut": importlib.metadata.version("mutmut"),
-            "measured": datetime.date.today().isoformat(), "modules": modules}
+            "kill_rate": round(caught / candidates, 4),
+            "measured": datetime.date.today().isoformat()}
+    if missing or stale:
+        print(f"not recorded: run these safety modules first (missing {missing}, stale "
+              f"equivalents {stale})", file=sys.stderr)
+        return 2
+    data = {"mutmut": importlib.metadata.version("mutmut"), "modules": modules}
     RECORD.write_text(json.dumps(data, indent=1) + "\n")
     print(f"wrote {RECORD.relative_to(ROOT)}")
     return 0
