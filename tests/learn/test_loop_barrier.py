@@ -253,7 +253,7 @@ def test_check_keeps_each_columns_worst_cell_over_chunks() -> None:
     phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
     phi[3:, :, :] = 20.0  # the columns of speeds 9.5-10 m/s: S empty there
     a = li.LoopAssumptions()
-    deficit, why = lb.cell_deficits(inc, phi, TINY, a)
+    deficit, _ = lb.cell_deficits(inc, phi, TINY, a)
     for rows_per_chunk in (1, 2, 10):
         got = lb.check(inc, phi, TINY, a, rows_per_chunk=rows_per_chunk)
         assert np.array_equal(got.deficit, deficit.max(0))
@@ -347,7 +347,7 @@ def test_synthesize_returns_the_floor_it_checked() -> None:
     assert np.all(lb.floor_bounds(syn.phi)[0] > top) and syn.phi.max() == top + 1.0
     assert syn.rounds[-1][:2] == (0, 0.0) and len(syn.rounds) > 2
     seconds = [r[2] for r in syn.rounds]
-    assert seconds == sorted(seconds) and 0.0 <= seconds[0] and seconds[-1] <= elapsed
+    assert seconds == sorted(seconds) and seconds[0] >= 0.0 and seconds[-1] <= elapsed
 
 
 def test_increments_of_every_cell(safeil) -> None:

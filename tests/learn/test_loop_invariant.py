@@ -303,7 +303,7 @@ def test_box_period_keeps_the_leader_speed_limits(safeil) -> None:
     at 0-0.5 m/s ends within [0, 0.7] m/s."""
     a, parts = li.LoopAssumptions(), li.LoopParts()
     f_box = (np.array([[-1.5]]), np.array([[0.0]]))
-    box = lambda lo, hi: (np.array([lo]), np.array([hi]))  # noqa: E731
+    box = lambda lo, hi: (np.array([lo]), np.array([hi]))
     image, change, _ = li.box_period(safeil, box(60.0, 61.5), box(39.0, 39.5), box(39.99, 40.0),
                                      f_box, (1.5, 1.5), a, parts)
     assert change[2][1][0, 0] == pytest.approx(0.19, abs=1e-6) and image[2][1][0, 0] <= 40.0 + 1e-6
@@ -360,7 +360,7 @@ def test_reference_bounds_of_one_plan_are_its_speed_and_acceleration(safeil) -> 
     a = li.LoopAssumptions(lane_width_m=(3.5, 3.5), lateral_offset_m=(0.0, 0.0),
                            heading_error=(0.0, 0.0), speed_sensing_mps=0.0, gap_sensing_m=0.0)
     states = [(40.0, 25.0, 24.0), (12.0, 30.0, 20.0), (90.0, 15.0, 18.0)]  # gap, v, v_l
-    box = lambda k: (np.array([s[k] for s in states]),) * 2  # noqa: E731
+    box = lambda k: (np.array([s[k] for s in states]),) * 2
     lo, hi = li.network_input_box(box(0), box(1), box(2), (1.5, 1.5), a)
     pb = li.plan_bounds(safeil, lo, hi)
     safeil.set_style(time_gap_s=1.5)
@@ -397,7 +397,7 @@ def test_guard_bounds_reach_a_standing_leader() -> None:
     """A sensed leader speed box reaching below 0: the demand's upper bound is at least the
     guard's demand behind a standing leader braking at the clip (10 m/s^2)."""
     guard = grd.BrakeGuard()
-    box = lambda lo, hi: (np.array([lo]), np.array([hi]))  # noqa: E731
+    box = lambda lo, hi: (np.array([lo]), np.array([hi]))
     _, hi = li.guard_bounds(box(8.0, 9.0), box(12.0, 12.5), box(-0.2, 0.6), guard)
     want = float(grd.guard_decel(8.0, 12.5, 0.0, -guard.max_leader_decel_mps2, guard, ARRAYS))
     assert hi[0] >= want - 1e-9 > 0.0
