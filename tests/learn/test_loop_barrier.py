@@ -404,3 +404,26 @@ def test_synthesize_bounds_the_increments_itself(safeil) -> None:
     own = lb.increments(safeil, TINY, (1.5, 1.5), a, parts)
     assert np.array_equal(syn.increments.lo, own.lo) and np.array_equal(syn.increments.hi,
                                                                          own.hi)
+
+
+@pytest.mark.parametrize("guard_on", [True, False])
+def test_point_boxes_contain_the_real_loop(safeil, guard_on: bool) -> None:
+    """Boxes of one state each (no cell width to hide in): the real loop's state after one
+    period, from random lanes, sensing errors, leaders, integrals and guard estimates, lies in
+    the period's image, and its change in the change bounds."""
+    rng = np.random.default_rng(13)
+    a = li.LoopAssumptions()
+    parts = li.LoopParts() if guard_on else li.LoopParts(guard=None)
+    n = 2000
+    x = [rng.uniform(5.0, 140.0, n), rng.uniform(0.0, 45.0, n), rng.uniform(0.0, 38.0, n),
+         rng.uniform(-9.0, 3.0, n)]
+    image, change, _ = li.box_period(safeil, (x[0], x[0]), (x[1], x[1]), (x[2], x[2]),
+                                     (x[3][:, None], x[3][:, None]), (1.5, 1.5), a, parts)
+    lane, sensing, leader, integral, a_est = _draws(rng, n, a, parts)
+    got = lr.one_period(safeil, *x, lane, 1.5, integral, leader, sensing, a_est, guard_on, a,
+                        li.LoopParts())
+    for k, name in enumerate(("gap", "speed", "leader speed", "force")):
+        lo, hi = image[k][0][:, 0], image[k][1][:, 0]
+        assert np.all((got[k] >= lo) & (got[k] <= hi)), f"{name} outside its image"
+        d_lo, d_hi = change[k][0][:, 0], change[k][1][:, 0]
+        assert np.all((got[k] - x[k] >= d_lo) & (got[k] - x[k] <= d_hi)), f"{name}'s change"
