@@ -22,6 +22,7 @@ import pandas as pd
 from safeil_sumo.learn import loop_adversary as adv
 from safeil_sumo.learn.inference import MLPPolicy
 from safeil_sumo.learn.loop_invariant import Grid, LoopAssumptions, LoopParts, recoverable
+from safeil_sumo.learn.loop_rollout import leader_speed
 from safeil_sumo.scenarios.spec import ScenarioSpec, build_scenario, resolve_road
 from safeil_sumo.sim import brake_guard as grd
 from safeil_sumo.sim.leaders import SpeedProfile, piecewise
@@ -44,14 +45,15 @@ def cruising_force(v_mps: np.ndarray, vehicle: VehicleParams) -> np.ndarray:
 def leader_profile(leader: adv.LeaderStrategy, speed_mps: float, seconds: float,
                    a: LoopAssumptions) -> SpeedProfile:
     """``leader`` from ``speed_mps`` [m/s] as a piecewise-linear speed profile, a knot at every
-    physics step: the speed updated as the rollout updates it (clipped to ``[0,
-    a.speed_limit_mps]``), which SUMO reads at each step's end."""
+    physics step: the speed updated as the rollout updates it
+    (:func:`~safeil_sumo.learn.loop_rollout.leader_speed`), which SUMO reads at each step's
+    end."""
     period = a.step_s * a.steps_per_decision
     periods = math.ceil(seconds / period - 1e-9)
     acc = np.repeat(leader.accel(periods, period, a), a.steps_per_decision)
     speeds = [float(speed_mps)]
     for x in acc:
-        speeds.append(min(max(speeds[-1] + x * a.step_s, 0.0), a.speed_limit_mps))
+        speeds.append(float(leader_speed(speeds[-1], x, a)))
     return piecewise(list(np.arange(len(speeds)) * a.step_s), speeds)
 
 

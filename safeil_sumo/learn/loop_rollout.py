@@ -182,6 +182,12 @@ def _decide(policy: MLPPolicy, loop: _Loop, sensing: np.ndarray, a: LoopAssumpti
     return target, grd.guard_decel(gap_s, v_s, vl_s, a_lead, guard, ARRAYS)
 
 
+def leader_speed(v_mps: Any, accel_mps2: Any, a: LoopAssumptions) -> Any:
+    """The leader's speed [m/s] one physics step after ``v_mps`` at ``accel_mps2`` [m/s^2]
+    (floats or arrays): explicit Euler, kept in ``[0, a.speed_limit_mps]``."""
+    return np.clip(v_mps + accel_mps2 * a.step_s, 0.0, a.speed_limit_mps)
+
+
 def _physics_step(loop: _Loop, target: ctl.BatchTarget, t_plan: float, demand: Any,
                   leader_accel: np.ndarray, guard_on: bool, a: LoopAssumptions,
                   parts: LoopParts, plant: veh.Plant, t_now: float) -> None:
@@ -196,7 +202,7 @@ def _physics_step(loop: _Loop, target: ctl.BatchTarget, t_plan: float, demand: A
         accel = _override(accel, demand, vehicle)
     throttle, brake = veh.pedals_from_accel_vx(accel, state[3], vehicle, ARRAYS)
     loop.plant = state = plant.step(state, steer, throttle, brake, ARRAYS)
-    loop.lead_v = np.clip(loop.lead_v + leader_accel * dt, 0.0, a.speed_limit_mps)
+    loop.lead_v = leader_speed(loop.lead_v, leader_accel, a)
     loop.lead_x = loop.lead_x + loop.lead_v * dt
     gap = loop.lead_x - (state[0] + d * np.cos(state[2]))
     loop.t_min = np.where(gap < loop.g_min, t_now, loop.t_min)

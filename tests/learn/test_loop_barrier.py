@@ -205,10 +205,16 @@ TINY = li.Grid(gap_m=(1.0, 10.0, 1.5), speed_mps=(8.0, 10.0, 0.5),
                leader_speed_mps=(8.0, 10.0, 0.5), force_mps2=(-3.0, 0.0, 1.5))
 
 
-def _hand_increments(dg_lo: float = -0.2, dv_lo: float = -0.05) -> lb.Increments:
+def _flat_floor(grid: li.Grid, gap_m: float) -> np.ndarray:
+    """A floor at ``gap_m`` [m] on every node of the grid's lattice."""
+    return np.full(tuple(len(e) for e in lb.lattice_axes(grid)), gap_m)
+
+
+def _hand_increments(dg_lo: float = -0.2, dv_lo: float = -0.05,
+                     grid: li.Grid = TINY) -> lb.Increments:
     """Every cell: the gap changes by [dg_lo, 0.1], the speeds by [dv_lo, 0.05], the force
     not at all; hulls within the own cell; the gap dips 0.3 m within the period."""
-    shape = TINY.shape
+    shape = grid.shape
     lo, hi = np.zeros((4, *shape)), np.zeros((4, *shape))
     lo[0], hi[0], lo[1:3], hi[1:3] = dg_lo, 0.1, dv_lo, 0.05
     own = np.stack(np.indices(shape)[1:]).astype(np.int16)
@@ -226,7 +232,7 @@ def test_cell_deficits_by_hand() -> None:
     inc.dip[2, 1, 1, 0] = -3.5
     inc.dip[3, 1, 1, 0] = -4.0
     inc.off_grid[3, 2, 2, 1] = inc.off_grid[2, 2, 2, 1] = True
-    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
+    phi = _flat_floor(TINY, 4.0)
     deficit, why = lb.cell_deficits(inc, phi, TINY, li.LoopAssumptions())
     fm = li.FLOAT_MARGIN
     fails = -(-0.2 - fm * (1.0 + 3.0 * 0.0 + 0.2))  # h_lo <= 0: the whole fall is the deficit
@@ -250,7 +256,7 @@ def test_check_keeps_each_columns_worst_cell_over_chunks() -> None:
     inc = _hand_increments()
     inc.dip[2, 1, 1, 0] = -3.5
     inc.off_grid[4, 0, 3, 1] = True
-    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
+    phi = _flat_floor(TINY, 4.0)
     phi[3:, :, :] = 20.0  # the columns of speeds 9.5-10 m/s: S empty there
     a = li.LoopAssumptions()
     deficit, _ = lb.cell_deficits(inc, phi, TINY, a)
@@ -269,18 +275,10 @@ def test_check_keeps_each_columns_worst_cell_over_chunks() -> None:
 def test_a_hull_longer_than_the_windows_fails() -> None:
     """A cell whose hull spans more lattice cells than the slope windows reach fails with an
     infinite deficit; its neighbours' do not."""
-    inc = _hand_increments()
-    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
     wide = dataclasses.replace(TINY, speed_mps=(0.0, 20.0, 0.5))  # 40 speed cells
-    shape = wide.shape
-    inc = lb.Increments(*(np.broadcast_to(x[:, :, :1], (x.shape[0], *shape)).copy()
-                          if x.ndim == 5 else np.broadcast_to(x[:, :1], shape).copy()
-                          for x in (inc.lo, inc.hi)), *(None,) * 4, 1.0)
-    own = np.stack(np.indices(shape)[1:]).astype(np.int16)
-    inc.first, inc.last = own.copy(), own.copy()
-    inc.dip, inc.off_grid = np.full(shape, -0.3), np.zeros(shape, bool)
+    inc = _hand_increments(grid=wide)
     inc.last[0, 3, 0, 0, 0] = 3 + 2 * lb.SLOPE_WINDOW  # hull 2 * window + 1 cells along v
-    phi = np.full(tuple(len(e) for e in lb.lattice_axes(wide)), 4.0)
+    phi = _flat_floor(wide, 4.0)
     deficit, why = lb.cell_deficits(inc, phi, wide, li.LoopAssumptions())
     assert deficit[3, 0, 0, 0] == np.inf and why[3, 0, 0, 0] == lb.HULL_TOO_LONG
     assert np.isfinite(deficit[3, 1, 0, 0]) and why[3, 1, 0, 0] == lb.OK
@@ -307,7 +305,7 @@ def test_raised_nodes_by_hand() -> None:
     5.1 m (deficit + step), the rise spreads to every node less 2 m per v node, 2 m per v_l node
     and 4.5 m per f node (slopes 4, 4, 3 times the widths 0.5, 0.5, 1.5), and the floor is cut at
     the ceiling."""
-    phi = np.full(tuple(len(e) for e in lb.lattice_axes(TINY)), 4.0)
+    phi = _flat_floor(TINY, 4.0)
     deficit = np.full(TINY.shape[1:], -1.0)
     deficit[1, 2, 0] = 5.0
     got = lb._raise_nodes(phi, deficit, 0.1, 100.0, TINY, (4.0, 4.0, 3.0))
